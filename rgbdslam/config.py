@@ -1,0 +1,281 @@
+"""Typed configuration.
+
+Every algorithm parameter lives here, grouped in one dataclass per stage. Presets are
+YAML files in ``configs/`` that override the defaults below; ``--set section.key=value``
+overrides a preset. Unknown keys and values of the wrong type are rejected with a
+message naming the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, get_args, get_origin, get_type_hints
+
+import yaml
+
+from rgbdslam.errors import ConfigError
+
+PRESET_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+@dataclass
+class DatasetConfig:
+    kind: Literal["auto", "tum", "put", "synthetic"] = "auto"
+    # TUM association (semantics of TUM's associate.py)
+    max_difference: float = 0.02
+    offset: float = 0.0
+    associations: str | None = None  # optional existing associations file
+    # Camera: "auto" picks freiburg1/2/3 from the folder name, else the named model
+    camera: Literal["auto", "fr1", "fr2", "fr3", "kinect1", "ros_default"] = "auto"
+    depth_scale: float | None = None  # raw units per metre; None = source default
+    depth_correction: float = 1.0  # multiply metric depth (off = 1.0)
+    first_frame: int = 0
+    max_frames: int | None = None
+    stride: int = 1
+
+
+@dataclass
+class FeaturesConfig:
+    n_features: int = 1000
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    fast_threshold: int = 20
+    edge_threshold: int = 19
+    grid_rows: int = 1  # >1 enables bucketing: features spread over a grid
+    grid_cols: int = 1
+    undistort: bool = True
+
+
+@dataclass
+class MatchingConfig:
+    cross_check: bool = True
+    ratio: float | None = None  # Lowe ratio test (None = off)
+    max_hamming: int = 64
+    prefilter: Literal["none", "homography", "fundamental", "rigid3d"] = "rigid3d"
+    prefilter_threshold: float = 0.03  # metres for rigid3d, pixels for 2-D models
+    prefilter_iterations: int = 200
+    min_depth: float = 0.1
+    max_depth: float = 6.0
+
+
+@dataclass
+class RegistrationConfig:
+    method: Literal["ransac", "isvd", "islam"] = "islam"
+    # RANSAC baseline
+    ransac_iterations: int = 200
+    ransac_threshold: float = 0.03
+    # ISVD (spec section 1)
+    max_iterations: int = 10
+    e_start: float = 0.2
+    e_min: float = 0.01
+    # ISLAM (spec section 2)
+    mp: int = 4
+    alpha: float = 0.2
+    beta: float = -1.0
+    min_error: float = 0.01
+    min_points: int = 12
+    fusion: Literal["thesis", "chordal"] = "chordal"
+    reject_translation: float = 0.05  # candidate disagreement gates (m, rad)
+    reject_rotation: float = 0.05
+    threads: int = 1
+    constant_velocity: bool = True
+    seed: int = 0
+
+
+@dataclass
+class DepthFilterConfig:
+    enabled: bool = False
+    window: int = 3  # K previous filtered frames warped into the current one
+    spatial_radius: int = 1
+    tolerance_a: float = 0.01  # agreement tolerance = a + b * z^2 (metres)
+    tolerance_b: float = 0.0035
+    min_support: int = 2
+    min_depth: float = 0.3
+    max_depth: float = 5.0
+
+
+@dataclass
+class KeyframeConfig:
+    min_translation: float = 0.10
+    min_rotation_deg: float = 10.0
+    max_gap: int = 15  # frames
+
+
+@dataclass
+class LoopConfig:
+    enabled: bool = False
+    sharpness_factor: float = 1.2
+    sharpness_window: int = 20
+    skip_recent: int = 20  # keyframes
+    max_candidates: int = 3
+    min_inliers: int = 40
+    max_residual: float = 0.02
+    index: Literal["bow", "lsh", "multi_kdtree"] = "lsh"
+
+
+@dataclass
+class BackendConfig:
+    enabled: bool = False
+    init: Literal["masat", "weighted_masat", "odometry", "spanning_tree"] = "masat"
+    robust_kernel: Literal["none", "huber", "cauchy"] = "cauchy"
+    kernel_width: float = 1.0
+    isam2: bool = True
+
+
+@dataclass
+class MappingConfig:
+    enabled: bool = True
+    voxel_size: float = 0.01
+    tsdf_voxel: float = 0.01
+    sdf_trunc: float = 0.04
+    depth_max: float = 3.0
+    keyframes_only: bool = True
+    outlier_neighbors: int = 20
+    outlier_std: float = 2.0
+    grid_resolution: float = 0.05
+
+
+@dataclass
+class OutputConfig:
+    rerun: bool = False
+    rerun_save: str | None = None
+    plots: bool = True
+
+
+@dataclass
+class Config:
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    features: FeaturesConfig = field(default_factory=FeaturesConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    depth_filter: DepthFilterConfig = field(default_factory=DepthFilterConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def dump(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _check_value(key: str, value: Any, hint: Any) -> Any:
+    """Return ``value`` converted to ``hint`` or raise ConfigError naming ``key``."""
+    origin = get_origin(hint)
+    if origin is Literal:
+        allowed = get_args(hint)
+        if value not in allowed:
+            raise ConfigError(
+                f"config key '{key}' must be one of {', '.join(map(str, allowed))}; got {value!r}"
+            )
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _check_value(key, value, a)
+            except ConfigError as e:
+                errors.append(str(e))
+        raise ConfigError(errors[0] if errors else f"config key '{key}' has an invalid value {value!r}")
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+    elif hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif hint is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif hint is str:
+        if isinstance(value, str):
+            return value
+    else:  # pragma: no cover - only the types above are used
+        return value
+    raise ConfigError(
+        f"config key '{key}' expects {getattr(hint, '__name__', hint)}; got {value!r}"
+    )
+
+
+def _apply(section_obj: Any, section: str, values: dict[str, Any], source: str) -> None:
+    hints = get_type_hints(type(section_obj))
+    for k, v in values.items():
+        if k not in hints:
+            known = ", ".join(hints)
+            raise ConfigError(f"unknown config key '{section}.{k}' in {source}; known keys: {known}")
+        setattr(section_obj, k, _check_value(f"{section}.{k}", v, hints[k]))
+
+
+def merge(cfg: Config, data: dict[str, Any] | None, source: str = "config") -> Config:
+    """Apply a nested mapping (as read from YAML) onto ``cfg`` in place and return it."""
+    if not data:
+        return cfg
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source} must be a mapping of sections (dataset:, features:, ...)")
+    sections = {f.name for f in dataclasses.fields(Config)}
+    for section, values in data.items():
+        if section not in sections:
+            raise ConfigError(
+                f"unknown config section '{section}' in {source}; known sections: {', '.join(sorted(sections))}"
+            )
+        if values is None:
+            continue
+        if not isinstance(values, dict):
+            raise ConfigError(f"config section '{section}' in {source} must be a mapping")
+        _apply(getattr(cfg, section), section, values, source)
+    return cfg
+
+
+def resolve_preset(name_or_path: str | Path) -> Path:
+    """A path to a YAML file, or the name of a preset in ``configs/`` (``tum_fr1``)."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    cand = PRESET_DIR / f"{name_or_path}.yaml"
+    if cand.is_file():
+        return cand
+    presets = ", ".join(sorted(x.stem for x in PRESET_DIR.glob("*.yaml")))
+    raise ConfigError(f"config file {name_or_path} not found; give a YAML path or one of the presets: {presets}")
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Defaults, then the YAML file (if any), then ``section.key=value`` overrides."""
+    cfg = Config()
+    if path is not None:
+        p = resolve_preset(path)
+        try:
+            data = yaml.safe_load(p.read_text())
+        except yaml.YAMLError as e:
+            raise ConfigError(f"config file {p} is not valid YAML ({e.__class__.__name__}); fix its syntax") from None
+        merge(cfg, data, str(p))
+    for item in overrides:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise ConfigError(f"override '{item}' must look like section.key=value")
+        key, raw = item.split("=", 1)
+        section, name = key.split(".", 1)
+        try:
+            value = yaml.safe_load(raw) if raw != "" else None
+        except yaml.YAMLError:
+            value = raw
+        merge(cfg, {section: {name: value}}, f"--set {item}")
+    return cfg
+
+
+def save_config(cfg: Config, path: str | Path) -> None:
+    from rgbdslam.io.atomic import atomic_write_text
+
+    atomic_write_text(path, cfg.dump())

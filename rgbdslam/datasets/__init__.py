@@ -1,0 +1,61 @@
+"""Sequence readers behind one interface, and a registry that picks the reader for a folder.
+
+Each source lives in its own module and registers itself with :func:`register`:
+``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes) and ``put`` (POZNAN/PUT
+Kinect layout).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from rgbdslam.datasets.base import Frame, Sequence
+from rgbdslam.errors import InputError
+
+# name -> (detector(path) -> bool, factory(path, dataset_config) -> Sequence)
+_REGISTRY: dict[str, tuple[Callable[[Path], bool], Callable[..., Sequence]]] = {}
+
+
+def register(name: str, detect: Callable[[Path], bool]):
+    def deco(factory: Callable[..., Sequence]):
+        _REGISTRY[name] = (detect, factory)
+        return factory
+
+    return deco
+
+
+def available() -> list[str]:
+    _load_builtin()
+    return sorted(_REGISTRY)
+
+
+def _load_builtin() -> None:
+    # Importing the modules registers them.
+    from rgbdslam.datasets import put, tum  # noqa: F401
+
+
+def open_sequence(path: str | Path, cfg=None) -> Sequence:
+    """Open the sequence in ``path`` with the reader named by ``cfg.kind`` (or detected)."""
+    from rgbdslam.config import DatasetConfig
+
+    _load_builtin()
+    cfg = cfg or DatasetConfig()
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"sequence folder {path} does not exist; check the path (TUM data sets live under ../shared/data/tum)")
+    if not path.is_dir():
+        raise InputError(f"{path} is not a folder; give the sequence's folder (the one with rgb.txt or matched)")
+    kind = cfg.kind
+    if kind in ("auto", "synthetic"):
+        kind = next((n for n, (detect, _) in _REGISTRY.items() if detect(path)), None)
+        if kind is None:
+            raise InputError(
+                f"{path} is not a known sequence layout: expected rgb.txt and depth.txt (TUM) or a 'matched' file (PUT)"
+            )
+    if kind not in _REGISTRY:
+        raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
+    return _REGISTRY[kind][1](path, cfg)
+
+
+__all__ = ["Frame", "Sequence", "open_sequence", "register", "available"]

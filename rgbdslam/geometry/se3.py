@@ -1,0 +1,61 @@
+"""Small SE(3)/SO(3) helpers on 4x4 / 3x3 NumPy arrays."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t).reshape(3)
+    return T
+
+
+def inv(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (or a stack of them, shape (..., 4, 4))."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Ti = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    Ti[..., :3, :3] = Rt
+    Ti[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    Ti[..., 3, 3] = 1.0
+    return Ti
+
+
+def transform_points(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N, 3) points."""
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle (rad) of rotation matrices, shape (..., 3, 3)."""
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def project_to_so3(M: np.ndarray) -> np.ndarray:
+    """Closest rotation to a 3x3 matrix in the Frobenius norm (chordal projection)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def pose_from_tum(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+    """4x4 poses from TUM translation (N,3) and quaternion (N,4) in x y z w order."""
+    t = np.atleast_2d(t)
+    q = np.atleast_2d(q_xyzw)
+    T = np.tile(np.eye(4), (len(t), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+    T[:, :3, 3] = t
+    return T
+
+
+def pose_to_tum(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Translation (N,3) and unit quaternion (N,4, x y z w, w >= 0) of poses (N,4,4)."""
+    T = np.asarray(T).reshape(-1, 4, 4)
+    q = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+    q[q[:, 3] < 0] *= -1
+    return T[:, :3, 3].copy(), q

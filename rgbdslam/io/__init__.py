@@ -1,0 +1,1 @@
+"""File formats: TUM trajectories and atomic writes."""

@@ -1,0 +1,88 @@
+"""TUM trajectory files: ``timestamp tx ty tz qx qy qz qw`` per line, '#' comments."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rgbdslam.errors import InputError
+from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
+from rgbdslam.io.atomic import atomic_write_text
+
+
+@dataclass
+class Trajectory:
+    """Timestamped camera-to-world poses: ``timestamps`` (N,), ``poses`` (N, 4, 4)."""
+
+    timestamps: np.ndarray
+    poses: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
+        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(self.timestamps) != len(self.poses):
+            raise ValueError("timestamps and poses differ in length")
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
+
+    def subset(self, idx: np.ndarray) -> "Trajectory":
+        return Trajectory(self.timestamps[idx], self.poses[idx])
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory; malformed lines are reported with file and line number."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"trajectory file {path} does not exist; check the path")
+    stamps, rows = [], []
+    with path.open() as f:
+        for lineno, line in enumerate(f, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = s.replace(",", " ").split()
+            try:
+                vals = [float(x) for x in parts]
+            except ValueError:
+                raise InputError(
+                    f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw'; got {s[:60]!r}"
+                ) from None
+            if len(vals) != 8:
+                raise InputError(
+                    f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw'; got {len(vals)}"
+                )
+            q = np.array(vals[4:8])
+            n = np.linalg.norm(q)
+            if not np.isfinite(vals).all() or n < 1e-9:
+                raise InputError(f"{path}:{lineno}: non-finite value or zero quaternion; fix or delete the line")
+            stamps.append(vals[0])
+            rows.append(vals[1:8])
+    if not rows:
+        raise InputError(f"trajectory file {path} holds no poses; it must have lines 'timestamp tx ty tz qx qy qz qw'")
+    a = np.array(rows)
+    order = np.argsort(np.array(stamps), kind="stable")
+    return Trajectory(np.array(stamps)[order], pose_from_tum(a[order, :3], a[order, 3:7]))
+
+
+def format_tum(traj: Trajectory) -> str:
+    if len(traj) == 0:
+        return "# timestamp tx ty tz qx qy qz qw\n"
+    t, q = pose_to_tum(traj.poses)
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for ts, p, r in zip(traj.timestamps, t, q):
+        lines.append(
+            f"{ts:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {r[0]:.9f} {r[1]:.9f} {r[2]:.9f} {r[3]:.9f}"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_tum(traj: Trajectory, path: str | Path) -> None:
+    """Write atomically: the file is either the old one or the complete new one."""
+    atomic_write_text(path, format_tum(traj))
