@@ -1,0 +1,377 @@
+"""The SLAM orchestrator: one frame's way through the stages, and a whole run.
+
+``SLAM`` composes the stage objects chosen by the config::
+
+    Frame ─▶ frontend.track   (ORB features, matching, ISVD/ISLAM registration → pose or lost)
+          ─▶ depth_filter     (DIF, needs the pose; filtered depth goes back to the front end)
+          ─▶ loop.observe     (sharpness gate) ─▶ loop.detect (sharp frames only)
+          ─▶ keyframes        (motion policy; loops force a keyframe)
+          ─▶ graph            (GTSAM pose graph over keyframes, initial values from MASAT)
+
+``run_sequence`` drives ``SLAM`` over a sequence and writes the run folder (see
+``docs/formats.md``): trajectories, the config used, ``run.json``, evaluation and map.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rgbdslam import __version__
+from rgbdslam.config import Config, save_config
+from rgbdslam.datasets import Frame, Sequence, open_sequence
+from rgbdslam.errors import InputError, TrackingLost
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv
+from rgbdslam.io.atomic import atomic_path, atomic_write_text
+from rgbdslam.io.trajectory import Trajectory, write_tum
+
+FLUSH_EVERY = 50  # frames between intermediate trajectory writes
+
+
+@dataclass
+class FrameRecord:
+    """What the orchestrator keeps of a tracked frame (small: no images)."""
+
+    index: int
+    timestamp: float
+    pose: np.ndarray  # front-end (odometry) pose, camera-to-world
+    keyframe: int  # frame index of the keyframe this frame hangs from
+
+
+@dataclass
+class SlamState:
+    records: list[FrameRecord] = field(default_factory=list)
+    keyframes: list[int] = field(default_factory=list)
+    loops: list[tuple[int, int]] = field(default_factory=list)
+    lost: list[int] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
+    timings: dict[str, list[float]] = field(default_factory=dict)
+    sharp: int = 0
+
+    def add_time(self, stage: str, seconds: float) -> None:
+        self.timings.setdefault(stage, []).append(seconds)
+
+
+class SLAM:
+    """Composes the stages built from a typed config and tracks one frame at a time."""
+
+    def __init__(self, cfg: Config, camera: Camera, observer: Any | None = None,
+                 keyframe_dir: Path | None = None):
+        from rgbdslam.frontend.keyframes import KeyframePolicy
+        from rgbdslam.frontend.odometry import build_frontend
+
+        self.cfg = cfg
+        self.camera = camera
+        self.observer = observer
+        self.keyframe_dir = keyframe_dir
+        self.frontend = build_frontend(cfg, camera)
+        self.keyframe_policy = KeyframePolicy(cfg.keyframes)
+        self.depth_filter = None
+        if cfg.depth_filter.enabled:
+            from rgbdslam.frontend.depth_filter import DepthFilter
+
+            self.depth_filter = DepthFilter(cfg.depth_filter, camera)
+        self.loop = None
+        if cfg.loop.enabled:
+            from rgbdslam.loop.detector import LoopCloser
+
+            self.loop = LoopCloser(cfg, camera)
+        self.graph = None
+        if cfg.backend.enabled or cfg.loop.enabled:
+            from rgbdslam.backend.slam_graph import PoseGraph
+
+            self.graph = PoseGraph(cfg.backend)
+        self.state = SlamState()
+        self._last_kf: FrameRecord | None = None
+        self._info_since_kf: list[np.ndarray] = []
+
+    # ------------------------------------------------------------------ one frame
+    def track(self, frame: Frame):
+        st = self.state
+        result = self.frontend.track(frame)
+        for k, v in (getattr(result, "timings", None) or {}).items():
+            st.add_time(k, v)
+        if result.lost or result.pose is None:
+            st.lost.append(frame.index)
+            if self.observer is not None:
+                self.observer.log_frame(frame, result)
+            return result
+        pose = result.pose
+        if getattr(result, "information", None) is not None:
+            self._info_since_kf.append(result.information)
+
+        depth = frame.depth
+        if self.depth_filter is not None:
+            t0 = time.perf_counter()
+            depth = self.depth_filter(frame.depth, pose)
+            self.frontend.set_depth(frame.index, depth)
+            st.add_time("depth_filter", time.perf_counter() - t0)
+
+        loops = []
+        if self.loop is not None:
+            t0 = time.perf_counter()
+            if self.loop.observe(result.features):
+                st.sharp += 1
+                loops = self.loop.detect(result.features, pose)
+            st.add_time("loop_closure", time.perf_counter() - t0)
+
+        is_kf = self.keyframe_policy.is_keyframe(frame.index, pose) or bool(loops)
+        if is_kf:
+            self._add_keyframe(frame, result, pose, depth)
+        rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
+        st.records.append(rec)
+        if is_kf:
+            self._last_kf = rec
+        if loops and self.graph is not None:
+            t0 = time.perf_counter()
+            for e in loops:
+                self.graph.add_loop(e)
+                st.loops.append((int(e.i), int(e.j)))
+                if self.observer is not None:
+                    self.observer.log_loop(e.i, e.j, self._pose_of(e.i), pose)
+            st.add_time("pose_graph", time.perf_counter() - t0)
+        if self.observer is not None:
+            self.observer.log_frame(frame, result)
+        return result
+
+    def _pose_of(self, index: int) -> np.ndarray | None:
+        for r in reversed(self.state.records):
+            if r.index == index:
+                return r.pose
+        return None
+
+    def _add_keyframe(self, frame: Frame, result, pose: np.ndarray, depth: np.ndarray) -> None:
+        st = self.state
+        st.keyframes.append(frame.index)
+        if self.graph is not None:
+            self.graph.add_node(frame.index, pose)
+            if self._last_kf is not None:
+                T_ij = inv(self._last_kf.pose) @ pose
+                self.graph.add_odometry(self._last_kf.index, frame.index, T_ij, self._keyframe_information())
+        self._info_since_kf = []
+        if self.loop is not None:
+            self.loop.add_keyframe(result.features, pose)
+        if self.keyframe_dir is not None and self.depth_filter is not None:
+            _write_depth_png(self.keyframe_dir / f"depth_{frame.index:06d}.png", depth)
+
+    def _keyframe_information(self) -> np.ndarray:
+        """Information of the chained relative pose between two keyframes.
+
+        Covariances of the chained frame-to-frame registrations add up (to first order,
+        ignoring the rotation of the frames), so the information is the inverse of the sum
+        of the per-frame covariances.
+        """
+        infos = self._info_since_kf or [np.eye(6) * 1e4]
+        cov = sum(np.linalg.inv(I) for I in infos)
+        return np.linalg.inv(cov)
+
+    # ---------------------------------------------------------------- trajectories
+    def odometry(self) -> Trajectory:
+        recs = self.state.records
+        return Trajectory(np.array([r.timestamp for r in recs]), np.array([r.pose for r in recs]).reshape(-1, 4, 4))
+
+    def finish(self) -> Trajectory:
+        """Optimise the pose graph (if any) and return every tracked frame's final pose.
+
+        Non-keyframes follow their keyframe: final = optimised(kf) · odo(kf)⁻¹ · odo(frame).
+        """
+        odo = self.odometry()
+        if self.graph is None or not self.state.keyframes:
+            return odo
+        t0 = time.perf_counter()
+        optimised = self.graph.optimize()
+        self.state.add_time("pose_graph", time.perf_counter() - t0)
+        kf_pose = {r.index: r.pose for r in self.state.records if r.index == r.keyframe}
+        poses = []
+        for r in self.state.records:
+            if r.keyframe in optimised:
+                poses.append(optimised[r.keyframe] @ inv(kf_pose[r.keyframe]) @ r.pose)
+            else:
+                poses.append(r.pose)
+        return Trajectory(odo.timestamps, np.array(poses).reshape(-1, 4, 4))
+
+
+def _write_depth_png(path: Path, depth: np.ndarray, scale: float = 5000.0) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    d = np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16)
+    with atomic_path(path) as tmp:  # the temporary name keeps the .png suffix cv2 needs
+        cv2.imwrite(str(tmp), d)
+
+
+# ----------------------------------------------------------------------------- a whole run
+
+
+def _make_observer(cfg: Config, camera: Camera, gt: Trajectory | None):
+    if not (cfg.output.rerun or cfg.output.rerun_save):
+        return None
+    from rgbdslam.viz.rerun_log import RerunLogger
+
+    return RerunLogger(cfg, camera, gt, spawn=cfg.output.rerun, save_path=cfg.output.rerun_save)
+
+
+def _summary(seq: Sequence, slam: SLAM, n_frames: int, wall: float, load_time: float,
+             interrupted: bool) -> dict[str, Any]:
+    st = slam.state
+    tracked = len(st.records)
+    proc = max(wall - load_time, 1e-9)
+    per_stage = {k: {"median_ms": 1e3 * float(np.median(v)), "total_s": float(np.sum(v))}
+                 for k, v in st.timings.items() if v}
+    return {
+        "version": __version__,
+        "sequence": str(Path(seq.root).resolve()),
+        "dataset_kind": type(seq).__name__,
+        "camera": seq.camera.name,
+        "frames": n_frames,
+        "tracked": tracked,
+        "lost": len(st.lost),
+        "skipped": len(st.skipped),
+        "lost_frames": st.lost,
+        "skipped_frames": st.skipped,
+        "keyframes": st.keyframes,
+        "timestamps_keyframes": [r.timestamp for r in st.records if r.index == r.keyframe],
+        "loops": [list(x) for x in st.loops],
+        "sharp_frames": st.sharp,
+        "wall_time_s": wall,
+        "load_time_s": load_time,
+        "fps": n_frames / wall if wall > 0 else math.nan,
+        "processing_fps": n_frames / proc,
+        "timings": per_stage,
+        "interrupted": interrupted,
+    }
+
+
+def _write_outputs(out_dir: Path, slam: SLAM, summary: dict, final: Trajectory | None) -> None:
+    odo = slam.odometry()
+    write_tum(odo, out_dir / "odometry.tum")
+    write_tum(final if final is not None else odo, out_dir / "trajectory.tum")
+    atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
+
+
+def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Config,
+                 progress: bool = True) -> dict[str, Any]:
+    """Run SLAM over a sequence and write the run folder; returns the run summary.
+
+    Ctrl-C stops the run after the current frame: everything tracked so far is written
+    (``run.json`` says ``interrupted``) and KeyboardInterrupt is raised again.
+    """
+    from rgbdslam.ui import console, frame_progress
+
+    seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out_dir / "config.yaml")
+    gt = seq.groundtruth()
+    observer = _make_observer(cfg, seq.camera, gt)
+    slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes")
+
+    n = len(seq)
+    if n == 0:
+        raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
+    interrupted = False
+    load_time = 0.0
+    t_start = time.perf_counter()
+    try:
+        with frame_progress(n, f"SLAM {seq.name}", enabled=progress) as advance:
+            for i in range(n):
+                t0 = time.perf_counter()
+                try:
+                    frame = seq.load(i)
+                except InputError as e:
+                    slam.state.skipped.append(i)
+                    console.print(f"[yellow]warning:[/] skipped frame {i}: {e}")
+                    advance()
+                    continue
+                load_time += time.perf_counter() - t0
+                slam.track(frame)
+                advance()
+                if (i + 1) % FLUSH_EVERY == 0 and slam.state.records:
+                    write_tum(slam.odometry(), out_dir / "odometry.tum")
+                    write_tum(slam.odometry(), out_dir / "trajectory.tum")
+    except KeyboardInterrupt:
+        interrupted = True
+    wall = time.perf_counter() - t_start
+    n_done = len(slam.state.records) + len(slam.state.lost) + len(slam.state.skipped)
+
+    if not slam.state.records:
+        summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
+        atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
+        if interrupted:
+            raise KeyboardInterrupt
+        raise TrackingLost(
+            f"no frame of {seq.root} could be tracked; check that depth images are valid and the camera "
+            f"preset matches (--config), e.g. tum_fr1 for freiburg1"
+        )
+    final = slam.finish()
+    summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
+    _write_outputs(out_dir, slam, summary, final)
+
+    if gt is not None and len(final) > 1:
+        summary["evaluation"] = _evaluate(gt, final, out_dir, cfg, console)
+        atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
+    if observer is not None:
+        observer.log_trajectory("estimate", final)
+        if gt is not None:
+            observer.log_trajectory("groundtruth", gt)
+    if cfg.mapping.enabled and not interrupted:
+        from rgbdslam.mapping.fusion import fuse_run
+
+        fused = fuse_run(out_dir, cfg.mapping, progress=progress)
+        summary["map"] = getattr(fused, "summary", lambda: {})() if hasattr(fused, "summary") else {}
+        if observer is not None and getattr(fused, "cloud_points", None) is not None:
+            observer.log_map(fused.cloud_points, fused.cloud_colors)
+    if observer is not None:
+        observer.close()
+    _print_summary(summary, out_dir, console)
+    if interrupted:
+        raise KeyboardInterrupt
+    return summary
+
+
+def _evaluate(gt: Trajectory, est: Trajectory, out_dir: Path, cfg: Config, console) -> dict[str, Any]:
+    from rgbdslam.evaluation.report import evaluate_trajectories
+
+    plot_dir = out_dir / "plots" if cfg.output.plots else None
+    try:
+        rep = evaluate_trajectories(gt, est, json_path=out_dir / "evaluation.json", plot_dir=plot_dir)
+    except InputError as e:
+        console.print(f"[yellow]warning:[/] no evaluation: {e}")
+        return {}
+    return rep.to_dict() if hasattr(rep, "to_dict") else {}
+
+
+def _print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
+    msg = (f"{s['frames']} frames, {s['tracked']} tracked, {s['lost']} lost"
+           + (f", {s['skipped']} unreadable" if s["skipped"] else "")
+           + f", {len(s['keyframes'])} keyframes, {len(s['loops'])} loops; "
+           f"{s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without image decoding)")
+    console.print(msg)
+    ev = s.get("evaluation") or {}
+    ate = (ev.get("ate") or {}).get("rmse")
+    if ate is not None:
+        console.print(f"ATE RMSE {ate:.4f} m over {ev['ate'].get('n_pairs', '?')} poses")
+    console.print(f"outputs in {out_dir}")
+
+
+def run_demo(out_dir: str | Path, frames: int, cfg: Config) -> dict[str, Any]:
+    """Generate the embedded synthetic sequence (once) and run SLAM on it."""
+    from rgbdslam.datasets.synthetic import generate_sequence
+    from rgbdslam.ui import console
+
+    out_dir = Path(out_dir)
+    seq_dir = out_dir / "sequence"
+    marker = seq_dir / "demo.json"
+    want = {"frames": frames, "motion": "loop", "noise": True, "seed": 0}
+    if not marker.exists() or json.loads(marker.read_text()) != want:
+        console.print(f"generating a synthetic sequence of {frames} frames in {seq_dir}")
+        generate_sequence(seq_dir, frames=frames, motion="loop", noise=True, seed=0)
+        atomic_write_text(marker, json.dumps(want))
+    return run_sequence(seq_dir, out_dir / "run", cfg)
