@@ -29,13 +29,15 @@ class DatasetConfig:
     max_difference: float = 0.02
     offset: float = 0.0
     associations: str | None = None  # optional existing associations file
-    # Camera: "auto" picks freiburg1/2/3 from the folder name, else the named model
+    # Camera: "auto" = camera.yaml in the folder, else freiburg1/2/3 from the folder name
+    # (TUM; ros_default otherwise) or kinect1 (PUT); else the named model
     camera: Literal["auto", "fr1", "fr2", "fr3", "kinect1", "ros_default"] = "auto"
-    depth_scale: float | None = None  # raw units per metre; None = source default
+    depth_scale: float | None = None  # raw units per metre; None = source default (TUM 5000, PUT 1000)
     depth_correction: float = 1.0  # multiply metric depth (off = 1.0)
     first_frame: int = 0
     max_frames: int | None = None
     stride: int = 1
+    groundtruth: str | None = None  # PUT: ground-truth TUM file (default groundtruth.txt or the one *.tum)
 
 
 @dataclass

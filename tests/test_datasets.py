@@ -1,0 +1,269 @@
+"""Sequence readers: TUM on the real 9-frame fr1/desk excerpt, PUT on a converted copy,
+association edge cases and error messages on small hand-made folders."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from rgbdslam.config import DatasetConfig
+from rgbdslam.datasets import open_sequence
+from rgbdslam.datasets.put import PutSequence, convert_tum_to_put
+from rgbdslam.datasets.tum import TumSequence, choose_camera
+from rgbdslam.errors import InputError
+from rgbdslam.evaluation.associate import associate
+from rgbdslam.geometry.camera import CAMERAS
+
+DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
+need_desk = pytest.mark.skipif(not DESK.is_dir(), reason=f"TUM fr1/desk excerpt not found at {DESK} (set RGBDSLAM_DATA)")
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def make_tum(root: Path, rgb_ts, depth_ts, size=(8, 6), depth_value=5000) -> Path:
+    """A tiny TUM folder with constant images; returns root."""
+    w, h = size
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    rgb_lines, depth_lines = ["# color images", "# timestamp filename"], ["# depth"]
+    for k, t in enumerate(rgb_ts):
+        img = np.zeros((h, w, 3), np.uint8)
+        img[..., 0] = 10 + k  # blue channel in BGR
+        img[..., 2] = 200  # red
+        cv2.imwrite(str(root / "rgb" / f"{t:.6f}.png"), img)
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+    for t in depth_ts:
+        cv2.imwrite(str(root / "depth" / f"{t:.6f}.png"), np.full((h, w), depth_value, np.uint16))
+        depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+    (root / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    (root / "camera.yaml").write_text(f"camera: ros_default\nwidth: {w}\nheight: {h}\n")
+    return root
+
+
+# ----------------------------------------------------------------------------- association
+
+
+def test_associate_greedy_smallest_difference_first():
+    a = np.array([1.00, 1.03, 1.06])
+    b = np.array([1.025, 1.061, 1.2])
+    ia, ib = associate(a, b, max_difference=0.02)
+    # 1.03<->1.025 (0.005) wins over 1.00<->1.025 (0.025 > 0.02 anyway); 1.06<->1.061; 1.00 unmatched
+    assert ia.tolist() == [1, 2] and ib.tolist() == [0, 1]
+
+
+def test_associate_one_to_one_and_offset():
+    a = np.array([0.0, 0.010])
+    b = np.array([0.004])
+    ia, ib = associate(a, b, max_difference=0.02)
+    assert ia.tolist() == [0] and ib.tolist() == [0]  # |0-0.004| < |0.01-0.004|, b used once
+    ia, ib = associate(a, b, max_difference=0.02, offset=0.006)  # b+offset = 0.010
+    assert ia.tolist() == [1] and ib.tolist() == [0]
+    ia, ib = associate(a, b, max_difference=0.004)  # strict '<' like associate.py
+    assert len(ia) == 0 and len(ib) == 0
+
+
+def test_associate_matches_reference_bruteforce():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        a = np.unique(np.round(rng.uniform(0, 1, rng.integers(1, 25)), 3))
+        b = np.unique(np.round(rng.uniform(0, 1, rng.integers(1, 25)), 3))
+        rng.shuffle(a)
+        rng.shuffle(b)
+        pm = sorted((abs(x - y), x, y) for x in a for y in b if abs(x - y) < 0.03)
+        fa, fb, ref = set(a), set(b), []
+        for _, x, y in pm:
+            if x in fa and y in fb:
+                fa.remove(x)
+                fb.remove(y)
+                ref.append((x, y))
+        ia, ib = associate(a, b, 0.03)
+        assert list(zip(a[ia], b[ib])) == sorted(ref)
+
+
+# ----------------------------------------------------------------------------- TUM on real data
+
+
+@need_desk
+def test_tum_reader_fr1_desk():
+    seq = open_sequence(DESK)
+    assert isinstance(seq, TumSequence)
+    assert len(seq) == 9
+    assert seq.camera == CAMERAS["fr1"]
+    listed = [float(l.split()[0]) for l in (DESK / "rgb.txt").read_text().splitlines() if l and not l.startswith("#")]
+    np.testing.assert_array_equal(seq.timestamps, np.array(listed))
+    assert np.all(np.abs(seq.depth_timestamps - seq.timestamps) < 0.02)
+    f = seq.load(4)
+    assert f.index == 4 and f.timestamp == listed[4]
+    assert f.rgb.shape == (480, 640, 3) and f.rgb.dtype == np.uint8
+    assert f.depth.shape == (480, 640) and f.depth.dtype == np.float32
+    valid = f.depth[f.depth > 0]
+    assert valid.size > 0.5 * f.depth.size
+    assert 0.4 < np.percentile(valid, 1) and np.percentile(valid, 99) < 3.5
+    # colour really converted to RGB: same pixels as cv2's BGR reversed
+    bgr = cv2.imread(str(DESK / f.name), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(f.rgb, bgr[..., ::-1])
+    # depth is raw / 5000 exactly
+    raw = cv2.imread(str(seq.depth_files[4]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_allclose(f.depth, raw / 5000.0, rtol=1e-6)
+    gt = seq.groundtruth()
+    assert gt is not None and len(gt) > 1000
+    assert gt.timestamps[0] < seq.timestamps[0] < gt.timestamps[-1]
+
+
+@need_desk
+def test_tum_frame_selection_and_depth_options():
+    cfg = DatasetConfig(first_frame=1, stride=3, max_frames=2, depth_scale=2500.0, depth_correction=1.1)
+    seq = open_sequence(DESK, cfg)
+    full = open_sequence(DESK)
+    assert len(seq) == 2
+    np.testing.assert_array_equal(seq.timestamps, full.timestamps[[1, 4]])
+    d_full, d = full.load(4).depth, seq.load(1).depth
+    np.testing.assert_allclose(d, d_full * 2.0 * 1.1, rtol=1e-5)
+    with pytest.raises(InputError, match="first_frame"):
+        open_sequence(DESK, DatasetConfig(first_frame=9))
+
+
+def test_tum_associations_file_and_offsets(tmp_path):
+    root = make_tum(tmp_path / "s", [1.0, 1.1, 1.2], [1.005, 1.112, 1.3])
+    seq = open_sequence(root)
+    np.testing.assert_allclose(seq.timestamps, [1.0, 1.1])  # 1.2 has no depth within 0.02 s
+    np.testing.assert_allclose(seq.depth_timestamps, [1.005, 1.112])
+    assert seq.load(1).rgb[0, 0].tolist() == [200, 0, 11]  # RGB order
+    np.testing.assert_allclose(seq.load(0).depth, 1.0)
+    (root / "assoc.txt").write_text("# rgb depth\n1.2 rgb/1.200000.png 1.3 depth/1.300000.png\n")
+    seq = open_sequence(root, DatasetConfig(associations="assoc.txt"))
+    np.testing.assert_allclose(seq.timestamps, [1.2])
+    assert seq.depth_files[0].name == "1.300000.png"
+    (root / "bad_assoc.txt").write_text("1.2 rgb/1.200000.png 1.3\n")
+    with pytest.raises(InputError, match=r"bad_assoc.txt:1"):
+        open_sequence(root, DatasetConfig(associations="bad_assoc.txt"))
+
+
+def test_tum_nothing_associates(tmp_path):
+    root = make_tum(tmp_path / "s", [1.0, 2.0], [1.5, 2.5])
+    with pytest.raises(InputError, match="no colour/depth pair.*max_difference"):
+        open_sequence(root)
+
+
+def test_tum_malformed_line_names_file_and_line(tmp_path):
+    root = make_tum(tmp_path / "s", [1.0, 1.1], [1.0, 1.1])
+    lines = (root / "rgb.txt").read_text().splitlines()
+    lines.insert(3, "1.15")  # 4th line: timestamp without a file name
+    (root / "rgb.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"rgb\.txt:4: expected 'timestamp filename'"):
+        open_sequence(root)
+
+
+def test_tum_missing_unreadable_and_wrong_images(tmp_path):
+    root = make_tum(tmp_path / "s", [1.0, 1.1, 1.2], [1.0, 1.1, 1.2])
+    seq = open_sequence(root)
+    (root / "rgb" / "1.000000.png").unlink()
+    with pytest.raises(InputError, match=r"1\.000000\.png is missing"):
+        seq.load(0)
+    (root / "depth" / "1.100000.png").write_bytes(b"not a png")
+    with pytest.raises(InputError, match=r"depth image .*1\.100000\.png cannot be decoded"):
+        seq.load(1)
+    cv2.imwrite(str(root / "depth" / "1.200000.png"), np.zeros((6, 8), np.uint8))
+    with pytest.raises(InputError, match="expected 16-bit"):
+        seq.load(2)
+    cv2.imwrite(str(root / "depth" / "1.200000.png"), np.zeros((6, 9), np.uint16))
+    with pytest.raises(InputError, match="9x6 but camera"):
+        seq.load(2)
+    cv2.imwrite(str(root / "rgb" / "1.200000.png"), np.zeros((6, 8), np.uint8))
+    with pytest.raises(InputError, match="1 channel"):
+        seq.load(2)
+
+
+def test_empty_depth_is_allowed(tmp_path):
+    root = make_tum(tmp_path / "s", [1.0], [1.0], depth_value=0)
+    f = open_sequence(root).load(0)
+    assert f.depth.shape == (6, 8) and not f.depth.any()
+
+
+def test_missing_folder_and_unknown_layout(tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        open_sequence(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="not a known sequence layout"):
+        open_sequence(tmp_path / "empty")
+
+
+def test_camera_choice(tmp_path):
+    for name, cam in [("rgbd_dataset_freiburg2_xyz", "fr2"), ("rgbd_dataset_freiburg3_office", "fr3"), ("other", "ros_default")]:
+        (tmp_path / name).mkdir()
+        assert choose_camera(tmp_path / name).name == cam
+    assert choose_camera(tmp_path / "other", "kinect1") == CAMERAS["kinect1"]
+    d = tmp_path / "rgbd_dataset_freiburg1_custom"
+    d.mkdir()
+    (d / "camera.yaml").write_text("fx: 500\nfy: 501\ncx: 100.5\ncy: 80.5\nwidth: 200\nheight: 160\n")
+    c = choose_camera(d)  # camera.yaml takes precedence over the folder name
+    assert (c.fx, c.fy, c.cx, c.cy, c.width, c.height) == (500, 501, 100.5, 80.5, 200, 160)
+    (d / "camera.yaml").write_text("camera: nikon\n")
+    with pytest.raises(InputError, match="unknown camera 'nikon'"):
+        choose_camera(d)
+
+
+# ----------------------------------------------------------------------------- PUT
+
+
+@need_desk
+def test_put_reader_on_converted_fr1_desk(tmp_path):
+    dst = convert_tum_to_put(DESK, tmp_path / "put_desk")
+    assert (dst / "matched").is_file() and (dst / "initialPosition").is_file()
+    put = open_sequence(dst)
+    tum = open_sequence(DESK)
+    assert isinstance(put, PutSequence) and len(put) == len(tum) == 9
+    np.testing.assert_allclose(put.timestamps, tum.timestamps, atol=1e-6)
+    np.testing.assert_allclose(put.depth_timestamps, tum.depth_timestamps, atol=1e-6)
+    assert put.camera == tum.camera  # camera.yaml written by the converter
+    for i in (0, 8):
+        a, b = put.load(i), tum.load(i)
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        assert np.abs(a.depth - b.depth).max() <= 0.0005 + 1e-6  # 1 mm quantisation, rounded
+        np.testing.assert_array_equal(a.depth > 0, b.depth > 0)
+    gt_put, gt_tum = put.groundtruth(), tum.groundtruth()
+    np.testing.assert_allclose(gt_put.poses, gt_tum.poses, atol=1e-6)
+    j = np.argmin(np.abs(gt_tum.timestamps - tum.timestamps[0]))
+    np.testing.assert_allclose(put.initial_pose, gt_tum.poses[j], atol=1e-6)
+    # without camera.yaml a PUT folder is the Kinect v1; stride/max_frames pick line numbers
+    (dst / "camera.yaml").unlink()
+    put2 = PutSequence(dst, DatasetConfig(stride=2, max_frames=3))
+    assert put2.camera == CAMERAS["kinect1"]
+    assert [p.name for p in put2.rgb_files] == ["rgb_00000.png", "rgb_00002.png", "rgb_00004.png"]
+
+
+def test_put_errors(tmp_path):
+    d = tmp_path / "p"
+    d.mkdir()
+    (d / "matched").write_text("1.0 1.01\n1.1 x\n")
+    with pytest.raises(InputError, match=r"matched:2"):
+        open_sequence(d)
+    (d / "matched").write_text("1.0 1.01\n")
+    (d / "initialPosition").write_text("1 2 3\n")
+    with pytest.raises(InputError, match="initialPosition must hold 7 numbers"):
+        open_sequence(d)
+    (d / "initialPosition").unlink()
+    seq = open_sequence(d)
+    with pytest.raises(InputError, match="rgb_00000.png is missing"):
+        seq.load(0)
+    assert seq.groundtruth() is None
+    with pytest.raises(InputError, match="ground-truth file"):
+        PutSequence(d, DatasetConfig(groundtruth="gt.txt")).groundtruth()
+
+
+@need_desk
+def test_convert_refuses_nonempty_output(tmp_path):
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "x").write_text("keep me")
+    with pytest.raises(InputError, match="not empty"):
+        convert_tum_to_put(DESK, tmp_path / "out", max_frames=2)
+    assert (tmp_path / "out" / "x").read_text() == "keep me"
+    shutil.rmtree(tmp_path / "out")
