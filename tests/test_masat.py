@@ -1,0 +1,158 @@
+"""MASAT and the other initial guesses on small hand-made graphs (exact answers)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from rgbdslam.backend.graph import se2_between, se2_inverse, se3_inverse
+from rgbdslam.backend.masat import bfs_order, masat_initialize_pose2, masat_initialize_pose3, masat_se2
+from rgbdslam.errors import InputError
+
+
+def _pose3(rotvec, t):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_bfs_order_and_parents():
+    # 0-1, 0-2, 1-3, 2-3, 3-4
+    order, parent = bfs_order(5, [0, 0, 1, 2, 3], [1, 2, 3, 3, 4])
+    assert order.tolist() == [0, 1, 2, 3, 4]
+    assert parent.tolist() == [-1, 0, 0, 1, 3]
+
+
+def test_disconnected_graph_is_an_input_error():
+    with pytest.raises(InputError, match="not connected"):
+        bfs_order(4, [0, 2], [1, 3])
+
+
+def test_masat_se2_consistent_measurements_are_exact():
+    rng = np.random.default_rng(1)
+    gt = np.column_stack([rng.uniform(-5, 5, 6), rng.uniform(-5, 5, 6), rng.uniform(-3, 3, 6)])
+    gt[0] = 0
+    pairs = [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (0, 3), (5, 1), (2, 4)]
+    edges = [(i, j, se2_between(gt[i], gt[j]), np.eye(3)) for i, j in pairs]
+    for weighted in (False, True):
+        est = masat_initialize_pose2(6, edges, weighted=weighted)
+        np.testing.assert_allclose(est[:, :2], gt[:, :2], atol=1e-9)
+        np.testing.assert_allclose(np.angle(np.exp(1j * (est[:, 2] - gt[:, 2]))), 0, atol=1e-9)
+
+
+def test_masat_se2_two_fixed_neighbours_hand_computed():
+    # BFS order 0, 1, 2; vertex 2 is predicted by 0 (z02) and 1 (z12).
+    # vertex 1 = (1, 0, pi/2) from z01.
+    # pred from 0: (2, 1, 0.2); pred from 1: (1,0,pi/2) ∘ (1, -1, -pi/2 + 0.4) = (1+1, 0+1, 0.4) = (2, 1, 0.4)
+    # but shift the second by a translation error: z12 = (1.2, -1, -pi/2+0.4) -> pred (2, 1.2, 0.4)
+    edges = [(0, 1, (1.0, 0.0, math.pi / 2), None), (0, 2, (2.0, 1.0, 0.2), None),
+             (1, 2, (1.2, -1.0, -math.pi / 2 + 0.4), None)]
+    est = masat_initialize_pose2(3, edges)
+    np.testing.assert_allclose(est[1], [1.0, 0.0, math.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(est[2], [2.0, 1.1, 0.3], atol=1e-12)
+
+
+def test_masat_se2_reversed_edge_is_inverted():
+    # the edge 2->1 stored in the "wrong" direction must give the same prediction as 1->2
+    z12 = np.array([1.2, -1.0, -math.pi / 2 + 0.4])
+    z21 = se2_inverse(z12)
+    edges = [(0, 1, (1.0, 0.0, math.pi / 2), None), (0, 2, (2.0, 1.0, 0.2), None), (2, 1, z21, None)]
+    est = masat_initialize_pose2(3, edges)
+    np.testing.assert_allclose(est[2], [2.0, 1.1, 0.3], atol=1e-12)
+
+
+def test_masat_se2_circular_mean_across_pi():
+    # two predictions of vertex 2's heading: pi - 0.1 and -pi + 0.3 -> circular mean pi + 0.1 (= -pi + 0.1)
+    edges = [(0, 1, (0.0, 1.0, 0.0), None), (0, 2, (1.0, 0.0, math.pi - 0.1), None),
+             (1, 2, (1.0, -1.0, -math.pi + 0.3), None)]
+    est = masat_initialize_pose2(3, edges)
+    assert est[2, 0] == pytest.approx(1.0) and est[2, 1] == pytest.approx(0.0)
+    assert math.cos(est[2, 2] - (math.pi + 0.1)) == pytest.approx(1.0, abs=1e-12)
+    assert abs(est[2, 2]) > 3.0  # a naive arithmetic mean would give ~0.1
+
+
+def test_weighted_masat_se2_prefers_the_precise_prediction():
+    # vertex 2: prediction from 0 is precise (info 1e4), from 1 is vague (info 1) -> close to the precise one
+    precise, vague = np.eye(3) * 1e4, np.eye(3)
+    edges = [(0, 1, (1.0, 0.0, 0.0), precise), (0, 2, (2.0, 0.0, 0.0), precise),
+             (1, 2, (1.0, 1.0, 0.5), vague)]
+    est = masat_initialize_pose2(3, edges, weighted=True)
+    # hand computed: vt(pred0)=1e-4, vt(pred1)=vt1 + vt_e + |t12|^2 vr1 = 1e-4 + 1 + 2*1e-4
+    w0, w1 = 1 / 1e-4, 1 / (1e-4 + 1.0 + 2e-4)
+    assert est[2, 1] == pytest.approx(w1 * 1.0 / (w0 + w1), rel=1e-9)
+    r0, r1 = 1 / 1e-4, 1 / (1e-4 + 1.0)
+    assert est[2, 2] == pytest.approx(math.atan2(r1 * math.sin(0.5), r0 + r1 * math.cos(0.5)), rel=1e-9)
+    plain = masat_initialize_pose2(3, edges)
+    assert plain[2, 1] == pytest.approx(0.5)
+
+
+def test_masat_se3_consistent_is_exact():
+    rng = np.random.default_rng(2)
+    gt = [np.eye(4)] + [_pose3(rng.normal(size=3), rng.normal(size=3) * 3) for _ in range(5)]
+    pairs = [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (0, 3), (5, 1), (4, 2)]
+    edges = [(i, j, se3_inverse(gt[i]) @ gt[j], np.eye(6)) for i, j in pairs]
+    for weighted in (False, True):
+        est = masat_initialize_pose3(6, edges, weighted=weighted)
+        np.testing.assert_allclose(est, np.array(gt), atol=1e-9)
+
+
+def test_masat_se3_chordal_mean_hand_computed():
+    # vertex 2 gets two predictions rotated about z by +0.2 and +0.6 and translated (1,0,0) / (1,0.4,0):
+    # chordal mean of two rotations about the same axis = rotation by the mean angle 0.4.
+    T01 = _pose3([0, 0, 0], [0, 1, 0])
+    T02 = _pose3([0, 0, 0.2], [1, 0, 0])
+    pred_from_1 = _pose3([0, 0, 0.6], [1, 0.4, 0])
+    T12 = se3_inverse(T01) @ pred_from_1
+    est = masat_initialize_pose3(3, [(0, 1, T01, None), (0, 2, T02, None), (1, 2, T12, None)])
+    np.testing.assert_allclose(est[2, :3, 3], [1.0, 0.2, 0.0], atol=1e-12)
+    np.testing.assert_allclose(est[2, :3, :3], Rotation.from_rotvec([0, 0, 0.4]).as_matrix(), atol=1e-12)
+
+
+def test_masat_se3_chordal_mean_different_axes():
+    # chordal mean of rotations about x by +a and about y by +a: project (Rx + Ry) onto SO(3)
+    a = 0.5
+    Rx = Rotation.from_rotvec([a, 0, 0]).as_matrix()
+    Ry = Rotation.from_rotvec([0, a, 0]).as_matrix()
+    T01 = _pose3([0, 0, 0], [0, 0, 1])
+    T02 = np.eye(4); T02[:3, :3] = Rx
+    P = np.eye(4); P[:3, :3] = Ry
+    T12 = se3_inverse(T01) @ P
+    est = masat_initialize_pose3(3, [(0, 1, T01, None), (0, 2, T02, None), (1, 2, T12, None)])
+    U, _, Vt = np.linalg.svd(Rx + Ry)
+    np.testing.assert_allclose(est[2, :3, :3], U @ Vt, atol=1e-12)
+    # by symmetry it is the rotation by some angle about the (1,1,0) axis
+    rv = Rotation.from_matrix(est[2, :3, :3]).as_rotvec()
+    assert rv[0] == pytest.approx(rv[1]) and abs(rv[2]) < 1e-12
+
+
+def test_masat_se3_weighted_info_order():
+    # translation precise / rotation vague on one edge: order matters for the weights
+    T01 = _pose3([0, 0, 0], [1, 0, 0])
+    T02 = _pose3([0, 0, 0], [2, 0, 0])
+    T12 = _pose3([0, 0, 0], [1, 1, 0])  # pred from 1: (2, 1, 0)
+    info_rt = np.diag([1e4, 1e4, 1e4, 1, 1, 1])  # rot precise, trans vague (GTSAM order)
+    edges = [(0, 1, T01, np.eye(6) * 1e4), (0, 2, T02, np.eye(6) * 1e4), (1, 2, T12, info_rt)]
+    est = masat_initialize_pose3(3, edges, weighted=True)
+    w0 = 1 / 1e-4
+    w1 = 1 / (1e-4 + 1.0 + 2.0 * 1e-4)  # |t12|^2 = 2 times vertex 1's rotation variance
+    assert est[2, 1, 3] == pytest.approx(w1 / (w0 + w1), rel=1e-9)
+    # same numbers in g2o order give the same answer
+    edges_g2o = [(i, j, T, np.roll(np.roll(I, 3, 0), 3, 1)) for i, j, T, I in edges]
+    est2 = masat_initialize_pose3(3, edges_g2o, weighted=True, info_order="trans_rot")
+    np.testing.assert_allclose(est2, est, atol=1e-12)
+
+
+def test_masat_runtime_independent_of_measurements():
+    # same graph, wildly different measurements -> identical BFS structure, finite output
+    n = 200
+    ei = np.r_[np.arange(n - 1), np.arange(0, n - 10, 7)]
+    ej = np.r_[np.arange(1, n), np.arange(10, n, 7)]
+    rng = np.random.default_rng(0)
+    for scale in (0.01, 10.0):
+        z = rng.normal(size=(len(ei), 3)) * scale
+        est = masat_se2(n, ei, ej, z)
+        assert np.isfinite(est).all() and est.shape == (n, 3)
