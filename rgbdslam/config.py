@@ -90,42 +90,67 @@ class RegistrationConfig:
 
 @dataclass
 class DepthFilterConfig:
+    """DIF, the conditional averaging depth filter (spec section 3, docs/slam.md)."""
+
     enabled: bool = False
-    window: int = 3  # K previous filtered frames warped into the current one
-    spatial_radius: int = 1
+    window: int = 2  # K previous filtered frames warped into the current one (0 = spatial only)
+    spatial_radius: int = 1  # window half-size of the spatial averaging (0 = temporal only)
     tolerance_a: float = 0.01  # agreement tolerance = a + b * z^2 (metres)
     tolerance_b: float = 0.0035
-    min_support: int = 2
+    min_support: int = 3  # agreeing samples (besides the pixel itself) needed to keep a pixel
     min_depth: float = 0.3
     max_depth: float = 5.0
 
 
 @dataclass
 class KeyframeConfig:
-    min_translation: float = 0.10
-    min_rotation_deg: float = 10.0
+    min_translation: float = 0.10  # metres moved since the last keyframe
+    min_rotation_deg: float = 10.0  # degrees turned since the last keyframe
     max_gap: int = 15  # frames
 
 
 @dataclass
 class LoopConfig:
+    """Sharpness-gated loop closure (spec section 4, docs/slam.md)."""
+
     enabled: bool = False
+    # sharpness gate: n_detected > factor * median(n_detected of the previous window frames)
     sharpness_factor: float = 1.2
     sharpness_window: int = 20
+    sharpness_min_history: int = 5  # frames seen before the gate can open
+    # candidate search
+    index: Literal["lsh", "brute"] = "lsh"
+    lsh_tables: int = 8  # hash tables, each keyed on lsh_bits random descriptor bits
+    lsh_bits: int = 16
+    min_votes: int = 20  # query descriptors colliding with a keyframe before it is a candidate
     skip_recent: int = 20  # keyframes
     max_candidates: int = 3
+    seed: int = 0
+    # verification
     min_inliers: int = 40
     max_residual: float = 0.02
-    index: Literal["bow", "lsh", "multi_kdtree"] = "lsh"
+    max_loops_per_frame: int = 1
+    # agreement with the current estimate: |T_loop - T_est| < bound + drift_ratio * travelled
+    consistency_translation: float = 0.3  # metres
+    consistency_rotation_deg: float = 15.0
+    drift_ratio_translation: float = 0.1  # extra metres allowed per metre travelled since the keyframe
+    drift_ratio_rotation: float = 0.1  # extra degrees allowed per degree turned since the keyframe
+    sigma_floor: float = 0.005  # metres: lower bound of the residual used for the edge information
 
 
 @dataclass
 class BackendConfig:
+    """GTSAM pose graph over keyframes (docs/slam.md)."""
+
     enabled: bool = False
-    init: Literal["masat", "weighted_masat", "odometry", "spanning_tree"] = "masat"
-    robust_kernel: Literal["none", "huber", "cauchy"] = "cauchy"
-    kernel_width: float = 1.0
-    isam2: bool = True
+    init: Literal["masat", "weighted_masat", "odometry", "spanning_tree", "isam2"] = "masat"
+    robust_kernel: Literal["none", "huber", "cauchy"] = "cauchy"  # applied to loop edges
+    kernel_width: float = 1.0  # in whitened units (sigmas)
+    isam2: bool = True  # incremental update whenever a loop edge arrives
+    optimizer: Literal["lm", "gn"] = "lm"  # final batch optimisation
+    max_iterations: int = 100
+    relative_error_tol: float = 1e-6
+    prior_sigma: float = 1e-4  # first keyframe's prior (rad and metres)
 
 
 @dataclass
