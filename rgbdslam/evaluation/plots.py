@@ -1,0 +1,101 @@
+"""Evaluation plots (PNG). Drawing only: the numbers come from ate.py / rpe.py.
+
+Figures are built with ``matplotlib.figure.Figure`` on an Agg canvas, so importing this
+module never changes the global matplotlib backend and works without a display.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from rgbdslam.io.atomic import atomic_path
+from rgbdslam.io.trajectory import Trajectory
+
+_AXES = "xyz"
+
+
+def _save(fig: Figure, path: str | Path) -> Path:
+    path = Path(path)
+    FigureCanvasAgg(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    return path
+
+
+def topview_axes(*position_sets: np.ndarray) -> tuple[int, int]:
+    """The two axes (indices into x, y, z) with the largest extent, in ascending order."""
+    P = np.concatenate([np.asarray(p).reshape(-1, 3) for p in position_sets], axis=0)
+    extent = P.max(axis=0) - P.min(axis=0)
+    a, b = sorted(np.argsort(-extent, kind="stable")[:2].tolist())
+    return a, b
+
+
+def plot_trajectory_topview(
+    gt: Trajectory, est_aligned: Trajectory, path: str | Path, title: str | None = None
+) -> Path:
+    """Ground truth vs aligned estimate projected on the two axes of largest extent (equal aspect)."""
+    a, b = topview_axes(gt.positions, est_aligned.positions)
+    fig = Figure(figsize=(6.4, 5.6))
+    ax = fig.add_subplot(1, 1, 1)
+    g, e = gt.positions, est_aligned.positions
+    ax.plot(g[:, a], g[:, b], "-", color="0.25", lw=1.6, label="ground truth")
+    ax.plot(e[:, a], e[:, b], "-", color="tab:blue", lw=1.2, label="estimate (aligned)")
+    if len(g) == len(e):  # associated pairs: draw the error segments, thinned to ~100
+        step = max(1, len(g) // 100)
+        for p, q in zip(g[::step], e[::step]):
+            ax.plot([p[a], q[a]], [p[b], q[b]], "-", color="tab:red", lw=0.5, alpha=0.6)
+    ax.plot(g[0, a], g[0, b], "o", color="0.25", ms=6, label="start")
+    ax.set_xlabel(f"{_AXES[a]} [m]")
+    ax.set_ylabel(f"{_AXES[b]} [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, lw=0.4, alpha=0.5)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title or f"trajectory, top view ({_AXES[a]}-{_AXES[b]})")
+    return _save(fig, path)
+
+
+def plot_error_over_time(ate_result, path: str | Path, title: str | None = None) -> Path:
+    """ATE per associated pose against time since the first pose, with RMSE / mean / median lines."""
+    t = ate_result.timestamps - ate_result.timestamps[0]
+    fig = Figure(figsize=(7.5, 3.6))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot(t, ate_result.errors, "-", color="tab:blue", lw=1.0, label="position error")
+    for value, name, style in (
+        (ate_result.rmse, "rmse", "--"),
+        (ate_result.mean, "mean", ":"),
+        (ate_result.median, "median", "-."),
+    ):
+        ax.axhline(value, color="tab:red", ls=style, lw=1.0, label=f"{name} {value:.4f} m")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("ATE [m]")
+    ax.set_ylim(bottom=0)
+    ax.grid(True, lw=0.4, alpha=0.5)
+    ax.legend(loc="upper left", fontsize=8)
+    ax.set_title(title or f"absolute trajectory error ({ate_result.align} alignment, {ate_result.n_pairs} poses)")
+    return _save(fig, path)
+
+
+def plot_rpe(rpe_result, path: str | Path, title: str | None = None) -> Path:
+    """RPE translation (m) and rotation (deg) per pair against time since the first pair."""
+    t = rpe_result.timestamps - rpe_result.timestamps[0]
+    fig = Figure(figsize=(7.5, 5.0))
+    ax_t = fig.add_subplot(2, 1, 1)
+    ax_r = fig.add_subplot(2, 1, 2, sharex=ax_t)
+    ax_t.plot(t, rpe_result.trans_errors, "-", color="tab:blue", lw=1.0)
+    ax_t.axhline(rpe_result.trans.rmse, color="tab:red", ls="--", lw=1.0, label=f"rmse {rpe_result.trans.rmse:.4f} m")
+    ax_t.set_ylabel("translation [m]")
+    ax_r.plot(t, rpe_result.rot_errors, "-", color="tab:green", lw=1.0)
+    ax_r.axhline(rpe_result.rot.rmse, color="tab:red", ls="--", lw=1.0, label=f"rmse {rpe_result.rot.rmse:.3f} deg")
+    ax_r.set_ylabel("rotation [deg]")
+    ax_r.set_xlabel("time [s]")
+    for ax in (ax_t, ax_r):
+        ax.set_ylim(bottom=0)
+        ax.grid(True, lw=0.4, alpha=0.5)
+        ax.legend(loc="upper left", fontsize=8)
+    unit = {"f": "frames", "s": "s", "m": "m", "rad": "rad", "deg": "deg"}[rpe_result.delta_unit]
+    ax_t.set_title(title or f"relative pose error, delta {rpe_result.delta:g} {unit} ({rpe_result.n_pairs} pairs)")
+    return _save(fig, path)

@@ -1,0 +1,232 @@
+"""Evaluation report: ATE + RPE of one estimate, as JSON, plots and a rich table.
+
+``evaluate_files`` serves ``rgbdslam evaluate``; ``evaluate_trajectories`` serves the
+pipeline at the end of a run. Both return an :class:`EvaluationReport`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from rgbdslam.errors import InputError, RgbdslamError
+from rgbdslam.evaluation.ate import AteResult, ErrorStats, ate
+from rgbdslam.evaluation.plots import plot_error_over_time, plot_rpe, plot_trajectory_topview
+from rgbdslam.evaluation.rpe import RpeResult, rpe
+from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.trajectory import Trajectory, read_tum
+
+
+@dataclass
+class EvaluationReport:
+    ate: AteResult
+    rpe: RpeResult | None
+    settings: dict[str, Any]
+    gt_name: str = "ground truth"
+    est_name: str = "estimate"
+    rpe_note: str | None = None  # why RPE is missing, when it is
+    plots: list[str] = field(default_factory=list)
+    json_path: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (no per-pose arrays)."""
+        a = self.ate
+        d: dict[str, Any] = {
+            "ground_truth": self.gt_name,
+            "estimate": self.est_name,
+            "settings": dict(self.settings),
+            "ate": {
+                **_stats_dict(a),
+                "n_pairs": a.n_pairs,
+                "align": a.align,
+                "scale": a.scale,
+                "transform": a.transform.tolist(),
+                "unit": "m",
+            },
+            "rpe": None,
+            "plots": list(self.plots),
+        }
+        if self.rpe is not None:
+            r = self.rpe
+            d["rpe"] = {
+                "delta": r.delta,
+                "delta_unit": r.delta_unit,
+                "n_pairs": r.n_pairs,
+                "trans": {**_stats_dict(r.trans), "unit": "m"},
+                "rot": {**_stats_dict(r.rot), "unit": "deg"},
+            }
+        elif self.rpe_note:
+            d["rpe_note"] = self.rpe_note
+        return d
+
+
+def _stats_dict(s: ErrorStats) -> dict[str, float | None]:
+    keys = [f.name for f in fields(ErrorStats)]
+    return {k: (None if math.isnan(getattr(s, k)) else getattr(s, k)) for k in keys}
+
+
+def evaluate_trajectories(
+    gt: Trajectory,
+    est: Trajectory,
+    align: str = "se3",
+    delta: float = 1.0,
+    delta_unit: str = "f",
+    max_difference: float = 0.02,
+    offset: float = 0.0,
+    json_path: str | Path | None = None,
+    plot_dir: str | Path | None = None,
+    plot_prefix: str = "",
+    gt_name: str = "ground truth",
+    est_name: str = "estimate",
+) -> EvaluationReport:
+    """ATE and RPE of ``est`` against ``gt``; optional JSON summary and PNG plots.
+
+    RPE uses the same association; with ``align='sim3'`` the estimate's relative
+    translations are multiplied by the ATE scale. If no RPE pair fits (e.g. ``delta`` longer
+    than the overlap) the report carries ``rpe=None`` and ``rpe_note`` instead of failing.
+    Raises InputError when no timestamps associate.
+    """
+    a = ate(gt, est, max_difference=max_difference, offset=offset, align=align)
+    r: RpeResult | None = None
+    note = None
+    try:
+        r = rpe(gt, est, delta=delta, delta_unit=delta_unit, max_difference=max_difference,
+                offset=offset, scale=a.scale)
+    except InputError as e:
+        if not str(e).startswith("no RPE pairs"):
+            raise
+        note = str(e)
+    settings = {"align": align, "delta": float(delta), "delta_unit": delta_unit,
+                "max_difference": float(max_difference), "offset": float(offset)}
+    rep = EvaluationReport(ate=a, rpe=r, settings=settings, gt_name=gt_name, est_name=est_name, rpe_note=note)
+    if plot_dir is not None:
+        rep.plots = write_plots(rep, plot_dir, plot_prefix)
+    if json_path is not None:
+        _write(json_path, lambda p: atomic_write_text(p, json.dumps(rep.to_dict(), indent=2) + "\n"))
+        rep.json_path = str(json_path)
+    return rep
+
+
+def evaluate_files(
+    gt_path: str | Path,
+    est_path: str | Path,
+    align: str = "se3",
+    delta: float = 1.0,
+    delta_unit: str = "f",
+    max_difference: float = 0.02,
+    offset: float = 0.0,
+    json_path: str | Path | None = None,
+    plot_dir: str | Path | None = None,
+    plot_prefix: str = "",
+) -> EvaluationReport:
+    """Read two TUM trajectory files and evaluate ``est_path`` against ``gt_path``."""
+    gt = _read(gt_path)
+    est = _read(est_path)
+    try:
+        return evaluate_trajectories(
+            gt, est, align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference,
+            offset=offset, json_path=json_path, plot_dir=plot_dir, plot_prefix=plot_prefix,
+            gt_name=str(gt_path), est_name=str(est_path),
+        )
+    except InputError as e:
+        if str(e).startswith("no overlapping timestamps"):
+            raise InputError(f"{gt_path} and {est_path}: {e}") from None
+        raise
+
+
+def _read(path: str | Path) -> Trajectory:
+    try:
+        return read_tum(path)
+    except (OSError, UnicodeDecodeError) as e:
+        reason = e.strerror if isinstance(e, OSError) and e.strerror else e.__class__.__name__
+        raise InputError(f"cannot read trajectory file {path} ({reason}); pass a readable TUM text file") from None
+
+
+def evaluate_and_print(
+    gt_path: str | Path,
+    est_path: str | Path,
+    plot_dir: str | Path | None = None,
+    plots: bool = True,
+    console: Console | None = None,
+    **options: Any,
+) -> EvaluationReport:
+    """``rgbdslam evaluate``: evaluate, print the table and list the written files.
+
+    ``options`` are passed to :func:`evaluate_files` (align, delta, delta_unit,
+    max_difference, offset, json_path).
+
+    Plots go to ``plot_dir`` when given; otherwise, unless ``plots`` is False, next to the
+    estimate as ``<est stem>_ate_topview.png`` etc., so several estimates can share a folder.
+    """
+    console = console or Console()
+    prefix = ""
+    if plots and plot_dir is None:
+        plot_dir, prefix = Path(est_path).parent, f"{Path(est_path).stem}_"
+    rep = evaluate_files(gt_path, est_path, plot_dir=plot_dir if plots else None, plot_prefix=prefix, **options)
+    console.print(format_table(rep))
+    for p in rep.plots + ([rep.json_path] if rep.json_path else []):
+        console.print(f"wrote {escape(p)}")
+    return rep
+
+
+def write_plots(rep: EvaluationReport, plot_dir: str | Path, prefix: str = "") -> list[str]:
+    """Write the top view, the ATE-over-time and (if present) the RPE plot; return their paths."""
+    plot_dir = Path(plot_dir)
+    jobs = [
+        (f"{prefix}ate_topview.png", lambda p: plot_trajectory_topview(rep.ate.gt, rep.ate.aligned, p)),
+        (f"{prefix}ate_over_time.png", lambda p: plot_error_over_time(rep.ate, p)),
+    ]
+    if rep.rpe is not None:
+        jobs.append((f"{prefix}rpe_over_time.png", lambda p: plot_rpe(rep.rpe, p)))
+    out = []
+    for name, draw in jobs:
+        _write(plot_dir / name, draw)
+        out.append(str(plot_dir / name))
+    return out
+
+
+def _write(path: str | Path, writer) -> None:
+    try:
+        writer(path)
+    except OSError as e:
+        raise RgbdslamError(
+            f"cannot write {path} ({e.strerror or e}); choose a writable folder (--plot-dir / --json) "
+            f"or pass --no-plots"
+        ) from None
+
+
+def format_table(report: EvaluationReport) -> Table:
+    """A rich table: ATE and RPE statistics, pair counts and the settings in the caption."""
+    a, r = report.ate, report.rpe
+    table = Table(title=escape(f"{report.est_name} vs {report.gt_name}"), title_justify="left")
+    table.add_column("metric")
+    for col in ("rmse", "mean", "median", "std", "min", "max"):
+        table.add_column(col, justify="right")
+    table.add_column("pairs", justify="right")
+
+    def row(name: str, s: ErrorStats, n: int, fmt: str) -> None:
+        vals = [getattr(s, k) for k in ("rmse", "mean", "median", "std", "min", "max")]
+        table.add_row(name, *[format(v, fmt) for v in vals], str(n))
+
+    row("ATE (m)", a, a.n_pairs, ".4f")
+    if r is not None:
+        row("RPE trans (m)", r.trans, r.n_pairs, ".4f")
+        row("RPE rot (deg)", r.rot, r.n_pairs, ".3f")
+    caption = f"alignment {a.align}"
+    if a.align == "sim3":
+        caption += f" (scale {a.scale:.4f})"
+    caption += (f"; association max difference {report.settings['max_difference']:g} s, "
+                f"offset {report.settings['offset']:g} s")
+    if r is not None:
+        caption += f"; RPE delta {r.delta:g} {r.delta_unit}"
+    if r is None and report.rpe_note:
+        caption += escape(f"; RPE not computed: {report.rpe_note}")
+    table.caption = caption
+    return table
