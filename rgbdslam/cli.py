@@ -91,6 +91,28 @@ def demo(out_dir, frames, config_path, overrides):
 
 # ------------------------------------------------------------------ commands added by stages
 
+@main.command()
+@click.argument("gt", type=click.Path(path_type=Path))
+@click.argument("est", type=click.Path(path_type=Path))
+@click.option("--align", type=click.Choice(["se3", "sim3", "none"]), default="se3", show_default=True,
+              help="Alignment of EST onto GT before ATE (sim3 also fits a scale).")
+@click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair distance.")
+@click.option("--delta-unit", type=click.Choice(["f", "s", "m", "rad", "deg"]), default="f", show_default=True,
+              help="Unit of --delta: frames, seconds, metres or radians/degrees along GT.")
+@click.option("--max-difference", type=float, default=0.02, show_default=True,
+              help="Max timestamp difference (s) for associating GT and EST poses.")
+@click.option("--offset", type=float, default=0.0, show_default=True, help="Time offset (s) added to EST stamps.")
+@click.option("--json", "json_path", type=click.Path(path_type=Path), default=None, help="Write the summary as JSON.")
+@click.option("--plot-dir", type=click.Path(path_type=Path), default=None,
+              help="Folder for the PNG plots (default: EST's folder, files named <EST stem>_*.png).")
+@click.option("--no-plots", is_flag=True, help="Write no plots.")
+def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_path, plot_dir, no_plots):
+    """ATE and RPE of trajectory EST against ground truth GT (TUM format); prints a table."""
+    from rgbdslam.evaluation.report import evaluate_and_print
+
+    evaluate_and_print(gt, est, align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference,
+                       offset=offset, json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
+
 
 if __name__ == "__main__":  # pragma: no cover
     main()
