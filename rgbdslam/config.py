@@ -46,7 +46,8 @@ class FeaturesConfig:
     scale_factor: float = 1.2
     n_levels: int = 8
     fast_threshold: int = 20
-    edge_threshold: int = 19
+    edge_threshold: int = 31
+    patch_size: int = 31
     grid_rows: int = 1  # >1 enables bucketing: features spread over a grid
     grid_cols: int = 1
     undistort: bool = True
@@ -83,6 +84,8 @@ class RegistrationConfig:
     fusion: Literal["thesis", "chordal"] = "chordal"
     reject_translation: float = 0.05  # candidate disagreement gates (m, rad)
     reject_rotation: float = 0.05
+    min_agreement: float = 0.5  # lost if the agreeing candidates hold less of the total weight
+    pregate: float | None = None  # drop pairs this far (m) from the constant-velocity prediction first
     threads: int = 1
     constant_velocity: bool = True
     seed: int = 0
@@ -156,20 +159,42 @@ class BackendConfig:
 @dataclass
 class MappingConfig:
     enabled: bool = True
-    voxel_size: float = 0.01
-    tsdf_voxel: float = 0.01
-    sdf_trunc: float = 0.04
-    depth_max: float = 3.0
+    # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
     keyframes_only: bool = True
-    outlier_neighbors: int = 20
+    select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
+    select_rotation_deg: float = 5.0
+    undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing
+    depth_min: float = 0.3  # metres; depth outside [depth_min, depth_max] is ignored
+    depth_max: float = 3.0
+    # coloured point cloud
+    voxel_size: float = 0.01  # voxel-grid downsampling of the merged cloud (m)
+    outlier_neighbors: int = 20  # statistical outlier removal (0 = off)
     outlier_std: float = 2.0
-    grid_resolution: float = 0.05
+    # TSDF mesh
+    mesh: bool = True  # Open3D tensor VoxelBlockGrid TSDF + marching cubes
+    tsdf_voxel: float = 0.01  # metres
+    sdf_trunc: float = 0.04  # metres
+    mesh_min_weight: float = 2.0  # voxels seen by fewer frames are left out of the mesh
+    tsdf_initial_blocks: int = 2000  # 8^3-voxel blocks preallocated (the hash map grows)
+    # 2-D occupancy map (spec section 6)
+    map2d: bool = True
+    grid_resolution: float = 0.05  # metres per cell
+    gravity: Literal["auto", "accelerometer", "camera"] = "auto"  # up direction hint for the floor
+    floor_max_tilt_deg: float = 20.0  # a floor plane's normal is within this of "up"
+    floor_distance: float = 0.02  # RANSAC inlier distance of the floor plane (m)
+    floor_band: float = 0.05  # |height| below this = floor point (m)
+    obstacle_min_height: float = 0.10  # points between these heights above the floor occupy a cell
+    obstacle_max_height: float = 1.80
+    obstacle_min_points: int = 3  # points needed to mark a cell occupied
+    seed: int = 0
 
 
 @dataclass
 class OutputConfig:
-    rerun: bool = False
-    rerun_save: str | None = None
+    rerun: bool = False  # stream to a spawned Rerun viewer (needs a display)
+    rerun_save: str | None = None  # record to this .rrd file
+    rerun_image_width: int = 320  # images are logged at this width (aspect kept)
+    rerun_log_every: int = 1  # log images every n-th frame (poses/scalars every frame)
     plots: bool = True
 
 

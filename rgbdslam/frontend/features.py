@@ -1,0 +1,125 @@
+"""ORB key points and descriptors, lifted to 3-D camera points with the depth image.
+
+Key points are detected on the (distorted) colour image. Their pixel coordinates are
+undistorted with the camera's Brown–Conrady model before back-projection, while the depth is
+sampled at the rounded *distorted* location, because TUM/PUT depth images are registered to
+the distorted colour image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from rgbdslam.config import Config, FeaturesConfig
+from rgbdslam.datasets.base import Frame
+from rgbdslam.geometry.camera import Camera
+
+
+@dataclass
+class FrameFeatures:
+    """Features of one frame, computed once and cached by the front end."""
+
+    index: int
+    timestamp: float
+    uv: np.ndarray  # (N, 2) undistorted pixel coordinates
+    desc: np.ndarray  # (N, 32) uint8 ORB descriptors
+    pts: np.ndarray  # (N, 3) camera-frame points, NaN where depth is invalid
+    valid: np.ndarray  # (N,) bool, has valid depth
+    n_detected: int  # number of descriptors detected (loop-closure sharpness gate)
+    uv_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (N, 2) distorted pixels
+    response: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (N,) ORB response
+
+    @property
+    def n_valid(self) -> int:
+        return int(np.count_nonzero(self.valid))
+
+
+_ORB_CACHE: dict[tuple, cv2.ORB] = {}
+
+
+def _orb(fc: FeaturesConfig, n_features: int) -> cv2.ORB:
+    key = (n_features, fc.scale_factor, fc.n_levels, fc.edge_threshold, fc.patch_size, fc.fast_threshold)
+    orb = _ORB_CACHE.get(key)
+    if orb is None:
+        orb = cv2.ORB_create(
+            nfeatures=n_features,
+            scaleFactor=fc.scale_factor,
+            nlevels=fc.n_levels,
+            edgeThreshold=fc.edge_threshold,
+            patchSize=fc.patch_size,
+            fastThreshold=fc.fast_threshold,
+        )
+        _ORB_CACHE[key] = orb
+    return orb
+
+
+def _bucket(uv: np.ndarray, response: np.ndarray, fc: FeaturesConfig, shape: tuple[int, int]) -> np.ndarray:
+    """Indices of the strongest key points per grid cell (at most n_features / cells each)."""
+    rows, cols = fc.grid_rows, fc.grid_cols
+    h, w = shape
+    cell = (np.minimum((uv[:, 1] * rows / h).astype(int), rows - 1) * cols
+            + np.minimum((uv[:, 0] * cols / w).astype(int), cols - 1))
+    per_cell = max(1, fc.n_features // (rows * cols))
+    order = np.lexsort((-response, cell))  # by cell, strongest first
+    sorted_cell = cell[order]
+    first = np.searchsorted(sorted_cell, sorted_cell, side="left")
+    rank = np.arange(len(order)) - first
+    return np.sort(order[rank < per_cell])
+
+
+def extract_features(frame: Frame, cfg: Config) -> FrameFeatures:
+    """ORB on the colour image of ``frame``, lifted to 3-D with its depth."""
+    fc = cfg.features
+    gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY) if frame.rgb.ndim == 3 else frame.rgb
+    bucketing = fc.grid_rows * fc.grid_cols > 1
+    orb = _orb(fc, fc.n_features * 2 if bucketing else fc.n_features)
+    kps, desc = orb.detectAndCompute(gray, None)
+    if desc is None or len(kps) == 0:
+        uv_raw = np.zeros((0, 2))
+        desc = np.zeros((0, 32), np.uint8)
+        response = np.zeros(0, np.float32)
+    else:
+        uv_raw = np.array([k.pt for k in kps], dtype=np.float64)
+        response = np.array([k.response for k in kps], dtype=np.float32)
+        if bucketing:
+            keep = _bucket(uv_raw, response, fc, gray.shape[:2])
+            uv_raw, desc, response = uv_raw[keep], desc[keep], response[keep]
+    camera = frame.camera
+    uv = camera.undistort_points(uv_raw) if fc.undistort else uv_raw.copy()
+    feats = FrameFeatures(
+        index=frame.index,
+        timestamp=frame.timestamp,
+        uv=uv,
+        desc=np.ascontiguousarray(desc),
+        pts=np.full((len(uv), 3), np.nan),
+        valid=np.zeros(len(uv), bool),
+        n_detected=len(uv),
+        uv_raw=uv_raw,
+        response=response,
+    )
+    lift(feats, frame.depth, camera, cfg)
+    return feats
+
+
+def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, cfg: Config) -> None:
+    """(Re)compute ``features.pts`` / ``features.valid`` from a metric depth image, in place.
+
+    Depth is read at the rounded distorted key-point location; points outside
+    ``[matching.min_depth, matching.max_depth]`` or without depth are invalid (NaN).
+    """
+    n = len(features.uv)
+    raw = features.uv_raw if len(features.uv_raw) == n else features.uv
+    h, w = depth.shape[:2]
+    u = np.clip(np.rint(raw[:, 0]).astype(int), 0, w - 1)
+    v = np.clip(np.rint(raw[:, 1]).astype(int), 0, h - 1)
+    z = depth[v, u].astype(np.float64) if n else np.zeros(0)
+    mc = cfg.matching
+    valid = np.isfinite(z) & (z >= mc.min_depth) & (z <= mc.max_depth)
+    pts = np.full((n, 3), np.nan)
+    if valid.any():
+        pts[valid] = camera.backproject(features.uv[valid], z[valid])
+    features.pts = pts
+    features.valid = valid

@@ -1,0 +1,268 @@
+"""The front end: features -> matches -> per-reference registration -> fused pose (or "lost").
+
+Conventions
+-----------
+* Poses are camera-to-world 4x4 matrices; the first tracked frame is the world origin.
+* :func:`register` returns ``RegistrationResult.T`` that maps **reference-frame points into
+  the current frame**: ``p_cur = T @ p_ref``. With camera-to-world poses this is
+  ``T = inv(P_cur) @ P_ref``; the current frame's pose chained from the reference is
+  ``P_cur = P_ref @ inv(T)``.
+* ``TrackResult.relative = inv(P_prev) @ P_cur`` (prev = the last tracked frame) and
+  ``TrackResult.information`` is its 6x6 information in GTSAM's Pose3 tangent order
+  (rotation, translation), right perturbation ``relative * Exp(xi)``.
+
+Methods (``cfg.registration.method``): 'ransac' (frame-to-frame 3-D rigid RANSAC + refit),
+'isvd' (spec §1 against the previous frame), 'islam' (spec §2 against the last MP tracked
+frames, candidates fused).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rgbdslam.config import Config
+from rgbdslam.datasets.base import Frame
+from rgbdslam.frontend.features import FrameFeatures, extract_features, lift
+from rgbdslam.frontend.islam import fuse_candidates, islam_pair
+from rgbdslam.frontend.isvd import isvd
+from rgbdslam.frontend.matching import match_pairs, prefilter
+from rgbdslam.frontend.ransac import ransac_rigid
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.rigid import fit_with_stats
+from rgbdslam.geometry.se3 import inv
+
+# Floor on the per-axis point noise used for the information matrix (metres).
+_SIGMA_FLOOR = 0.003
+
+
+@dataclass
+class RegistrationResult:
+    """Pairwise registration of ``cur`` against ``ref``: ``p_cur = T @ p_ref``."""
+
+    T: np.ndarray
+    n_matches: int  # descriptor matches between depth-valid features
+    n_inliers: int  # pairs surviving pre-filter and registration
+    residual_l1: float  # mean L1 residual of the inliers (m)
+    residual_l2: float  # RMS Euclidean residual of the inliers (m)
+    weight: float  # ISLAM weight: inverse mean L1 residual (1/m)
+    pairs: np.ndarray  # (n_inliers, 2) int: (index into ref features, index into cur features)
+    information: np.ndarray  # 6x6 information of inv(T) (rotation, translation), right perturbation
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class TrackResult:
+    index: int
+    timestamp: float
+    pose: np.ndarray | None  # 4x4 camera-to-world, None if lost
+    lost: bool
+    features: FrameFeatures
+    relative: np.ndarray | None  # inv(P_prev_tracked) @ P_cur
+    information: np.ndarray | None  # 6x6 information of `relative`
+    n_matches: int
+    n_inliers: int
+    weight: float
+    timings: dict[str, float]
+    n_candidates: int = 0  # registrations that succeeded
+    n_fused: int = 0  # candidates kept by the fusion
+
+
+def point_information(P: np.ndarray, sigma: float) -> np.ndarray:
+    """Gauss–Newton information of a pose from points P (N,3) in its own frame, iid noise sigma/axis.
+
+    Residual Jacobian of ``X Exp(xi) p`` w.r.t. xi = (omega, v) is ``R_X [-[p]x, I]``.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    n = len(P)
+    s = P.sum(axis=0)
+    # sum [p]x^T [p]x = sum (|p|^2 I - p p^T)
+    A = np.eye(3) * np.einsum("ij,ij->", P, P) - P.T @ P
+    sx = np.array([[0, -s[2], s[1]], [s[2], 0, -s[0]], [-s[1], s[0], 0]])
+    H = np.zeros((6, 6))
+    H[:3, :3] = A
+    H[:3, 3:] = sx  # (-[p]x)^T I summed = [s]x
+    H[3:, :3] = sx.T
+    H[3:, 3:] = n * np.eye(3)
+    return H / (sigma * sigma)
+
+
+def register(ref: FrameFeatures, cur: FrameFeatures, cfg: Config, T0: np.ndarray | None = None) -> RegistrationResult | None:
+    """Match + pre-filter + registration of ``cur`` against ``ref`` (method from the config).
+
+    ``T0`` is a prediction of ``T`` (``p_cur = T0 @ p_ref``), e.g. from constant velocity.
+    Returns None when too few pairs are left (``registration.min_points``).
+    """
+    rc = cfg.registration
+    need = max(3, rc.min_points)
+    t0 = time.perf_counter()
+    ia, ib = match_pairs(ref, cur, cfg)
+    n_matches = len(ia)
+    if n_matches < need:
+        return None
+    if not (rc.method == "ransac" and cfg.matching.prefilter == "rigid3d"):
+        m = prefilter(ref, cur, ia, ib, cfg, T0)
+        ia, ib = ia[m], ib[m]
+        if len(ia) < need:
+            return None
+    t1 = time.perf_counter()
+    S, D = ref.pts[ia], cur.pts[ib]
+    if rc.method == "ransac":
+        out = ransac_rigid(S, D, rc.ransac_threshold, rc.ransac_iterations, np.random.default_rng(rc.seed), need)
+        if out is None:
+            return None
+        keep = out[1]
+        T, l1, l2 = fit_with_stats(S[keep], D[keep])
+        weight = 1.0 / max(l1, 1e-12)
+    elif rc.method == "isvd":
+        res = isvd(D, S, rc.max_iterations, rc.e_start, rc.e_min, T0, need, pregate=rc.pregate is not None)
+        if res is None:
+            return None
+        T, keep, l1, l2 = res.T, res.inliers, res.residual_l1, res.residual_l2
+        weight = 1.0 / max(l1, 1e-12)
+    else:
+        res = islam_pair(D, S, rc.max_iterations, rc.alpha, rc.beta, rc.min_error, need, T0, rc.pregate)
+        if res is None:
+            return None
+        T, keep, l1, l2, weight = res.T, res.inliers, res.residual_l1, res.residual_l2, res.weight
+    t2 = time.perf_counter()
+    sigma = max(l2 / np.sqrt(3.0), _SIGMA_FLOOR)
+    return RegistrationResult(
+        T=T,
+        n_matches=n_matches,
+        n_inliers=int(keep.sum()),
+        residual_l1=l1,
+        residual_l2=l2,
+        weight=float(weight),
+        pairs=np.stack([ia[keep], ib[keep]], axis=1),
+        information=point_information(D[keep], sigma),
+        timings={"matching": t1 - t0, "registration": t2 - t1},
+    )
+
+
+@dataclass
+class _Ref:
+    features: FrameFeatures
+    pose: np.ndarray
+
+
+def _scale_motion(V: np.ndarray, factor: float) -> np.ndarray:
+    """The rigid motion V scaled on SE(3) by ``factor`` (rotation vector and translation)."""
+    if factor == 1.0:
+        return V
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(V[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = V[:3, 3] * factor
+    return out
+
+
+class Frontend:
+    """Tracks frames one by one; keeps the features of the last MP tracked frames as references."""
+
+    def __init__(self, cfg: Config, camera: Camera):
+        self.cfg = cfg
+        self.camera = camera
+        rc = cfg.registration
+        self.mp = max(1, rc.mp) if rc.method == "islam" else 1
+        self.refs: deque[_Ref] = deque(maxlen=self.mp)
+        self._velocity: tuple[np.ndarray, int] | None = None  # (motion between last two tracked, index gap)
+        self._executor = ThreadPoolExecutor(max_workers=rc.threads) if rc.threads > 1 and self.mp > 1 else None
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown()
+            self._executor = None
+
+    def __del__(self) -> None:  # pragma: no cover - best effort
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def _predict(self, index: int) -> np.ndarray:
+        last = self.refs[-1]
+        if not self.cfg.registration.constant_velocity or self._velocity is None:
+            return last.pose
+        V, gap = self._velocity
+        return last.pose @ _scale_motion(V, (index - last.features.index) / gap)
+
+    def set_depth(self, index: int, depth: np.ndarray) -> None:
+        """Replace a kept reference frame's depth (e.g. DIF output) and re-lift its 3-D points."""
+        for r in self.refs:
+            if r.features.index == index:
+                lift(r.features, depth, self.camera, self.cfg)
+                return
+
+    def track(self, frame: Frame) -> TrackResult:
+        rc = self.cfg.registration
+        t0 = time.perf_counter()
+        feats = extract_features(frame, self.cfg)
+        timings = {"features": time.perf_counter() - t0, "matching": 0.0, "registration": 0.0, "fusion": 0.0}
+        if not self.refs:
+            pose = np.eye(4)
+            self.refs.append(_Ref(feats, pose))
+            return TrackResult(frame.index, frame.timestamp, pose, False, feats, None, None, 0, 0, 0.0, timings)
+        pred = self._predict(frame.index)
+        refs = list(reversed(self.refs))  # most recent first
+        T0s = [inv(pred) @ r.pose for r in refs]
+        jobs = [(r.features, feats, self.cfg, T0) for r, T0 in zip(refs, T0s)]
+        if self._executor is not None:
+            results = list(self._executor.map(lambda a: register(*a), jobs))
+        else:
+            results = [register(*a) for a in jobs]
+        t1 = time.perf_counter()
+        for res in results:
+            if res is not None:
+                timings["matching"] += res.timings["matching"]
+                timings["registration"] += res.timings["registration"]
+        ok = [(r, res) for r, res in zip(refs, results) if res is not None]
+        first = results[0]
+        n_matches = first.n_matches if first is not None else max((x.n_matches for _, x in ok), default=0)
+        if not ok:
+            return self._lost(frame, feats, timings, n_matches)
+        cands = np.stack([r.pose @ inv(res.T) for r, res in ok])
+        weights = np.array([res.weight for _, res in ok])
+        pose, keep, frac = fuse_candidates(cands, weights, rc.fusion, rc.reject_translation, rc.reject_rotation)
+        if frac < rc.min_agreement:
+            timings["fusion"] = time.perf_counter() - t1
+            return self._lost(frame, feats, timings, n_matches, len(ok))
+        kept = [res for (_, res), k in zip(ok, keep) if k]
+        info = sum(res.information for res in kept)
+        last = self.refs[-1]
+        relative = inv(last.pose) @ pose
+        self._velocity = (relative, frame.index - last.features.index)
+        self.refs.append(_Ref(feats, pose))
+        timings["fusion"] = time.perf_counter() - t1
+        return TrackResult(
+            index=frame.index,
+            timestamp=frame.timestamp,
+            pose=pose,
+            lost=False,
+            features=feats,
+            relative=relative,
+            information=info,
+            n_matches=n_matches,
+            n_inliers=sum(res.n_inliers for res in kept),
+            weight=float(sum(res.weight for res in kept)),
+            timings=timings,
+            n_candidates=len(ok),
+            n_fused=len(kept),
+        )
+
+    def _lost(self, frame: Frame, feats: FrameFeatures, timings: dict, n_matches: int, n_cand: int = 0) -> TrackResult:
+        return TrackResult(frame.index, frame.timestamp, None, True, feats, None, None, n_matches, 0, 0.0,
+                           timings, n_candidates=n_cand)
+
+    def predict_pose(self, index: int) -> np.ndarray | None:
+        """Constant-velocity prediction of frame ``index``'s pose (for writing lost frames)."""
+        return self._predict(index) if self.refs else None
+
+
+def build_frontend(cfg: Config, camera: Camera) -> Frontend:
+    """The front end for ``cfg.registration.method`` ('ransac', 'isvd' or 'islam')."""
+    return Frontend(cfg, camera)

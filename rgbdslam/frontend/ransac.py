@@ -1,0 +1,65 @@
+"""Seeded 3-D rigid RANSAC on matched point pairs (spec §6), fully vectorised.
+
+All minimal 3-point samples are drawn and fitted at once (batched SVD); the hypothesis with
+the most inliers (ties: smallest summed inlier error) wins and is refitted on its inliers
+twice (refit, re-gate, refit).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rgbdslam.geometry.rigid import fit_rigid, fit_rigid_batch
+
+
+def ransac_rigid(
+    S: np.ndarray,
+    D: np.ndarray,
+    threshold: float,
+    iterations: int,
+    rng: np.random.Generator,
+    min_inliers: int = 3,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Robust ``T`` with ``D ~ T * S`` and the inlier mask, or None if no consensus.
+
+    S, D: (N, 3) matched points; threshold: inlier distance (m); iterations: samples drawn.
+    """
+    n = len(S)
+    if n < max(3, min_inliers):
+        return None
+    # Three distinct indices per sample (vectorised rejection of repeats).
+    idx = rng.integers(0, n, size=(iterations, 3))
+    idx[:, 1] = (idx[:, 0] + 1 + rng.integers(0, n - 1, size=iterations)) % n
+    third = rng.integers(0, n - 2, size=iterations)
+    lo = np.minimum(idx[:, 0], idx[:, 1])
+    hi = np.maximum(idx[:, 0], idx[:, 1])
+    third = third + (third >= lo)
+    third = third + (third >= hi)
+    idx[:, 2] = third
+    Ss, Ds = S[idx], D[idx]
+    # Drop near-degenerate samples (tiny triangles in the source).
+    area = np.linalg.norm(np.cross(Ss[:, 1] - Ss[:, 0], Ss[:, 2] - Ss[:, 0]), axis=1)
+    good = area > 1e-4
+    if not good.any():
+        return None
+    Ts = fit_rigid_batch(Ss[good], Ds[good])
+    pred = np.einsum("bij,nj->bni", Ts[:, :3, :3], S) + Ts[:, None, :3, 3]
+    err2 = np.sum((pred - D[None]) ** 2, axis=2)
+    th2 = threshold * threshold
+    inl = err2 < th2
+    counts = inl.sum(axis=1)
+    score = np.where(inl, err2, th2).sum(axis=1)  # MSAC-style tie break
+    best = int(np.lexsort((score, -counts))[0])
+    mask = inl[best]
+    if mask.sum() < max(3, min_inliers):
+        return None
+    T = Ts[best]
+    for _ in range(2):
+        T = fit_rigid(S[mask], D[mask])
+        e = np.sum((S @ T[:3, :3].T + T[:3, 3] - D) ** 2, axis=1)
+        new = e < th2
+        if new.sum() < max(3, min_inliers):
+            break
+        mask = new
+    T = fit_rigid(S[mask], D[mask])
+    return T, mask
