@@ -1,11 +1,8 @@
 """Evaluation: timestamp association, ATE, RPE, plots and reports (no CLI code here).
 
-Metric maths (associate, ate, rpe) are pure NumPy functions on Trajectory objects;
-report.py composes them and writes JSON / plots; plots.py only draws.
+Metric maths are pure NumPy functions on Trajectory objects:
+``associate.associate``, ``ate.ate`` / ``ate.align``, ``rpe.rpe``;
+``report`` composes them and writes JSON / plots; ``plots`` only draws.
+(The functions are not re-exported here: ``ate``, ``rpe`` and ``associate`` would shadow
+their own modules.)
 """
-
-from rgbdslam.evaluation.associate import associate
-from rgbdslam.evaluation.ate import AteResult, align, ate
-from rgbdslam.evaluation.rpe import RpeResult, rpe
-
-__all__ = ["associate", "align", "ate", "AteResult", "rpe", "RpeResult"]
