@@ -26,7 +26,7 @@ import numpy as np
 from rgbdslam import __version__
 from rgbdslam.config import Config, save_config
 from rgbdslam.datasets import Frame, Sequence, open_sequence
-from rgbdslam.errors import InputError, TrackingLost
+from rgbdslam.errors import InputError, RgbdslamError, TrackingLost
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
 from rgbdslam.io.atomic import atomic_path, atomic_write_text
@@ -342,7 +342,7 @@ def _evaluate(gt: Trajectory, est: Trajectory, out_dir: Path, cfg: Config, conso
     plot_dir = out_dir / "plots" if cfg.output.plots else None
     try:
         rep = evaluate_trajectories(gt, est, json_path=out_dir / "evaluation.json", plot_dir=plot_dir)
-    except InputError as e:
+    except RgbdslamError as e:  # evaluation is a bonus: it never stops a finished run
         console.print(f"[yellow]warning:[/] no evaluation: {e}")
         return {}
     return rep.to_dict() if hasattr(rep, "to_dict") else {}
