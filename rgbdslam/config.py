@@ -124,7 +124,7 @@ class LoopConfig:
     # candidate search
     index: Literal["lsh", "brute"] = "lsh"
     lsh_tables: int = 8  # hash tables, each keyed on lsh_bits random descriptor bits
-    lsh_bits: int = 16
+    lsh_bits: int = 20
     min_votes: int = 20  # query descriptors colliding with a keyframe before it is a candidate
     skip_recent: int = 20  # keyframes
     max_candidates: int = 3
@@ -149,7 +149,9 @@ class BackendConfig:
     init: Literal["masat", "weighted_masat", "odometry", "spanning_tree", "isam2"] = "masat"
     robust_kernel: Literal["none", "huber", "cauchy"] = "cauchy"  # applied to loop edges
     kernel_width: float = 1.0  # in whitened units (sigmas)
+    kernel_chain_scaling: bool = True  # widen each loop's kernel by the odometry drift expected between its ends
     isam2: bool = True  # incremental update whenever a loop edge arrives
+    isam2_extra_updates: int = 4  # extra iSAM2 relinearisation steps after each loop
     optimizer: Literal["lm", "gn"] = "lm"  # final batch optimisation
     max_iterations: int = 100
     relative_error_tol: float = 1e-6

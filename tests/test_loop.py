@@ -1,0 +1,153 @@
+"""Loop closure: sharpness gate, descriptor index, acceptance and rejection of loops."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from rgbdslam.config import Config
+from rgbdslam.frontend.features import FrameFeatures
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv, make_pose, transform_points
+from rgbdslam.loop.detector import LoopCloser
+from rgbdslam.loop.gate import SharpnessGate
+from rgbdslam.loop.index import BruteIndex, LshIndex
+
+CAM = Camera(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
+def test_sharpness_gate_hand_counts():
+    g = SharpnessGate(factor=1.2, window=4, min_history=3)
+    seq = [100, 100, 100, 121, 120, 130, 140, 200]
+    # history before each call: -, [100], [100,100], [100]*3 (median 100 -> >120),
+    # [100,100,100,121] (median 100 -> 120 is not > 120), [100,100,121,120] (median 110.5 -> 132.6),
+    # [100,121,120,130] (median 120.5 -> 144.6), [121,120,130,140] (median 125.5 -> 150.6)
+    assert [g(n) for n in seq] == [False, False, False, True, False, False, False, True]
+    assert g.n_sharp == 2 and g.n_seen == 8
+
+
+def random_desc(rng, n):
+    return rng.integers(0, 256, (n, 32), dtype=np.uint8)
+
+
+def flip_bits(rng, desc, n_flips):
+    bits = np.unpackbits(desc, axis=1)
+    for row in bits:
+        row[rng.choice(256, n_flips, replace=False)] ^= 1
+    return np.packbits(bits, axis=1)
+
+
+def test_lsh_votes_find_the_right_keyframe():
+    rng = np.random.default_rng(1)
+    lsh, brute = LshIndex(8, 20, seed=0), BruteIndex(64)
+    descs = [random_desc(rng, 500) for _ in range(30)]
+    for k, d in enumerate(descs):
+        lsh.add(k, d)
+        brute.add(k, d)
+    assert len(lsh.runs) <= 6  # logarithmic method: few sorted runs
+    q = flip_bits(rng, descs[17][:300], 20)
+    v = lsh.votes(q)
+    assert v.argmax() == 17 and v[17] > 100
+    assert np.delete(v, 17).max() < 8
+    assert brute.votes(q).argmax() == 17
+    assert lsh.votes(random_desc(rng, 300)).max() < 8
+
+
+def make_place(rng, n=400):
+    """Random 3-D points in front of the camera (world = camera of the first view) + descriptors."""
+    P = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.0, 1.0, n), rng.uniform(1.5, 4.0, n)])
+    return P, random_desc(rng, n)
+
+
+def view(index, P_world, desc, pose, rng, flips=8):
+    """FrameFeatures of world points seen from camera-to-world ``pose``."""
+    pc = transform_points(inv(pose), P_world)
+    uv = CAM.project(pc)
+    inside = (pc[:, 2] > 0.3) & (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    pc, uv = pc[inside], uv[inside]
+    d = flip_bits(rng, desc[inside], flips)
+    pc = pc + rng.normal(0, 0.002, pc.shape)
+    return FrameFeatures(index=index, timestamp=float(index), uv=uv, desc=d, pts=pc,
+                         valid=np.ones(len(pc), bool), n_detected=len(pc), uv_raw=uv)
+
+
+def loop_config() -> Config:
+    cfg = Config()
+    cfg.loop.enabled = True
+    cfg.loop.skip_recent = 2
+    cfg.loop.min_votes = 20
+    cfg.loop.min_inliers = 40
+    cfg.loop.max_residual = 0.02
+    cfg.registration.method = "isvd"
+    return cfg
+
+
+@pytest.fixture()
+def mapped():
+    """A loop closer whose map holds place A (keyframe 0) and four other places."""
+    rng = np.random.default_rng(7)
+    cfg = loop_config()
+    lc = LoopCloser(cfg, CAM)
+    places = [make_place(rng) for _ in range(5)]
+    poses = [make_pose(np.eye(3), [0.5 * k, 0, 0]) for k in range(5)]
+    for k, ((P, d), pose) in enumerate(zip(places, poses)):
+        # place k is expressed in the frame of its keyframe's pose
+        lc.add_keyframe(view(10 * k, transform_points(pose, P), d, pose, rng), pose)
+    return lc, places, poses, rng
+
+
+def revisit_pose(dx=0.05, yaw_deg=4.0):
+    return make_pose(Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix(), [dx, 0.02, -0.03])
+
+
+def test_true_revisit_is_accepted(mapped):
+    lc, places, poses, rng = mapped
+    P, d = places[0]
+    true_pose = revisit_pose()
+    cur = view(100, P, d, true_pose, rng)
+    drift = make_pose(Rotation.from_euler("z", 2.0, degrees=True).as_matrix(), [0.08, -0.05, 0.0])
+    edges = lc.detect(cur, drift @ true_pose)  # the odometry estimate has drifted a little
+    assert len(edges) == 1
+    e = edges[0]
+    assert (e.i, e.j) == (0, 100)
+    T_true = inv(poses[0]) @ true_pose
+    assert np.linalg.norm(e.T_ij[:3, 3] - T_true[:3, 3]) < 0.01
+    assert np.allclose(e.T_ij[:3, :3], T_true[:3, :3], atol=0.01)
+    assert e.n_inliers >= 40 and e.residual < 0.02
+    assert e.information.shape == (6, 6) and np.all(np.linalg.eigvalsh(e.information) > 0)
+    assert lc.stats["n_accepted"] == 1 and lc.stats["n_queries"] == 1
+
+
+def test_different_place_with_random_descriptors_is_rejected(mapped):
+    lc, places, poses, rng = mapped
+    P, _ = make_place(rng)
+    cur = view(100, P, random_desc(rng, len(P)), revisit_pose(), rng)
+    assert lc.detect(cur, revisit_pose()) == []
+    assert lc.stats["n_candidates"] == 0
+
+
+def test_same_descriptors_inconsistent_geometry_is_rejected(mapped):
+    lc, places, poses, rng = mapped
+    P, d = places[0]
+    cur = view(100, P, d, revisit_pose(), rng)
+    cur.pts = cur.pts[rng.permutation(len(cur.pts))]  # descriptors match, 3-D layout does not
+    assert lc.detect(cur, revisit_pose()) == []
+    assert lc.stats["n_candidates"] >= 1 and lc.stats["n_accepted"] == 0
+
+
+def test_loop_disagreeing_with_the_estimate_is_rejected(mapped):
+    lc, places, poses, rng = mapped
+    P, d = places[0]
+    true_pose = revisit_pose()
+    cur = view(100, P, d, true_pose, rng)
+    far = make_pose(np.eye(3), [0.0, 0.0, 3.0]) @ true_pose  # the estimate says we are 3 m away
+    assert lc.detect(cur, far) == []
+    assert lc.stats["n_rejected_consistency"] == 1
+
+
+def test_recent_keyframes_are_skipped(mapped):
+    lc, places, poses, rng = mapped
+    P, d = places[4]  # the newest keyframe: within skip_recent
+    cur = view(100, transform_points(poses[4], P), d, poses[4], rng)
+    assert lc.candidates(cur) == []
