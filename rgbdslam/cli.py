@@ -114,5 +114,26 @@ def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_pat
                        offset=offset, json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
 
 
+@main.command()
+@click.argument("out", type=click.Path(path_type=Path))
+@click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz).")
+@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static"]), default="xyz",
+              show_default=True, help="Camera motion; 'loop' returns to and revisits the start view.")
+@click.option("--noise", is_flag=True, help="Kinect-like depth noise (sigma 1.2 mm + 1.9 mm (z-0.4)^2) and colour noise.")
+@click.option("--dropout", type=float, default=0.0, show_default=True, help="Fraction of depth pixels lost in holes.")
+@click.option("--drift", type=float, default=0.0, show_default=True,
+              help="Systematic relative depth error: written depth = true depth * (1 + DRIFT).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the textures and the noise.")
+@click.option("--camera", type=click.Choice(["ros_default", "fr1", "fr2", "fr3", "kinect1"]), default="ros_default",
+              show_default=True, help="Camera model (its distortion is rendered).")
+@click.option("--size", type=(int, int), default=(640, 480), show_default=True, metavar="W H", help="Image size.")
+def synth(out, frames, motion, noise, dropout, drift, seed, camera, size):
+    """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout)."""
+    from rgbdslam.datasets.synthetic import synth_command
+
+    synth_command(out, frames=frames, motion=motion, noise=noise, dropout=dropout, drift=drift, seed=seed,
+                  camera=camera, width=size[0], height=size[1])
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -1,0 +1,453 @@
+"""Synthetic RGB-D sequences with exact ground truth, written in the TUM layout.
+
+The scene is a textured box room (floor, four walls, ceiling) with a few boxes standing on
+the floor and two slanted panels, every surface a textured rectangle. Frames are rendered
+analytically: for every pixel the ray is intersected with every rectangle (NumPy, no pixel
+loops), the nearest hit gives the depth (exact up to the 1/5000 m quantisation of the
+written PNG) and the colour (bilinear lookup in the surface's procedural texture). Camera
+distortion, if the chosen camera has any, is rendered exactly: the rays are those of the
+distorted pixel grid.
+
+World frame: z up, the room spans x in [-3, 3], y in [-2.5, 2.5], z in [0, 2.8] metres.
+Poses are camera-to-world with the camera's optical frame (x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from rgbdslam.errors import InputError
+from rgbdslam.geometry.camera import CAMERAS, Camera
+from rgbdslam.geometry.se3 import make_pose
+from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.trajectory import Trajectory, write_tum
+from rgbdslam.ui import console, frame_progress
+
+MOTIONS = ("xyz", "rpy", "loop", "circle", "static")
+FPS = 30.0
+EPOCH = 1_600_000_000.0  # time stamp of frame 0 (seconds)
+DEPTH_SCALE = 5000.0  # TUM: raw units per metre
+TEXEL = 0.005  # texture resolution on the surfaces (metres per texel)
+ROOM = (np.array([-3.0, -2.5, 0.0]), np.array([3.0, 2.5, 2.8]))
+EYE_HEIGHT = 1.4
+MAX_RANGE = 4.5  # beyond this the simulated sensor gives no depth (noise/dropout on)
+
+
+# ----------------------------------------------------------------------------- scene
+
+
+@dataclass
+class Surface:
+    """A textured rectangle ``origin + a*u + b*v`` for ``0 <= a <= width``, ``0 <= b <= height``."""
+
+    name: str
+    origin: np.ndarray
+    u: np.ndarray  # unit vector
+    v: np.ndarray  # unit vector, orthogonal to u
+    width: float
+    height: float
+
+    @property
+    def normal(self) -> np.ndarray:
+        return np.cross(self.u, self.v)
+
+    def contains(self, points: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        """Distance of world points (N,3) to the plane, and whether they fall inside the rectangle."""
+        d = points - self.origin
+        a, b = d @ self.u, d @ self.v
+        inside = (a >= -tol) & (a <= self.width + tol) & (b >= -tol) & (b <= self.height + tol)
+        return np.abs(d @ self.normal), inside
+
+
+def _rect(name, p0, p1, p2) -> Surface:
+    """Rectangle with corner p0 and edges p0->p1, p0->p2."""
+    p0, p1, p2 = (np.asarray(p, dtype=np.float64) for p in (p0, p1, p2))
+    eu, ev = p1 - p0, p2 - p0
+    return Surface(name, p0, eu / np.linalg.norm(eu), ev / np.linalg.norm(ev), float(np.linalg.norm(eu)), float(np.linalg.norm(ev)))
+
+
+def _box(name, cx, cy, sx, sy, sz) -> list[Surface]:
+    x0, x1, y0, y1 = cx - sx / 2, cx + sx / 2, cy - sy / 2, cy + sy / 2
+    return [
+        _rect(f"{name}_top", (x0, y0, sz), (x1, y0, sz), (x0, y1, sz)),
+        _rect(f"{name}_xmin", (x0, y0, 0), (x0, y1, 0), (x0, y0, sz)),
+        _rect(f"{name}_xmax", (x1, y0, 0), (x1, y1, 0), (x1, y0, sz)),
+        _rect(f"{name}_ymin", (x0, y0, 0), (x1, y0, 0), (x0, y0, sz)),
+        _rect(f"{name}_ymax", (x0, y1, 0), (x1, y1, 0), (x0, y1, sz)),
+    ]
+
+
+def scene_surfaces() -> list[Surface]:
+    """The fixed room layout (textures depend on the seed, geometry does not)."""
+    (x0, y0, z0), (x1, y1, z1) = ROOM
+    s = [
+        _rect("floor", (x0, y0, z0), (x1, y0, z0), (x0, y1, z0)),
+        _rect("ceiling", (x0, y0, z1), (x1, y0, z1), (x0, y1, z1)),
+        _rect("wall_xmax", (x1, y0, z0), (x1, y1, z0), (x1, y0, z1)),
+        _rect("wall_xmin", (x0, y0, z0), (x0, y1, z0), (x0, y0, z1)),
+        _rect("wall_ymax", (x0, y1, z0), (x1, y1, z0), (x0, y1, z1)),
+        _rect("wall_ymin", (x0, y0, z0), (x1, y0, z0), (x0, y0, z1)),
+        _rect("panel_a", (2.0, -2.5, 0.2), (3.0, -1.7, 0.2), (2.0, -2.5, 2.2)),
+        _rect("panel_b", (-3.0, 1.6, 0.5), (-2.1, 2.5, 0.5), (-3.0, 1.6, 2.4)),
+    ]
+    s += _box("box1", 2.2, 1.2, 0.8, 1.0, 0.9)
+    s += _box("box2", 2.3, -1.3, 0.6, 0.6, 1.4)
+    s += _box("box3", -2.0, 1.2, 1.0, 0.8, 0.7)
+    s += _box("box4", -1.8, -1.9, 0.8, 0.6, 1.1)
+    s += _box("box5", 0.5, 2.0, 1.2, 0.5, 0.8)
+    s += _box("box6", 0.2, -2.1, 0.6, 0.4, 1.6)
+    return s
+
+
+def make_texture(h: int, w: int, rng: np.random.Generator) -> np.ndarray:
+    """High-contrast, multi-scale, non-repetitive procedural texture (H, W, 3) uint8 RGB."""
+    img = np.zeros((h, w, 3), np.float32)
+    base = rng.uniform(40, 215, 3).astype(np.float32)
+    img[:] = base
+    # value noise at several scales, each octave with its own colour direction
+    for scale, amp in ((160, 60.0), (48, 45.0), (14, 30.0)):
+        grid = rng.standard_normal((h // scale + 3, w // scale + 3)).astype(np.float32)
+        up = cv2.resize(grid, (w + 3 * scale, h + 3 * scale), interpolation=cv2.INTER_CUBIC)
+        oy, ox = rng.integers(0, scale, 2)
+        img += up[oy : oy + h, ox : ox + w, None] * (amp * rng.uniform(-1, 1, 3).astype(np.float32))
+    # random shapes at several sizes, in high-contrast colours
+    n_shapes = max(20, int(h * w / 700))
+    kinds = rng.integers(0, 4, n_shapes)
+    sizes = np.exp(rng.uniform(np.log(4), np.log(70), n_shapes))
+    centres = rng.uniform(0, 1, (n_shapes, 2)) * (w, h)
+    colours = rng.integers(0, 256, (n_shapes, 3))
+    for kind, r, (cx, cy), col in zip(kinds, sizes, centres, colours):
+        col = tuple(int(c) for c in col)
+        c = (int(cx), int(cy))
+        if kind == 0:
+            cv2.circle(img, c, int(r / 2) + 1, col, -1, cv2.LINE_AA)
+        elif kind == 1:
+            ang = rng.uniform(0, 180)
+            box = cv2.boxPoints(((cx, cy), (r, r * rng.uniform(0.3, 1.0)), ang))
+            cv2.fillPoly(img, [box.astype(np.int32)], col, cv2.LINE_AA)
+        elif kind == 2:
+            pts = (np.array([cx, cy]) + rng.uniform(-r, r, (3, 2))).astype(np.int32)
+            cv2.fillPoly(img, [pts], col, cv2.LINE_AA)
+        else:
+            p2 = (int(cx + rng.uniform(-r, r)), int(cy + rng.uniform(-r, r)))
+            cv2.line(img, c, p2, col, int(rng.integers(1, 4)), cv2.LINE_AA)
+    # a few random binary patches (marker-like, never repeating)
+    for _ in range(max(2, int(h * w / 60000))):
+        n, cell = int(rng.integers(4, 8)), int(rng.integers(3, 8))
+        bits = rng.integers(0, 2, (n, n)).astype(np.float32) * 255.0
+        patch = cv2.resize(bits, (n * cell, n * cell), interpolation=cv2.INTER_NEAREST)
+        py, px = rng.integers(0, max(1, h - n * cell)), rng.integers(0, max(1, w - n * cell))
+        sub = img[py : py + n * cell, px : px + n * cell]
+        sub[:] = patch[: sub.shape[0], : sub.shape[1], None]
+    img = cv2.GaussianBlur(img, (0, 0), 0.7)  # limits aliasing when seen from far
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+class Scene:
+    """Surfaces plus one texture atlas; :meth:`render` ray-casts a frame."""
+
+    def __init__(self, seed: int = 0, surfaces: list[Surface] | None = None) -> None:
+        self.surfaces = surfaces if surfaces is not None else scene_surfaces()
+        shapes = [(int(np.ceil(s.height / TEXEL)) + 2, int(np.ceil(s.width / TEXEL)) + 2) for s in self.surfaces]
+        width = max(w for _, w in shapes)
+        self.row_offset = np.cumsum([0] + [h for h, _ in shapes])[:-1]
+        atlas = np.zeros((sum(h for h, _ in shapes), width, 3), np.uint8)
+        for k, (h, w) in enumerate(shapes):
+            sub_rng = np.random.default_rng([seed, k, 104729])
+            atlas[self.row_offset[k] : self.row_offset[k] + h, :w] = make_texture(h, w, sub_rng)
+        self.atlas = atlas
+        self._O = np.array([s.origin for s in self.surfaces])
+        self._U = np.array([s.u for s in self.surfaces])
+        self._V = np.array([s.v for s in self.surfaces])
+        self._N = np.array([s.normal for s in self.surfaces])
+        self._size = np.array([(s.width, s.height) for s in self.surfaces])
+
+    def render(self, rays: "Rays", pose: np.ndarray):
+        """Ray-cast one frame seen through ``rays`` from ``pose`` (camera-to-world).
+
+        Returns ``rgb`` (H, W, 3) uint8, ``depth`` (H, W) float64 metres along the optical
+        axis (0 where nothing is hit) and ``surface`` (H, W) int16 (index into
+        :attr:`surfaces`, -1 where nothing is hit).
+        """
+        R, c = pose[:3, :3], pose[:3, 3]
+        # everything in the camera frame; a ray is (x, y, 1), so its parameter is the depth
+        Nc, Uc, Vc = self._N @ R, self._U @ R, self._V @ R
+        Oc = (self._O - c) @ R
+        H, W = rays.x.shape
+        best = np.full((H, W), np.inf)
+        best_id = np.full((H, W), -1, np.int16)
+        map_x = np.zeros((H, W), np.float32)
+        map_y = np.zeros((H, W), np.float32)
+        for k in range(len(self.surfaces)):
+            dist = Nc[k] @ Oc[k]
+            if abs(dist) < 1e-9:
+                continue  # the camera lies in this plane: seen edge-on
+            w, h = self._size[k]
+            corners = Oc[k] + np.array([[0, 0], [w, 0], [w, h], [0, h]]) @ np.stack([Uc[k], Vc[k]])
+            window = rays.window(corners)
+            if window is None:
+                continue
+            r0, r1, c0, c1 = window
+            rx, ry = rays.x[r0:r1, c0:c1], rays.y[r0:r1, c0:c1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = dist / (Nc[k, 0] * rx + Nc[k, 1] * ry + Nc[k, 2])
+            a = t * (Uc[k, 0] * rx + Uc[k, 1] * ry + Uc[k, 2]) - Oc[k] @ Uc[k]
+            b = t * (Vc[k, 0] * rx + Vc[k, 1] * ry + Vc[k, 2]) - Oc[k] @ Vc[k]
+            sub = best[r0:r1, c0:c1]
+            ok = (t > 1e-6) & (t < sub) & (a >= 0) & (a <= w) & (b >= 0) & (b <= h)
+            sub[ok] = t[ok]
+            best_id[r0:r1, c0:c1][ok] = k
+            map_x[r0:r1, c0:c1][ok] = a[ok] / TEXEL + 0.5
+            map_y[r0:r1, c0:c1][ok] = b[ok] / TEXEL + 0.5 + self.row_offset[k]
+        seen = best_id >= 0
+        depth = np.where(seen, best, 0.0)
+        rgb = cv2.remap(self.atlas, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rgb[~seen] = 0
+        return rgb, depth, best_id
+
+
+class Rays:
+    """The ray (x, y, 1) of every pixel centre of a camera, distortion included, with the
+    per-column / per-row extent of x and y used to limit each surface to its image window."""
+
+    def __init__(self, camera: Camera) -> None:
+        u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
+        ideal = camera.undistort_points(np.stack([u.ravel(), v.ravel()], axis=1))
+        self.x = ((ideal[:, 0] - camera.cx) / camera.fx).reshape(camera.height, camera.width)
+        self.y = ((ideal[:, 1] - camera.cy) / camera.fy).reshape(camera.height, camera.width)
+        self._col_lo, self._col_hi = self.x.min(axis=0), self.x.max(axis=0)
+        self._row_lo, self._row_hi = self.y.min(axis=1), self.y.max(axis=1)
+
+    def window(self, corners: np.ndarray, near: float = 1e-3) -> tuple[int, int, int, int] | None:
+        """Rows r0:r1 and columns c0:c1 that may see the convex polygon ``corners``
+        (camera frame, (4,3)); None if it lies behind the camera or outside the image."""
+        poly = _clip_near(corners, near)
+        if len(poly) == 0:
+            return None
+        px, py = poly[:, 0] / poly[:, 2], poly[:, 1] / poly[:, 2]
+        cols = np.flatnonzero((self._col_hi >= px.min()) & (self._col_lo <= px.max()))
+        rows = np.flatnonzero((self._row_hi >= py.min()) & (self._row_lo <= py.max()))
+        if len(cols) == 0 or len(rows) == 0:
+            return None
+        return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def _clip_near(poly: np.ndarray, near: float) -> np.ndarray:
+    """Sutherland-Hodgman clip of a polygon (N,3) to the half space z >= near."""
+    out = []
+    n = len(poly)
+    for i in range(n):
+        p, q = poly[i], poly[(i + 1) % n]
+        if p[2] >= near:
+            out.append(p)
+        if (p[2] >= near) != (q[2] >= near):
+            s = (near - p[2]) / (q[2] - p[2])
+            out.append(p + s * (q - p))
+    return np.array(out).reshape(-1, 3)
+
+
+def scaled_camera(name: str, width: int, height: int) -> Camera:
+    """A known camera resized to ``width`` x ``height`` (pixel-centre convention)."""
+    if name not in CAMERAS:
+        raise InputError(f"unknown camera '{name}'; choose one of {', '.join(CAMERAS)}")
+    c = CAMERAS[name]
+    if (width, height) == (c.width, c.height):
+        return c
+    if width < 16 or height < 16:
+        raise InputError(f"image size {width}x{height} is too small; use at least 16x16")
+    sx, sy = width / c.width, height / c.height
+    return Camera(c.fx * sx, c.fy * sy, (c.cx + 0.5) * sx - 0.5, (c.cy + 0.5) * sy - 0.5, width, height, c.dist, f"{name}_{width}x{height}")
+
+
+# ----------------------------------------------------------------------------- motion
+
+
+def _look(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """Camera-to-world pose at ``position`` looking along ``forward`` (world z up, no roll)."""
+    z = forward / np.linalg.norm(forward)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_pose(np.stack([x, y, z], axis=1), position)
+
+
+def _rot(axis: int, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    R = np.eye(3)
+    R[i, i] = R[j, j] = c
+    R[i, j], R[j, i] = -s, s
+    return R
+
+
+def make_trajectory(motion: str, frames: int) -> np.ndarray:
+    """Smooth camera-to-world poses (frames, 4, 4) for a motion in :data:`MOTIONS`.
+
+    xyz: translation along all three axes (±0.3 m, periods 4-6 s), fixed view of wall x=3;
+    rpy: rotation about the optical centre (±20° roll/pitch/yaw, periods 4-6 s);
+    loop: one full turn on a 0.7 m circle looking outwards, back at the start pose on the
+    last frame (the start view is revisited); circle: a 0.4 m circle in the world
+    y-z plane around the eye point (0, 0, 1.4) while looking at a fixed point on wall x=3,
+    back at the start on the last frame;
+    static: no motion.
+    """
+    if motion not in MOTIONS:
+        raise InputError(f"unknown motion '{motion}'; choose one of {', '.join(MOTIONS)}")
+    if frames < 1:
+        raise InputError(f"frames must be at least 1 (got {frames})")
+    t = np.arange(frames) / FPS
+    s = np.arange(frames) / max(frames - 1, 1)  # 0..1 over the sequence
+    centre = np.array([0.0, 0.0, EYE_HEIGHT])
+    ahead = np.array([1.0, 0.0, 0.0])
+    poses = np.empty((frames, 4, 4))
+    for k in range(frames):
+        if motion == "static":
+            poses[k] = _look(centre, ahead)
+        elif motion == "xyz":
+            w = 2 * np.pi * t[k]
+            d = 0.3 * np.array([np.sin(w / 4.0), np.sin(w / 5.0), 0.6 * np.sin(w / 6.0)])
+            poses[k] = _look(centre + d, ahead)
+        elif motion == "rpy":
+            w = 2 * np.pi * t[k]
+            roll, pitch, yaw = np.radians(20.0) * np.array([np.sin(w / 6.0), np.sin(w / 5.0), np.sin(w / 4.0)])
+            P = _look(centre, ahead)
+            P[:3, :3] = P[:3, :3] @ _rot(1, yaw) @ _rot(0, pitch) @ _rot(2, roll)
+            poses[k] = P
+        elif motion == "loop":
+            th = 2 * np.pi * s[k]
+            radial = np.array([np.cos(th), np.sin(th), 0.0])
+            pos = centre + 0.7 * radial + [0.0, 0.0, 0.1 * np.sin(2 * th)]
+            P = _look(pos, radial + [0.0, 0.0, -0.1 + 0.1 * np.cos(2 * th)])
+            poses[k] = P
+        else:  # circle
+            th = 2 * np.pi * s[k]
+            pos = centre + 0.4 * np.array([0.0, np.sin(th), np.cos(th)])
+            poses[k] = _look(pos, np.array([3.0, 0.0, 1.2]) - pos)
+    return poses
+
+
+# ----------------------------------------------------------------------------- sensor effects
+
+
+def kinect_noise(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Axial noise with sigma = 0.0012 + 0.0019 (z - 0.4)^2 (Nguyen et al. 2012)."""
+    sigma = 0.0012 + 0.0019 * (depth - 0.4) ** 2
+    return np.where(depth > 0, depth + sigma * rng.standard_normal(depth.shape), 0.0)
+
+
+def dropout_mask(shape: tuple[int, int], fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """Boolean mask of blob-shaped holes covering about ``fraction`` of the image."""
+    if fraction <= 0:
+        return np.zeros(shape, bool)
+    h, w = shape
+    low = rng.standard_normal((h // 16 + 2, w // 16 + 2)).astype(np.float32)
+    field = cv2.resize(low, (w, h), interpolation=cv2.INTER_CUBIC)
+    field += 0.35 * rng.standard_normal(shape).astype(np.float32)  # ragged hole borders
+    return field > np.quantile(field, 1.0 - fraction)
+
+
+# ----------------------------------------------------------------------------- writer
+
+
+def _prepare_output(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out} exists and is not a folder; give a folder for the synthetic sequence")
+    if out.is_dir() and any(out.iterdir()) and not (out / "synthetic.yaml").is_file():
+        raise InputError(f"{out} is not empty and is not a synthetic sequence; give a new or empty folder")
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):  # written last: a cut run is not a sequence
+        (out / name).unlink(missing_ok=True)
+    for sub in ("rgb", "depth"):
+        d = out / sub
+        d.mkdir(parents=True, exist_ok=True)
+        for p in d.glob("*.png"):
+            p.unlink()
+
+
+def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, drift: float, rng) -> None:
+    """Apply the sensor effects to one rendered frame and write its two PNGs."""
+    rgb, depth, _ = rendered
+    if noise:
+        rgb = np.clip(rgb + rng.normal(0.0, 2.0, rgb.shape), 0, 255).astype(np.uint8)
+        depth = kinect_noise(depth, rng)
+    depth = depth * (1.0 + drift)
+    if noise or dropout > 0:
+        depth[(depth > MAX_RANGE) | dropout_mask(depth.shape, dropout, rng)] = 0.0
+    raw = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+    png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    for path, img in ((out / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)), (out / "depth" / name, raw)):
+        if not cv2.imwrite(str(path), img, png):
+            raise InputError(f"cannot write {path}; check the folder is writable and not full")
+
+
+def generate_sequence(
+    out_dir: str | Path,
+    frames: int = 100,
+    motion: str = "xyz",
+    width: int = 640,
+    height: int = 480,
+    noise: bool = False,
+    dropout: float = 0.0,
+    drift: float = 0.0,
+    seed: int = 0,
+    camera: str = "ros_default",
+    progress: bool = False,
+) -> dict:
+    """Render a synthetic sequence into ``out_dir`` (TUM layout) and return a summary.
+
+    ``noise``: Kinect-like axial depth noise and colour noise (sigma 2 grey levels);
+    ``dropout``: fraction of depth pixels lost in blob-shaped holes; with either, depth
+    beyond 4.5 m is invalid. ``drift``: systematic relative depth error, written depth =
+    true depth * (1 + drift) (undo it with ``dataset.depth_correction = 1 / (1 + drift)``).
+    All randomness is seeded by ``seed``. Written: ``rgb/``, ``depth/`` (16-bit, 5000 per
+    metre), ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``, ``camera.yaml`` (read by the TUM
+    reader), ``synthetic.yaml`` (these parameters).
+    """
+    if not 0.0 <= dropout < 1.0:
+        raise InputError(f"dropout must be in [0, 1) (got {dropout})")
+    if not -0.5 < drift < 0.5:
+        raise InputError(f"drift must be a small relative depth error in (-0.5, 0.5) (got {drift})")
+    start = time.perf_counter()
+    out = Path(out_dir)
+    cam = scaled_camera(camera, width, height)
+    poses = make_trajectory(motion, frames)
+    _prepare_output(out)
+    params = dict(frames=frames, motion=motion, width=width, height=height, noise=bool(noise),
+                  dropout=float(dropout), drift=float(drift), seed=int(seed), camera=camera)
+    atomic_write_text(out / "synthetic.yaml", yaml.safe_dump({"generator": "rgbdslam synthetic v1", **params}, sort_keys=False))
+    atomic_write_text(
+        out / "camera.yaml",
+        (f"camera: {camera}\n" if cam is CAMERAS[camera] else "")
+        + f"fx: {cam.fx!r}\nfy: {cam.fy!r}\ncx: {cam.cx!r}\ncy: {cam.cy!r}\n"
+        f"width: {cam.width}\nheight: {cam.height}\ndist: [{', '.join(repr(float(d)) for d in cam.dist)}]\n",
+    )
+    scene = Scene(seed)
+    rays = Rays(cam)
+    rng = np.random.default_rng([seed, 31337])
+    stamps = EPOCH + np.arange(frames) / FPS
+    names = [f"{ts:.6f}.png" for ts in stamps]
+    with frame_progress(frames, f"rendering {frames} frames", enabled=progress) as advance:
+        for k in range(frames):
+            _write_frame(out, names[k], scene.render(rays, poses[k]), noise, dropout, drift, rng)
+            advance()
+    header = "# timestamp filename\n"
+    atomic_write_text(out / "rgb.txt", "# color images (synthetic)\n" + header + "".join(f"{t:.6f} rgb/{n}\n" for t, n in zip(stamps, names)))
+    atomic_write_text(out / "depth.txt", "# depth maps (synthetic)\n" + header + "".join(f"{t:.6f} depth/{n}\n" for t, n in zip(stamps, names)))
+    write_tum(Trajectory(stamps, poses), out / "groundtruth.txt")
+    seconds = time.perf_counter() - start
+    return {"path": str(out), "frames": frames, "seconds": seconds, "camera": cam.name, **params}
+
+
+def synth_command(out_dir: str | Path, **kwargs) -> dict:
+    """``rgbdslam synth``: generate with a progress bar and print where and how fast."""
+    summary = generate_sequence(out_dir, progress=True, **kwargs)
+    console.print(
+        f"wrote {summary['frames']} {summary['motion']} frames ({summary['width']}x{summary['height']}, "
+        f"camera {summary['camera']}) to {summary['path']} in {summary['seconds']:.1f} s"
+    )
+    return summary

@@ -1,0 +1,220 @@
+"""Synthetic sequences: exact depth, consistent geometry between frames, ORB-friendly texture,
+seeded sensor effects, the loop motion's closure and the `synth` command."""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rgbdslam.cli import main
+from rgbdslam.config import DatasetConfig
+from rgbdslam.datasets import open_sequence
+from rgbdslam.datasets.synthetic import (
+    DEPTH_SCALE,
+    MOTIONS,
+    ROOM,
+    Rays,
+    Scene,
+    generate_sequence,
+    make_trajectory,
+    scaled_camera,
+    scene_surfaces,
+)
+from rgbdslam.errors import InputError
+from rgbdslam.geometry.se3 import inv, transform_points
+
+Q = 1.0 / DEPTH_SCALE  # depth quantum (m)
+
+
+@pytest.fixture(scope="module")
+def xyz_seq(tmp_path_factory):
+    out = tmp_path_factory.mktemp("syn") / "xyz"
+    t = time.perf_counter()
+    summary = generate_sequence(out, frames=8, motion="xyz", seed=1)
+    print(f"\nsynthetic: 8 frames 640x480 generated in {time.perf_counter() - t:.2f} s")
+    assert summary["frames"] == 8
+    return out
+
+
+def _backproject_world(frame, pose, uv):
+    """World points of integer pixels ``uv`` (N,2) using the frame's written depth."""
+    z = frame.depth[uv[:, 1], uv[:, 0]].astype(np.float64)
+    ideal = frame.camera.undistort_points(uv.astype(np.float64))
+    return transform_points(pose, frame.camera.backproject(ideal, z)), z
+
+
+def _check_points_on_surfaces(seq, i, n=400, seed=0):
+    frame = seq.load(i)
+    pose = seq.groundtruth().poses[i]
+    rng = np.random.default_rng(seed)
+    uv = np.stack([rng.integers(0, frame.camera.width, n), rng.integers(0, frame.camera.height, n)], axis=1)
+    scene = Scene(0)  # geometry does not depend on the seed
+    _, _, hit = scene.render(Rays(frame.camera), pose)
+    P, z = _backproject_world(frame, pose, uv)
+    assert (z > 0).all()
+    ids = hit[uv[:, 1], uv[:, 0]]
+    surfaces = scene_surfaces()
+    rays = np.c_[frame.camera.undistort_points(uv.astype(float)), np.ones(n)]
+    ray_len = np.linalg.norm((rays[:, :2] - [frame.camera.cx, frame.camera.cy]) / [frame.camera.fx, frame.camera.fy], axis=1)
+    for k in np.unique(ids):
+        m = ids == k
+        dist, inside = surfaces[k].contains(P[m], tol=1e-3)
+        # the written depth is off by at most half a quantum along the optical axis
+        assert (dist <= 0.5 * Q * np.sqrt(1 + ray_len[m] ** 2) + 1e-7).all(), surfaces[k].name
+        assert inside.all(), surfaces[k].name
+
+
+def test_depth_is_exact_on_the_scene_planes(xyz_seq):
+    seq = open_sequence(xyz_seq)
+    assert len(seq) == 8 and seq.camera.name == "ros_default"
+    for i in (0, 7):
+        _check_points_on_surfaces(seq, i, seed=i)
+
+
+def test_depth_exact_with_distortion_and_other_size(tmp_path):
+    out = tmp_path / "fr1"
+    generate_sequence(out, frames=2, motion="rpy", camera="fr1", width=320, height=240, seed=2)
+    seq = open_sequence(out)
+    assert (seq.camera.width, seq.camera.height) == (320, 240)
+    assert seq.camera.fx == pytest.approx(517.3 / 2) and seq.camera.dist[0] == pytest.approx(0.2624)
+    _check_points_on_surfaces(seq, 1, seed=5)
+
+
+def test_hand_worked_wall_depth_and_drift(tmp_path):
+    """From (0, 0, 1.4) looking along +x the wall x = 3 is exactly 3 m away at every pixel seeing it."""
+    cam = scaled_camera("ros_default", 640, 480)
+    poses = make_trajectory("static", 1)
+    np.testing.assert_allclose(poses[0][:3, 3], [0, 0, 1.4])
+    np.testing.assert_allclose(poses[0][:3, 2], [1, 0, 0], atol=1e-12)  # optical axis = +x
+    np.testing.assert_allclose(poses[0][:3, 1], [0, 0, -1], atol=1e-12)  # image y = down
+    _, depth, hit = Scene(0).render(Rays(cam), poses[0])
+    wall = [s.name for s in scene_surfaces()].index("wall_xmax")
+    assert hit[240, 320] == wall
+    assert (hit == wall).sum() > 10000
+    np.testing.assert_allclose(depth[hit == wall], 3.0, atol=1e-12)
+    generate_sequence(tmp_path / "d", frames=1, motion="static", drift=0.02)
+    f = open_sequence(tmp_path / "d").load(0)
+    assert f.depth[240, 320] == np.float32(round(3.06 * DEPTH_SCALE) / DEPTH_SCALE)
+    f = open_sequence(tmp_path / "d", DatasetConfig(depth_correction=1 / 1.02)).load(0)
+    assert abs(f.depth[240, 320] - 3.0) < 1e-6
+
+
+def test_reprojection_between_frames_agrees_to_quantisation(xyz_seq):
+    seq = open_sequence(xyz_seq)
+    gt = seq.groundtruth()
+    f0, f5 = seq.load(0), seq.load(5)
+    cam = f0.camera
+    v, u = np.nonzero(f5.depth > 0)
+    P5 = cam.backproject(np.c_[u, v], f5.depth[v, u])
+    P0 = transform_points(inv(gt.poses[0]) @ gt.poses[5], P5)
+    uv0 = cam.project(P0)
+    x, y = uv0[:, 0], uv0[:, 1]
+    ok = (x >= 0) & (x < cam.width - 1) & (y >= 0) & (y < cam.height - 1)
+    x, y, z_pred = x[ok], y[ok], P0[ok, 2]
+    # inverse depth is affine in the image on a plane: bilinear interpolation of 1/z is exact
+    inv0 = np.where(f0.depth > 0, 1.0 / np.maximum(f0.depth, 1e-9), np.nan).astype(np.float64)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    w = (inv0[y0, x0] * (1 - fx) + inv0[y0, x0 + 1] * fx) * (1 - fy) + (inv0[y0 + 1, x0] * (1 - fx) + inv0[y0 + 1, x0 + 1] * fx) * fy
+    z_obs = 1.0 / w
+    err = np.abs(z_obs - z_pred)
+    assert ok.mean() > 0.8  # the two views overlap
+    frac = np.mean(err <= Q + 1e-6)
+    assert frac > 0.97, f"only {frac:.3f} of reprojected pixels agree within 1/5000 m"
+    assert np.nanmedian(err) < 0.5 * Q
+
+
+def test_orb_finds_many_features(tmp_path):
+    out = tmp_path / "loop"
+    generate_sequence(out, frames=12, motion="loop", noise=True, seed=0, width=640, height=480)
+    seq = open_sequence(out)
+    orb = cv2.ORB_create(nfeatures=2000)
+    for i in range(0, 12, 2):
+        kp = orb.detect(cv2.cvtColor(seq.load(i).rgb, cv2.COLOR_RGB2GRAY), None)
+        assert len(kp) > 500, f"frame {i}: {len(kp)} ORB features"
+
+
+def test_loop_returns_to_the_start_view(tmp_path):
+    poses = make_trajectory("loop", 60)
+    np.testing.assert_allclose(poses[-1], poses[0], atol=1e-12)
+    # it goes round the room: the camera looks in every direction on the way
+    yaw = np.degrees(np.arctan2(poses[:, 1, 2], poses[:, 0, 2]))
+    assert np.ptp(np.unwrap(np.radians(yaw))) > np.radians(350)
+    generate_sequence(tmp_path / "l", frames=9, motion="loop", width=160, height=120)
+    seq = open_sequence(tmp_path / "l")
+    first, last = seq.load(0), seq.load(8)
+    # identical up to pixels whose ray grazes a surface edge (the poses differ by ~1e-16)
+    assert np.mean(np.any(first.rgb != last.rgb, axis=2)) < 0.002
+    assert np.mean(first.depth != last.depth) < 0.002
+    assert np.abs(seq.load(0).rgb.astype(int) - seq.load(4).rgb).mean() > 20
+
+
+@pytest.mark.parametrize("motion", MOTIONS)
+def test_motions_stay_inside_looking_at_surfaces(motion):
+    poses = make_trajectory(motion, 300)
+    lo, hi = ROOM
+    pos = poses[:, :3, 3]
+    assert ((pos > lo + 0.5) & (pos < hi - 0.5)).all()
+    np.testing.assert_allclose(poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2), np.tile(np.eye(3), (300, 1, 1)), atol=1e-12)
+    steps = np.linalg.norm(np.diff(pos, axis=0), axis=1)
+    assert steps.max() < 0.03  # smooth: < 3 cm per frame at 30 Hz
+    if motion != "static":
+        assert steps.sum() > 0.05 or motion == "rpy"
+    cam = scaled_camera("ros_default", 80, 60)
+    rays, scene = Rays(cam), Scene(0, surfaces=scene_surfaces())
+    for k in range(0, 300, 30):
+        _, depth, hit = scene.render(rays, poses[k])
+        assert (hit >= 0).all()
+        assert 0.8 <= np.median(depth) <= 4.0 and depth.min() > 0.3
+
+
+def test_seeded_noise_dropout_and_reproducibility(tmp_path):
+    kw = dict(frames=2, motion="static", width=320, height=240)
+    generate_sequence(tmp_path / "clean", **kw, seed=4)
+    generate_sequence(tmp_path / "noisy", **kw, seed=4, noise=True)
+    generate_sequence(tmp_path / "noisy2", **kw, seed=4, noise=True)
+    generate_sequence(tmp_path / "holes", **kw, seed=4, dropout=0.2)
+    generate_sequence(tmp_path / "other", **kw, seed=5)
+    clean, noisy = open_sequence(tmp_path / "clean").load(1), open_sequence(tmp_path / "noisy").load(1)
+    wall = np.abs(clean.depth - 3.0) < 1e-6  # pixels on the wall x = 3 (z = 3 m)
+    d = (noisy.depth - clean.depth)[wall]
+    expected = 0.0012 + 0.0019 * (3.0 - 0.4) ** 2
+    assert wall.sum() > 5000 and abs(d.std() / expected - 1) < 0.1 and abs(d.mean()) < 0.002
+    for name in ("rgb", "depth"):
+        a = sorted((tmp_path / "noisy" / name).iterdir())
+        b = sorted((tmp_path / "noisy2" / name).iterdir())
+        assert [p.read_bytes() for p in a] == [p.read_bytes() for p in b]
+    holes = open_sequence(tmp_path / "holes").load(1)
+    assert abs((holes.depth == 0).mean() - 0.2) < 0.03
+    np.testing.assert_array_equal(holes.depth[holes.depth > 0], clean.depth[holes.depth > 0])
+    other = open_sequence(tmp_path / "other").load(1)
+    np.testing.assert_array_equal(other.depth, clean.depth)  # same room ...
+    assert np.abs(other.rgb.astype(int) - clean.rgb).mean() > 20  # ... other textures
+
+
+def test_bad_arguments_and_foreign_folder(tmp_path):
+    with pytest.raises(InputError, match="unknown motion"):
+        generate_sequence(tmp_path / "a", frames=2, motion="spin")
+    with pytest.raises(InputError, match="dropout"):
+        generate_sequence(tmp_path / "a", frames=2, dropout=1.5)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("x")
+    with pytest.raises(InputError, match="not empty"):
+        generate_sequence(tmp_path / "mine", frames=1)
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "x"
+
+
+def test_synth_command(tmp_path):
+    out = tmp_path / "cli"
+    res = CliRunner().invoke(main, ["synth", str(out), "--frames", "3", "--motion", "circle", "--size", "160", "120", "--seed", "2"])
+    assert res.exit_code == 0, res.output
+    assert len(open_sequence(out)) == 3 and len(open_sequence(out).groundtruth()) == 3
+    # regenerating into the same folder replaces the old sequence
+    res = CliRunner().invoke(main, ["synth", str(out), "-n", "2", "--size", "160", "120"])
+    assert res.exit_code == 0 and len(list((out / "rgb").iterdir())) == 2
+    res = CliRunner().invoke(main, ["synth", str(out), "--motion", "spin"])
+    assert res.exit_code == 2 and "Traceback" not in res.output
