@@ -267,3 +267,18 @@ def test_convert_refuses_nonempty_output(tmp_path):
         convert_tum_to_put(DESK, tmp_path / "out", max_frames=2)
     assert (tmp_path / "out" / "x").read_text() == "keep me"
     shutil.rmtree(tmp_path / "out")
+
+
+@need_desk
+def test_tum_to_put_script(tmp_path, capsys):
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "tum_to_put.py"
+    spec = importlib.util.spec_from_file_location("tum_to_put", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main([str(DESK), str(tmp_path / "p"), "--max-frames", "2"]) == 0
+    assert len((tmp_path / "p" / "matched").read_text().splitlines()) == 2
+    assert (tmp_path / "p" / "groundtruth.txt").read_bytes() == (DESK / "groundtruth.txt").read_bytes()
+    assert mod.main([str(tmp_path / "nope"), str(tmp_path / "q")]) == 2
+    assert "does not exist" in capsys.readouterr().err

@@ -30,7 +30,7 @@ from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text
-from rgbdslam.io.trajectory import Trajectory, read_tum, write_tum
+from rgbdslam.io.trajectory import Trajectory, read_tum
 
 PUT_DEPTH_SCALE = 1000.0
 MATCHED = "matched"
@@ -170,7 +170,7 @@ def convert_tum_to_put(src: str | Path, dst: str | Path, max_frames: int | None 
     )
     gt = seq.groundtruth()
     if gt is not None:
-        write_tum(gt, dst / "groundtruth.txt")
+        shutil.copyfile(seq.root / "groundtruth.txt", dst / "groundtruth.txt")
         j = int(np.argmin(np.abs(gt.timestamps - seq.timestamps[0])))
         t, q = pose_to_tum(gt.poses[j])
         atomic_write_text(dst / INITIAL, " ".join(f"{v:.9f}" for v in (*t[0], *q[0])) + "\n")
