@@ -135,5 +135,84 @@ def synth(out, frames, motion, noise, dropout, drift, seed, camera, size):
                   camera=camera, width=size[0], height=size[1])
 
 
+# ------------------------------------------------------------------------------- posegraph
+
+_GRAPH_FORMATS = click.Choice(["auto", "g2o", "toro", "isam"])
+_INIT_METHODS = ["masat", "weighted_masat", "odometry", "spanning_tree", "lago", "chordal"]
+
+
+@main.group()
+def posegraph() -> None:
+    """Pose-graph files (g2o, TORO, iSAM): initial guesses (MASAT, ...), Gauss-Newton, the MASAT benchmark."""
+
+
+@posegraph.command("info")
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="File format.")
+def posegraph_info(file, fmt):
+    """Describe the pose graph in FILE (kind, vertices, edges, duplicates)."""
+    from rgbdslam.backend.graph_io import graph_info
+
+    click.echo(graph_info(file, fmt))
+
+
+@posegraph.command("init")
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--method", type=click.Choice(_INIT_METHODS), default="masat", show_default=True,
+              help="Initial guess (lago = GTSAM LAGO for SE(2), chordal = GTSAM InitializePose3 for SE(3)).")
+@click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Output g2o file.")
+@click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="Input format.")
+def posegraph_init(file, method, out, fmt):
+    """Compute an initial guess for the pose graph in FILE and write it (with the edges) as g2o."""
+    from rgbdslam.backend.initializers import initialize_file
+
+    click.echo(initialize_file(file, method, out, fmt))
+
+
+@posegraph.command("optimize")
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--init", "init", type=click.Choice(_INIT_METHODS + ["file"]), default="masat", show_default=True,
+              help="Initial guess ('file' = the file's own vertex estimates).")
+@click.option("--out", "-o", type=click.Path(path_type=Path), default=None, help="Output g2o file.")
+@click.option("--max-iter", default=50, show_default=True, help="Maximum Gauss-Newton iterations.")
+@click.option("--tol", default=1e-6, show_default=True, help="Convergence threshold on the chi2 change.")
+@click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="absolute", show_default=True,
+              help="absolute: |dchi2| < tol; relative: |dchi2|/chi2 < tol.")
+@click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="Input format.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, quiet):
+    """Initialise and optimise the pose graph in FILE with Gauss-Newton (GTSAM); print the chi2 report."""
+    from rgbdslam.backend.optimize import optimize_file
+
+    click.echo(optimize_file(file, init=init, out=out, max_iter=max_iter, tol=tol, criterion=criterion, fmt=fmt,
+                             progress=not quiet))
+
+
+@posegraph.command("bench")
+@click.option("--dataset", type=click.Choice(["m3500", "city10k", "m10000"]), required=True)
+@click.option("--noise", default="0.2,0.2,0.2", show_default=True,
+              help="sx,sy,stheta (several separated by ';'), or 'all' for the spec's 8 levels.")
+@click.option("--instances", default=50, show_default=True, help="Noisy instances per noise level.")
+@click.option("--max-iter", default=50, show_default=True, help="Maximum Gauss-Newton iterations.")
+@click.option("--workers", default=1, show_default=True, help="Parallel worker processes.")
+@click.option("--seed", default=0, show_default=True, help="Seed of the noise.")
+@click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="absolute", show_default=True,
+              help="Convergence test: |dchi2| < 1e-6 (absolute) or |dchi2|/chi2 < 1e-6 (relative).")
+@click.option("--methods", default="odometry,spanning_tree,masat,weighted_masat,lago,ground_truth", show_default=True,
+              help="Comma-separated initial guesses to compare.")
+@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
+              help="Folder for runs.csv, table1.csv, table2.csv, report.md.")
+@click.option("--data", "data_dir", type=click.Path(path_type=Path), default=None,
+              help="Data folder (default: $RGBDSLAM_DATA or <repo>/../shared/data).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet):
+    """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
+    from rgbdslam.backend.posegraph_bench import bench_command
+
+    click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
+                             criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,
+                             progress=not quiet))
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -1,0 +1,295 @@
+"""Pose-graph files: g2o, TORO and iSAM readers (format auto-detected) and a g2o writer.
+
+Formats and the conventions that differ between them:
+
+* **g2o** — ``VERTEX_SE2 id x y th``, ``EDGE_SE2 i j x y th`` + upper triangle of the 3x3
+  information (``I11 I12 I13 I22 I23 I33``); ``VERTEX_SE3:QUAT id x y z qx qy qz qw``,
+  ``EDGE_SE3:QUAT i j x y z qx qy qz qw`` + upper triangle of the 6x6 information in
+  (t, r) order.  ``FIX`` lines are ignored.
+* **TORO** — ``VERTEX2 id x y th``, ``EDGE2 i j x y th`` + information ``xx xy yy thth xth yth``;
+  ``EQUIV`` records are skipped (with a note).
+* **iSAM** — no vertices; ``ODOMETRY``/``EDGE2 i j x y th`` + upper triangle of the
+  **square-root** information ``sxx sxy sxt syy syt stt`` (information = R^T R);
+  ``EDGE3 i j x y z roll pitch yaw`` + the 21-entry square-root information upper triangle
+  in (x, y, z, roll, pitch, yaw) order; rotation = Rz(yaw) Ry(pitch) Rx(roll).  Landmark
+  records (``POINT2``, ``LANDMARK``, ...) are ignored with a note.  The roll-pitch-yaw
+  information is used as rotation-vector information (they agree to first order).
+
+SE(3) information is stored in g2o (t, r) order in :class:`PoseGraph` (see graph.py).
+Malformed lines raise :class:`rgbdslam.errors.InputError` naming ``file:line``.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rgbdslam.backend.graph import PoseGraph, empty_poses, se3_from_tq, se3_to_tq, wrap_angle
+from rgbdslam.errors import InputError
+from rgbdslam.io.atomic import atomic_write_text
+
+FORMATS = ("auto", "g2o", "toro", "isam")
+
+# number of numeric fields after the tag
+_G2O = {"VERTEX_SE2": 4, "EDGE_SE2": 11, "VERTEX_SE3:QUAT": 8, "EDGE_SE3:QUAT": 30}
+_TORO = {"VERTEX2": 4, "EDGE2": 11}
+_ISAM = {"ODOMETRY": 11, "EDGE2": 11, "EDGE3": 29}
+_IGNORED = {"g2o": {"FIX"}, "toro": {"EQUIV"},
+            "isam": {"POINT2", "POINT3", "LANDMARK", "LANDMARK2", "LANDMARK3", "POSE2D_POINT2D",
+                     "EDGE_SE2_XY", "VERTEX_XY", "POINT"}}
+
+_IU3 = np.triu_indices(3)
+_IU6 = np.triu_indices(6)
+
+
+def detect_format(path: str | Path) -> str:
+    """Guess the format from the record tags in the first lines of the file."""
+    path = Path(path)
+    tags = set()
+    with open(path) as f:
+        for k, line in enumerate(f):
+            if k > 5000:
+                break
+            p = line.split(maxsplit=1)
+            if p and not p[0].startswith("#"):
+                tags.add(p[0])
+    if tags & {"VERTEX_SE2", "EDGE_SE2", "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT"}:
+        return "g2o"
+    if tags & {"ODOMETRY", "EDGE3"} or (tags & _IGNORED["isam"]):
+        return "isam"
+    if "VERTEX2" in tags:
+        return "toro"
+    if "EDGE2" in tags:  # EDGE2 without vertices: iSAM (TORO files always list VERTEX2)
+        return "isam"
+    raise InputError(f"{path}: no g2o, TORO or iSAM pose-graph records found; give a .g2o, TORO .graph or iSAM .txt file")
+
+
+def _scan(path: Path, spec: dict[str, int], ignored: set[str]):
+    """Group numeric fields of each known tag; returns (rows by tag, line numbers by tag, notes)."""
+    rows: dict[str, list[list[str]]] = defaultdict(list)
+    lines: dict[str, list[int]] = defaultdict(list)
+    skipped: dict[str, int] = defaultdict(int)
+    with open(path) as f:
+        for lineno, line in enumerate(f, 1):
+            p = line.split()
+            if not p or p[0].startswith("#"):
+                continue
+            tag = p[0]
+            if tag in spec:
+                if len(p) - 1 != spec[tag]:
+                    raise InputError(f"{path}:{lineno}: {tag} needs {spec[tag]} numbers, found {len(p) - 1}; fix or remove the line")
+                rows[tag].append(p[1:])
+                lines[tag].append(lineno)
+            elif tag in ignored:
+                skipped[tag] += 1
+            else:
+                raise InputError(f"{path}:{lineno}: unsupported record {tag!r}; remove it or convert the file to g2o")
+    notes = [f"ignored {c} {t} record(s)" for t, c in sorted(skipped.items())]
+    return rows, lines, notes
+
+
+def _numbers(path: Path, tag: str, rows, lines) -> np.ndarray:
+    if not rows:
+        return np.zeros((0, {**_G2O, **_TORO, **_ISAM}[tag]))
+    try:
+        return np.array(rows, dtype=float)
+    except ValueError:
+        for r, ln in zip(rows, lines):
+            try:
+                [float(x) for x in r]
+            except ValueError:
+                raise InputError(f"{path}:{ln}: {tag} has a non-numeric field; fix the line") from None
+        raise
+
+
+def _int_ids(path: Path, tag: str, a: np.ndarray, lines) -> np.ndarray:
+    ids = a.astype(np.int64)
+    bad = np.flatnonzero((ids != a) | (ids < 0))
+    if len(bad):
+        raise InputError(f"{path}:{lines[bad[0]]}: {tag} vertex id must be a non-negative integer; fix the line")
+    return ids
+
+
+def _check_finite(path: Path, tag: str, a: np.ndarray, lines):
+    bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+    if len(bad):
+        raise InputError(f"{path}:{lines[bad[0]]}: {tag} has a non-finite number; fix the line")
+
+
+def _assemble(path, dim, vid, vposes, ei_raw, ej_raw, meas, info, edge_lines, fmt, notes) -> PoseGraph:
+    if len(ei_raw) == 0:
+        raise InputError(f"{path}: the file has no pose-graph edges; give a graph with EDGE records")
+    ids = np.unique(np.concatenate([vid, ei_raw, ej_raw]))
+    index = {int(v): k for k, v in enumerate(ids)}
+    ei = np.searchsorted(ids, ei_raw)
+    ej = np.searchsorted(ids, ej_raw)
+    self_loops = np.flatnonzero(ei == ej)
+    if len(self_loops):
+        raise InputError(f"{path}:{edge_lines[self_loops[0]]}: edge from a vertex to itself; remove the line")
+    poses = empty_poses(dim, len(ids))
+    if len(vid):
+        poses[np.searchsorted(ids, vid)] = vposes
+    del index
+    return PoseGraph(dim=dim, ids=ids, poses=poses, edges_i=ei, edges_j=ej, meas=meas, info=info,
+                     has_poses=len(vid) == len(ids), source=f"{path} ({fmt})", notes=notes)
+
+
+def _sym_from_upper(vals: np.ndarray, d: int) -> np.ndarray:
+    iu = np.triu_indices(d)
+    M = np.zeros((len(vals), d, d))
+    M[:, iu[0], iu[1]] = vals
+    M[:, iu[1], iu[0]] = vals
+    return M
+
+
+def _read_g2o(path: Path) -> PoseGraph:
+    rows, lines, notes = _scan(path, _G2O, _IGNORED["g2o"])
+    has2 = "EDGE_SE2" in rows or "VERTEX_SE2" in rows
+    has3 = "EDGE_SE3:QUAT" in rows or "VERTEX_SE3:QUAT" in rows
+    if has2 and has3:
+        raise InputError(f"{path}: mixes SE2 and SE3 records; keep one kind per file")
+    if has2:
+        v = _numbers(path, "VERTEX_SE2", rows["VERTEX_SE2"], lines["VERTEX_SE2"])
+        e = _numbers(path, "EDGE_SE2", rows["EDGE_SE2"], lines["EDGE_SE2"])
+        _check_finite(path, "EDGE_SE2", e, lines["EDGE_SE2"])
+        vid = _int_ids(path, "VERTEX_SE2", v[:, 0], lines["VERTEX_SE2"]) if len(v) else np.zeros(0, np.int64)
+        vposes = v[:, 1:4] if len(v) else np.zeros((0, 3))
+        ei = _int_ids(path, "EDGE_SE2", e[:, 0], lines["EDGE_SE2"]) if len(e) else np.zeros(0, np.int64)
+        ej = _int_ids(path, "EDGE_SE2", e[:, 1], lines["EDGE_SE2"]) if len(e) else np.zeros(0, np.int64)
+        meas = e[:, 2:5] if len(e) else np.zeros((0, 3))
+        info = _sym_from_upper(e[:, 5:11], 3) if len(e) else np.zeros((0, 3, 3))
+        return _assemble(path, 2, vid, vposes, ei, ej, meas, info, lines["EDGE_SE2"], "g2o", notes)
+    v = _numbers(path, "VERTEX_SE3:QUAT", rows["VERTEX_SE3:QUAT"], lines["VERTEX_SE3:QUAT"])
+    e = _numbers(path, "EDGE_SE3:QUAT", rows["EDGE_SE3:QUAT"], lines["EDGE_SE3:QUAT"])
+    _check_finite(path, "EDGE_SE3:QUAT", e, lines["EDGE_SE3:QUAT"])
+    for tag, a, q in (("VERTEX_SE3:QUAT", v, slice(4, 8)), ("EDGE_SE3:QUAT", e, slice(5, 9))):
+        if len(a):
+            bad = np.flatnonzero(np.abs(np.linalg.norm(a[:, q], axis=1) - 1.0) > 1e-2)
+            if len(bad):
+                raise InputError(f"{path}:{lines[tag][bad[0]]}: {tag} quaternion is not unit length; fix the line")
+    vid = _int_ids(path, "VERTEX_SE3:QUAT", v[:, 0], lines["VERTEX_SE3:QUAT"]) if len(v) else np.zeros(0, np.int64)
+    vposes = se3_from_tq(v[:, 1:4], v[:, 4:8]) if len(v) else np.zeros((0, 4, 4))
+    if len(e) == 0:
+        raise InputError(f"{path}: the file has no pose-graph edges; give a graph with EDGE records")
+    ei = _int_ids(path, "EDGE_SE3:QUAT", e[:, 0], lines["EDGE_SE3:QUAT"])
+    ej = _int_ids(path, "EDGE_SE3:QUAT", e[:, 1], lines["EDGE_SE3:QUAT"])
+    meas = se3_from_tq(e[:, 2:5], e[:, 5:9])
+    info = _sym_from_upper(e[:, 9:30], 6)
+    return _assemble(path, 3, vid, vposes, ei, ej, meas, info, lines["EDGE_SE3:QUAT"], "g2o", notes)
+
+
+def _read_toro(path: Path) -> PoseGraph:
+    rows, lines, notes = _scan(path, _TORO, _IGNORED["toro"])
+    v = _numbers(path, "VERTEX2", rows["VERTEX2"], lines["VERTEX2"])
+    e = _numbers(path, "EDGE2", rows["EDGE2"], lines["EDGE2"])
+    if len(e) == 0:
+        raise InputError(f"{path}: the file has no pose-graph edges; give a graph with EDGE records")
+    _check_finite(path, "EDGE2", e, lines["EDGE2"])
+    vid = _int_ids(path, "VERTEX2", v[:, 0], lines["VERTEX2"]) if len(v) else np.zeros(0, np.int64)
+    vposes = v[:, 1:4] if len(v) else np.zeros((0, 3))
+    ei = _int_ids(path, "EDGE2", e[:, 0], lines["EDGE2"])
+    ej = _int_ids(path, "EDGE2", e[:, 1], lines["EDGE2"])
+    xx, xy, yy, tt, xt, yt = e[:, 5:11].T
+    info = np.stack([np.stack([xx, xy, xt], -1), np.stack([xy, yy, yt], -1), np.stack([xt, yt, tt], -1)], 1)
+    return _assemble(path, 2, vid, vposes, ei, ej, e[:, 2:5], info, lines["EDGE2"], "TORO", notes)
+
+
+def _read_isam(path: Path) -> PoseGraph:
+    rows, lines, notes = _scan(path, _ISAM, _IGNORED["isam"])
+    two = rows["ODOMETRY"] + rows["EDGE2"]
+    two_lines = lines["ODOMETRY"] + lines["EDGE2"]
+    if two and rows["EDGE3"]:
+        raise InputError(f"{path}: mixes 2-D and 3-D iSAM records; keep one kind per file")
+    if two:
+        # keep file order (ODOMETRY and EDGE2 interleave in time)
+        order = np.argsort(two_lines, kind="stable")
+        e = _numbers(path, "EDGE2", [two[k] for k in order], [two_lines[k] for k in order])
+        el = [two_lines[k] for k in order]
+        _check_finite(path, "EDGE2", e, el)
+        ei = _int_ids(path, "EDGE2", e[:, 0], el)
+        ej = _int_ids(path, "EDGE2", e[:, 1], el)
+        R = np.zeros((len(e), 3, 3))
+        R[:, _IU3[0], _IU3[1]] = e[:, 5:11]
+        info = np.einsum("nki,nkj->nij", R, R)
+        return _assemble(path, 2, np.zeros(0, np.int64), np.zeros((0, 3)), ei, ej, e[:, 2:5], info, el, "iSAM", notes)
+    e = _numbers(path, "EDGE3", rows["EDGE3"], lines["EDGE3"])
+    el = lines["EDGE3"]
+    if len(e) == 0:
+        raise InputError(f"{path}: the file has no pose-graph edges; give a graph with EDGE records")
+    _check_finite(path, "EDGE3", e, el)
+    ei = _int_ids(path, "EDGE3", e[:, 0], el)
+    ej = _int_ids(path, "EDGE3", e[:, 1], el)
+    meas = np.tile(np.eye(4), (len(e), 1, 1))
+    meas[:, :3, :3] = Rotation.from_euler("ZYX", e[:, [7, 6, 5]]).as_matrix()
+    meas[:, :3, 3] = e[:, 2:5]
+    R = np.zeros((len(e), 6, 6))
+    R[:, _IU6[0], _IU6[1]] = e[:, 8:29]
+    info = np.einsum("nki,nkj->nij", R, R)  # (x, y, z, roll, pitch, yaw) = g2o (t, r) order
+    return _assemble(path, 3, np.zeros(0, np.int64), np.zeros((0, 4, 4)), ei, ej, meas, info, el, "iSAM", notes)
+
+
+def read_graph(path: str | Path, fmt: str = "auto") -> PoseGraph:
+    """Read a pose graph (g2o, TORO or iSAM; ``fmt="auto"`` detects it from the records)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"pose-graph file {path} does not exist; check the path")
+    if fmt not in FORMATS:
+        raise InputError(f"unknown pose-graph format {fmt!r}; use one of {', '.join(FORMATS)}")
+    if fmt == "auto":
+        fmt = detect_format(path)
+    return {"g2o": _read_g2o, "toro": _read_toro, "isam": _read_isam}[fmt](path)
+
+
+def _upper(M: np.ndarray, d: int) -> np.ndarray:
+    iu = np.triu_indices(d)
+    return M[:, iu[0], iu[1]]
+
+
+def graph_to_g2o_text(graph: PoseGraph, poses: np.ndarray | None = None) -> str:
+    """The graph as g2o text; ``poses`` (default ``graph.poses``) become the VERTEX records."""
+    poses = graph.poses if poses is None else np.asarray(poses, float)
+    ids = graph.ids
+    out: list[str] = []
+    if graph.dim == 2:
+        for k in range(len(ids)):
+            x, y, t = poses[k]
+            out.append(f"VERTEX_SE2 {ids[k]} {x:.17g} {y:.17g} {float(wrap_angle(t)):.17g}")
+        up = _upper(graph.info, 3)
+        for k in range(graph.n_edges):
+            z = graph.meas[k]
+            out.append(f"EDGE_SE2 {ids[graph.edges_i[k]]} {ids[graph.edges_j[k]]} "
+                       + " ".join(f"{v:.17g}" for v in (*z, *up[k])))
+    else:
+        t, q = se3_to_tq(poses)
+        for k in range(len(ids)):
+            out.append(f"VERTEX_SE3:QUAT {ids[k]} " + " ".join(f"{v:.17g}" for v in (*t[k], *q[k])))
+        te, qe = se3_to_tq(graph.meas)
+        up = _upper(graph.info, 6)
+        for k in range(graph.n_edges):
+            out.append(f"EDGE_SE3:QUAT {ids[graph.edges_i[k]]} {ids[graph.edges_j[k]]} "
+                       + " ".join(f"{v:.17g}" for v in (*te[k], *qe[k], *up[k])))
+    return "\n".join(out) + "\n"
+
+
+def write_g2o(path: str | Path, graph: PoseGraph, poses: np.ndarray | None = None) -> None:
+    """Write the graph (with ``poses`` as vertex estimates) as a g2o file, atomically."""
+    atomic_write_text(path, graph_to_g2o_text(graph, poses))
+
+
+def graph_info(path: str | Path, fmt: str = "auto") -> str:
+    """A few lines describing a pose-graph file (kind, counts, degrees, duplicate pairs, notes)."""
+    g = read_graph(path, fmt)
+    a = np.minimum(g.edges_i, g.edges_j)
+    b = np.maximum(g.edges_i, g.edges_j)
+    pairs = np.unique(np.stack([a, b], 1), axis=0)
+    deg = np.bincount(np.concatenate([g.edges_i, g.edges_j]), minlength=g.n_vertices)
+    seq = int(np.sum(np.abs(g.edges_i - g.edges_j) == 1))
+    lines = [g.summary(),
+             f"odometry-like edges (|i-j| = 1): {seq}; other edges: {g.n_edges - seq}; "
+             f"duplicated vertex pairs: {g.n_edges - len(pairs)}",
+             f"vertex degree: min {deg.min()}, mean {deg.mean():.2f}, max {deg.max()}"]
+    lines += [f"note: {n}" for n in g.notes]
+    return "\n".join(lines)

@@ -1,0 +1,155 @@
+"""Initial guesses for pose-graph optimisation (SE(2) and SE(3)).
+
+* ``odometry`` — chain the consecutive edges i -> i+1 from vertex 0 (an edge stored i+1 -> i is
+  inverted); a missing odometry edge is an InputError.
+* ``spanning_tree`` — BFS from vertex 0; every vertex is placed from its BFS parent through
+  one edge joining them (as g2o's ``computeInitialGuess`` with unit edge costs).
+* ``masat`` / ``weighted_masat`` — see :mod:`rgbdslam.backend.masat`.
+* ``lago`` (SE(2)) — GTSAM's LAGO (``gtsam.lago.initialize(graph, useOdometricPath=False)``: its
+  2kπ angle unwrapping along a spanning tree instead of the odometry chain, which was better on
+  M3500 at σθ = 0.05–0.2 — both fail often at the paper's noise levels, see docs/posegraph.md);
+  ``chordal`` (SE(3)) — GTSAM's chordal relaxation (``gtsam.InitializePose3.initialize``).
+  ``lago`` on an SE(3) graph and ``chordal`` on an SE(2) graph run the other one.
+
+All return poses with vertex 0 at the origin / identity: ``(n, 3)`` rows ``(x, y, theta)`` for
+SE(2), ``(n, 4, 4)`` matrices for SE(3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rgbdslam.backend.graph import PoseGraph, se2_compose, se2_inverse, se3_inverse, wrap_angle
+from rgbdslam.backend.masat import bfs_order, masat
+from rgbdslam.errors import InputError
+
+METHODS = ("odometry", "spanning_tree", "masat", "weighted_masat", "lago", "chordal")
+
+
+def _chain(graph: PoseGraph, parent: np.ndarray, order: np.ndarray, edge_of: np.ndarray, fwd: np.ndarray) -> np.ndarray:
+    """Place vertices in ``order`` (root first) from their ``parent`` through edge ``edge_of``."""
+    n = graph.n_vertices
+    if graph.dim == 2:
+        z = np.where(fwd[:, None], graph.meas[edge_of], se2_inverse(graph.meas[edge_of]))
+        out = np.zeros((n, 3))
+        for v in order[1:]:
+            out[v] = se2_compose(out[parent[v]], z[v])
+        out[:, 2] = wrap_angle(out[:, 2])
+        return out
+    z = graph.meas[edge_of].copy()
+    z[~fwd] = se3_inverse(z[~fwd])
+    out = np.tile(np.eye(4), (n, 1, 1))
+    for v in order[1:]:
+        out[v] = out[parent[v]] @ z[v]
+    return out
+
+
+def _edge_lookup(graph: PoseGraph) -> dict[tuple[int, int], int]:
+    """First edge index for each (i, j) pair (either direction, key as stored)."""
+    lut: dict[tuple[int, int], int] = {}
+    for k, (a, b) in enumerate(zip(graph.edges_i.tolist(), graph.edges_j.tolist())):
+        lut.setdefault((a, b), k)
+    return lut
+
+
+def odometry(graph: PoseGraph) -> np.ndarray:
+    n = graph.n_vertices
+    lut = _edge_lookup(graph)
+    edge_of = np.zeros(n, np.int64)
+    fwd = np.ones(n, bool)
+    for v in range(1, n):
+        k = lut.get((v - 1, v))
+        if k is None:
+            k = lut.get((v, v - 1))
+            fwd[v] = False
+        if k is None:
+            raise InputError(
+                f"{graph.source or 'pose graph'}: no odometry edge between vertices {graph.ids[v - 1]} and "
+                f"{graph.ids[v]}; use --method spanning_tree or masat")
+        edge_of[v] = k
+    # chaining is a prefix product: SE(2) can be done in closed form, vectorised
+    if graph.dim == 2:
+        z = np.where(fwd[:, None], graph.meas[edge_of], se2_inverse(graph.meas[edge_of]))
+        z[0] = 0.0
+        th = np.cumsum(z[:, 2])
+        c, s = np.cos(th - z[:, 2]), np.sin(th - z[:, 2])  # heading of the previous vertex
+        dx = c * z[:, 0] - s * z[:, 1]
+        dy = s * z[:, 0] + c * z[:, 1]
+        return np.column_stack([np.cumsum(dx), np.cumsum(dy), wrap_angle(th)])
+    parent = np.arange(-1, n - 1)
+    return _chain(graph, parent, np.arange(n), edge_of, fwd)
+
+
+def spanning_tree(graph: PoseGraph) -> np.ndarray:
+    order, parent = bfs_order(graph.n_vertices, graph.edges_i, graph.edges_j)
+    lut = _edge_lookup(graph)
+    n = graph.n_vertices
+    edge_of = np.zeros(n, np.int64)
+    fwd = np.ones(n, bool)
+    for v in order[1:].tolist():
+        p = int(parent[v])
+        k = lut.get((p, v))
+        if k is None:
+            k = lut[(v, p)]
+            fwd[v] = False
+        edge_of[v] = k
+    return _chain(graph, parent, order, edge_of, fwd)
+
+
+def _gtsam_init(graph: PoseGraph) -> np.ndarray:
+    import gtsam
+
+    from rgbdslam.backend.optimize import build_factor_graph, poses_from_values
+
+    bfs_order(graph.n_vertices, graph.edges_i, graph.edges_j)  # connectivity check, clear error
+    fg = build_factor_graph(graph, root=0)
+    try:
+        if graph.dim == 2:
+            vals = gtsam.lago.initialize(fg, False)  # BFS spanning tree for the 2kπ unwrapping
+        else:
+            vals = gtsam.InitializePose3.initialize(fg)
+    except RuntimeError as e:
+        raise InputError(f"{graph.source or 'pose graph'}: GTSAM's initialiser failed ({e}); try --method masat") from None
+    poses = poses_from_values(graph.dim, vals, graph.n_vertices)
+    return poses
+
+
+def lago(graph: PoseGraph) -> np.ndarray:
+    return _gtsam_init(graph)
+
+
+def chordal(graph: PoseGraph) -> np.ndarray:
+    return _gtsam_init(graph)
+
+
+def initialize(graph: PoseGraph, method: str) -> np.ndarray:
+    """Initial poses by ``method`` (one of :data:`METHODS`)."""
+    if method == "masat":
+        return masat(graph, weighted=False)
+    if method == "weighted_masat":
+        return masat(graph, weighted=True)
+    if method == "odometry":
+        return odometry(graph)
+    if method == "spanning_tree":
+        return spanning_tree(graph)
+    if method in ("lago", "chordal"):
+        return _gtsam_init(graph)
+    raise InputError(f"unknown initialisation method {method!r}; use one of {', '.join(METHODS)}")
+
+
+def initialize_file(path, method: str, out, fmt: str = "auto") -> str:
+    """Read a pose-graph file, build the ``method`` initial guess, write it as g2o; returns a report line."""
+    import time
+
+    from rgbdslam.backend.graph_io import read_graph, write_g2o
+    from rgbdslam.backend.optimize import chi2, degrees_of_freedom
+
+    graph = read_graph(path, fmt)
+    t0 = time.perf_counter()
+    poses = initialize(graph, method)
+    dt = time.perf_counter() - t0
+    write_g2o(out, graph, poses)
+    c = chi2(graph, poses)
+    notes = f" ({'; '.join(graph.notes)})" if graph.notes else ""
+    return (f"{graph.summary()}{notes}\n{method} initial guess in {dt * 1e3:.1f} ms: chi2 {c:.6g}, "
+            f"reduced chi2 {c / max(degrees_of_freedom(graph), 1):.4g}; written to {out}")

@@ -1,0 +1,199 @@
+"""GTSAM factor graphs from a :class:`PoseGraph`, χ², and step-by-step Gauss–Newton.
+
+χ² is ``sum_ij e_ij^T Ω_ij e_ij`` = ``2 * NonlinearFactorGraph.error`` (GTSAM's error is half
+the squared Mahalanobis norm).  The gauge is fixed by a tight prior on the root vertex (the
+paper's g2o runs fix vertex 0); its residual is ~0 and it is not counted in the degrees of
+freedom ``dof = (residual dimensions of the edges) - (pose dimensions of the free vertices)``.
+
+Convergence (spec §5, paper 000 §4): a run converged when the χ² change between two
+consecutive iterations falls below 1e-6 within ``max_iter`` iterations.  The paper ran g2o's
+command line tool, whose stop test (``-gainThreshold``, default 1e-6) is *relative*:
+``(χ²_prev - χ²) / χ² < 1e-6``; we use ``|Δχ²| / χ² < tol`` by default (``criterion="relative"``)
+and offer the literal absolute reading ``|Δχ²| < tol`` (``criterion="absolute"``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import gtsam
+import numpy as np
+
+from rgbdslam.backend.graph import PoseGraph, info6_g2o_to_gtsam
+from rgbdslam.errors import InputError
+
+PRIOR_SIGMA = 1e-6
+CRITERIA = ("relative", "absolute")
+
+
+def values_from_poses(dim: int, poses: np.ndarray) -> gtsam.Values:
+    v = gtsam.Values()
+    poses = np.asarray(poses, float)
+    if dim == 2:
+        for k, (x, y, t) in enumerate(poses):
+            v.insert(k, gtsam.Pose2(float(x), float(y), float(t)))
+    else:
+        for k, T in enumerate(poses):
+            v.insert(k, gtsam.Pose3(T))
+    return v
+
+
+def poses_from_values(dim: int, values: gtsam.Values, n: int) -> np.ndarray:
+    if dim == 2:
+        out = np.empty((n, 3))
+        for k in range(n):
+            p = values.atPose2(k)
+            out[k] = (p.x(), p.y(), p.theta())
+        return out
+    return np.array([values.atPose3(k).matrix() for k in range(n)])
+
+
+def build_factor_graph(graph: PoseGraph, prior_pose=None, root: int = 0) -> gtsam.NonlinearFactorGraph:
+    """Between factors for every edge (Gaussian with the edge's information) + a tight prior on ``root``.
+
+    ``prior_pose`` is ``(x, y, theta)`` / 4x4 (default: origin / identity); ``None``-prior graphs
+    (for GTSAM's own initialisers) are made with ``root=-1``.
+    """
+    fg = gtsam.NonlinearFactorGraph()
+    ei, ej = graph.edges_i.tolist(), graph.edges_j.tolist()
+    if graph.dim == 2:
+        info = graph.info
+        diag = np.all(info[:, [0, 0, 1, 1, 2, 2], [1, 2, 0, 2, 0, 1]] == 0, axis=1)
+        for k in range(graph.n_edges):
+            x, y, t = graph.meas[k]
+            if diag[k]:
+                model = gtsam.noiseModel.Diagonal.Precisions(np.diagonal(info[k]).copy())
+            else:
+                model = gtsam.noiseModel.Gaussian.Information(info[k])
+            fg.add(gtsam.BetweenFactorPose2(ei[k], ej[k], gtsam.Pose2(float(x), float(y), float(t)), model))
+        if root >= 0:
+            p = (0.0, 0.0, 0.0) if prior_pose is None else tuple(float(v) for v in prior_pose)
+            fg.add(gtsam.PriorFactorPose2(root, gtsam.Pose2(*p), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+    else:
+        info = info6_g2o_to_gtsam(graph.info)
+        for k in range(graph.n_edges):
+            model = gtsam.noiseModel.Gaussian.Information(info[k])
+            fg.add(gtsam.BetweenFactorPose3(ei[k], ej[k], gtsam.Pose3(graph.meas[k]), model))
+        if root >= 0:
+            p = np.eye(4) if prior_pose is None else np.asarray(prior_pose, float)
+            fg.add(gtsam.PriorFactorPose3(root, gtsam.Pose3(p), gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)))
+    return fg
+
+
+def degrees_of_freedom(graph: PoseGraph) -> int:
+    d = graph.dof_per_vertex
+    return d * graph.n_edges - d * (graph.n_vertices - 1)
+
+
+def chi2(graph: PoseGraph, poses: np.ndarray, fg: gtsam.NonlinearFactorGraph | None = None) -> float:
+    """χ² of ``poses`` (prior on the root at ``poses[0]``, so it adds nothing)."""
+    fg = fg or build_factor_graph(graph, prior_pose=np.asarray(poses)[0])
+    return 2.0 * fg.error(values_from_poses(graph.dim, poses))
+
+
+@dataclass
+class GNResult:
+    converged: bool
+    iterations: int  # iterations run (for a converged run: the iteration at which the test passed)
+    chi2_initial: float
+    chi2_final: float
+    chi2_history: list[float] = field(default_factory=list)  # χ² before iteration 1, after 1, 2, ...
+    seconds: float = 0.0
+    poses: np.ndarray | None = None
+    failure: str = ""
+
+
+def has_converged(prev: float, cur: float, tol: float, criterion: str) -> bool:
+    if not (math.isfinite(prev) and math.isfinite(cur)):
+        return False
+    d = abs(prev - cur)
+    if criterion == "absolute":
+        return d < tol
+    return d < tol * max(cur, 1e-300)
+
+
+def gauss_newton(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, tol: float = 1e-6,
+                 criterion: str = "absolute", keep_poses: bool = True,
+                 callback: Callable[[int, float], None] | None = None) -> GNResult:
+    """At most ``max_iter`` plain Gauss–Newton iterations (GTSAM), χ² computed after each one.
+
+    Stops at the first iteration whose χ² change passes the convergence test (module docstring).
+    A numerical failure (indefinite system, non-finite χ²) ends the run as not converged.
+    """
+    if criterion not in CRITERIA:
+        raise InputError(f"unknown convergence criterion {criterion!r}; use relative or absolute")
+    initial = np.asarray(initial, float)
+    fg = build_factor_graph(graph, prior_pose=initial[0])
+    params = gtsam.GaussNewtonParams()
+    params.setMaxIterations(max_iter)
+    params.setVerbosity("SILENT")
+    params.setOrderingType("METIS")  # ~2x faster than COLAMD on City10k (measured)
+    t0 = time.perf_counter()
+    opt = gtsam.GaussNewtonOptimizer(fg, values_from_poses(graph.dim, initial), params)
+    prev = 2.0 * opt.error()
+    hist = [prev]
+    converged = False
+    failure = ""
+    it = 0
+    for it in range(1, max_iter + 1):
+        try:
+            opt.iterate()
+            cur = 2.0 * opt.error()
+        except RuntimeError as e:  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
+            failure = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+            break
+        hist.append(cur)
+        if callback:
+            callback(it, cur)
+        if not math.isfinite(cur):
+            failure = "non-finite chi2"
+            break
+        if has_converged(prev, cur, tol, criterion):
+            converged = True
+            break
+        prev = cur
+    seconds = time.perf_counter() - t0
+    poses = poses_from_values(graph.dim, opt.values(), graph.n_vertices) if keep_poses and not failure else None
+    return GNResult(converged, it, hist[0], hist[-1], hist, seconds, poses, failure)
+
+
+def optimize_file(path, init: str = "masat", out=None, max_iter: int = 50, tol: float = 1e-6,
+                  criterion: str = "absolute", fmt: str = "auto", progress: bool = True) -> str:
+    """Read a graph, initialise it (``init`` method or ``"file"`` for the file's own vertices), run
+    Gauss–Newton with a progress bar, optionally write the result as g2o; returns the χ² report."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from rgbdslam.backend.graph_io import read_graph, write_g2o
+    from rgbdslam.backend.initializers import initialize
+
+    graph = read_graph(path, fmt)
+    t0 = time.perf_counter()
+    if init == "file":
+        if not graph.has_poses:
+            raise InputError(f"{path} has no vertex estimates for every vertex; choose --init masat (or another method)")
+        poses = graph.poses
+    else:
+        poses = initialize(graph, init)
+    t_init = time.perf_counter() - t0
+    with Progress(TextColumn("Gauss-Newton"), BarColumn(), MofNCompleteColumn(), TextColumn("chi2 {task.fields[chi2]}"),
+                  TimeElapsedColumn(), disable=not progress) as bar:
+        job = bar.add_task("gn", total=max_iter, chi2="")
+
+        def cb(it, c):
+            bar.update(job, completed=it, chi2=f"{c:.6g}")
+
+        res = gauss_newton(graph, poses, max_iter=max_iter, tol=tol, criterion=criterion, callback=cb)
+    if res.poses is None:
+        raise InputError(f"{path}: Gauss-Newton failed ({res.failure}); try another --init")
+    if out is not None:
+        write_g2o(out, graph, res.poses)
+    dof = max(degrees_of_freedom(graph), 1)
+    status = "converged" if res.converged else ("failed: " + res.failure if res.failure else "not converged")
+    return (f"{graph.summary()}\ninit {init}: {t_init * 1e3:.1f} ms\n"
+            f"initial chi2 {res.chi2_initial:.6g} (reduced {res.chi2_initial / dof:.4g}); "
+            f"final chi2 {res.chi2_final:.6g} (reduced {res.chi2_final / dof:.4g}); "
+            f"{res.iterations} iteration(s), {status}; {res.seconds:.2f} s"
+            + (f"\nwritten to {out}" if out is not None else ""))
