@@ -112,7 +112,8 @@ class PutSequence(RgbdFileSequence):
     def groundtruth_path(self) -> Path | None:
         if self._gt_name:
             p = Path(self._gt_name)
-            p = p if p.is_absolute() or p.is_file() else self.root / p
+            if not p.is_absolute() and (self.root / p).is_file():
+                p = self.root / p  # relative to the sequence folder first, then to the working dir
             if not p.is_file():
                 raise InputError(f"ground-truth file {p} does not exist; fix dataset.groundtruth or leave it null")
             return p

@@ -266,8 +266,8 @@ class TumSequence(RgbdFileSequence):
             raise InputError(f"sequence folder {root} does not exist; check the path")
         if cfg.associations:
             assoc = Path(cfg.associations)
-            if not assoc.is_absolute() and not assoc.is_file():
-                assoc = root / assoc
+            if not assoc.is_absolute() and (root / assoc).is_file():
+                assoc = root / assoc  # relative to the sequence folder first, then to the working dir
             ts_rgb, f_rgb, ts_d, f_d = read_associations(assoc)
             order = np.argsort(ts_rgb, kind="stable")
             ia = ib = order
