@@ -170,6 +170,7 @@ class MappingConfig:
     depth_max: float = 3.0
     # coloured point cloud
     voxel_size: float = 0.01  # voxel-grid downsampling of the merged cloud (m)
+    cloud_pixel_stride: int = 2  # back-project every n-th pixel (a 1 cm voxel holds several anyway)
     outlier_neighbors: int = 20  # statistical outlier removal (0 = off)
     outlier_std: float = 2.0
     # TSDF mesh
@@ -184,6 +185,7 @@ class MappingConfig:
     gravity: Literal["auto", "accelerometer", "camera"] = "auto"  # up direction hint for the floor
     floor_max_tilt_deg: float = 20.0  # a floor plane's normal is within this of "up"
     floor_distance: float = 0.02  # RANSAC inlier distance of the floor plane (m)
+    floor_ransac_iterations: int = 500
     floor_band: float = 0.05  # |height| below this = floor point (m)
     obstacle_min_height: float = 0.10  # points between these heights above the floor occupy a cell
     obstacle_max_height: float = 1.80

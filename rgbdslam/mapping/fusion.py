@@ -1,0 +1,421 @@
+"""Map fusion: a coloured point cloud and a TSDF mesh from posed RGB-D frames.
+
+Frames are streamed: one frame is in memory at a time. For every chosen frame the depth
+(the DIF-filtered keyframe depth when the run saved it, else the raw depth) is
+
+* integrated into an Open3D TSDF volume (the tensor ``VoxelBlockGrid``), from which a
+  triangle mesh is extracted by marching cubes;
+* back-projected (every ``cloud_pixel_stride``-th pixel) into a coloured cloud that is
+  reduced to one averaged point per voxel and merged into the map cloud
+  (:class:`VoxelCloud`), so memory stays bounded by the map's size and not by the number
+  of frames.
+
+At the end the cloud gets statistical outlier removal and both are written as PLY
+atomically. Poses are camera-to-world (TUM convention); Open3D's ``integrate`` wants
+the world-to-camera extrinsic, i.e. the inverse.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from rgbdslam.config import Config, MappingConfig, load_config
+from rgbdslam.datasets import open_sequence
+from rgbdslam.datasets.base import Sequence
+from rgbdslam.errors import InputError
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv, rotation_angle
+from rgbdslam.io.atomic import atomic_path
+from rgbdslam.io.trajectory import Trajectory, read_tum
+
+DEPTH_PNG_SCALE = 5000.0  # keyframes/depth_*.png units per metre
+STAMP_TOLERANCE = 1e-3  # seconds: a trajectory line belongs to a frame when the stamps agree this well
+
+
+@dataclass
+class FuseResult:
+    """What :func:`fuse` wrote and what it cost."""
+
+    out_dir: Path
+    cloud_path: Path | None
+    mesh_path: Path | None
+    map2d_path: Path | None
+    frames: list[int]  # sequence indices that were fused
+    n_points: int
+    n_vertices: int
+    n_triangles: int
+    seconds: float
+    peak_rss_mb: float  # process peak resident memory (ru_maxrss) after fusing
+    rss_growth_mb: float  # peak RSS minus the RSS when fusion started (upper bound on fusion's own use)
+    timings: dict[str, float] = field(default_factory=dict)
+    cloud_points: np.ndarray | None = None  # (N, 3) float32, world frame
+    cloud_colors: np.ndarray | None = None  # (N, 3) uint8 RGB
+    map2d: Any = None  # Map2D when the 2-D map was made
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "frames_fused": len(self.frames),
+            "cloud_points": self.n_points,
+            "mesh_vertices": self.n_vertices,
+            "mesh_triangles": self.n_triangles,
+            "seconds": round(self.seconds, 3),
+            "peak_rss_mb": round(self.peak_rss_mb, 1),
+            "rss_growth_mb": round(self.rss_growth_mb, 1),
+            "timings": {k: round(v, 3) for k, v in self.timings.items()},
+            "cloud": str(self.cloud_path) if self.cloud_path else None,
+            "mesh": str(self.mesh_path) if self.mesh_path else None,
+            "map2d": str(self.map2d_path) if self.map2d_path else None,
+        }
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _rss_mb() -> float:
+    """Current resident set size in MB (Linux /proc; 0 elsewhere)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+    except OSError:  # pragma: no cover - non-Linux
+        return 0.0
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
+def match_frames(frame_stamps: np.ndarray, traj: Trajectory, tol: float = STAMP_TOLERANCE) -> np.ndarray:
+    """For each frame stamp the row of ``traj`` with the same stamp (within ``tol``), else -1."""
+    frame_stamps = np.asarray(frame_stamps, dtype=np.float64)
+    if len(traj) == 0:
+        return np.full(len(frame_stamps), -1)
+    order = np.argsort(traj.timestamps)
+    ts = traj.timestamps[order]
+    j = np.clip(np.searchsorted(ts, frame_stamps), 1, max(len(ts) - 1, 1))
+    j0 = np.clip(j - 1, 0, len(ts) - 1)
+    j1 = np.clip(j, 0, len(ts) - 1)
+    best = np.where(np.abs(ts[j0] - frame_stamps) <= np.abs(ts[j1] - frame_stamps), j0, j1)
+    ok = np.abs(ts[best] - frame_stamps) <= tol
+    return np.where(ok, order[best], -1)
+
+
+def select_by_motion(poses: np.ndarray, min_translation: float, min_rotation_deg: float) -> list[int]:
+    """Indices (into ``poses``) of the first pose and every pose that moved at least
+    ``min_translation`` metres or ``min_rotation_deg`` degrees since the last chosen one."""
+    if len(poses) == 0:
+        return []
+    chosen = [0]
+    last = poses[0]
+    min_rot = np.deg2rad(min_rotation_deg)
+    for k in range(1, len(poses)):
+        rel = inv(last) @ poses[k]
+        if np.linalg.norm(rel[:3, 3]) >= min_translation or rotation_angle(rel[:3, :3]) >= min_rot:
+            chosen.append(k)
+            last = poses[k]
+    return chosen
+
+
+class _Undistorter:
+    """Remaps colour (bilinear) and depth (nearest: never blends depths across edges) to the ideal pinhole."""
+
+    def __init__(self, camera: Camera, enabled: bool):
+        self.maps = None
+        if enabled and camera.has_distortion:
+            self.maps = cv2.initUndistortRectifyMap(
+                camera.K, np.array(camera.dist), None, camera.K, (camera.width, camera.height), cv2.CV_32FC1
+            )
+
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.maps is None or rgb.shape[:2] != self.maps[0].shape:
+            return rgb, depth
+        m1, m2 = self.maps
+        return (
+            cv2.remap(rgb, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
+            cv2.remap(depth, m1, m2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT),
+        )
+
+
+def read_depth_png(path: Path) -> np.ndarray:
+    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if d is None or d.ndim != 2:
+        raise InputError(f"depth image {path} is unreadable or not a 16-bit single-channel PNG; delete it or re-run")
+    return d.astype(np.float32) / DEPTH_PNG_SCALE
+
+
+def backproject_image(depth: np.ndarray, camera: Camera, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (M,3) of the valid (depth > 0) pixels and their flat pixel indices."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h:stride, 0:w:stride]
+    z = depth[::stride, ::stride]
+    ok = z > 0
+    z = z[ok]
+    pts = np.stack([(u[ok] - camera.cx) * z / camera.fx, (v[ok] - camera.cy) * z / camera.fy, z], axis=1)
+    return pts.astype(np.float32), (v[ok] * w + u[ok])
+
+
+def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One int64 per voxel of side ``voxel`` (21 bits per axis: +-10 km at 1 cm)."""
+    q = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64) + (1 << 20)
+    q = np.clip(q, 0, (1 << 21) - 1)
+    return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+
+
+def _reduce(keys: np.ndarray, sums: np.ndarray, counts: np.ndarray):
+    """Sum ``sums`` (M, C) and ``counts`` (M,) over equal keys."""
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    out = np.empty((len(uniq), sums.shape[1]), np.float64)
+    for c in range(sums.shape[1]):
+        out[:, c] = np.bincount(inverse, weights=sums[:, c], minlength=len(uniq))
+    return uniq, out, np.bincount(inverse, weights=counts, minlength=len(uniq))
+
+
+class VoxelCloud:
+    """Coloured cloud on a voxel grid: per voxel the sum of positions and colours and the
+    number of points, so merging clouds averages exactly. New points are reduced per frame
+    and merged into the map whenever the pending part has grown as large as the map (the
+    merge work stays proportional to the map's size; memory to ~2x the map)."""
+
+    def __init__(self, voxel: float):
+        self.voxel = voxel
+        self.keys = np.zeros(0, np.int64)
+        self.sums = np.zeros((0, 6), np.float64)
+        self.counts = np.zeros(0, np.float64)
+        self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.pending_n = 0
+
+    def add(self, points: np.ndarray, colors: np.ndarray) -> None:
+        if len(points) == 0:
+            return
+        sums = np.hstack([np.asarray(points, np.float64), np.asarray(colors, np.float64)])
+        part = _reduce(voxel_keys(points, self.voxel), sums, np.ones(len(points)))
+        self.pending.append(part)
+        self.pending_n += len(part[0])
+        if self.pending_n >= max(len(self.keys), 200_000):
+            self._merge()
+
+    def _merge(self) -> None:
+        if not self.pending:
+            return
+        parts = [(self.keys, self.sums, self.counts)] + self.pending
+        self.pending, self.pending_n = [], 0
+        self.keys, self.sums, self.counts = _reduce(*(np.concatenate(x) for x in zip(*parts)))
+
+    def __len__(self) -> int:
+        self._merge()
+        return len(self.keys)
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean position (N, 3) float64 and mean colour (N, 3) uint8 of every occupied voxel."""
+        self._merge()
+        mean = self.sums / self.counts[:, None]
+        return mean[:, :3], np.clip(mean[:, 3:] + 0.5, 0, 255).astype(np.uint8)
+
+
+class _Tsdf:
+    """Open3D tensor VoxelBlockGrid (CPU). The legacy ScalableTSDFVolume of the Open3D 0.20
+    wheel returned empty meshes for every input tried here, so it is not offered."""
+
+    def __init__(self, cfg: MappingConfig, camera: Camera):
+        import open3d.core as o3c
+
+        self.cfg = cfg
+        self.o3c = o3c
+        self.vol = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight", "color"),
+            attr_dtypes=(o3c.float32, o3c.uint16, o3c.uint16),  # 12 bytes per voxel
+            attr_channels=((1), (1), (3)),
+            voxel_size=cfg.tsdf_voxel,
+            block_resolution=8,
+            block_count=cfg.tsdf_initial_blocks,  # the hash map grows when needed
+            device=o3c.Device("CPU:0"),
+        )
+        self.intr = o3c.Tensor(camera.K, o3c.float64)
+
+    def integrate(self, rgb: np.ndarray, depth: np.ndarray, pose_c2w: np.ndarray) -> None:
+        o3c = self.o3c
+        units = np.round(depth * DEPTH_PNG_SCALE).astype(np.uint16)  # the uint16/uint8 kernel is the lean one
+        d = o3d.t.geometry.Image(o3c.Tensor(units))
+        c = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(rgb, dtype=np.uint8)))
+        ext = o3c.Tensor(inv(pose_c2w), o3c.float64)  # Open3D wants world -> camera
+        blocks = self.vol.compute_unique_block_coordinates(d, self.intr, ext, DEPTH_PNG_SCALE, self.cfg.depth_max)
+        self.vol.integrate(blocks, d, c, self.intr, ext, DEPTH_PNG_SCALE, self.cfg.depth_max,
+                           self.cfg.sdf_trunc / self.cfg.tsdf_voxel)
+
+    def mesh(self) -> o3d.geometry.TriangleMesh:
+        return self.vol.extract_triangle_mesh(weight_threshold=self.cfg.mesh_min_weight).to_legacy()
+
+
+def _write_ply(path: Path, geom, mesh: bool) -> None:
+    with atomic_path(path) as tmp:
+        ok = (o3d.io.write_triangle_mesh if mesh else o3d.io.write_point_cloud)(str(tmp), geom, write_ascii=False)
+        if not ok:
+            raise InputError(f"could not write {path}; check that the folder is writable and the disk not full")
+
+
+# ----------------------------------------------------------------------------- fusion
+
+
+def fuse(
+    sequence: Sequence,
+    trajectory: Trajectory,
+    frame_indices,
+    cfg: MappingConfig,
+    out_dir: str | Path,
+    depth_dir: str | Path | None = None,
+    progress: bool = True,
+) -> FuseResult:
+    """Fuse the frames ``frame_indices`` (positions in ``sequence``) posed by ``trajectory``
+    (camera-to-world, matched to frames by time stamp) into ``out_dir``/cloud.ply and mesh.ply
+    (and the 2-D map when ``cfg.map2d``). ``depth_dir`` holds depth_<index:06d>.png files used
+    instead of the raw depth where present. Frames without a pose are skipped."""
+    from rgbdslam.ui import frame_progress
+
+    t_start = time.perf_counter()
+    rss0 = _rss_mb()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    depth_dir = Path(depth_dir) if depth_dir is not None else None
+    stamps = np.asarray(sequence.timestamps)
+    idx = [int(i) for i in frame_indices if 0 <= int(i) < len(stamps)]
+    rows = match_frames(stamps[idx], trajectory) if idx else np.zeros(0, int)
+    todo = [(i, r) for i, r in zip(idx, rows) if r >= 0]
+    if not todo:
+        raise InputError(
+            f"no frame of {sequence.root} to fuse has a pose in the trajectory; check that the trajectory's "
+            f"time stamps are the sequence's colour stamps"
+        )
+    camera = sequence.camera
+    undistort = _Undistorter(camera, cfg.undistort)
+    tsdf = _Tsdf(cfg, camera) if cfg.mesh else None
+    acc = VoxelCloud(cfg.voxel_size)
+    timings = {"load": 0.0, "tsdf": 0.0, "cloud": 0.0}
+    fused: list[int] = []
+    with frame_progress(len(todo), "fusing map", enabled=progress) as advance:
+        for i, r in todo:
+            t0 = time.perf_counter()
+            frame = sequence.load(i)
+            depth = frame.depth
+            if depth_dir is not None and (depth_dir / f"depth_{i:06d}.png").is_file():
+                depth = read_depth_png(depth_dir / f"depth_{i:06d}.png")
+            rgb, depth = undistort(frame.rgb, depth.astype(np.float32, copy=False))
+            depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0).astype(np.float32)
+            pose = trajectory.poses[r]
+            t1 = time.perf_counter()
+            timings["load"] += t1 - t0
+            if tsdf is not None:
+                tsdf.integrate(rgb, depth, pose)
+            t2 = time.perf_counter()
+            timings["tsdf"] += t2 - t1
+            pts, flat = backproject_image(depth, camera, cfg.cloud_pixel_stride)
+            pts_w = pts @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
+            acc.add(pts_w, rgb.reshape(-1, 3)[flat])
+            timings["cloud"] += time.perf_counter() - t2
+            fused.append(i)
+            advance()
+
+    t0 = time.perf_counter()
+    points, colors = acc.result()
+    del acc
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) * (1 / 255.0))
+    if cfg.outlier_neighbors > 0 and len(points) > cfg.outlier_neighbors:
+        _, keep = cloud.remove_statistical_outlier(cfg.outlier_neighbors, cfg.outlier_std)
+        keep = np.asarray(keep, dtype=np.int64)
+        cloud = cloud.select_by_index(keep)
+        points, colors = points[keep], colors[keep]
+    cloud_path = out_dir / "cloud.ply"
+    _write_ply(cloud_path, cloud, mesh=False)
+    timings["cloud"] += time.perf_counter() - t0
+
+    mesh_path, n_vert, n_tri = None, 0, 0
+    if tsdf is not None:
+        t0 = time.perf_counter()
+        mesh = tsdf.mesh()
+        mesh.compute_vertex_normals()
+        n_vert, n_tri = len(mesh.vertices), len(mesh.triangles)
+        mesh_path = out_dir / "mesh.ply"
+        _write_ply(mesh_path, mesh, mesh=True)
+        del mesh, tsdf
+        timings["mesh"] = time.perf_counter() - t0
+
+    del cloud
+    points = points.astype(np.float32)
+    map2d_path, grid = None, None
+    if cfg.map2d and len(points):
+        from rgbdslam.mapping.map2d import build_map2d, write_map2d
+
+        t0 = time.perf_counter()
+        grid = build_map2d(points, trajectory, cfg, accelerometer=_accelerometer_of(sequence))
+        map2d_path = write_map2d(grid, out_dir, trajectory)
+        timings["map2d"] = time.perf_counter() - t0
+    return FuseResult(
+        out_dir=out_dir,
+        cloud_path=cloud_path,
+        mesh_path=mesh_path,
+        map2d_path=map2d_path,
+        frames=fused,
+        n_points=len(points),
+        n_vertices=n_vert,
+        n_triangles=n_tri,
+        seconds=time.perf_counter() - t_start,
+        peak_rss_mb=_peak_rss_mb(),
+        rss_growth_mb=max(_peak_rss_mb() - rss0, 0.0),
+        timings=timings,
+        cloud_points=points,
+        cloud_colors=colors,
+        map2d=grid,
+    )
+
+
+def _accelerometer_of(sequence: Sequence) -> Path | None:
+    p = Path(getattr(sequence, "root", "")) / "accelerometer.txt"
+    return p if p.is_file() else None
+
+
+def read_run(run_dir: str | Path) -> tuple[dict[str, Any], Config, Trajectory]:
+    """run.json, the configuration used and the final trajectory of a run folder."""
+    run_dir = Path(run_dir)
+    info_path = run_dir / "run.json"
+    if not info_path.is_file():
+        raise InputError(f"{run_dir} is not a run folder: {info_path.name} is missing; give the --out folder of `rgbdslam run`")
+    try:
+        info = json.loads(info_path.read_text())
+    except json.JSONDecodeError:
+        raise InputError(f"{info_path} is not valid JSON; re-run `rgbdslam run` to rewrite it") from None
+    if not isinstance(info, dict) or "sequence" not in info:
+        raise InputError(f"{info_path} has no 'sequence' entry; it must name the sequence folder the run used")
+    cfg_path = run_dir / "config.yaml"
+    cfg = load_config(cfg_path) if cfg_path.is_file() else Config()
+    traj = read_tum(run_dir / "trajectory.tum")
+    return info, cfg, traj
+
+
+def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bool = True) -> FuseResult:
+    """Fuse the map of a finished run folder into ``run_dir``/map (see :func:`fuse`).
+
+    Frames: run.json's keyframes when ``keyframes_only`` (chosen by motion when the run has
+    none), else every tracked frame. The sequence is re-opened with the run's dataset config."""
+    run_dir = Path(run_dir)
+    info, run_cfg, traj = read_run(run_dir)
+    cfg = cfg or run_cfg.mapping
+    seq = open_sequence(info["sequence"], run_cfg.dataset)
+    rows = match_frames(np.asarray(seq.timestamps), traj)
+    tracked = np.flatnonzero(rows >= 0)
+    if cfg.keyframes_only and info.get("keyframes"):
+        frames = [int(i) for i in info["keyframes"]]
+    elif cfg.keyframes_only:
+        pick = select_by_motion(traj.poses[rows[tracked]], cfg.select_translation, cfg.select_rotation_deg)
+        frames = [int(tracked[k]) for k in pick]
+    else:
+        frames = [int(i) for i in tracked]
+    depth_dir = run_dir / "keyframes"
+    return fuse(seq, traj, frames, cfg, run_dir / "map", depth_dir if depth_dir.is_dir() else None, progress)

@@ -1,0 +1,249 @@
+"""Top-down 2-D occupancy map of the fused cloud (the stereo thesis' 2-D map, spec section 6).
+
+1. "Up": from TUM's ``accelerometer.txt`` when present, else from the camera poses (a
+   hand-held or robot camera is held roughly upright, so the mean of the cameras' image-down
+   axes is close to gravity). The Kinect accelerometer reports the gravity vector in its own
+   axes; checked against the fr1 ground truth, ``(ax, ay, -az)`` is "down" in the optical
+   camera frame (x right, y down, z forward). Each pose's reading (nearest in time) is rotated
+   into the world with that pose and the results are averaged.
+2. Floor: Open3D ``segment_plane`` RANSAC (seeded) is run repeatedly on the cloud, removing
+   each plane's inliers; among the planes whose normal is within ``floor_max_tilt_deg`` of up,
+   the lowest one is the floor (a desk top is horizontal too, but higher). If no such plane is
+   found the floor is the plane normal to up through the 2nd height percentile.
+3. Points are expressed in the floor frame (x, y in the floor plane, z = height above it) and
+   binned into cells of ``grid_resolution``: a cell with at least ``obstacle_min_points`` points
+   between ``obstacle_min_height`` and ``obstacle_max_height`` is occupied, a cell with floor
+   points (|height| < ``floor_band``) only is free, every other cell is unknown.
+
+Output follows ROS map_server: ``map2d.png`` (0 occupied, 254 free, 205 unknown; the first
+image row is the largest y), ``map2d.yaml`` (image, resolution, origin [x, y, yaw] of the
+lower-left pixel, negate, occupied_thresh, free_thresh, plus ``rgbdslam_world_to_map``, the
+4x4 transform from the SLAM world frame into the map frame) and ``map2d_preview.png`` with
+the trajectory drawn on the map (start green, end blue).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import yaml
+
+from rgbdslam.config import MappingConfig
+from rgbdslam.errors import InputError
+from rgbdslam.io.atomic import atomic_path, atomic_write_text
+from rgbdslam.io.trajectory import Trajectory
+
+OCCUPIED, FREE, UNKNOWN = 0, 254, 205
+
+
+@dataclass
+class Map2D:
+    image: np.ndarray  # (H, W) uint8, ROS values, row 0 = largest y
+    resolution: float  # metres per cell
+    origin: tuple[float, float, float]  # map-frame (x, y, yaw) of the lower-left pixel
+    world_to_map: np.ndarray  # 4x4: SLAM world -> map frame (z = height above the floor)
+    up_source: str  # "accelerometer" | "camera"
+    floor_source: str  # "ransac" | "percentile"
+
+    def cells(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Image (row, col) of world points (may lie outside the image)."""
+        q = np.asarray(points_world, dtype=np.float64) @ self.world_to_map[:3, :3].T + self.world_to_map[:3, 3]
+        col = np.floor((q[:, 0] - self.origin[0]) / self.resolution).astype(int)
+        row_up = np.floor((q[:, 1] - self.origin[1]) / self.resolution).astype(int)
+        return self.image.shape[0] - 1 - row_up, col
+
+
+# ----------------------------------------------------------------------------- up direction
+
+
+def read_accelerometer(path: str | Path) -> np.ndarray:
+    """TUM accelerometer.txt -> (N, 4) array ``timestamp ax ay az``."""
+    rows = []
+    with open(path) as f:
+        for lineno, line in enumerate(f, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            try:
+                vals = [float(x) for x in s.split()]
+            except ValueError:
+                raise InputError(f"{path}:{lineno}: expected 'timestamp ax ay az'; fix or delete the line") from None
+            if len(vals) != 4:
+                raise InputError(f"{path}:{lineno}: expected 4 numbers 'timestamp ax ay az'; got {len(vals)}")
+            rows.append(vals)
+    return np.array(rows).reshape(-1, 4)
+
+
+def up_from_accelerometer(acc: np.ndarray, traj: Trajectory) -> np.ndarray | None:
+    """World "up" from Kinect accelerometer readings and camera-to-world poses (None if unusable)."""
+    if len(acc) == 0 or len(traj) == 0:
+        return None
+    j = np.clip(np.searchsorted(acc[:, 0], traj.timestamps), 0, len(acc) - 1)
+    down_cam = acc[j, 1:] * np.array([1.0, 1.0, -1.0])
+    down_cam /= np.maximum(np.linalg.norm(down_cam, axis=1, keepdims=True), 1e-9)
+    down_w = np.einsum("nij,nj->ni", traj.poses[:, :3, :3], down_cam).mean(axis=0)
+    n = np.linalg.norm(down_w)
+    if n < 0.5:  # readings disagree: the pose frames or the accelerometer cannot be trusted
+        return None
+    return -down_w / n
+
+
+def up_from_cameras(traj: Trajectory) -> np.ndarray:
+    """World "up" as minus the mean image-down (camera +y) axis of the poses."""
+    down = traj.poses[:, :3, 1].mean(axis=0) if len(traj) else np.array([0.0, 1.0, 0.0])
+    n = np.linalg.norm(down)
+    return -down / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
+
+
+# ----------------------------------------------------------------------------- floor
+
+
+def find_floor(points: np.ndarray, up: np.ndarray, cfg: MappingConfig, max_planes: int = 6
+               ) -> tuple[np.ndarray, float, str]:
+    """Floor plane ``n . p + d = 0`` (n unit, pointing up) of a cloud; returns (n, d, source)."""
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    voxel = max(cfg.grid_resolution, cfg.floor_distance)
+    pc = pc.voxel_down_sample(voxel)
+    o3d.utility.random.seed(cfg.seed)
+    min_inliers = max(30, int(0.01 * len(pc.points)))
+    cos_tilt = np.cos(np.deg2rad(cfg.floor_max_tilt_deg))
+    candidates = []
+    for _ in range(max_planes):
+        if len(pc.points) < min_inliers:
+            break
+        plane, inl = pc.segment_plane(cfg.floor_distance, 3, cfg.floor_ransac_iterations)
+        if len(inl) < min_inliers:
+            break
+        n, d = np.asarray(plane[:3], dtype=np.float64), float(plane[3])
+        s = np.linalg.norm(n)
+        n, d = n / s, d / s
+        if n @ up < 0:
+            n, d = -n, -d
+        if n @ up >= cos_tilt:
+            height = float(np.median(np.asarray(pc.points)[inl] @ n))
+            candidates.append((height, len(inl), n, d))
+        pc = pc.select_by_index(inl, invert=True)
+    if candidates:
+        biggest = max(c[1] for c in candidates)
+        height, _, n, d = min((c for c in candidates if c[1] >= 0.05 * biggest), key=lambda c: c[0])
+        return n, d, "ransac"
+    h = np.asarray(points) @ up
+    return up.copy(), -float(np.percentile(h, 2)), "percentile"
+
+
+def _floor_frame(n: np.ndarray, d: float) -> np.ndarray:
+    """4x4 world -> map: x, y in the floor plane, z = height above it."""
+    ref = np.array([1.0, 0.0, 0.0])
+    e1 = ref - (ref @ n) * n
+    if np.linalg.norm(e1) < 0.3:
+        ref = np.array([0.0, 1.0, 0.0])
+        e1 = ref - (ref @ n) * n
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([e1, e2, n])
+    T[:3, 3] = T[:3, :3] @ (d * n)  # the floor point -d n maps to height 0
+    return T
+
+
+# ----------------------------------------------------------------------------- grid
+
+
+def build_map2d(points: np.ndarray, trajectory: Trajectory, cfg: MappingConfig,
+                accelerometer: str | Path | None = None) -> Map2D:
+    """Occupancy grid of world ``points`` (N, 3); see the module docstring for the method."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        raise InputError("the fused cloud is empty, so no 2-D map can be made; check depth range (mapping.depth_max)")
+    up, up_source = None, "camera"
+    if cfg.gravity in ("auto", "accelerometer") and accelerometer is not None:
+        up = up_from_accelerometer(read_accelerometer(accelerometer), trajectory)
+        up_source = "accelerometer" if up is not None else "camera"
+    if cfg.gravity == "accelerometer" and up is None:
+        raise InputError(
+            "mapping.gravity is 'accelerometer' but the sequence has no usable accelerometer.txt; "
+            "set mapping.gravity=auto"
+        )
+    if up is None:
+        up = up_from_cameras(trajectory)
+    n, d, floor_source = find_floor(points, up, cfg)
+    T = _floor_frame(n, d)
+    q = points @ T[:3, :3].T + T[:3, 3]
+    h = q[:, 2]
+    floor = np.abs(h) < cfg.floor_band
+    obst = (h >= cfg.obstacle_min_height) & (h <= cfg.obstacle_max_height)
+    keep = floor | obst
+    res = cfg.grid_resolution
+    xy = q[keep, :2]
+    if len(trajectory):
+        xy_all = np.vstack([xy, (trajectory.positions @ T[:3, :3].T + T[:3, 3])[:, :2]])
+    else:
+        xy_all = xy
+    if len(xy_all) == 0:
+        raise InputError("no point of the fused cloud lies on or above the floor; the 2-D map would be empty")
+    lo = np.floor(xy_all.min(axis=0) / res) * res - 2 * res
+    hi = xy_all.max(axis=0) + 2 * res
+    w, hgt = (np.ceil((hi - lo) / res).astype(int) + 1)
+    col = np.floor((q[:, 0] - lo[0]) / res).astype(int)
+    row = hgt - 1 - np.floor((q[:, 1] - lo[1]) / res).astype(int)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < hgt)
+    flat = row * w + col
+    n_obst = np.bincount(flat[obst & inside], minlength=w * hgt)
+    n_floor = np.bincount(flat[floor & inside], minlength=w * hgt)
+    img = np.full(w * hgt, UNKNOWN, np.uint8)
+    img[n_floor > 0] = FREE
+    img[n_obst >= cfg.obstacle_min_points] = OCCUPIED
+    return Map2D(img.reshape(hgt, w), res, (float(lo[0]), float(lo[1]), 0.0), T, up_source, floor_source)
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), img):
+            raise InputError(f"could not write {path}; check that the folder is writable")
+
+
+def render_preview(grid: Map2D, trajectory: Trajectory | None, min_size: int = 600) -> np.ndarray:
+    """BGR image of the map scaled up (nearest) to at least ``min_size`` px, trajectory in red."""
+    k = max(1, int(np.ceil(min_size / max(grid.image.shape))))
+    img = cv2.cvtColor(np.repeat(np.repeat(grid.image, k, 0), k, 1), cv2.COLOR_GRAY2BGR)
+    if trajectory is not None and len(trajectory):
+        q = trajectory.positions @ grid.world_to_map[:3, :3].T + grid.world_to_map[:3, 3]
+        x = (q[:, 0] - grid.origin[0]) / grid.resolution * k
+        y = img.shape[0] - (q[:, 1] - grid.origin[1]) / grid.resolution * k
+        pts = np.round(np.stack([x, y], 1) * 16).astype(np.int32)  # 4 fractional bits
+        cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, (0, 0, 255), 2, cv2.LINE_AA, shift=4)
+        cv2.circle(img, tuple(int(v) for v in pts[0]), 6 * 16, (0, 160, 0), -1, cv2.LINE_AA, shift=4)
+        cv2.circle(img, tuple(int(v) for v in pts[-1]), 6 * 16, (255, 0, 0), -1, cv2.LINE_AA, shift=4)
+    bar = int(round(1.0 / grid.resolution * k))  # 1 m scale bar, bottom left
+    if bar < img.shape[1] - 20:
+        y0 = img.shape[0] - 12
+        cv2.line(img, (10, y0), (10 + bar, y0), (0, 0, 0), 3)
+        cv2.putText(img, "1 m", (10, y0 - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    return img
+
+
+def write_map2d(grid: Map2D, out_dir: str | Path, trajectory: Trajectory | None = None) -> Path:
+    """Write map2d.png, map2d.yaml and map2d_preview.png into ``out_dir``; returns the PNG's path."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    png = out_dir / "map2d.png"
+    _write_png(png, grid.image)
+    meta = {
+        "image": png.name,
+        "resolution": float(grid.resolution),
+        "origin": [float(v) for v in grid.origin],
+        "negate": 0,
+        "occupied_thresh": 0.65,
+        "free_thresh": 0.196,
+        "mode": "trinary",
+        "rgbdslam_world_to_map": [[float(v) for v in r] for r in grid.world_to_map],
+        "rgbdslam_up_source": grid.up_source,
+        "rgbdslam_floor_source": grid.floor_source,
+    }
+    atomic_write_text(out_dir / "map2d.yaml", yaml.safe_dump(meta, sort_keys=False, default_flow_style=None))
+    _write_png(out_dir / "map2d_preview.png", render_preview(grid, trajectory))
+    return png
