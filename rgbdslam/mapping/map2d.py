@@ -8,8 +8,8 @@
    into the world with that pose and the results are averaged.
 2. Floor: Open3D ``segment_plane`` RANSAC (seeded) is run repeatedly on the cloud, removing
    each plane's inliers; among the planes whose normal is within ``floor_max_tilt_deg`` of up,
-   the lowest one is the floor (a desk top is horizontal too, but higher). If no such plane is
-   found the floor is the plane normal to up through the 2nd height percentile.
+   the lowest one is the floor (a desk top is horizontal too, but higher); it is refined by a
+   least-squares fit to the full-resolution points near it. If no such plane is found the floor is the plane normal to up through the 2nd height percentile.
 3. Points are expressed in the floor frame (x, y in the floor plane, z = height above it) and
    binned into cells of ``grid_resolution``: a cell with at least ``obstacle_min_points`` points
    between ``obstacle_min_height`` and ``obstacle_max_height`` is occupied, a cell with floor
@@ -130,9 +130,20 @@ def find_floor(points: np.ndarray, up: np.ndarray, cfg: MappingConfig, max_plane
     if candidates:
         biggest = max(c[1] for c in candidates)
         height, _, n, d = min((c for c in candidates if c[1] >= 0.05 * biggest), key=lambda c: c[0])
-        return n, d, "ransac"
+        return (*_refine_plane(np.asarray(points, dtype=np.float64), n, d, cfg.floor_distance), "ransac")
     h = np.asarray(points) @ up
     return up.copy(), -float(np.percentile(h, 2)), "percentile"
+
+
+def _refine_plane(points: np.ndarray, n: np.ndarray, d: float, dist: float) -> tuple[np.ndarray, float]:
+    """Least-squares plane (SVD) through the full-resolution points within ``dist`` of ``n . p + d = 0``."""
+    near = points[np.abs(points @ n + d) < dist]
+    if len(near) < 3:
+        return n, d
+    c = near.mean(axis=0)
+    m = np.linalg.svd(near - c, full_matrices=False)[2][2]
+    m = m if m @ n > 0 else -m
+    return m, -float(m @ c)
 
 
 def _floor_frame(n: np.ndarray, d: float) -> np.ndarray:
