@@ -33,7 +33,7 @@ import numpy as np
 from rgbdslam.backend.graph import PoseGraph, se2_between, wrap_angle
 from rgbdslam.backend.graph_io import read_graph
 from rgbdslam.backend.initializers import initialize
-from rgbdslam.backend.optimize import chi2, degrees_of_freedom, gauss_newton
+from rgbdslam.backend.optimize import degrees_of_freedom, gauss_newton, has_converged
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
 
@@ -62,26 +62,32 @@ PAPER_TABLE2 = {
     "m10000": [(5.36, 1.0), (6.81, 1.0), (9.52, 1.0), (11.29, 1.0), (15.66, 1.0), (19.23, 1.0), (19.5, 1.0), (5.98, 1.0)],
 }
 
-_FIELDS = ("dataset", "sigma_x", "sigma_y", "sigma_theta", "instance", "method", "converged", "iterations",
-           "chi2_initial", "chi2_final", "reduced_chi2", "init_seconds", "gn_seconds", "failure")
-
-
 @dataclass
 class RunRecord:
+    """One (instance, initial guess) run, judged by both readings of the paper's test:
+    ``abs``: |Δχ²| < tol, ``rel``: |Δχ²|/χ² < tol (read off the same χ² history)."""
+
     dataset: str
     sigma_x: float
     sigma_y: float
     sigma_theta: float
     instance: int
     method: str
-    converged: bool
-    iterations: int
     chi2_initial: float
-    chi2_final: float
-    reduced_chi2: float
+    converged_abs: bool
+    iterations_abs: int
+    reduced_chi2_abs: float
+    converged_rel: bool
+    iterations_rel: int
+    reduced_chi2_rel: float
     init_seconds: float
     gn_seconds: float
     failure: str = ""
+
+    def verdict(self, criterion: str) -> tuple[bool, int, float]:
+        if criterion == "relative":
+            return self.converged_rel, self.iterations_rel, self.reduced_chi2_rel
+        return self.converged_abs, self.iterations_abs, self.reduced_chi2_abs
 
 
 def default_data_dir() -> Path:
@@ -174,8 +180,7 @@ def _worker_init(dataset, data_dir, ref, gt):
 
 
 def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int, instance: int, seed: int,
-                 methods=BENCH_METHODS, max_iter: int = 50, tol: float = 1e-6,
-                 criterion: str = "absolute") -> list[RunRecord]:
+                 methods=BENCH_METHODS, max_iter: int = 50, tol: float = 1e-6) -> list[RunRecord]:
     """All initial guesses + GN on one noisy instance (seeded by ``(seed, dataset, level, instance)``)."""
     rng = np.random.default_rng([seed, DATASETS.index(dataset) if dataset in DATASETS else 99, level, instance])
     g = noisy_instance(ref, sigma, rng)
@@ -190,24 +195,37 @@ def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int
             p, fail = None, str(e)
         t_init = time.perf_counter() - t0
         if p is None:
-            out.append(RunRecord(dataset, *map(float, sigma), instance, m, False, 0, float("nan"), float("nan"),
-                                 float("nan"), t_init, 0.0, fail))
+            nan = float("nan")
+            out.append(RunRecord(dataset, *map(float, sigma), instance, m, nan, False, 0, nan, False, 0, nan,
+                                 t_init, 0.0, fail))
             continue
-        r = gauss_newton(g, p, max_iter=max_iter, tol=tol, criterion=criterion, keep_poses=False)
-        out.append(RunRecord(dataset, *map(float, sigma), instance, m, r.converged, r.iterations, r.chi2_initial,
-                             r.chi2_final, r.chi2_final / dof, t_init, r.seconds, r.failure))
+        # run to the stricter absolute test; the relative verdict is read off the same χ² history
+        r = gauss_newton(g, p, max_iter=max_iter, tol=tol, criterion="absolute", keep_poses=False)
+        ca, ia, xa = first_convergence(r.chi2_history, tol, "absolute")
+        cr, ir, xr = first_convergence(r.chi2_history, tol, "relative")
+        out.append(RunRecord(dataset, *map(float, sigma), instance, m, r.chi2_initial, ca, ia, xa / dof, cr, ir,
+                             xr / dof, t_init, r.seconds, r.failure))
     return out
 
 
+def first_convergence(history: list[float], tol: float, criterion: str) -> tuple[bool, int, float]:
+    """(converged, iteration, χ² at that iteration) of the first iteration passing ``criterion``
+    in a χ² history (entry 0 = initial χ²); (False, last iteration, last χ²) if none does."""
+    for k in range(1, len(history)):
+        if has_converged(history[k - 1], history[k], tol, criterion):
+            return True, k, history[k]
+    return False, len(history) - 1, history[-1]
+
+
 def _task(args):
-    sigma, level, instance, seed, methods, max_iter, tol, criterion = args
+    sigma, level, instance, seed, methods, max_iter, tol = args
     return run_instance(_WORKER["ref"], _WORKER["gt"], _WORKER["dataset"], sigma, level, instance, seed,
-                        methods, max_iter, tol, criterion)
+                        methods, max_iter, tol)
 
 
 def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int = 50, workers: int = 1,
                   seed: int = 0, out_dir: str | Path | None = None, data_dir: str | Path | None = None,
-                  methods=BENCH_METHODS, tol: float = 1e-6, criterion: str = "absolute",
+                  methods=BENCH_METHODS, tol: float = 1e-6, criterion: str = "relative",
                   progress: bool = True) -> dict:
     """Run the protocol; write ``runs.csv``, ``table1.csv``, ``table2.csv``, ``report.md`` into ``out_dir``.
 
@@ -218,9 +236,11 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
     unknown = [m for m in methods if m not in BENCH_METHODS]
     if unknown:
         raise InputError(f"unknown benchmark method(s) {unknown}; use {', '.join(BENCH_METHODS)}")
+    if criterion not in ("absolute", "relative"):
+        raise InputError(f"unknown convergence criterion {criterion!r}; use absolute or relative")
     t_start = time.perf_counter()
     ref, gt, note = reference_graph(dataset, data_dir)
-    tasks = [(tuple(s), BENCH_LEVEL_INDEX(s), k, seed, tuple(methods), max_iter, tol, criterion)
+    tasks = [(tuple(s), level_index(s), k, seed, tuple(methods), max_iter, tol)
              for s in noise_levels for k in range(instances)]
     records: list[RunRecord] = []
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -243,20 +263,21 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
                 for recs in pool.imap_unordered(_task, tasks):
                     records.extend(recs)
                     bar.advance(job)
-    records.sort(key=lambda r: (BENCH_LEVEL_INDEX((r.sigma_x, r.sigma_y, r.sigma_theta)), r.sigma_x, r.sigma_theta,
+    records.sort(key=lambda r: (level_index((r.sigma_x, r.sigma_y, r.sigma_theta)), r.sigma_x, r.sigma_theta,
                                 r.instance, methods.index(r.method)))
     wall = time.perf_counter() - t_start
     header = (f"dataset {DATASET_NAMES.get(dataset, dataset)}; {instances} instance(s) per level; max {max_iter} GN "
-              f"iterations; converged when {'|Δχ²|' if criterion == 'absolute' else '|Δχ²|/χ²'} < {tol:g}; seed {seed}; "
+              f"iterations; converged when {_crit_text(criterion, tol)}; seed {seed}; "
               f"{workers} worker(s); wall time {wall:.0f} s; machine: {platform.processor() or platform.machine()}, "
               f"{os.cpu_count()} CPUs, Python {platform.python_version()}\n\n{note}.\n")
-    report = header + "\n" + format_report(records, dataset, methods)
+    report = header + "\n" + format_report(records, dataset, methods, criterion, tol)
     if out_dir is not None:
-        write_outputs(Path(out_dir), records, dataset, methods, report)
+        write_outputs(Path(out_dir), records, dataset, methods, report, criterion)
     return {"records": records, "report": report, "note": note}
 
 
-def BENCH_LEVEL_INDEX(sigma) -> int:  # noqa: N802 - small lookup used as a sort key
+def level_index(sigma) -> int:
+    """Index of ``sigma`` in the spec's 8 noise levels (100 if it is not one of them)."""
     s = tuple(round(float(v), 6) for v in sigma)
     for k, lv in enumerate(NOISE_LEVELS):
         if s == tuple(round(v, 6) for v in lv):
@@ -267,18 +288,19 @@ def BENCH_LEVEL_INDEX(sigma) -> int:  # noqa: N802 - small lookup used as a sort
 # ------------------------------------------------------------------------------ summaries
 
 
-def summarise(records: list[RunRecord]) -> dict:
-    """{(sigma, method): dict(n, rate, iters, rchi2, init_s, gn_s)} over the records."""
+def summarise(records: list[RunRecord], criterion: str = "relative") -> dict:
+    """{(sigma, method): dict(n, rate, iters, rchi2, init_s, gn_s)}; iters/rchi2 over converged runs."""
     groups: dict = {}
     for r in records:
         groups.setdefault(((r.sigma_x, r.sigma_y, r.sigma_theta), r.method), []).append(r)
     out = {}
     for key, rs in groups.items():
-        conv = [r for r in rs if r.converged]
+        v = [r.verdict(criterion) for r in rs]
+        conv = [x for x in v if x[0]]
         out[key] = dict(
             n=len(rs), rate=len(conv) / len(rs),
-            iters=float(np.mean([r.iterations for r in conv])) if conv else float("nan"),
-            rchi2=float(np.mean([r.reduced_chi2 for r in conv])) if conv else float("nan"),
+            iters=float(np.mean([x[1] for x in conv])) if conv else float("nan"),
+            rchi2=float(np.mean([x[2] for x in conv])) if conv else float("nan"),
             init_s=float(np.mean([r.init_seconds for r in rs])), gn_s=float(np.mean([r.gn_seconds for r in rs])))
     return out
 
@@ -288,28 +310,33 @@ def _fmt(v, nd=2):
 
 
 def _levels(records):
-    lv = sorted({(r.sigma_x, r.sigma_y, r.sigma_theta) for r in records}, key=lambda s: (BENCH_LEVEL_INDEX(s), s))
-    return lv
+    return sorted({(r.sigma_x, r.sigma_y, r.sigma_theta) for r in records}, key=lambda s: (level_index(s), s))
 
 
-def table_rows(records, dataset, methods):
-    """Rows for table1.csv and table2.csv (ours and the paper's numbers)."""
-    S = summarise(records)
+def table_rows(records, dataset, methods, criterion: str = "relative"):
+    """Rows for table1.csv and table2.csv: ours (by ``criterion``; Table 1 also the other criterion)
+    and the paper's numbers."""
+    S = summarise(records, criterion)
+    other = "relative" if criterion == "absolute" else "absolute"
+    S2 = summarise(records, other)
     t1, t2 = [], []
     for s in _levels(records):
-        k = BENCH_LEVEL_INDEX(s)
-        p1 = PAPER_TABLE1.get(dataset, [None] * 8)[k] if k < 8 else None
-        p2 = PAPER_TABLE2.get(dataset, [None] * 8)[k] if k < 8 else None
-        row1 = {"noise": ",".join(f"{v:g}" for v in s), "instances": S[(s, methods[0])]["n"]}
+        k = level_index(s)
+        p1 = PAPER_TABLE1[dataset][k] if k < 8 and dataset in PAPER_TABLE1 else None
+        p2 = PAPER_TABLE2[dataset][k] if k < 8 and dataset in PAPER_TABLE2 else None
+        row1 = {"noise": ",".join(f"{v:g}" for v in s), "instances": S[(s, methods[0])]["n"], "criterion": criterion}
         row2 = dict(row1)
         for m in methods:
-            st = S[(s, m)]
-            row1[f"{m}_rate"] = st["rate"]
-            row1[f"{m}_init_ms"] = 1e3 * st["init_s"]
-            row2[f"{m}_iters"] = st["iters"]
-            row2[f"{m}_reduced_chi2"] = st["rchi2"]
+            row1[f"{m}_rate"] = S[(s, m)]["rate"]
+        for m in methods:
+            row1[f"{m}_rate_{other}"] = S2[(s, m)]["rate"]
+        for m in methods:
+            row1[f"{m}_init_ms"] = 1e3 * S[(s, m)]["init_s"]
         for j, m in enumerate(_PAPER_T1_COLS):
             row1[f"paper_{m}_rate"] = p1[j] if p1 else float("nan")
+        for m in methods:
+            row2[f"{m}_iters"] = S[(s, m)]["iters"]
+            row2[f"{m}_reduced_chi2"] = S[(s, m)]["rchi2"]
         row2["paper_masat_iters"] = p2[0] if p2 else float("nan")
         row2["paper_masat_reduced_chi2"] = p2[1] if p2 else float("nan")
         t1.append(row1)
@@ -317,22 +344,26 @@ def table_rows(records, dataset, methods):
     return t1, t2
 
 
-def format_report(records, dataset, methods=BENCH_METHODS) -> str:
-    t1, t2 = table_rows(records, dataset, methods)
-    paper_cols = {m: f"paper_{m}_rate" for m in _PAPER_T1_COLS}
-    lines = ["Table 1 — convergence rate, ours (paper):", "",
-             "| noise | n | " + " | ".join(METHOD_NAMES[m] for m in methods) + " |",
-             "|---|---|" + "---|" * len(methods)]
+def _crit_text(criterion, tol=1e-6):
+    return f"|Δχ²| < {tol:g}" if criterion == "absolute" else f"|Δχ²|/χ² < {tol:g}"
+
+
+def format_report(records, dataset, methods=BENCH_METHODS, criterion: str = "relative", tol: float = 1e-6) -> str:
+    t1, t2 = table_rows(records, dataset, methods, criterion)
+    other = "relative" if criterion == "absolute" else "absolute"
+    head = " | ".join(METHOD_NAMES[m] for m in methods)
+    lines = [f"Table 1 — convergence rate ({_crit_text(criterion, tol)}), ours (paper):", "",
+             f"| noise | n | {head} |", "|---|---|" + "---|" * len(methods)]
     for r in t1:
-        cells = []
-        for m in methods:
-            ours = _fmt(r[f"{m}_rate"])
-            cells.append(f"{ours} ({_fmt(r[paper_cols[m]])})" if m in paper_cols else ours)
+        cells = [_fmt(r[f"{m}_rate"]) + (f" ({_fmt(r[f'paper_{m}_rate'])})" if m in _PAPER_T1_COLS else "")
+                 for m in methods]
         lines.append(f"| {r['noise']} | {r['instances']} | " + " | ".join(cells) + " |")
+    lines += ["", f"Table 1b — the same runs judged by {_crit_text(other, tol)}:", "",
+              f"| noise | {head} |", "|---|" + "---|" * len(methods)]
+    for r in t1:
+        lines.append(f"| {r['noise']} | " + " | ".join(_fmt(r[f"{m}_rate_{other}"]) for m in methods) + " |")
     lines += ["", "Table 2 — mean GN iterations / mean reduced χ² over converged runs "
-              "(paper's MASAT+GN in brackets):", "",
-              "| noise | " + " | ".join(METHOD_NAMES[m] for m in methods) + " |",
-              "|---|" + "---|" * len(methods)]
+              "(paper's MASAT+GN in brackets):", "", f"| noise | {head} |", "|---|" + "---|" * len(methods)]
     for r in t2:
         cells = []
         for m in methods:
@@ -341,9 +372,7 @@ def format_report(records, dataset, methods=BENCH_METHODS) -> str:
                 c += f" ({_fmt(r['paper_masat_iters'], 2)} / {_fmt(r['paper_masat_reduced_chi2'], 2)})"
             cells.append(c)
         lines.append(f"| {r['noise']} | " + " | ".join(cells) + " |")
-    lines += ["", "Mean initialisation time per method (ms):", "",
-              "| noise | " + " | ".join(METHOD_NAMES[m] for m in methods) + " |",
-              "|---|" + "---|" * len(methods)]
+    lines += ["", "Mean initialisation time per method (ms):", "", f"| noise | {head} |", "|---|" + "---|" * len(methods)]
     for r in t1:
         lines.append(f"| {r['noise']} | " + " | ".join(_fmt(r[f'{m}_init_ms'], 1) for m in methods) + " |")
     return "\n".join(lines) + "\n"
@@ -358,17 +387,17 @@ def _csv_text(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
-def write_outputs(out_dir: Path, records, dataset, methods, report: str) -> None:
+def write_outputs(out_dir: Path, records, dataset, methods, report: str, criterion: str = "relative") -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_dir / "runs.csv", _csv_text([asdict(r) for r in records]))
-    t1, t2 = table_rows(records, dataset, methods)
+    t1, t2 = table_rows(records, dataset, methods, criterion)
     atomic_write_text(out_dir / "table1.csv", _csv_text(t1))
     atomic_write_text(out_dir / "table2.csv", _csv_text(t2))
     atomic_write_text(out_dir / "report.md", report)
 
 
 def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int = 50, workers: int = 1, seed: int = 0,
-                  criterion: str = "absolute", methods: str = ",".join(BENCH_METHODS), out_dir=None, data_dir=None,
+                  criterion: str = "relative", methods: str = ",".join(BENCH_METHODS), out_dir=None, data_dir=None,
                   progress: bool = True) -> str:
     """CLI entry: parse the option strings, run :func:`run_benchmark`, return the markdown report."""
     levels = parse_noise(noise)

@@ -1,0 +1,174 @@
+"""Pose-graph readers (g2o, TORO, iSAM) on small snippets, the g2o writer, and the real M3500 file."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from rgbdslam.backend.graph_io import detect_format, graph_info, read_graph, write_g2o
+from rgbdslam.errors import InputError
+
+DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+
+G2O_SE2 = """\
+VERTEX_SE2 0 0 0 0
+VERTEX_SE2 1 1.0 0.1 0.2
+VERTEX_SE2 2 2.0 0.2 0.3
+FIX 0
+EDGE_SE2 0 1 1.030390 0.011350 -0.012958 44.635358 -7.962220 0.000000 376.516380 0.000000 9745.791650
+EDGE_SE2 1 2 1.013900 -0.058639 -0.013225 45.125343 15.275266 0.000000 387.129544 0.000000 9740.656002
+"""
+
+G2O_SE3 = """\
+VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1
+VERTEX_SE3:QUAT 1 0.341895 -0.0416997 0.0330394 -0.00189341 0.00395691 0.0899835 0.995934
+EDGE_SE3:QUAT 0 1 0.341895 -0.0416997 0.0330394 -0.00189341 0.00395691 0.0899835 0.995934  10 0 0 0 0 0 10 0 0 0 0 10 0 0 0 400.021 0.00193512 2.06612 399.993 0.496977 99.203
+"""
+
+TORO = """\
+VERTEX2 0 1.26 -2.3 0.699
+VERTEX2 1 2.06532 -1.70549 0.7195
+VERTEX2 2 2.84659 -1.06456 0.7337
+EDGE2 0 1 1.0 0.02 0.03 1 0.1 2 3 0.2 0.4
+EDGE2 1 2 1.0 0 0 1 0 1 1 0 0
+EQUIV 1 2
+"""
+
+ISAM2D = """\
+ODOMETRY 0 1 1.03039 0.0113498 -0.0129577 44.72135955 0 0 44.72135955 0 44.72135955
+ODOMETRY 1 2 1.0139 -0.0586393 -0.013225 2 1 0.5 3 0.25 4
+EDGE2 2 0 -2.0 0.1 0.02 50 0 0 50 0 100
+POINT2 2 7 1.0 1.0 1 0 1
+"""
+
+ISAM3D = """\
+EDGE3 0 1 0.341895 -0.0416997 0.0330394 -0.00305942 0.00822248 0.1802 10 0 0 0 0 0 10 0 0 0 0 10 0 0 0 100 0 0 100 0 25
+EDGE3 1 2 0.229005 0.138346 -0.0985239 -0.00165533 0.0168837 0.111357 10 0 0 0 0 0 10 0 0 0 0 10 0 0 0 100 0 0 100 0 25
+"""
+
+
+def _write(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_g2o_se2(tmp_path):
+    g = read_graph(_write(tmp_path, "a.g2o", G2O_SE2))
+    assert (g.dim, g.n_vertices, g.n_edges, g.has_poses) == (2, 3, 2, True)
+    np.testing.assert_allclose(g.poses[1], [1.0, 0.1, 0.2])
+    np.testing.assert_allclose(g.meas[0], [1.030390, 0.011350, -0.012958])
+    I = g.info[0]
+    assert I[0, 1] == I[1, 0] == pytest.approx(-7.962220)
+    assert I[1, 1] == pytest.approx(376.516380) and I[2, 2] == pytest.approx(9745.791650) and I[0, 2] == 0
+
+
+def test_g2o_se3_info_is_translation_first(tmp_path):
+    g = read_graph(_write(tmp_path, "b.g2o", G2O_SE3))
+    assert (g.dim, g.n_vertices, g.n_edges) == (3, 2, 1)
+    R = Rotation.from_quat([-0.00189341, 0.00395691, 0.0899835, 0.995934]).as_matrix()
+    np.testing.assert_allclose(g.meas[0, :3, :3], R, atol=1e-6)
+    np.testing.assert_allclose(g.meas[0, :3, 3], [0.341895, -0.0416997, 0.0330394])
+    assert g.info[0, 0, 0] == 10 and g.info[0, 3, 3] == pytest.approx(400.021)
+    assert g.info[0, 3, 5] == g.info[0, 5, 3] == pytest.approx(2.06612)
+    np.testing.assert_allclose(g.poses[1], g.meas[0], atol=1e-12)
+
+
+def test_toro_information_order(tmp_path):
+    g = read_graph(_write(tmp_path, "w.graph", TORO))
+    assert detect_format(tmp_path / "w.graph") == "toro"
+    assert (g.n_vertices, g.n_edges) == (3, 2)
+    assert g.notes == ["ignored 1 EQUIV record(s)"]
+    # TORO: xx xy yy thth xth yth = 1 0.1 2 3 0.2 0.4
+    np.testing.assert_allclose(g.info[0], [[1, 0.1, 0.2], [0.1, 2, 0.4], [0.2, 0.4, 3]])
+    np.testing.assert_allclose(g.poses[0], [1.26, -2.3, 0.699])
+
+
+def test_isam_square_root_information(tmp_path):
+    g = read_graph(_write(tmp_path, "m.txt", ISAM2D))
+    assert detect_format(tmp_path / "m.txt") == "isam"
+    assert (g.dim, g.n_vertices, g.n_edges, g.has_poses) == (2, 3, 3, False)
+    assert g.notes == ["ignored 1 POINT2 record(s)"]
+    np.testing.assert_allclose(g.info[0], np.eye(3) * 2000.0, rtol=1e-9)  # 44.72135955^2
+    R = np.array([[2, 1, 0.5], [0, 3, 0.25], [0, 0, 4.0]])
+    np.testing.assert_allclose(g.info[1], R.T @ R)
+    assert (g.edges_i[2], g.edges_j[2]) == (2, 0)
+
+
+def test_isam_3d_roll_pitch_yaw(tmp_path):
+    g = read_graph(_write(tmp_path, "s.txt", ISAM3D))
+    assert (g.dim, g.n_edges) == (3, 2)
+    # the same edge in SE-Sync's g2o copy has this quaternion
+    q = Rotation.from_matrix(g.meas[0, :3, :3]).as_quat()
+    np.testing.assert_allclose(q, [-0.00189341, 0.00395691, 0.0899835, 0.995934], atol=1e-6)
+    np.testing.assert_allclose(np.diagonal(g.info[0]), [100, 100, 100, 10000, 10000, 625])
+
+
+@pytest.mark.parametrize("text,match", [
+    ("EDGE_SE2 0 1 1 2 3 1 0 0 1 0\n", r"x\.g2o:1: EDGE_SE2 needs 11 numbers, found 10"),
+    ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 2 abc 1 0 0 1 0 1\n", r"x\.g2o:2: EDGE_SE2 has a non-numeric field"),
+    ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1.5 1 2 3 1 0 0 1 0 1\n", r"x\.g2o:2: EDGE_SE2 vertex id"),
+    ("VERTEX_SE2 0 0 0 0\nVERTEX_XYZ 1 1 1\nEDGE_SE2 0 1 1 2 3 1 0 0 1 0 1\n", r"x\.g2o:2: unsupported record 'VERTEX_XYZ'"),
+    ("EDGE_SE2 0 0 1 2 3 1 0 0 1 0 1\n", r"x\.g2o:1: edge from a vertex to itself"),
+    ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 2\nEDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1" + " 1" * 21 + "\n", r"x\.g2o:1: .*not unit"),
+    ("hello world\n", r"no g2o, TORO or iSAM"),
+])
+def test_malformed_lines_name_file_and_line(tmp_path, text, match):
+    with pytest.raises(InputError, match=match):
+        read_graph(_write(tmp_path, "x.g2o", text))
+
+
+def test_missing_file_and_bad_format(tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        read_graph(tmp_path / "nope.g2o")
+    with pytest.raises(InputError, match="unknown pose-graph format"):
+        read_graph(_write(tmp_path, "a.g2o", G2O_SE2), "xml")
+
+
+@pytest.mark.parametrize("text,name", [(G2O_SE2, "a.g2o"), (G2O_SE3, "b.g2o"), (TORO, "w.graph"), (ISAM3D, "s.txt")])
+def test_g2o_writer_round_trip(tmp_path, text, name):
+    g = read_graph(_write(tmp_path, name, text))
+    rng = np.random.default_rng(0)
+    if g.dim == 2:
+        poses = rng.normal(size=(g.n_vertices, 3))
+        poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    else:
+        poses = np.tile(np.eye(4), (g.n_vertices, 1, 1))
+        poses[:, :3, :3] = Rotation.random(g.n_vertices, random_state=1).as_matrix()
+        poses[:, :3, 3] = rng.normal(size=(g.n_vertices, 3))
+    out = tmp_path / "out.g2o"
+    write_g2o(out, g, poses)
+    h = read_graph(out)
+    assert h.source.endswith("(g2o)") and h.has_poses
+    np.testing.assert_array_equal(h.ids, g.ids)
+    np.testing.assert_array_equal(h.edges_i, g.edges_i)
+    np.testing.assert_array_equal(h.edges_j, g.edges_j)
+    np.testing.assert_allclose(h.poses, poses, atol=1e-12)
+    np.testing.assert_allclose(h.info, g.info, rtol=1e-12)
+    if g.dim == 2:
+        np.testing.assert_allclose(h.meas, g.meas, atol=1e-12)
+    else:
+        np.testing.assert_allclose(h.meas, g.meas, atol=1e-12)
+
+
+def test_sparse_vertex_ids_are_kept(tmp_path):
+    g = read_graph(_write(tmp_path, "s.g2o", "EDGE_SE2 10 20 1 0 0 1 0 0 1 0 1\nEDGE_SE2 20 35 1 0 0 1 0 0 1 0 1\n"))
+    assert g.ids.tolist() == [10, 20, 35] and g.edges_i.tolist() == [0, 1] and g.edges_j.tolist() == [1, 2]
+    write_g2o(tmp_path / "o.g2o", g)
+    assert "VERTEX_SE2 35 " in (tmp_path / "o.g2o").read_text()
+
+
+def test_real_m3500_counts():
+    path = DATA / "posegraph" / "iSAM" / "manhattanOlson3500.txt"
+    if not path.is_file():
+        pytest.skip(f"M3500 not found at {path} (set RGBDSLAM_DATA)")
+    g = read_graph(path)
+    assert (g.dim, g.n_vertices, g.n_edges) == (2, 3500, 5598)
+    np.testing.assert_allclose(g.info[0], np.eye(3) * 2000.0, rtol=1e-9)
+    assert "duplicated vertex pairs: 145" in graph_info(path)
+    assert math.isclose(g.meas[3, 2], 1.56679)
