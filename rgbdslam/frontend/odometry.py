@@ -31,7 +31,7 @@ from rgbdslam.datasets.base import Frame
 from rgbdslam.frontend.features import FrameFeatures, extract_features, lift
 from rgbdslam.frontend.islam import fuse_candidates, islam_pair
 from rgbdslam.frontend.isvd import isvd
-from rgbdslam.frontend.matching import match_pairs, prefilter
+from rgbdslam.frontend.matching import guided_match, match_pairs, prefilter
 from rgbdslam.frontend.ransac import ransac_rigid
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.rigid import fit_with_stats
@@ -92,20 +92,30 @@ def point_information(P: np.ndarray, sigma: float) -> np.ndarray:
     return H / (sigma * sigma)
 
 
-def register(ref: FrameFeatures, cur: FrameFeatures, cfg: Config, T0: np.ndarray | None = None) -> RegistrationResult | None:
+def register(
+    ref: FrameFeatures,
+    cur: FrameFeatures,
+    cfg: Config,
+    T0: np.ndarray | None = None,
+    gate: float | None = None,
+) -> RegistrationResult | None:
     """Match + pre-filter + registration of ``cur`` against ``ref`` (method from the config).
 
     ``T0`` is a prediction of ``T`` (``p_cur = T0 @ p_ref``), e.g. from constant velocity.
+    With ``gate`` (metres) and a trusted ``T0``, matching is guided (only 3-D neighbours
+    within ``gate`` of the prediction are candidates) and the RANSAC pre-filter is skipped;
+    used for the older ISLAM references, whose ``T0`` comes from the newest reference.
     Returns None when too few pairs are left (``registration.min_points``).
     """
     rc = cfg.registration
     need = max(3, rc.min_points)
     t0 = time.perf_counter()
-    ia, ib = match_pairs(ref, cur, cfg)
+    guided = gate is not None and T0 is not None
+    ia, ib = guided_match(ref, cur, T0, gate, cfg) if guided else match_pairs(ref, cur, cfg)
     n_matches = len(ia)
     if n_matches < need:
         return None
-    if not (rc.method == "ransac" and cfg.matching.prefilter == "rigid3d"):
+    if not guided and not (rc.method == "ransac" and cfg.matching.prefilter == "rigid3d"):
         m = prefilter(ref, cur, ia, ib, cfg, T0)
         ia, ib = ia[m], ib[m]
         if len(ia) < need:
@@ -209,12 +219,7 @@ class Frontend:
             return TrackResult(frame.index, frame.timestamp, pose, False, feats, None, None, 0, 0, 0.0, timings)
         pred = self._predict(frame.index)
         refs = list(reversed(self.refs))  # most recent first
-        T0s = [inv(pred) @ r.pose for r in refs]
-        jobs = [(r.features, feats, self.cfg, T0) for r, T0 in zip(refs, T0s)]
-        if self._executor is not None:
-            results = list(self._executor.map(lambda a: register(*a), jobs))
-        else:
-            results = [register(*a) for a in jobs]
+        results = self._register_all(refs, feats, pred)
         t1 = time.perf_counter()
         for res in results:
             if res is not None:
@@ -253,6 +258,30 @@ class Frontend:
             n_candidates=len(ok),
             n_fused=len(kept),
         )
+
+    def _register_all(self, refs: list[_Ref], feats: FrameFeatures, pred: np.ndarray) -> list:
+        """Registrations of ``feats`` against every reference (most recent first).
+
+        With ``registration.guided_gate`` the newest reference is registered first (RANSAC
+        pre-filter, constant-velocity T0); the older ones then use the pose it gives as T0
+        and a cheap distance gate instead of RANSAC. Otherwise all are independent (and run
+        in threads when ``registration.threads > 1``).
+        """
+        cfg = self.cfg
+        gate = cfg.registration.guided_gate
+        if gate is not None and len(refs) > 1:
+            first = register(refs[0].features, feats, cfg, inv(pred) @ refs[0].pose)
+            if first is not None:
+                P1 = refs[0].pose @ inv(first.T)
+                jobs = [(r.features, feats, cfg, inv(P1) @ r.pose, gate) for r in refs[1:]]
+                return [first] + self._map(jobs)
+            return [first] + self._map([(r.features, feats, cfg, inv(pred) @ r.pose) for r in refs[1:]])
+        return self._map([(r.features, feats, cfg, inv(pred) @ r.pose) for r in refs])
+
+    def _map(self, jobs: list[tuple]) -> list:
+        if self._executor is not None and len(jobs) > 1:
+            return list(self._executor.map(lambda a: register(*a), jobs))
+        return [register(*a) for a in jobs]
 
     def _lost(self, frame: Frame, feats: FrameFeatures, timings: dict, n_matches: int, n_cand: int = 0) -> TrackResult:
         return TrackResult(frame.index, frame.timestamp, None, True, feats, None, None, n_matches, 0, 0.0,

@@ -12,6 +12,17 @@ import numpy as np
 from rgbdslam.geometry.rigid import fit_rigid, fit_rigid_batch
 
 
+def _errors2(Ts: np.ndarray, S: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Squared residuals (B, N) of hypotheses Ts (B, 4, 4) on pairs S, D (N, 3)."""
+    pred = np.matmul(Ts[:, None, :3, :3], S[None, :, :, None])[..., 0] + Ts[:, None, :3, 3]
+    diff = pred - D[None]
+    return np.einsum("bni,bni->bn", diff, diff)
+
+
+def _count_inliers(Ts: np.ndarray, S: np.ndarray, D: np.ndarray, th2: float) -> np.ndarray:
+    return (_errors2(Ts, S, D) < th2).sum(axis=1)
+
+
 def ransac_rigid(
     S: np.ndarray,
     D: np.ndarray,
@@ -19,10 +30,16 @@ def ransac_rigid(
     iterations: int,
     rng: np.random.Generator,
     min_inliers: int = 3,
+    T0: np.ndarray | None = None,
+    subset: int = 64,
+    keep_best: int = 8,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Robust ``T`` with ``D ~ T * S`` and the inlier mask, or None if no consensus.
 
-    S, D: (N, 3) matched points; threshold: inlier distance (m); iterations: samples drawn.
+    S, D: (N, 3) matched points; threshold: inlier distance (m); iterations: samples drawn;
+    T0: an optional predicted transform, scored as one more hypothesis;
+    subset/keep_best: preemptive scoring (all hypotheses on ``subset`` pairs, the best
+    ``keep_best`` on all pairs).
     """
     n = len(S)
     if n < max(3, min_inliers):
@@ -43,9 +60,15 @@ def ransac_rigid(
     if not good.any():
         return None
     Ts = fit_rigid_batch(Ss[good], Ds[good])
-    pred = np.einsum("bij,nj->bni", Ts[:, :3, :3], S) + Ts[:, None, :3, 3]
-    err2 = np.sum((pred - D[None]) ** 2, axis=2)
+    if T0 is not None:
+        Ts = np.concatenate([np.asarray(T0, dtype=np.float64)[None], Ts])
     th2 = threshold * threshold
+    # Preemptive scoring: every hypothesis on a fixed random subset, the best few on all pairs.
+    sub = rng.choice(n, size=min(n, subset), replace=False) if n > subset else np.arange(n)
+    counts_sub = _count_inliers(Ts, S[sub], D[sub], th2)
+    top = np.argsort(-counts_sub, kind="stable")[:keep_best]
+    Ts = Ts[top]
+    err2 = _errors2(Ts, S, D)  # (B, N)
     inl = err2 < th2
     counts = inl.sum(axis=1)
     score = np.where(inl, err2, th2).sum(axis=1)  # MSAC-style tie break
