@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.backend.graph import se2_between, se2_inverse, se3_inverse
+from rgbdslam.backend.graph import se2_between, se2_compose, se2_inverse, se3_inverse
 from rgbdslam.backend.masat import bfs_order, masat_initialize_pose2, masat_initialize_pose3, masat_se2
 from rgbdslam.errors import InputError
 
@@ -156,3 +156,75 @@ def test_masat_runtime_independent_of_measurements():
         z = rng.normal(size=(len(ei), 3)) * scale
         est = masat_se2(n, ei, ej, z)
         assert np.isfinite(est).all() and est.shape == (n, 3)
+
+
+# ------------------------------------------------------------------------ other initial guesses
+
+from rgbdslam.backend.graph import PoseGraph  # noqa: E402
+from rgbdslam.backend.initializers import initialize, odometry, spanning_tree  # noqa: E402
+
+
+def _se2_close(a, b, atol=1e-12):
+    a, b = np.atleast_2d(a), np.atleast_2d(b)
+    np.testing.assert_allclose(a[:, :2], b[:, :2], atol=atol)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (a[:, 2] - b[:, 2]))), 0, atol=atol)
+
+
+def _graph2(poses_gt, pairs, noise=None):
+    ei = np.array([p[0] for p in pairs])
+    ej = np.array([p[1] for p in pairs])
+    z = se2_between(poses_gt[ei], poses_gt[ej])
+    if noise is not None:
+        z = z + noise
+    n = len(poses_gt)
+    return PoseGraph(2, np.arange(n), np.zeros((n, 3)), ei, ej, z, np.tile(np.eye(3) * 100, (len(ei), 1, 1)))
+
+
+def test_odometry_and_spanning_tree_hand_computed():
+    # chain 0-1-2-3 plus a loop edge 0->3 that disagrees with the chain
+    gt = np.array([[0, 0, 0], [1, 0, math.pi / 2], [1, 1, math.pi], [0, 1, -math.pi / 2]], float)
+    noise = np.zeros((4, 3))
+    noise[3] = [0.3, 0.0, 0.1]  # corrupt the loop edge 0->3
+    g = _graph2(gt, [(0, 1), (1, 2), (2, 3), (0, 3)], noise)
+    _se2_close(odometry(g), gt)  # odometry ignores the loop edge
+    # BFS from 0: parents 1<-0, 3<-0 (the corrupted edge), 2<-1
+    st = spanning_tree(g)
+    _se2_close(st[:3], gt[:3])
+    _se2_close(st[3], [0.3, 1.0, -math.pi / 2 + 0.1])
+    # MASAT: vertex 3 is placed from 0 only (vertex 2 is later in BFS order), vertex 2 from 1 and 3
+    ms = initialize(g, "masat")
+    _se2_close(ms[3], st[3])
+    pred_from_3 = se2_compose(st[3], se2_between(gt[3], gt[2]))
+    np.testing.assert_allclose(ms[2, :2], (gt[2, :2] + pred_from_3[:2]) / 2, atol=1e-12)
+
+
+def test_odometry_inverts_backward_edges_and_reports_gaps():
+    gt = np.array([[0, 0, 0], [1, 0, 0.5], [2, 1, 1.0]])
+    g = _graph2(gt, [(1, 0), (1, 2)])
+    _se2_close(odometry(g), gt)
+    g2 = _graph2(np.vstack([gt, [[3, 1, 0]]]), [(0, 1), (1, 2), (1, 3)])
+    with pytest.raises(InputError, match="no odometry edge between vertices 2 and 3"):
+        odometry(g2)
+
+
+def test_gtsam_initialisers_exact_on_consistent_graphs():
+    rng = np.random.default_rng(3)
+    gt = np.column_stack([rng.uniform(-3, 3, 8), rng.uniform(-3, 3, 8), rng.uniform(-1, 1, 8)])
+    gt[0] = 0
+    pairs = [(k, k + 1) for k in range(7)] + [(0, 4), (2, 6), (7, 1)]
+    g = _graph2(gt, pairs)
+    _se2_close(initialize(g, "lago"), gt, atol=1e-6)
+    # SE(3): chordal
+    gt3 = [np.eye(4)] + [_pose3(rng.normal(size=3) * 0.5, rng.normal(size=3)) for _ in range(5)]
+    p3 = [(k, k + 1) for k in range(5)] + [(0, 3), (1, 5)]
+    ei = np.array([p[0] for p in p3]); ej = np.array([p[1] for p in p3])
+    z = np.array([se3_inverse(gt3[i]) @ gt3[j] for i, j in p3])
+    g3 = PoseGraph(3, np.arange(6), np.tile(np.eye(4), (6, 1, 1)), ei, ej, z, np.tile(np.eye(6), (len(ei), 1, 1)))
+    for m in ("chordal", "odometry", "spanning_tree", "masat", "weighted_masat"):
+        np.testing.assert_allclose(initialize(g3, m), np.array(gt3), atol=1e-6, err_msg=m)
+
+
+def test_unknown_method():
+    g = _graph2(np.zeros((2, 3)), [(0, 1)])
+    with pytest.raises(InputError, match="unknown initialisation method"):
+        initialize(g, "magic")

@@ -226,10 +226,11 @@ def _task(args):
 def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int = 50, workers: int = 1,
                   seed: int = 0, out_dir: str | Path | None = None, data_dir: str | Path | None = None,
                   methods=BENCH_METHODS, tol: float = 1e-6, criterion: str = "relative",
-                  progress: bool = True) -> dict:
+                  progress: bool = True, reference: tuple[PoseGraph, np.ndarray, str] | None = None) -> dict:
     """Run the protocol; write ``runs.csv``, ``table1.csv``, ``table2.csv``, ``report.md`` into ``out_dir``.
 
-    Returns ``{"records": [...], "report": markdown, "note": reference note}``.
+    ``reference`` = ``(noise-free graph, ground-truth poses, note)`` replaces the dataset's files
+    (tests, other graphs).  Returns ``{"records": [...], "report": markdown, "note": reference note}``.
     """
     if instances < 1 or max_iter < 1 or workers < 1:
         raise InputError("--instances, --max-iter and --workers must be positive")
@@ -239,7 +240,7 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
     if criterion not in ("absolute", "relative"):
         raise InputError(f"unknown convergence criterion {criterion!r}; use absolute or relative")
     t_start = time.perf_counter()
-    ref, gt, note = reference_graph(dataset, data_dir)
+    ref, gt, note = reference if reference is not None else reference_graph(dataset, data_dir)
     tasks = [(tuple(s), level_index(s), k, seed, tuple(methods), max_iter, tol)
              for s in noise_levels for k in range(instances)]
     records: list[RunRecord] = []
