@@ -206,13 +206,43 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, quiet):
 @click.option("--data", "data_dir", type=click.Path(path_type=Path), default=None,
               help="Data folder (default: $RGBDSLAM_DATA or <repo>/../shared/data).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet):
+@click.option("--timing-only", is_flag=True, help="Only time the initial guesses (best of 5) at each noise level.")
+def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet,
+                    timing_only):
     """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
     from rgbdslam.backend.posegraph_bench import bench_command
 
     click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                              criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,
-                             progress=not quiet))
+                             progress=not quiet, timing_only=timing_only))
+
+
+# ------------------------------------------------------------------------------- maps / viewer
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@set_option
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def fuse(run_dir, overrides, quiet):
+    """Fuse the map of a finished run folder into RUN_DIR/map: cloud.ply, mesh.ply, map2d.png/.yaml.
+
+    Uses the run's config.yaml; --set mapping.KEY=VALUE changes it for this fusion."""
+    from rgbdslam.mapping.fusion import fuse_command
+
+    fuse_command(run_dir, overrides, progress=not quiet)
+
+
+@main.command()
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--save", type=click.Path(path_type=Path), default=None,
+              help="Write the recording here (default for a run folder: RUN_DIR/recording.rrd).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def view(path, save, quiet):
+    """Open PATH (an .rrd recording or a run folder, recorded first) in the Rerun viewer."""
+    from rgbdslam.viz.rerun_log import view as view_recording
+
+    view_recording(path, save, progress=not quiet)
 
 
 if __name__ == "__main__":  # pragma: no cover
