@@ -178,7 +178,7 @@ class MappingConfig:
     mesh: bool = True  # Open3D tensor VoxelBlockGrid TSDF + marching cubes
     tsdf_voxel: float = 0.01  # metres
     sdf_trunc: float = 0.04  # metres
-    mesh_min_weight: float = 2.0  # voxels seen by fewer frames are left out of the mesh
+    mesh_min_frames: int = 2  # voxels seen by fewer frames are left out of the mesh
     tsdf_initial_blocks: int = 2000  # 8^3-voxel blocks preallocated (the hash map grows)
     # 2-D occupancy map (spec section 6)
     map2d: bool = True

@@ -76,7 +76,7 @@ def plane_run(tmp_path):
 
 def _cfg(**kw) -> MappingConfig:
     base = dict(depth_min=0.1, depth_max=3.0, voxel_size=0.01, cloud_pixel_stride=1, outlier_neighbors=10,
-                map2d=False, mesh_min_weight=1.0)
+                map2d=False, mesh_min_frames=1)
     base.update(kw)
     return MappingConfig(**base)
 
@@ -131,6 +131,14 @@ def test_fuse_skips_frames_without_pose_and_rejects_no_pose(plane_run):
 
     with pytest.raises(InputError, match="has a pose"):
         fuse(seq, Trajectory([5.0], np.eye(4)[None]), [0, 1], _cfg(), run / "m2", progress=False)
+
+
+def test_mesh_min_frames_counts_frames(plane_run):
+    """The central plane area is seen by all 3 frames: kept at 3, nothing is seen by 4 (no mesh.ply)."""
+    seq_dir, run = plane_run
+    assert fuse_run(run, _cfg(mesh_min_frames=3, outlier_neighbors=0), progress=False).n_triangles > 1000
+    res = fuse_run(run, _cfg(mesh_min_frames=4, outlier_neighbors=0), progress=False)
+    assert res.n_triangles == 0 and res.mesh_path is None and not (run / "map" / "mesh.ply").exists()
 
 
 def test_match_frames_and_motion_selection():

@@ -251,7 +251,11 @@ class _Tsdf:
                            self.cfg.sdf_trunc / self.cfg.tsdf_voxel)
 
     def mesh(self) -> o3d.geometry.TriangleMesh:
-        return self.vol.extract_triangle_mesh(weight_threshold=self.cfg.mesh_min_weight).to_legacy()
+        # the weight counts the frames that saw a voxel; Open3D keeps voxels with weight > threshold
+        mesh = self.vol.extract_triangle_mesh(weight_threshold=self.cfg.mesh_min_frames - 0.5).to_legacy()
+        if mesh.has_vertex_colors():
+            mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
+        return mesh
 
 
 def _write_ply(path: Path, geom, mesh: bool) -> None:
@@ -277,7 +281,7 @@ def fuse(
     (camera-to-world, matched to frames by time stamp) into ``out_dir``/cloud.ply and mesh.ply
     (and the 2-D map when ``cfg.map2d``). ``depth_dir`` holds depth_<index:06d>.png files used
     instead of the raw depth where present. Frames without a pose are skipped."""
-    from rgbdslam.ui import frame_progress
+    from rgbdslam.ui import console, frame_progress
 
     t_start = time.perf_counter()
     rss0 = _rss_mb()
@@ -340,10 +344,17 @@ def fuse(
     if tsdf is not None:
         t0 = time.perf_counter()
         mesh = tsdf.mesh()
-        mesh.compute_vertex_normals()
         n_vert, n_tri = len(mesh.vertices), len(mesh.triangles)
-        mesh_path = out_dir / "mesh.ply"
-        _write_ply(mesh_path, mesh, mesh=True)
+        if n_tri:
+            mesh.compute_vertex_normals()
+            mesh_path = out_dir / "mesh.ply"
+            _write_ply(mesh_path, mesh, mesh=True)
+        else:
+            (out_dir / "mesh.ply").unlink(missing_ok=True)  # never leave an older run's mesh behind
+            console.print(
+                f"[yellow]warning:[/] the TSDF mesh is empty (no voxel was seen by {cfg.mesh_min_frames} frames); "
+                f"mesh.ply not written; lower mapping.mesh_min_frames"
+            )
         del mesh, tsdf
         timings["mesh"] = time.perf_counter() - t0
 
@@ -419,3 +430,18 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
         frames = [int(i) for i in tracked]
     depth_dir = run_dir / "keyframes"
     return fuse(seq, traj, frames, cfg, run_dir / "map", depth_dir if depth_dir.is_dir() else None, progress)
+
+
+def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (), progress: bool = True) -> FuseResult:
+    """``rgbdslam fuse``: the run's config with ``section.key=value`` overrides, fuse, print a summary."""
+    from rgbdslam.ui import console
+
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / "config.yaml"
+    cfg = load_config(cfg_path if cfg_path.is_file() else None, overrides)
+    res = fuse_run(run_dir, cfg.mapping, progress=progress)
+    console.print(
+        f"fused {len(res.frames)} frames in {res.seconds:.1f} s (peak memory {res.peak_rss_mb:.0f} MB): "
+        f"{res.n_points} cloud points, {res.n_triangles} mesh triangles -> {res.out_dir}"
+    )
+    return res

@@ -1,0 +1,313 @@
+"""Rerun recordings of a SLAM run: live while tracking (:class:`RerunLogger`) or rebuilt from a
+finished run folder (:func:`record_run`), and opening them (:func:`view`).
+
+Entity layout (time lines ``frame`` = sequence position, ``time`` = the frame's time stamp):
+
+- ``world/camera``                  Transform3D, camera-to-world of the current frame
+- ``world/camera/image``            Pinhole (RDF camera axes), the frustum
+- ``world/camera/image/rgb|depth``  colour and depth, downsampled to ``output.rerun_image_width``
+- ``world/camera/image/keypoints``  ORB key points (green: with depth, red: without)
+- ``world/camera/image/matches``    inlier matches as segments previous -> current position
+- ``world/trajectory/live``         the estimated trajectory so far (grows frame by frame)
+- ``world/trajectory/<name>``       whole trajectories (``estimate``, ``odometry``, ``groundtruth``)
+- ``world/loops``                   loop edges as segments between the two camera centres
+- ``world/map``                     the fused coloured cloud
+- ``timings/<stage>``               per-stage time in ms (Scalars); ``stats/*`` matches, inliers, lost
+
+The ground truth is drawn in the estimate's world frame: it is moved by the rigid transform that
+puts its pose at the first tracked frame onto the estimated pose (a first-frame alignment, for
+looking; the evaluation's ATE uses its own alignment).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+
+from rgbdslam.config import Config
+from rgbdslam.errors import InputError, RgbdslamError
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv
+from rgbdslam.io.trajectory import Trajectory
+
+APPLICATION_ID = "rgbdslam"
+RECORDING_ID = "rgbdslam-run"  # fixed, so re-recording a run replaces it in an open viewer
+LIVE_STRIP_MAX = 500  # the live trajectory is re-logged every frame up to this length, then sparser
+
+
+def has_display() -> bool:
+    """Whether a GUI window can be opened (X11/Wayland on Linux; assumed elsewhere)."""
+    if sys.platform.startswith("linux"):
+        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    return True
+
+
+def rerun_executable() -> str | None:
+    """The ``rerun`` viewer shipped with rerun-sdk (next to this Python), else on PATH."""
+    cand = Path(sys.executable).parent / "rerun"
+    return str(cand) if cand.is_file() else shutil.which("rerun")
+
+
+class RerunLogger:
+    """Observer the pipeline calls per frame; writes to a viewer (``spawn``) and/or an .rrd file."""
+
+    def __init__(self, cfg: Config, camera: Camera, groundtruth: Trajectory | None, spawn: bool,
+                 save_path: str | Path | None, recording_id: str = RECORDING_ID):
+        import rerun as rr
+
+        self.rr = rr
+        self.cfg = cfg
+        self.camera = camera
+        self.groundtruth = groundtruth
+        self.gt_align: np.ndarray | None = None
+        self.positions: list[np.ndarray] = []
+        self.loops: list[list[np.ndarray]] = []
+        self.n_frames = 0
+        if not spawn and save_path is None:
+            raise RgbdslamError("the Rerun logger needs a viewer (--rerun) or a file (--rerun-save FILE.rrd)")
+        if spawn and not has_display():
+            if save_path is None:
+                raise RgbdslamError(
+                    "cannot open a Rerun viewer: this machine has no display; record with --rerun-save FILE.rrd "
+                    "and open it later with `rgbdslam view FILE.rrd`"
+                )
+            print("warning: no display for a Rerun viewer; recording to the --rerun-save file only", file=sys.stderr)
+            spawn = False
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+        self.save_path = Path(save_path) if save_path is not None else None
+        if self.save_path is not None:
+            self.save_path.parent.mkdir(parents=True, exist_ok=True)
+            self.rec.save(str(self.save_path))
+        if spawn:
+            try:
+                self.rec.spawn(connect=self.save_path is None)
+            except Exception as e:  # noqa: BLE001 - any failure to start a GUI is the same to the user
+                raise RgbdslamError(
+                    f"cannot start the Rerun viewer ({e.__class__.__name__}); use --rerun-save FILE.rrd instead"
+                ) from None
+        width = max(16, int(cfg.output.rerun_image_width))
+        self.scale = min(1.0, width / camera.width)
+        self.img_size = (int(round(camera.width * self.scale)), int(round(camera.height * self.scale)))
+        s = self.scale
+        self.rec.log(
+            "world/camera/image",
+            rr.Pinhole(
+                image_from_camera=np.array([[camera.fx * s, 0, camera.cx * s], [0, camera.fy * s, camera.cy * s],
+                                            [0, 0, 1]]),
+                resolution=list(self.img_size),
+                camera_xyz=rr.ViewCoordinates.RDF,
+                image_plane_distance=0.2,
+            ),
+            static=True,
+        )
+        if groundtruth is not None and len(groundtruth):
+            self._log_strip("world/trajectory/groundtruth", groundtruth.positions, (255, 170, 0), static=True)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _set_time(self, index: int, timestamp: float) -> None:
+        self.rec.set_time("frame", sequence=int(index))
+        self.rec.set_time("time", timestamp=float(timestamp))
+
+    def _log_strip(self, path: str, pts: np.ndarray, color, static: bool = False, radius: float = 0.004) -> None:
+        self.rec.log(path, self.rr.LineStrips3D([np.asarray(pts, np.float32)], colors=[color], radii=[radius]),
+                     static=static)
+
+    def _align_groundtruth(self, timestamp: float, pose: np.ndarray) -> None:
+        gt = self.groundtruth
+        if gt is None or len(gt) == 0 or self.gt_align is not None:
+            return
+        k = int(np.argmin(np.abs(gt.timestamps - timestamp)))
+        if abs(gt.timestamps[k] - timestamp) > 0.05:
+            return
+        self.gt_align = pose @ inv(gt.poses[k])
+        P = gt.positions @ self.gt_align[:3, :3].T + self.gt_align[:3, 3]
+        self._log_strip("world/trajectory/groundtruth", P, (255, 170, 0), static=True)
+
+    # ------------------------------------------------------------------ observer API
+
+    def log_frame(self, frame, result) -> None:
+        """One tracked (or lost) frame: images, key points, pose, frustum, live trajectory, timings."""
+        rr = self.rr
+        index = getattr(result, "index", getattr(frame, "index", self.n_frames))
+        timestamp = getattr(result, "timestamp", getattr(frame, "timestamp", 0.0))
+        self._set_time(index, timestamp)
+        self.n_frames += 1
+        pose = getattr(result, "pose", None)
+        lost = bool(getattr(result, "lost", pose is None))
+        if pose is not None and not lost:
+            pose = np.asarray(pose, dtype=np.float64)
+            self._align_groundtruth(timestamp, pose)
+            self.rec.log("world/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
+            self.positions.append(pose[:3, 3].copy())
+            n = len(self.positions)
+            if n < LIVE_STRIP_MAX or n % max(1, n // LIVE_STRIP_MAX) == 0:
+                self._log_strip("world/trajectory/live", np.array(self.positions), (40, 120, 255))
+        every = max(1, int(self.cfg.output.rerun_log_every))
+        if frame is not None and (self.n_frames - 1) % every == 0:
+            self._log_images(frame)
+            feats = getattr(result, "features", None)
+            if feats is not None:
+                self._log_keypoints(feats)
+        self.rec.log("stats/lost", rr.Scalars(float(lost)))
+        for key in ("n_matches", "n_inliers"):
+            v = getattr(result, key, None)
+            if v is not None:
+                self.rec.log(f"stats/{key}", rr.Scalars(float(v)))
+        for stage, sec in (getattr(result, "timings", None) or {}).items():
+            self.rec.log(f"timings/{stage}", rr.Scalars(1e3 * float(sec)))
+
+    def _log_images(self, frame) -> None:
+        rr = self.rr
+        rgb = np.asarray(frame.rgb)
+        depth = np.asarray(frame.depth, dtype=np.float32)
+        if self.scale < 1.0:
+            rgb = cv2.resize(rgb, self.img_size, interpolation=cv2.INTER_AREA)
+            depth = cv2.resize(depth, self.img_size, interpolation=cv2.INTER_NEAREST)
+        self.rec.log("world/camera/image/rgb", rr.Image(rgb, color_model="RGB").compress(jpeg_quality=85))
+        mm = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
+        self.rec.log("world/camera/image/depth", rr.DepthImage(mm, meter=1000.0))
+
+    def _log_keypoints(self, feats) -> None:
+        uv = getattr(feats, "uv_raw", None)
+        if uv is None or len(uv) == 0:  # distorted pixels match the logged (raw) image; else the ideal ones
+            uv = getattr(feats, "uv", None)
+        if uv is None or len(uv) == 0:
+            return
+        uv = np.asarray(uv, dtype=np.float32) * self.scale
+        valid = np.asarray(getattr(feats, "valid", np.ones(len(uv), bool)), dtype=bool)
+        colors = np.where(valid[:, None], [[0, 220, 0]], [[230, 40, 40]]).astype(np.uint8)
+        self.rec.log("world/camera/image/keypoints", self.rr.Points2D(uv, colors=colors, radii=1.5))
+
+    def log_inlier_matches(self, index: int, uv_ref: np.ndarray, uv_cur: np.ndarray) -> None:
+        """Inlier matches of frame ``index`` as segments from the reference to the current pixel."""
+        seg = np.stack([np.asarray(uv_ref, np.float32), np.asarray(uv_cur, np.float32)], 1) * self.scale
+        self.rec.set_time("frame", sequence=int(index))
+        self.rec.log("world/camera/image/matches", self.rr.LineStrips2D(seg, colors=[(255, 220, 0)], radii=0.5))
+
+    def log_loop(self, i: int, j: int, pose_i: np.ndarray, pose_j: np.ndarray) -> None:
+        """A loop edge between frames i and j (drawn between their camera centres; all loops so far)."""
+        self.loops.append([np.asarray(pose_i)[:3, 3], np.asarray(pose_j)[:3, 3]])
+        self.rec.log("world/loops", self.rr.LineStrips3D(np.array(self.loops, np.float32), colors=[(255, 0, 200)],
+                                                         radii=[0.006]))
+        self.rec.log("log", self.rr.TextLog(f"loop closure {i} <-> {j}", level="INFO"))
+
+    def log_trajectory(self, name: str, traj: Trajectory) -> None:
+        """A whole trajectory (static). ``groundtruth`` gets the first-frame alignment (module docstring)."""
+        if traj is None or len(traj) == 0:
+            return
+        P = traj.positions
+        if name == "groundtruth" and self.gt_align is not None:
+            P = P @ self.gt_align[:3, :3].T + self.gt_align[:3, 3]
+        color = {"groundtruth": (255, 170, 0), "odometry": (150, 150, 150)}.get(name, (0, 200, 255))
+        self._log_strip(f"world/trajectory/{name}", P, color, static=True)
+
+    def log_map(self, points: np.ndarray, colors: np.ndarray) -> None:
+        """The fused cloud (N, 3) with colours (N, 3) uint8."""
+        if points is None or len(points) == 0:
+            return
+        self.rec.log("world/map", self.rr.Points3D(np.asarray(points, np.float32),
+                                                   colors=np.asarray(colors, np.uint8), radii=0.004), static=True)
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()
+
+
+# ----------------------------------------------------------------------------- finished runs
+
+
+def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) -> Path:
+    """Build a recording of a finished run folder: trajectories (final, odometry, ground truth),
+    loop edges, the fused map cloud, and the keyframes' images and poses."""
+    import open3d as o3d
+
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.io.trajectory import read_tum
+    from rgbdslam.mapping.fusion import match_frames, read_run
+    from rgbdslam.ui import console, frame_progress
+
+    run_dir, out_rrd = Path(run_dir), Path(out_rrd)
+    info, cfg, traj = read_run(run_dir)
+    seq = None
+    try:
+        seq = open_sequence(info["sequence"], cfg.dataset)
+    except InputError as e:
+        console.print(f"[yellow]warning:[/] no images in the recording: {e}")
+    camera = seq.camera if seq is not None else Camera(525.0, 525.0, 319.5, 239.5)
+    gt = seq.groundtruth() if seq is not None else None
+    tmp = out_rrd.with_name(f".{out_rrd.name}.tmp")  # written aside, renamed when complete
+    log = RerunLogger(cfg, camera, gt, spawn=False, save_path=tmp)
+    try:
+        if seq is not None:
+            keyframes = [int(i) for i in (info.get("keyframes") or [])]
+            rows = match_frames(np.asarray(seq.timestamps), traj)
+            if not keyframes:
+                keyframes = [int(i) for i in np.flatnonzero(rows >= 0)]
+            with frame_progress(len(keyframes), "recording keyframes", enabled=progress) as advance:
+                for i in keyframes:
+                    if not 0 <= i < len(seq) or rows[i] < 0:
+                        continue
+                    frame = seq.load(i)
+                    log.log_frame(frame, SimpleNamespace(index=i, timestamp=frame.timestamp,
+                                                         pose=traj.poses[rows[i]], lost=False))
+                    advance()
+        log.log_trajectory("estimate", traj)
+        if (run_dir / "odometry.tum").is_file():
+            log.log_trajectory("odometry", read_tum(run_dir / "odometry.tum"))
+        if gt is not None:
+            log.log_trajectory("groundtruth", gt)
+        stamps = {round(float(t), 6): k for k, t in enumerate(traj.timestamps)}
+        for i, j in info.get("loops") or []:
+            if seq is not None and 0 <= i < len(seq) and 0 <= j < len(seq):
+                ki = stamps.get(round(float(seq.timestamps[i]), 6))
+                kj = stamps.get(round(float(seq.timestamps[j]), 6))
+                if ki is not None and kj is not None:
+                    log.log_loop(int(i), int(j), traj.poses[ki], traj.poses[kj])
+        cloud = run_dir / "map" / "cloud.ply"
+        if cloud.is_file():
+            pc = o3d.io.read_point_cloud(str(cloud))
+            log.log_map(np.asarray(pc.points), (np.asarray(pc.colors) * 255 + 0.5).astype(np.uint8))
+    finally:
+        log.close()
+    os.replace(tmp, out_rrd)
+    return out_rrd
+
+
+def view(path: str | Path, save: str | Path | None = None, progress: bool = True) -> Path:
+    """Open an .rrd file or a run folder in the Rerun viewer and return the .rrd's path.
+
+    A run folder is recorded first (to ``save``, else RUN_DIR/recording.rrd unless that exists).
+    Without a display the viewer is not started: one line says so and names the file."""
+    from rgbdslam.ui import console
+
+    path = Path(path)
+    if path.is_dir():
+        rrd = Path(save) if save is not None else path / "recording.rrd"
+        if save is not None or not rrd.exists():
+            record_run(path, rrd, progress=progress)
+    elif path.is_file():
+        if path.suffix not in (".rrd", ".rbl"):
+            raise InputError(f"{path} is not a Rerun recording (.rrd) or a run folder; give one of them")
+        rrd = path
+        if save is not None and Path(save).resolve() != path.resolve():
+            shutil.copyfile(path, save)
+            rrd = Path(save)
+    else:
+        raise InputError(f"{path} does not exist; give an .rrd file or the --out folder of `rgbdslam run`")
+    exe = rerun_executable()
+    if not has_display():
+        console.print(f"no display here, so no viewer was opened; the recording is {rrd.resolve()} "
+                      f"(open it with `rerun {rrd.resolve()}` on a machine with a display)", soft_wrap=True)
+        return rrd
+    if exe is None:
+        raise RgbdslamError(f"the `rerun` viewer was not found; install rerun-sdk, then run `rerun {rrd}`")
+    subprocess.Popen([exe, str(rrd)], start_new_session=True)
+    return rrd
