@@ -186,13 +186,28 @@ def masat_initialize_pose2(n_poses: int, edges: Sequence[tuple[int, int, np.ndar
 # ------------------------------------------------------------------------------------------ SE(3)
 
 
-def _project_so3(M: np.ndarray) -> np.ndarray:
+def _project_so3_batch(M: np.ndarray) -> np.ndarray:
+    """Closest rotations (Frobenius) to a stack of 3x3 matrices: the chordal mean's projection."""
     U, _, Vt = np.linalg.svd(M)
     R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, 2] *= -1
-        R = U @ Vt
+    neg = np.linalg.det(R) < 0
+    if neg.any():
+        U[neg, :, 2] *= -1
+        R[neg] = U[neg] @ Vt[neg]
     return R
+
+
+def _dependency_levels(order: np.ndarray, src: np.ndarray, ptr: np.ndarray) -> np.ndarray:
+    """Level of each BFS rank: 0 for the root, else 1 + the highest level among its fixed neighbours."""
+    n = len(order)
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    src_rank = rank[src].tolist()
+    ptrl = ptr.tolist()
+    lv = [0] * n
+    for r in range(1, n):
+        lv[r] = 1 + max(lv[q] for q in src_rank[ptrl[r]:ptrl[r + 1]])
+    return np.asarray(lv, np.int64)
 
 
 def masat_se3(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int = 0,
@@ -223,32 +238,37 @@ def masat_se3(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int
         d2 = np.einsum("ki,ki->k", tz, tz)
         VT = np.zeros(n)
         VR = np.zeros(n)
-    ptrl = ptr.tolist()
-    orderl = order.tolist()
-    for r in range(1, n):
-        w = orderl[r]
-        a, b = ptrl[r], ptrl[r + 1]
-        s = src[a:b]
-        Rs = R[s]
-        Rp = Rs @ Rz[a:b]
-        tp = t[s] + np.einsum("kij,kj->ki", Rs, tz[a:b])
-        if b - a == 1:
-            R[w] = Rp[0]
-            t[w] = tp[0]
-            if weighted:
-                VT[w] = VT[s[0]] + vt_e[a] + d2[a] * VR[s[0]]
-                VR[w] = VR[s[0]] + vr_e[a]
+    # Vertices whose predecessors are all placed can be placed together: batch by dependency
+    # level (level = 1 + max level of the fixed neighbours), e.g. 76 levels for sphere2500's
+    # 2500 vertices.  Same arithmetic as the one-vertex-at-a-time Algorithm 1.
+    level_of_rank = _dependency_levels(order, src, ptr)
+    recv_rank = np.repeat(np.arange(n), np.diff(ptr))
+    edge_level = level_of_rank[recv_rank]
+    eorder = np.lexsort((recv_rank, edge_level))
+    lvl_bounds = np.searchsorted(edge_level[eorder], np.arange(1, level_of_rank.max() + 2))
+    for L in range(len(lvl_bounds) - 1):
+        e = eorder[lvl_bounds[L]:lvl_bounds[L + 1]]
+        if len(e) == 0:
             continue
+        rr = recv_rank[e]
+        starts = np.flatnonzero(np.r_[True, rr[1:] != rr[:-1]])
+        w = order[rr[starts]]
+        s = src[e]
+        Rs = R[s]
+        Rp = Rs @ Rz[e]
+        tp = t[s] + np.einsum("kij,kj->ki", Rs, tz[e])
         if weighted:
-            wt = 1.0 / (VT[s] + vt_e[a:b] + d2[a:b] * VR[s])
-            wr = 1.0 / (VR[s] + vr_e[a:b])
-            t[w] = wt @ tp / wt.sum()
-            R[w] = _project_so3(np.einsum("k,kij->ij", wr, Rp))
-            VT[w] = 1.0 / wt.sum()
-            VR[w] = 1.0 / wr.sum()
+            wt = 1.0 / (VT[s] + vt_e[e] + d2[e] * VR[s])
+            wr = 1.0 / (VR[s] + vr_e[e])
         else:
-            t[w] = tp.mean(axis=0)
-            R[w] = _project_so3(Rp.sum(axis=0))
+            wt = wr = np.ones(len(e))
+        swt = np.add.reduceat(wt, starts)
+        swr = np.add.reduceat(wr, starts)
+        t[w] = np.add.reduceat(wt[:, None] * tp, starts, axis=0) / swt[:, None]
+        R[w] = _project_so3_batch(np.add.reduceat(wr[:, None, None] * Rp, starts, axis=0))
+        if weighted:
+            VT[w] = 1.0 / swt
+            VR[w] = 1.0 / swr
     T = np.tile(np.eye(4), (n, 1, 1))
     T[:, :3, :3] = R
     T[:, :3, 3] = t
