@@ -442,6 +442,7 @@ def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (
     res = fuse_run(run_dir, cfg.mapping, progress=progress)
     console.print(
         f"fused {len(res.frames)} frames in {res.seconds:.1f} s (peak memory {res.peak_rss_mb:.0f} MB): "
-        f"{res.n_points} cloud points, {res.n_triangles} mesh triangles -> {res.out_dir}"
+        f"{res.n_points} cloud points, {res.n_triangles} mesh triangles -> {res.out_dir}",
+        soft_wrap=True,
     )
     return res

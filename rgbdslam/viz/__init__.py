@@ -1,1 +1,1 @@
-"""viz stage."""
+"""Visualisation: Rerun recordings of runs (rerun_log.py)."""
