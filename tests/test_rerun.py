@@ -64,6 +64,7 @@ def test_logger_records_all_entities(tmp_path):
     assert np.allclose(log.gt_align[:3, 3], [0, -0.01, 0])
     paths = entity_paths(rrd)
     expected = {
+        "/world",  # view coordinates (RDF): the first pose is the identity, so the world is the first camera
         "/world/camera", "/world/camera/image", "/world/camera/image/rgb", "/world/camera/image/depth",
         "/world/camera/image/keypoints", "/world/camera/image/matches", "/world/trajectory/live",
         "/world/trajectory/groundtruth", "/world/trajectory/estimate", "/world/loops", "/world/map",

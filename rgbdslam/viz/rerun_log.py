@@ -84,14 +84,17 @@ class RerunLogger:
         self.save_path = Path(save_path) if save_path is not None else None
         if self.save_path is not None:
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(str(self.save_path))
         if spawn:
             try:
-                self.rec.spawn(connect=self.save_path is None)
+                self.rec.spawn(connect=False)  # start the viewer; the sinks below stream to it (and the file)
+                sinks = [rr.GrpcSink()] + ([rr.FileSink(str(self.save_path))] if self.save_path else [])
+                self.rec.set_sinks(*sinks)
             except Exception as e:  # noqa: BLE001 - any failure to start a GUI is the same to the user
                 raise RgbdslamError(
                     f"cannot start the Rerun viewer ({e.__class__.__name__}); use --rerun-save FILE.rrd instead"
                 ) from None
+        else:
+            self.rec.save(str(self.save_path))
         width = max(16, int(cfg.output.rerun_image_width))
         self.scale = min(1.0, width / camera.width)
         self.img_size = (int(round(camera.width * self.scale)), int(round(camera.height * self.scale)))
@@ -144,6 +147,9 @@ class RerunLogger:
         lost = bool(getattr(result, "lost", pose is None))
         if pose is not None and not lost:
             pose = np.asarray(pose, dtype=np.float64)
+            if not self.positions and np.allclose(pose, np.eye(4), atol=1e-6):
+                # the world is the first camera's frame: tell the viewer its axes (x right, y down, z forward)
+                self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
             self._align_groundtruth(timestamp, pose)
             self.rec.log("world/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
             self.positions.append(pose[:3, 3].copy())
