@@ -73,8 +73,8 @@ class RegistrationConfig:
     ransac_threshold: float = 0.03
     # ISVD (spec section 1)
     max_iterations: int = 10
-    e_start: float = 0.2
-    e_min: float = 0.01
+    e_start: float = 0.32  # halved each round: 0.32 .. 0.01, the last gate is the first below e_min
+    e_min: float = 0.02
     # ISLAM (spec section 2)
     mp: int = 4
     alpha: float = 0.2
@@ -87,6 +87,9 @@ class RegistrationConfig:
     min_agreement: float = 0.5  # lost if the agreeing candidates hold less of the total weight
     pregate: float | None = None  # drop pairs this far (m) from the constant-velocity prediction first
     guided_gate: float | None = 0.05  # older ISLAM references: gate (m) around the newest one's pose, no RANSAC
+    joint_refit: bool = False  # after fusion: one weighted SVD fit on the inliers of all kept references
+    joint_gate: float = 0.02  # metres, pairs further from the fused pose are left out of the joint refit
+    depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
     threads: int = 1
     constant_velocity: bool = True
     seed: int = 0

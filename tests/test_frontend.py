@@ -39,20 +39,27 @@ def rel_error(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(E[:3, 3])), float(np.degrees(rotation_angle(E[:3, :3])))
 
 
-@pytest.mark.parametrize("method", ["ransac", "isvd", "islam"])
-def test_register_two_real_frames_matches_groundtruth(desk, method):
+def register_pair(desk, cfg: Config, i: int, j: int):
+    """Register frame j against frame i; assert it agrees with the ground truth (1.5 cm / 1 deg)."""
     seq, frames = desk
     gt = seq.groundtruth()
-    cfg = Config()
-    cfg.registration.method = method
-    a, b = frames[0], frames[4]
+    a, b = frames[i], frames[j]
     fa, fb = extract_features(a, cfg), extract_features(b, cfg)
     res = register(fa, fb, cfg)
-    assert res is not None and res.n_inliers >= 50
+    assert res is not None
     rel_gt = inv(gt_pose(gt, a.timestamp)) @ gt_pose(gt, b.timestamp)  # pose of b in a's frame
+    assert np.linalg.norm(rel_gt[:3, 3]) > 0.015  # the pair really moved
     dt, dr = rel_error(rel_gt, inv(res.T))
-    assert np.linalg.norm(rel_gt[:3, 3]) > 0.03  # the pair really moved
     assert dt < 0.015 and dr < 1.0, (dt, dr)
+    return fa, fb, res
+
+
+@pytest.mark.parametrize("method", ["ransac", "isvd", "islam"])
+def test_register_two_real_frames_matches_groundtruth(desk, method):
+    cfg = Config()
+    cfg.registration.method = method
+    fa, fb, res = register_pair(desk, cfg, 0, 4)
+    assert res.n_inliers >= 50
     # pairs index depth-valid features of both frames
     assert fa.valid[res.pairs[:, 0]].all() and fb.valid[res.pairs[:, 1]].all()
     assert np.all(np.linalg.eigvalsh(res.information) > 0)
@@ -107,3 +114,58 @@ def test_lift_and_set_depth(desk):
     fe.track(frames[0])
     fe.set_depth(frames[0].index, np.zeros_like(frames[0].depth))
     assert fe.refs[-1].features.valid.sum() == 0
+
+
+def test_hamming_matrix_matches_opencv_norm():
+    import cv2
+
+    from rgbdslam.frontend.matching import descriptor_words, hamming_matrix
+
+    rng = np.random.default_rng(7)
+    a = rng.integers(0, 256, (20, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (15, 32), dtype=np.uint8)
+    b[3] = a[5]  # identical descriptor -> distance 0
+    d = hamming_matrix(descriptor_words(a), descriptor_words(b))
+    ref = np.array([[cv2.norm(x, y, cv2.NORM_HAMMING) for y in b] for x in a])
+    assert np.array_equal(d, ref)
+    assert d[5, 3] == 0
+
+
+def test_point_information_equals_jacobian_product():
+    from rgbdslam.frontend.odometry import point_information
+
+    rng = np.random.default_rng(8)
+    P = rng.uniform(-1, 1, (10, 3)) + [0, 0, 2]
+    H = np.zeros((6, 6))
+    for p in P:
+        px = np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+        J = np.hstack([-px, np.eye(3)])
+        H += J.T @ J
+    assert np.allclose(point_information(P, 0.01), H / 1e-4)
+
+
+@pytest.mark.parametrize("prefilter", ["none", "homography", "fundamental"])
+def test_prefilter_variants_register_real_pair(desk, prefilter):
+    cfg = Config()
+    cfg.matching.prefilter = prefilter
+    cfg.matching.prefilter_threshold = {"none": 0.0, "homography": 3.0, "fundamental": 1.0}[prefilter]
+    register_pair(desk, cfg, 1, 3)
+
+
+def test_guided_match_is_mutual_and_consistent(desk):
+    from rgbdslam.frontend.matching import guided_match
+
+    seq, frames = desk
+    cfg = Config()
+    fa, fb = extract_features(frames[0], cfg), extract_features(frames[2], cfg)
+    full = register(fa, fb, cfg)
+    ia, ib = guided_match(fa, fb, full.T, 0.05, cfg)
+    assert len(ia) >= full.n_inliers * 0.8
+    assert len(np.unique(ia)) == len(ia) and len(np.unique(ib)) == len(ib)
+    # every guided pair is within the radius under the prediction, and matches the descriptors
+    moved = fa.pts[ia] @ full.T[:3, :3].T + full.T[:3, 3]
+    assert np.all(np.linalg.norm(moved - fb.pts[ib], axis=1) <= 0.05 + 1e-12)
+    # a registration guided by a wrong prediction (30 cm off) finds no consistent pairs
+    off = full.T.copy()
+    off[0, 3] += 0.3
+    assert len(guided_match(fa, fb, off, 0.05, cfg)[0]) < 0.2 * len(ia)

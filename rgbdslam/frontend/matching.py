@@ -110,7 +110,7 @@ def match_pairs(ref: FrameFeatures, cur: FrameFeatures, cfg: Config) -> tuple[np
 
 def _first_per_group(group: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Mask of the smallest-``dist`` element of each ``group`` (ties: first in input order)."""
-    order = np.argsort(group.astype(np.int64) * 1024 + dist, kind="stable")  # dist < 1024
+    order = np.argsort(group * 1024 + dist, kind="stable")  # int64 keys, dist < 1024
     g = group[order]
     first = np.ones(len(g), bool)
     first[1:] = g[1:] != g[:-1]
@@ -138,8 +138,10 @@ def guided_match(ref: FrameFeatures, cur: FrameFeatures, T0: np.ndarray, radius:
     i = pairs["i"].astype(int)
     j = pairs["j"].astype(int)
     ia, ib = va[i], cur.tree_index[j]
-    ham = np.bitwise_count(ref.words[ia] ^ cur.words[ib]).sum(axis=1)
-    keep = (ham <= cfg.matching.max_hamming) & _first_per_group(ia, ham) & _first_per_group(ib, ham)
+    ham = np.bitwise_count(ref.words[ia] ^ cur.words[ib]).sum(axis=1, dtype=np.int64)
+    close = ham <= cfg.matching.max_hamming  # most candidate pairs are unrelated: drop them first
+    ia, ib, ham = ia[close], ib[close], ham[close]
+    keep = _first_per_group(ia, ham) & _first_per_group(ib, ham)
     ia, ib = ia[keep], ib[keep]
     order = np.argsort(ia, kind="stable")
     return ia[order], ib[order]

@@ -34,8 +34,8 @@ from rgbdslam.frontend.isvd import isvd
 from rgbdslam.frontend.matching import guided_match, match_pairs, prefilter
 from rgbdslam.frontend.ransac import ransac_rigid
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.rigid import fit_with_stats
-from rgbdslam.geometry.se3 import inv
+from rgbdslam.geometry.rigid import fit_rigid, fit_with_stats, residuals
+from rgbdslam.geometry.se3 import inv, transform_points
 
 # Floor on the per-axis point noise used for the information matrix (metres).
 _SIGMA_FLOOR = 0.003
@@ -237,6 +237,9 @@ class Frontend:
             timings["fusion"] = time.perf_counter() - t1
             return self._lost(frame, feats, timings, n_matches, len(ok))
         kept = [res for (_, res), k in zip(ok, keep) if k]
+        kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
+        if rc.joint_refit and len(kept) > 1:
+            pose = self._joint_refit(pose, kept_pairs, feats)
         info = sum(res.information for res in kept)
         last = self.refs[-1]
         relative = inv(last.pose) @ pose
@@ -277,6 +280,28 @@ class Frontend:
                 return [first] + self._map(jobs)
             return [first] + self._map([(r.features, feats, cfg, inv(pred) @ r.pose) for r in refs[1:]])
         return self._map([(r.features, feats, cfg, inv(pred) @ r.pose) for r in refs])
+
+    def _joint_refit(self, pose: np.ndarray, pairs: list, feats: FrameFeatures) -> np.ndarray:
+        """One weighted SVD fit of the current pose on the inlier pairs of all kept references.
+
+        Reference points are taken to the world with their poses; each pair is weighted by its
+        registration's ISLAM weight / its pair count (every reference counts in proportion to
+        its weight, as in the fusion) and, optionally, by 1/z^2 (Kinect noise grows with z^2).
+        Pairs further than ``joint_gate`` from the fused pose are dropped first.
+        """
+        rc = self.cfg.registration
+        W, C, w = [], [], []
+        for r, res in pairs:
+            W.append(transform_points(r.pose, r.features.pts[res.pairs[:, 0]]))
+            C.append(feats.pts[res.pairs[:, 1]])
+            w.append(np.full(len(res.pairs), res.weight / len(res.pairs)))
+        W, C, w = np.concatenate(W), np.concatenate(C), np.concatenate(w)
+        if rc.depth_weighting:
+            w = w / C[:, 2] ** 2
+        ok = np.linalg.norm(residuals(pose, C, W), axis=1) <= rc.joint_gate
+        if ok.sum() < max(3, rc.min_points):
+            return pose
+        return fit_rigid(C[ok], W[ok], w[ok])
 
     def _map(self, jobs: list[tuple]) -> list:
         if self._executor is not None and len(jobs) > 1:
