@@ -134,11 +134,18 @@ def test_fuse_skips_frames_without_pose_and_rejects_no_pose(plane_run):
 
 
 def test_mesh_min_frames_counts_frames(plane_run):
-    """The central plane area is seen by all 3 frames: kept at 3, nothing is seen by 4 (no mesh.ply)."""
+    """Voxels seen by fewer than mesh_min_frames frames are left out (clamped to the frames fused)."""
     seq_dir, run = plane_run
-    assert fuse_run(run, _cfg(mesh_min_frames=3, outlier_neighbors=0), progress=False).n_triangles > 1000
-    res = fuse_run(run, _cfg(mesh_min_frames=4, outlier_neighbors=0), progress=False)
+    n = [fuse_run(run, _cfg(mesh_min_frames=k, outlier_neighbors=0), progress=False).n_triangles for k in (1, 2, 3, 4)]
+    assert n[0] > n[1] > n[2] > 1000  # the overlap of all three footprints is the smallest
+    assert n[3] == n[2]  # only 3 frames: 4 is clamped to 3
+    # frames 0 and 1 filtered to nothing: no voxel is seen twice -> no mesh, and no stale mesh.ply
+    (run / "keyframes").mkdir()
+    for i in range(2):
+        cv2.imwrite(str(run / "keyframes" / f"depth_{i:06d}.png"), np.zeros((H, W), np.uint16))
+    res = fuse_run(run, _cfg(mesh_min_frames=2, outlier_neighbors=0), progress=False)
     assert res.n_triangles == 0 and res.mesh_path is None and not (run / "map" / "mesh.ply").exists()
+    assert res.n_points > 1000  # the cloud is still made from frame 2
 
 
 def test_match_frames_and_motion_selection():

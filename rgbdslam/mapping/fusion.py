@@ -250,9 +250,9 @@ class _Tsdf:
         self.vol.integrate(blocks, d, c, self.intr, ext, DEPTH_PNG_SCALE, self.cfg.depth_max,
                            self.cfg.sdf_trunc / self.cfg.tsdf_voxel)
 
-    def mesh(self) -> o3d.geometry.TriangleMesh:
+    def mesh(self, min_frames: int) -> o3d.geometry.TriangleMesh:
         # the weight counts the frames that saw a voxel; Open3D keeps voxels with weight > threshold
-        mesh = self.vol.extract_triangle_mesh(weight_threshold=self.cfg.mesh_min_frames - 0.5).to_legacy()
+        mesh = self.vol.extract_triangle_mesh(weight_threshold=min_frames - 0.5).to_legacy()
         if mesh.has_vertex_colors():
             mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
         return mesh
@@ -315,7 +315,7 @@ def fuse(
             pose = trajectory.poses[r]
             t1 = time.perf_counter()
             timings["load"] += t1 - t0
-            if tsdf is not None:
+            if tsdf is not None and depth.any():  # Open3D aborts on a frame that touches no block
                 tsdf.integrate(rgb, depth, pose)
             t2 = time.perf_counter()
             timings["tsdf"] += t2 - t1
@@ -343,7 +343,8 @@ def fuse(
     mesh_path, n_vert, n_tri = None, 0, 0
     if tsdf is not None:
         t0 = time.perf_counter()
-        mesh = tsdf.mesh()
+        min_frames = max(1, min(cfg.mesh_min_frames, len(fused)))  # a single keyframe still gives a mesh
+        mesh = tsdf.mesh(min_frames)
         n_vert, n_tri = len(mesh.vertices), len(mesh.triangles)
         if n_tri:
             mesh.compute_vertex_normals()
@@ -352,7 +353,7 @@ def fuse(
         else:
             (out_dir / "mesh.ply").unlink(missing_ok=True)  # never leave an older run's mesh behind
             console.print(
-                f"[yellow]warning:[/] the TSDF mesh is empty (no voxel was seen by {cfg.mesh_min_frames} frames); "
+                f"[yellow]warning:[/] the TSDF mesh is empty (no voxel was seen by {min_frames} frames); "
                 f"mesh.ply not written; lower mapping.mesh_min_frames"
             )
         del mesh, tsdf
