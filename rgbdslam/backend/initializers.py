@@ -27,20 +27,30 @@ METHODS = ("odometry", "spanning_tree", "masat", "weighted_masat", "lago", "chor
 
 
 def _chain(graph: PoseGraph, parent: np.ndarray, order: np.ndarray, edge_of: np.ndarray, fwd: np.ndarray) -> np.ndarray:
-    """Place vertices in ``order`` (root first) from their ``parent`` through edge ``edge_of``."""
+    """Place vertices (``order``: root first, parents before children) from their ``parent``
+    through edge ``edge_of``; all vertices of one tree depth are composed in one vectorised step."""
     n = graph.n_vertices
+    depth = np.zeros(n, np.int64)
+    par = parent.tolist()
+    dl = depth.tolist()
+    for v in order[1:].tolist():
+        dl[v] = dl[par[v]] + 1
+    depth = np.asarray(dl, np.int64)
+    by_depth = np.argsort(depth, kind="stable")
+    bounds = np.searchsorted(depth[by_depth], np.arange(1, depth.max() + 2))
     if graph.dim == 2:
         z = np.where(fwd[:, None], graph.meas[edge_of], se2_inverse(graph.meas[edge_of]))
         out = np.zeros((n, 3))
-        for v in order[1:]:
-            out[v] = se2_compose(out[parent[v]], z[v])
-        out[:, 2] = wrap_angle(out[:, 2])
+        for d in range(len(bounds) - 1):
+            vs = by_depth[bounds[d]:bounds[d + 1]]
+            out[vs] = se2_compose(out[parent[vs]], z[vs])
         return out
     z = graph.meas[edge_of].copy()
     z[~fwd] = se3_inverse(z[~fwd])
     out = np.tile(np.eye(4), (n, 1, 1))
-    for v in order[1:]:
-        out[v] = out[parent[v]] @ z[v]
+    for d in range(len(bounds) - 1):
+        vs = by_depth[bounds[d]:bounds[d + 1]]
+        out[vs] = out[parent[vs]] @ z[vs]
     return out
 
 
