@@ -84,9 +84,18 @@ class LoopCloser:
         self._total_time = 0.0
 
     # -------------------------------------------------------------- gate
+    def sharpness(self, features) -> float:
+        """The gate's measure of a frame (``loop.sharpness_measure``)."""
+        if self.lc.sharpness_measure == "response":
+            r = getattr(features, "response", None)
+            if r is not None and len(r) == len(features.desc):
+                return float(np.sum(r))
+        return float(features.n_detected)
+
     def observe(self, features) -> bool:
-        """Update the sharpness gate with ``features.n_detected``; True when the frame is sharp."""
-        sharp = self.gate(int(features.n_detected))
+        """Update the sharpness gate with the frame's measure (``features.n_detected`` or the
+        sum of its ORB responses, see ``loop.sharpness_measure``); True when the frame is sharp."""
+        sharp = self.gate(self.sharpness(features))
         self.stats["n_observed"] += 1
         self.stats["n_sharp"] += int(sharp)
         return sharp

@@ -18,7 +18,7 @@ class SharpnessGate:
         self.factor = float(factor)
         self.window = max(1, int(window))
         self.min_history = max(1, int(min_history))
-        self.history: deque[int] = deque(maxlen=self.window)
+        self.history: deque[float] = deque(maxlen=self.window)
         self.n_seen = 0
         self.n_sharp = 0
 
@@ -28,10 +28,10 @@ class SharpnessGate:
             return float("inf")
         return self.factor * float(np.median(np.fromiter(self.history, float, len(self.history))))
 
-    def __call__(self, n_detected: int) -> bool:
+    def __call__(self, n_detected: float) -> bool:
         """Judge a frame by its descriptor count, then add the count to the window."""
         sharp = n_detected > self.threshold()
-        self.history.append(int(n_detected))
+        self.history.append(float(n_detected))
         self.n_seen += 1
         self.n_sharp += int(sharp)
         return sharp

@@ -64,6 +64,8 @@ class LshIndex:
         q = self.keys(desc)  # (N, L)
         qid = np.repeat(np.arange(len(q), dtype=np.int64), self.n_tables)
         q = q.ravel()
+        order = np.argsort(q)  # sorted queries make the binary searches cache friendly
+        q, qid = q[order], qid[order]
         pairs = []
         for keys, kfs in self.runs:
             lo = np.searchsorted(keys, q, "left")
@@ -78,7 +80,12 @@ class LshIndex:
             pairs.append(np.repeat(qid, cnt) * self.n_keyframes + kf)
         if not pairs:
             return out
-        uniq = np.unique(np.concatenate(pairs))  # one vote per (query descriptor, keyframe)
+        flat = np.concatenate(pairs)  # one vote per (query descriptor, keyframe)
+        if len(desc) * self.n_keyframes <= 20_000_000:  # a hit mask is cheaper than sorting
+            hit = np.zeros(len(desc) * self.n_keyframes, bool)
+            hit[flat] = True
+            return hit.reshape(len(desc), self.n_keyframes).sum(axis=0)
+        uniq = np.unique(flat)
         return np.bincount(uniq % self.n_keyframes, minlength=self.n_keyframes)
 
     @property
@@ -111,10 +118,21 @@ class BruteIndex:
         if self._all is None:
             self._all = (np.concatenate(self.desc), np.concatenate(self.owner))
         train, owner = self._all
-        matches = self._matcher.match(np.ascontiguousarray(desc, np.uint8), train)
-        idx = np.array([m.trainIdx for m in matches if m.distance < self.max_hamming], np.int64)
-        if len(idx):
-            out += np.bincount(owner[idx], minlength=self.n_keyframes)
+        q = np.ascontiguousarray(desc, np.uint8)
+        best_d = np.full(len(q), np.inf)
+        best_i = np.zeros(len(q), np.int64)
+        chunk = 200_000  # OpenCV's matcher indexes at most 2^18 train rows at once
+        for s0 in range(0, len(train), chunk):
+            ms = self._matcher.match(q, train[s0:s0 + chunk])
+            qi = np.array([m.queryIdx for m in ms], np.int64)
+            ti = np.array([m.trainIdx for m in ms], np.int64) + s0
+            dd = np.array([m.distance for m in ms], float)
+            better = dd < best_d[qi]
+            best_d[qi[better]] = dd[better]
+            best_i[qi[better]] = ti[better]
+        ok = best_d < self.max_hamming
+        if ok.any():
+            out += np.bincount(owner[best_i[ok]], minlength=self.n_keyframes)
         return out
 
     @property
