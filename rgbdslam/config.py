@@ -92,6 +92,9 @@ class RegistrationConfig:
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
     threads: int = 1
     constant_velocity: bool = True
+    max_lost: int = 15  # consecutive lost frames before tracking restarts from the last pose (0 = never)
+    max_jump_translation: float = 0.15  # m per frame: candidates further from the prediction are rejected
+    max_jump_rotation_deg: float = 15.0  # deg per frame, likewise
     seed: int = 0
 
 

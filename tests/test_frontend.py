@@ -169,3 +169,30 @@ def test_guided_match_is_mutual_and_consistent(desk):
     off = full.T.copy()
     off[0, 3] += 0.3
     assert len(guided_match(fa, fb, off, 0.05, cfg)[0]) < 0.2 * len(ia)
+
+
+def test_restart_after_max_lost_and_no_origin_without_depth(desk):
+    from conftest import TUM_RPY200, need
+
+    seq, frames = desk
+    other = open_sequence(need(TUM_RPY200))
+    # fr1/rpy frames: the same office seen from elsewhere; any registration against the desk
+    # frames is a jump far beyond the motion gate, so they are lost until the restart.
+    alien = [other.load(i) for i in (0, 1, 2)]
+    cfg = Config()
+    cfg.registration.max_lost = 2
+    fe = build_frontend(cfg, seq.camera)
+    blank = dataclasses.replace(frames[0], depth=np.zeros_like(frames[0].depth))
+    r0 = fe.track(blank)
+    assert r0.lost and not fe.refs  # no origin from a frame without depth
+    r1 = fe.track(frames[1])
+    assert not r1.lost and np.array_equal(r1.pose, np.eye(4))
+    r2 = fe.track(frames[2])
+    a1 = fe.track(alien[0])
+    assert a1.lost and not a1.reset
+    a2 = fe.track(alien[1])  # second lost frame in a row: restart at the last tracked pose
+    assert not a2.lost and a2.reset
+    assert np.array_equal(a2.pose, r2.pose) and np.array_equal(a2.relative, np.eye(4))
+    a3 = fe.track(alien[2])  # tracks against the restarted reference
+    assert not a3.lost and not a3.reset
+    assert len(fe.refs) == 2

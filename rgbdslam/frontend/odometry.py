@@ -35,7 +35,7 @@ from rgbdslam.frontend.matching import guided_match, match_pairs, prefilter
 from rgbdslam.frontend.ransac import ransac_rigid
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.rigid import fit_rigid, fit_with_stats, residuals
-from rgbdslam.geometry.se3 import inv, transform_points
+from rgbdslam.geometry.se3 import inv, rotation_angle, transform_points
 
 # Floor on the per-axis point noise used for the information matrix (metres).
 _SIGMA_FLOOR = 0.003
@@ -71,6 +71,7 @@ class TrackResult:
     timings: dict[str, float]
     n_candidates: int = 0  # registrations that succeeded
     n_fused: int = 0  # candidates kept by the fusion
+    reset: bool = False  # tracking restarted here after too many lost frames (relative is a guess)
 
 
 def point_information(P: np.ndarray, sigma: float) -> np.ndarray:
@@ -181,6 +182,7 @@ class Frontend:
         self.mp = max(1, rc.mp) if rc.method == "islam" else 1
         self.refs: deque[_Ref] = deque(maxlen=self.mp)
         self._velocity: tuple[np.ndarray, int] | None = None  # (motion between last two tracked, index gap)
+        self._n_lost = 0  # consecutive lost frames
         self._executor = ThreadPoolExecutor(max_workers=rc.threads) if rc.threads > 1 and self.mp > 1 else None
 
     def close(self) -> None:
@@ -213,7 +215,10 @@ class Frontend:
         t0 = time.perf_counter()
         feats = extract_features(frame, self.cfg)
         timings = {"features": time.perf_counter() - t0, "matching": 0.0, "registration": 0.0, "fusion": 0.0}
+        need = max(3, rc.min_points)
         if not self.refs:
+            if feats.n_valid < need:  # no usable origin yet: wait for a frame with features
+                return self._lost(frame, feats, timings, 0)
             pose = np.eye(4)
             self.refs.append(_Ref(feats, pose))
             return TrackResult(frame.index, frame.timestamp, pose, False, feats, None, None, 0, 0, 0.0, timings)
@@ -228,6 +233,13 @@ class Frontend:
         ok = [(r, res) for r, res in zip(refs, results) if res is not None]
         first = results[0]
         n_matches = first.n_matches if first is not None else max((x.n_matches for _, x in ok), default=0)
+        if ok:
+            # Motion plausibility: a candidate far from the prediction is a false registration.
+            gap = frame.index - self.refs[-1].features.index
+            dev = [inv(pred) @ r.pose @ inv(res.T) for r, res in ok]
+            ok = [o for o, d in zip(ok, dev)
+                  if np.linalg.norm(d[:3, 3]) <= rc.max_jump_translation * gap
+                  and np.degrees(rotation_angle(d[:3, :3])) <= rc.max_jump_rotation_deg * gap]
         if not ok:
             return self._lost(frame, feats, timings, n_matches)
         cands = np.stack([r.pose @ inv(res.T) for r, res in ok])
@@ -244,6 +256,7 @@ class Frontend:
         last = self.refs[-1]
         relative = inv(last.pose) @ pose
         self._velocity = (relative, frame.index - last.features.index)
+        self._n_lost = 0
         self.refs.append(_Ref(feats, pose))
         timings["fusion"] = time.perf_counter() - t1
         return TrackResult(
@@ -309,6 +322,23 @@ class Frontend:
         return [register(*a) for a in jobs]
 
     def _lost(self, frame: Frame, feats: FrameFeatures, timings: dict, n_matches: int, n_cand: int = 0) -> TrackResult:
+        """A lost frame, or a restart once ``registration.max_lost`` frames in a row were lost.
+
+        A restart keeps the last tracked pose for this frame (constant position: after a long
+        loss the velocity is unknown), drops the old references and continues from here; its
+        ``relative`` carries a weak information (1e-6 I) so a pose graph can bridge it.
+        """
+        self._n_lost += 1
+        rc = self.cfg.registration
+        if self.refs and rc.max_lost > 0 and self._n_lost >= rc.max_lost \
+                and feats.n_valid >= max(3, rc.min_points):
+            last = self.refs[-1].pose
+            self.refs.clear()
+            self.refs.append(_Ref(feats, last.copy()))
+            self._velocity = None
+            self._n_lost = 0
+            return TrackResult(frame.index, frame.timestamp, last.copy(), False, feats, np.eye(4), np.eye(6) * 1e-6,
+                               n_matches, 0, 0.0, timings, n_candidates=n_cand, reset=True)
         return TrackResult(frame.index, frame.timestamp, None, True, feats, None, None, n_matches, 0, 0.0,
                            timings, n_candidates=n_cand)
 
