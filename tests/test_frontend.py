@@ -196,3 +196,22 @@ def test_restart_after_max_lost_and_no_origin_without_depth(desk):
     a3 = fe.track(alien[2])  # tracks against the restarted reference
     assert not a3.lost and not a3.reset
     assert len(fe.refs) == 2
+
+
+def test_ratio_test_and_grid_bucketing(desk):
+    from rgbdslam.frontend.features import _bucket
+    from rgbdslam.frontend.matching import match_descriptors
+
+    seq, frames = desk
+    cfg = Config()
+    fa, fb = extract_features(frames[0], cfg), extract_features(frames[1], cfg)
+    ia, ib = match_descriptors(fa.desc, fb.desc, cfg)
+    cfg.matching.ratio = 0.8
+    ra, rb = match_descriptors(fa.desc, fb.desc, cfg)
+    assert 0 < len(ra) < len(ia)
+    assert set(zip(ra.tolist(), rb.tolist())) <= set(zip(ia.tolist(), ib.tolist()))  # cross-check + ratio
+    # bucketing: at most n_features / cells strongest key points per cell
+    cfg.features.grid_rows, cfg.features.grid_cols, cfg.features.n_features = 2, 2, 8
+    uv = np.array([[10, 10], [20, 20], [30, 30], [400, 10], [10, 300], [11, 11], [500, 400.0]])
+    resp = np.array([1, 5, 3, 1, 1, 4, 2], np.float32)
+    assert _bucket(uv, resp, cfg.features, (480, 640)).tolist() == [1, 3, 4, 5, 6]
