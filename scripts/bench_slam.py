@@ -11,7 +11,8 @@ For each available TUM sequence (``$RGBDSLAM_DATA/tum/*``, default ``../shared/d
 * ``ISVD``          registration.method=isvd, no loop closure, no DIF, no pose graph;
 * ``ISVD+LC``       + sharpness-gated loop closure and the GTSAM pose graph;
 * ``ISVD+LC+DIF``   + the DIF depth filter;
-* ``best``          ISLAM (MP=4) + LC + DIF (this project's default registration);
+* ``ISLAM``, ``best (ISLAM+LC)``, ``ISLAM+LC+DIF``: this project's default registration
+  (ISLAM, MP=4) alone, with loop closure (the best measured), and with DIF too;
 
 and prints ATE RMSE, frames/s, loops and false loops (a loop edge whose relative pose
 disagrees with the ground truth by more than 0.10 m or 5 degrees) as markdown. Then:
@@ -54,7 +55,8 @@ def data_root(arg: str | None) -> Path:
 def configs() -> dict[str, Config]:
     out = {}
     for name, method, lc, dif in [("ISVD", "isvd", False, False), ("ISVD+LC", "isvd", True, False),
-                                  ("ISVD+LC+DIF", "isvd", True, True), ("best (ISLAM+LC+DIF)", "islam", True, True)]:
+                                  ("ISVD+LC+DIF", "isvd", True, True), ("ISLAM", "islam", False, False),
+                                  ("best (ISLAM+LC)", "islam", True, False), ("ISLAM+LC+DIF", "islam", True, True)]:
         cfg = Config()
         cfg.registration.method = method
         cfg.loop.enabled = lc
@@ -161,7 +163,7 @@ def run_synthetic(out: Path, frames: int, rec: _Recorder) -> dict:
     seq_dir = out / "synthetic_loop"
     if not (seq_dir / "groundtruth.txt").exists():
         generate_sequence(seq_dir, frames=frames, motion="loop", noise=True, seed=0)
-    cfg = configs()["best (ISLAM+LC+DIF)"]
+    cfg = configs()["best (ISLAM+LC)"]
     rec.reset()
     s = run_sequence(seq_dir, out / "synthetic_run", cfg, progress=False)
     gt = read_tum(seq_dir / "groundtruth.txt")
@@ -211,15 +213,49 @@ def run_index_scaling(data: Path, sizes=(50, 100, 200, 400, 800, 1600, 3200), n_
                 idx.add(n, d)
                 t_add += time.perf_counter() - t0
                 n += 1
-            qs = [pool[rng.integers(len(pool))] for _ in range(n_queries)]
+            qs = [pool[rng.integers(len(pool))] for _ in range(n_queries if kind == "lsh" else 3)]
             idx.votes(qs[0])  # warm-up (brute: concatenation of the map)
             t0 = time.perf_counter()
             for q in qs:
                 idx.votes(q)
-            rows.append({"index": kind, "keyframes": n, "query_ms": 1e3 * (time.perf_counter() - t0) / n_queries,
+            rows.append({"index": kind, "keyframes": n, "query_ms": 1e3 * (time.perf_counter() - t0) / len(qs),
                          "add_ms": 1e3 * t_add / n})
             print(f"  {kind:5s} {n:5d} keyframes: {rows[-1]['query_ms']:.2f} ms/query, "
                   f"{rows[-1]['add_ms']:.2f} ms/insert", flush=True)
+    return rows
+
+
+ABLATION = {
+    "ISLAM+LC+DIF K=0 (spatial only)": {"depth_filter.window": 0},
+    "ISLAM+LC+DIF K=1": {"depth_filter.window": 1},
+    "ISLAM+LC+DIF K=3": {"depth_filter.window": 3},
+    "ISLAM+LC+DIF min_support=2": {"depth_filter.min_support": 2},
+    "ISLAM+LC+DIF spatial_radius=0": {"depth_filter.spatial_radius": 0},
+    "ISLAM+LC init=odometry": {"depth_filter.enabled": False, "backend.init": "odometry"},
+    "ISLAM+LC no robust kernel": {"depth_filter.enabled": False, "backend.robust_kernel": "none"},
+    "ISLAM+LC Cauchy without chain scaling": {"depth_filter.enabled": False, "backend.kernel_chain_scaling": False},
+}
+
+
+def run_ablation(data: Path, out: Path, max_frames: int | None) -> list[dict]:
+    """DIF and back-end variants on fr1/rpy head200 (ISLAM + LC + DIF as the base)."""
+    from rgbdslam.pipeline import run_sequence
+
+    sp = data / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+    if not sp.is_dir():
+        return []
+    rows = []
+    for name, sets in ABLATION.items():
+        cfg = configs()["ISLAM+LC+DIF"]
+        cfg.dataset.max_frames = max_frames
+        for k, v in sets.items():
+            sec, key = k.split(".")
+            setattr(getattr(cfg, sec), key, v)
+        s = run_sequence(sp, out / "ablation" / name.split()[0], cfg, progress=False)
+        rows.append({"config": name, "ate": ((s.get("evaluation") or {}).get("ate") or {}).get("rmse", float("nan")),
+                     "loops": len(s["loops"]), "fps": s["fps"],
+                     "dif_ms": (s["timings"].get("depth_filter") or {}).get("median_ms")})
+        print(f"  ablation {name:40s} ATE {rows[-1]['ate']:.4f} m", flush=True)
     return rows
 
 
@@ -246,7 +282,7 @@ def _orb_pool(data: Path) -> list[np.ndarray]:
 # ------------------------------------------------------------------------------ markdown
 
 
-def markdown(rows, synth, index_rows, command: str) -> str:
+def markdown(rows, synth, index_rows, command: str, ablation=()) -> str:
     L = ["## Full SLAM", "",
          f"Command: `{command}`  ",
          f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
@@ -262,6 +298,13 @@ def markdown(rows, synth, index_rows, command: str) -> str:
         dif = f"{r['dif_ms']:.1f}" if r["dif_ms"] is not None else "-"
         L.append(f"| {r['sequence']} | {r['config']} | {r['frames']} | {r['ate']:.4f} | {r['fps']:.1f} | "
                  f"{r['keyframes']} | {r['sharp']} | {r['loops']} | {r['false_loops']} | {lcms} | {dif} |")
+    if ablation:
+        L += ["", "Ablation on freiburg1_rpy_head200 (base: ISLAM + LC + DIF with the defaults K=2, "
+              "min_support=3, spatial_radius=1, MASAT init, chain-scaled Cauchy kernel):", "",
+              "| variant | ATE RMSE (m) | loops | frames/s | DIF ms |", "|---|---|---|---|---|"]
+        for r in ablation:
+            dif = f"{r['dif_ms']:.1f}" if r["dif_ms"] is not None else "-"
+            L.append(f"| {r['config']} | {r['ate']:.4f} | {r['loops']} | {r['fps']:.1f} | {dif} |")
     if synth:
         L += ["", f"Synthetic loop (`generate_sequence(motion='loop', noise=True, frames={synth['frames']})`, "
               "best configuration):", "",
@@ -302,6 +345,7 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-synthetic", action="store_true")
     ap.add_argument("--skip-index", action="store_true")
     ap.add_argument("--skip-table", action="store_true")
+    ap.add_argument("--skip-ablation", action="store_true")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args(argv)
     command = "python scripts/bench_slam.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
@@ -309,9 +353,10 @@ def main(argv=None) -> int:
     out = Path(a.out) if a.out else Path(tempfile.mkdtemp(prefix="bench_slam_"))
     rec = _Recorder()
     rows = [] if a.skip_table else run_table(data, out, rec, a.frames)
+    ablation = [] if a.skip_ablation else run_ablation(data, out, a.frames)
     synth = None if a.skip_synthetic else run_synthetic(out, a.synthetic_frames, rec)
     index_rows = [] if a.skip_index else run_index_scaling(data)
-    md = markdown(rows, synth, index_rows, command)
+    md = markdown(rows, synth, index_rows, command, ablation)
     print(md)
     if a.write_docs:
         write_docs(md)
