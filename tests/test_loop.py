@@ -151,3 +151,22 @@ def test_recent_keyframes_are_skipped(mapped):
     P, d = places[4]  # the newest keyframe: within skip_recent
     cur = view(100, transform_points(poses[4], P), d, poses[4], rng)
     assert lc.candidates(cur) == []
+
+
+def test_observe_uses_the_configured_measure():
+    from types import SimpleNamespace
+
+    cfg = loop_config()
+    cfg.loop.sharpness_window, cfg.loop.sharpness_min_history = 3, 3
+
+    def feats(n, resp):
+        return SimpleNamespace(n_detected=n, desc=np.zeros((n, 32), np.uint8), response=np.full(n, resp))
+
+    cfg.loop.sharpness_measure = "response"
+    lc = LoopCloser(cfg, CAM, register=lambda *a: None)
+    # capped counts (all 100) but the responses of the 4th frame are 30 % stronger
+    assert [lc.observe(feats(100, r)) for r in (0.010, 0.010, 0.010, 0.013)] == [False, False, False, True]
+    cfg.loop.sharpness_measure = "n_detected"
+    lc = LoopCloser(cfg, CAM, register=lambda *a: None)
+    assert [lc.observe(feats(100, r)) for r in (0.010, 0.010, 0.010, 0.013)] == [False] * 4
+    assert lc.observe(feats(121, 0.01)) is True and lc.stats["n_sharp"] == 1
