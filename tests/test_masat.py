@@ -275,3 +275,22 @@ def test_masat_se3_matches_literal_algorithm_1_on_inconsistent_graph():
         T = se3_inverse(gt[i]) @ gt[j] @ _pose3(rng.normal(size=3) * 0.2, rng.normal(size=3) * 0.3)
         edges.append((int(j), int(i), se3_inverse(T), None) if rng.random() < 0.3 else (int(i), int(j), T, None))
     np.testing.assert_allclose(masat_initialize_pose3(n, edges), _masat3_reference(n, edges), atol=1e-10)
+
+
+def test_weighted_masat_conservative_variance_propagation_hand_computed():
+    # isotropic edges: info = I / v, so an edge's translation and rotation variance are both v
+    def e(i, j, z, v):
+        return (i, j, z, np.eye(3) / v)
+
+    v01, v02, v12, v23, v03 = 0.01, 0.05, 0.02, 0.03, 0.2
+    edges = [e(0, 1, (1.0, 0.0, 0.0), v01), e(0, 2, (0.0, 1.0, 0.0), v02), e(1, 2, (-1.0, 1.0, 0.0), v12),
+             e(2, 3, (1.0, 0.0, 0.0), v23), e(0, 3, (1.0, 1.5, 0.0), v03)]
+    est = masat_initialize_pose2(4, edges, weighted=True)
+    # vertex 1: VT = VR = v01.  Vertex 2: predictions from 0 (vt = vr = v02) and from 1
+    # (vt = v01 + v12 + |(-1,1)|^2 v01, vr = v01 + v12) -> kept variance = the smaller one
+    vt2 = min(v02, v01 + v12 + 2 * v01)
+    vr2 = min(v02, v01 + v12)
+    # vertex 3: prediction from 2 is (1, 1) with vt = vt2 + v23 + 1 * vr2, from 0 is (1, 1.5) with vt = v03
+    w2, w0 = 1 / (vt2 + v23 + vr2), 1 / v03
+    assert est[3, 1] == pytest.approx((w2 * 1.0 + w0 * 1.5) / (w2 + w0), rel=1e-12)
+    assert est[3, 0] == pytest.approx(1.0, rel=1e-12)

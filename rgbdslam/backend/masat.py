@@ -12,8 +12,12 @@ pairs) counts twice.  The run time depends only on the graph, never on the measu
 ``vt`` and rotation variance ``vr``, propagated along the prediction
 ``vt_pred = vt_v + vt_edge + |t_vw|^2 * vr_v`` (the lever arm of v's heading error) and
 ``vr_pred = vr_v + vr_edge``; predictions are fused with inverse-variance weights (translation
-and rotation separately) and the fused vertex gets ``1 / sum(weights)``.  So a prediction that
-comes through a long chain of measurements, or through a noisy edge, weighs less.  Edge
+and rotation separately).  So a prediction that comes through a long chain of measurements,
+through a long lever arm or through a noisy edge weighs less.  The fused vertex keeps the
+*smallest* prediction variance (conservative fusion, as covariance intersection would): the
+predictions share ancestors, so treating them as independent (``1 / sum(weights)``) made the
+variances overconfident and, on M3500 at σ = (0.15, 0.15, 0.3), lowered the GN convergence
+rate from 0.8 (MASAT) to 0.5, while the conservative rule gave 0.9 (10 instances).  Edge
 variances are the mean marginal variances of the edge covariance (``inv(info)``).
 
 Public entry points:
@@ -149,25 +153,29 @@ def masat_se2(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int
         VR = [0.0] * n
         for r in range(1, n):
             w = orderl[r]
-            sx = sy = sc = ss = swt = swr = 0.0
+            sx = sy = sc = ss = swt = 0.0
+            mvt = mvr = math.inf
             for k in range(ptrl[r], ptrl[r + 1]):
                 s = srcl[k]
                 c, si = C[s], S[s]
-                wt = 1.0 / (VT[s] + vt_e[k] + d2[k] * VR[s])
-                wr = 1.0 / (VR[s] + vr_e[k])
+                vt = VT[s] + vt_e[k] + d2[k] * VR[s]
+                vr = VR[s] + vr_e[k]
+                wt = 1.0 / vt
+                wr = 1.0 / vr
+                mvt = vt if vt < mvt else mvt
+                mvr = vr if vr < mvr else mvr
                 sx += wt * (X[s] + c * dx[k] - si * dy[k])
                 sy += wt * (Y[s] + si * dx[k] + c * dy[k])
                 th = TH[s] + dth[k]
                 sc += wr * cos(th)
                 ss += wr * sin(th)
                 swt += wt
-                swr += wr
             X[w] = sx / swt
             Y[w] = sy / swt
             th = atan2(ss, sc)
             TH[w], C[w], S[w] = th, cos(th), sin(th)
-            VT[w] = 1.0 / swt
-            VR[w] = 1.0 / swr
+            VT[w] = mvt  # conservative fusion, see the module docstring
+            VR[w] = mvr
     return np.column_stack([X, Y, TH])
 
 
@@ -258,17 +266,18 @@ def masat_se3(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int
         Rp = Rs @ Rz[e]
         tp = t[s] + np.einsum("kij,kj->ki", Rs, tz[e])
         if weighted:
-            wt = 1.0 / (VT[s] + vt_e[e] + d2[e] * VR[s])
-            wr = 1.0 / (VR[s] + vr_e[e])
+            vt = VT[s] + vt_e[e] + d2[e] * VR[s]
+            vr = VR[s] + vr_e[e]
+            wt = 1.0 / vt
+            wr = 1.0 / vr
         else:
             wt = wr = np.ones(len(e))
         swt = np.add.reduceat(wt, starts)
-        swr = np.add.reduceat(wr, starts)
         t[w] = np.add.reduceat(wt[:, None] * tp, starts, axis=0) / swt[:, None]
         R[w] = _project_so3_batch(np.add.reduceat(wr[:, None, None] * Rp, starts, axis=0))
-        if weighted:
-            VT[w] = 1.0 / swt
-            VR[w] = 1.0 / swr
+        if weighted:  # conservative fusion: the smallest prediction variance
+            VT[w] = np.minimum.reduceat(vt, starts)
+            VR[w] = np.minimum.reduceat(vr, starts)
     T = np.tile(np.eye(4), (n, 1, 1))
     T[:, :3, :3] = R
     T[:, :3, 3] = t
