@@ -189,7 +189,8 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, quiet):
 
 
 @posegraph.command("bench")
-@click.option("--dataset", type=click.Choice(["m3500", "city10k", "m10000"]), required=True)
+@click.option("--dataset", type=click.Choice(["m3500", "city10k", "m10000"]), default=None,
+              help="Benchmark graph (required unless --merge-runs).")
 @click.option("--noise", default="0.2,0.2,0.2", show_default=True,
               help="sx,sy,stheta (several separated by ';'), or 'all' for the spec's 8 levels.")
 @click.option("--instances", default=50, show_default=True, help="Noisy instances per noise level.")
@@ -207,14 +208,16 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, quiet):
               help="Data folder (default: $RGBDSLAM_DATA or <repo>/../shared/data).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--timing-only", is_flag=True, help="Only time the initial guesses (best of 5) at each noise level.")
+@click.option("--merge-runs", "merge", type=click.Path(path_type=Path), multiple=True,
+              help="Instead of running: merge these runs.csv files (later rows replace earlier) into new tables.")
 def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet,
-                    timing_only):
+                    timing_only, merge):
     """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
     from rgbdslam.backend.posegraph_bench import bench_command
 
     click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                              criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,
-                             progress=not quiet, timing_only=timing_only))
+                             progress=not quiet, timing_only=timing_only, merge=merge))
 
 
 # ------------------------------------------------------------------------------- maps / viewer

@@ -126,3 +126,23 @@ def test_real_m3500_masat_converges_at_low_noise(tmp_path):
         assert 0.9 < r.reduced_chi2_rel < 1.1
         assert r.iterations_rel <= 12
     assert "| 0.1,0.1,0.1 | 2 | 1.00 (1.00) | 1.00 | 1.00 (1.00) |" in res["report"]
+
+
+def test_runs_csv_round_trip_and_merge(tmp_path):
+    from rgbdslam.backend.posegraph_bench import format_report, load_runs, merge_runs
+
+    ref, gt = manhattan_like(80, seed=4)
+    kw = dict(instances=2, seed=1, progress=False, reference=(ref, gt, "synthetic"), workers=1)
+    a = run_benchmark("m3500", [(0.1, 0.1, 0.1)], out_dir=tmp_path / "a", methods=("masat", "ground_truth"), **kw)
+    b = run_benchmark("m3500", [(0.1, 0.1, 0.1)], out_dir=tmp_path / "b", methods=("weighted_masat",), **kw)
+    loaded = load_runs(tmp_path / "a" / "runs.csv")
+    assert [(r.instance, r.method, r.converged_rel, r.iterations_rel) for r in loaded] == \
+        [(r.instance, r.method, r.converged_rel, r.iterations_rel) for r in a["records"]]
+    assert format_report(loaded, "m3500", ("masat", "ground_truth")) == \
+        format_report(a["records"], "m3500", ("masat", "ground_truth"))
+    rep = merge_runs([tmp_path / "a" / "runs.csv", tmp_path / "b" / "runs.csv"], tmp_path / "m")
+    assert "| MASAT | w-MASAT | GT |" in rep
+    assert len(load_runs(tmp_path / "m" / "runs.csv")) == 6
+    assert b["records"][0].method == "weighted_masat"
+    with pytest.raises(InputError, match="does not exist"):
+        load_runs(tmp_path / "nope.csv")

@@ -25,7 +25,7 @@ import multiprocessing as mp
 import os
 import platform
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -399,9 +399,13 @@ def write_outputs(out_dir: Path, records, dataset, methods, report: str, criteri
 
 def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int = 50, workers: int = 1, seed: int = 0,
                   criterion: str = "relative", methods: str = ",".join(BENCH_METHODS), out_dir=None, data_dir=None,
-                  progress: bool = True, timing_only: bool = False) -> str:
+                  progress: bool = True, timing_only: bool = False, merge: tuple = ()) -> str:
     """CLI entry: parse the option strings, run :func:`run_benchmark` (or only
-    :func:`time_initialisers`), return the markdown report."""
+    :func:`time_initialisers`, or only :func:`merge_runs`), return the markdown report."""
+    if merge:
+        return merge_runs(list(merge), out_dir, criterion)
+    if dataset is None:
+        raise InputError("--dataset is required (m3500, city10k or m10000) unless --merge-runs is given")
     levels = parse_noise(noise)
     mlist = tuple(m.strip() for m in methods.split(",") if m.strip())
     if timing_only:
@@ -434,3 +438,51 @@ def time_initialisers(dataset: str, noise_levels, repeats: int = 5, seed: int = 
             cells.append(f"{best * 1e3:.1f}")
         lines.append(f"| {','.join(f'{v:g}' for v in s)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def load_runs(path: str | Path) -> list[RunRecord]:
+    """Read a ``runs.csv`` written by :func:`run_benchmark`."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"benchmark runs file {path} does not exist; give the runs.csv of a bench --out folder")
+    types = {f.name: f.type for f in fields(RunRecord)}
+    out = []
+    with open(path, newline="") as f:
+        for lineno, row in enumerate(csv.DictReader(f), 2):
+            try:
+                kw = {}
+                for k, v in row.items():
+                    t = types[k]
+                    kw[k] = (v == "True") if t in ("bool", bool) else int(v) if t in ("int", int) else \
+                        float(v) if t in ("float", float) else v
+                out.append(RunRecord(**kw))
+            except (KeyError, ValueError, TypeError):
+                raise InputError(f"{path}:{lineno}: not a runs.csv row of rgbdslam posegraph bench") from None
+    return out
+
+
+def merge_runs(paths, out_dir=None, criterion: str = "relative") -> str:
+    """Merge ``runs.csv`` files of one dataset (a later file's (noise, instance, method) rows
+    replace earlier ones, e.g. a re-run of one method) and rebuild the report."""
+    merged: dict = {}
+    for p in paths:
+        for r in load_runs(p):
+            merged[(r.dataset, r.sigma_x, r.sigma_y, r.sigma_theta, r.instance, r.method)] = r
+    records = list(merged.values())
+    if not records:
+        raise InputError("the runs.csv files hold no runs; give runs.csv files of rgbdslam posegraph bench")
+    datasets = {r.dataset for r in records}
+    if len(datasets) != 1:
+        raise InputError(f"merge runs.csv files of one dataset at a time (found {', '.join(sorted(datasets))})")
+    dataset = datasets.pop()
+    methods = tuple(m for m in BENCH_METHODS if any(r.method == m for r in records))
+    records.sort(key=lambda r: (level_index((r.sigma_x, r.sigma_y, r.sigma_theta)), r.sigma_x, r.sigma_theta,
+                                r.instance, methods.index(r.method)))
+    counts = sorted({sum(1 for r in records if r.method == m and (r.sigma_x, r.sigma_theta) == (q.sigma_x, q.sigma_theta))
+                     for q in records for m in methods})
+    header = (f"dataset {DATASET_NAMES.get(dataset, dataset)}; merged from {', '.join(str(p) for p in paths)}; "
+              f"instances per (level, method): {', '.join(map(str, counts))}\n")
+    report = header + "\n" + format_report(records, dataset, methods, criterion)
+    if out_dir is not None:
+        write_outputs(Path(out_dir), records, dataset, methods, report, criterion)
+    return report
