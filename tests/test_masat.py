@@ -294,3 +294,21 @@ def test_weighted_masat_conservative_variance_propagation_hand_computed():
     w2, w0 = 1 / (vt2 + v23 + vr2), 1 / v03
     assert est[3, 1] == pytest.approx((w2 * 1.0 + w0 * 1.5) / (w2 + w0), rel=1e-12)
     assert est[3, 0] == pytest.approx(1.0, rel=1e-12)
+
+
+def test_posegraph_edge_list3_feeds_masat_initialize_pose3():
+    from rgbdslam.backend.masat import masat
+
+    rng = np.random.default_rng(5)
+    n = 12
+    gt = [np.eye(4)] + [_pose3(rng.normal(size=3) * 0.3, rng.normal(size=3)) for _ in range(n - 1)]
+    pairs = [(k, k + 1) for k in range(n - 1)] + [(0, 5), (3, 9), (11, 2)]
+    ei = np.array([p[0] for p in pairs]); ej = np.array([p[1] for p in pairs])
+    z = np.array([se3_inverse(gt[i]) @ gt[j] @ _pose3(rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.05)
+                  for i, j in pairs])
+    info = np.tile(np.diag([100.0, 100, 100, 400, 400, 400]), (len(pairs), 1, 1))  # g2o order: t then r
+    info[3] = np.diag([1.0, 1, 1, 2, 2, 2])
+    g = PoseGraph(3, np.arange(n), np.tile(np.eye(4), (n, 1, 1)), ei, ej, z, info)
+    for w in (False, True):
+        np.testing.assert_allclose(masat_initialize_pose3(n, g.edge_list3(), weighted=w), masat(g, weighted=w),
+                                   atol=1e-12)

@@ -56,26 +56,6 @@ def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return se2_compose(se2_inverse(a), b)
 
 
-def se2_inverse_info(z: np.ndarray, info: np.ndarray) -> np.ndarray:
-    """Information of z^-1 given the information of z (first-order, exact for the linear part).
-
-    z^-1 = (-R^T t, -theta); its Jacobian w.r.t. (t, theta) is J = [[-R^T, R^T J t'], [0, -1]]
-    and info' = J^-T info J^-1.
-    """
-    z = np.asarray(z, float).reshape(-1, 3)
-    info = np.asarray(info, float).reshape(-1, 3, 3)
-    c, s = np.cos(z[:, 2]), np.sin(z[:, 2])
-    # d(zi)/d(z): zi_t = -R^T t ;  d/dtheta(-R^T t) = [[s, -c],[c, s]] t
-    J = np.zeros((len(z), 3, 3))
-    J[:, 0, 0], J[:, 0, 1] = -c, -s
-    J[:, 1, 0], J[:, 1, 1] = s, -c
-    J[:, 0, 2] = s * z[:, 0] - c * z[:, 1]
-    J[:, 1, 2] = c * z[:, 0] + s * z[:, 1]
-    J[:, 2, 2] = -1.0
-    Jinv = np.linalg.inv(J)
-    return np.einsum("nji,njk,nkl->nil", Jinv, info, Jinv)
-
-
 # ------------------------------------------------------------------------------------------ SE(3)
 
 
