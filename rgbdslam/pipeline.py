@@ -325,7 +325,8 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
         from rgbdslam.mapping.fusion import fuse_run
 
         fused = fuse_run(out_dir, cfg.mapping, progress=progress)
-        summary["map"] = getattr(fused, "summary", lambda: {})() if hasattr(fused, "summary") else {}
+        summary["map"] = fused.summary()
+        atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
         if observer is not None and getattr(fused, "cloud_points", None) is not None:
             observer.log_map(fused.cloud_points, fused.cloud_colors)
     if observer is not None:
