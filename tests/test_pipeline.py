@@ -79,6 +79,9 @@ class _InterruptingSequence:
     def __getattr__(self, name):
         return getattr(self._seq, name)
 
+    def __len__(self):
+        return len(self._seq)
+
     def load(self, i):
         if i == self._at:
             raise KeyboardInterrupt
