@@ -118,3 +118,10 @@ def test_timing_vga_is_a_few_milliseconds():
         times.append(time.perf_counter() - t0)
     # generous bound for a shared 2-core machine; docs/slam.md records the measured time
     assert np.median(times) < 0.060
+
+
+def test_impossible_min_support_is_a_config_error():
+    from rgbdslam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="min_support"):
+        make(window=2, spatial_radius=0, min_support=3)

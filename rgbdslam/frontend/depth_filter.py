@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from rgbdslam.config import DepthFilterConfig
+from rgbdslam.errors import ConfigError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
 
@@ -36,6 +37,12 @@ class DepthFilter:
     """Stateful DIF: call it once per registered frame, in order."""
 
     def __init__(self, cfg: DepthFilterConfig, camera: Camera):
+        possible = max(cfg.window, 0) + (2 * max(cfg.spatial_radius, 0) + 1) ** 2 - 1
+        if cfg.min_support > possible:
+            raise ConfigError(
+                f"depth_filter.min_support={cfg.min_support} exceeds the {possible} samples a pixel can have "
+                f"(window={cfg.window}, spatial_radius={cfg.spatial_radius}), so every pixel would be removed; "
+                f"lower depth_filter.min_support or widen the window")
         self.cfg = cfg
         self.camera = camera
         self.history: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=max(cfg.window, 0) or None)
