@@ -134,7 +134,7 @@ def run_table(data: Path, out: Path, rec: _Recorder, max_frames: int | None) -> 
                 break
             rec.reset()
             t0 = time.perf_counter()
-            s = run_sequence(seq, out / sp.name / name.split()[0], cfg, progress=False)
+            s = run_sequence(seq, out / sp.name / "".join(ch if ch.isalnum() or ch in "+-" else "_" for ch in name), cfg, progress=False)
             wall = time.perf_counter() - t0
             ev = (s.get("evaluation") or {}).get("ate") or {}
             errs = loop_errors(rec.edges, gt_pose_lookup(seq))
@@ -252,7 +252,7 @@ def run_ablation(data: Path, out: Path, max_frames: int | None) -> list[dict]:
         for k, v in sets.items():
             sec, key = k.split(".")
             setattr(getattr(cfg, sec), key, v)
-        s = run_sequence(sp, out / "ablation" / name.split()[0], cfg, progress=False)
+        s = run_sequence(sp, out / "ablation" / f"{len(rows):02d}", cfg, progress=False)
         rows.append({"config": name, "ate": ((s.get("evaluation") or {}).get("ate") or {}).get("rmse", float("nan")),
                      "loops": len(s["loops"]), "fps": s["fps"],
                      "dif_ms": (s["timings"].get("depth_filter") or {}).get("median_ms")})

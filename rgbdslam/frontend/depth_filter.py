@@ -14,7 +14,9 @@ Runs after registration, once the current frame's camera-to-world pose is known:
 * a sample **agrees** when ``|z_sample - z| <= a + b z²`` (Kinect axial noise grows with
   z²); the output is the mean of the pixel's own value and its agreeing samples;
 * a pixel with fewer than ``min_support`` agreeing samples (besides itself) is
-  invalidated: isolated outliers and "flying pixels" on depth edges have no support;
+  invalidated: isolated outliers and "flying pixels" on depth edges have no support
+  (capped by the samples the frame can have: the first frame of a temporal-only filter is
+  kept as measured);
 * zero stays zero: the filter never invents depth where the sensor gave none.
 
 Everything is vectorised over the image (float32, OpenCV kernels for the warp).
@@ -134,8 +136,11 @@ class DepthFilter:
                         continue
                     accumulate(pad[r + dy:r + dy + h, r + dx:r + dx + w])
         count += support
+        # The support asked for is capped by the samples this frame can have: without history
+        # (first frame) and without a spatial window nothing can be verified, so keep the raw depth.
+        need = min(c.min_support, (len(previous) if previous else 0) + (2 * max(r, 0) + 1) ** 2 - 1)
         out = np.zeros_like(z)
-        keep = valid & (support >= c.min_support)
+        keep = valid & (support >= need)
         out[keep] = total[keep] / count[keep]
         self.last_stats = {
             "valid_in": float(np.count_nonzero(valid)),
