@@ -210,14 +210,17 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, quiet):
 @click.option("--timing-only", is_flag=True, help="Only time the initial guesses (best of 5) at each noise level.")
 @click.option("--merge-runs", "merge", type=click.Path(path_type=Path), multiple=True,
               help="Instead of running: merge these runs.csv files (later rows replace earlier) into new tables.")
+@click.option("--first-instance", default=0, show_default=True,
+              help="Index of the first noisy instance (to add instances to an earlier run; see --merge-runs).")
 def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet,
-                    timing_only, merge):
+                    timing_only, merge, first_instance):
     """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
     from rgbdslam.backend.posegraph_bench import bench_command
 
     click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                              criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,
-                             progress=not quiet, timing_only=timing_only, merge=merge))
+                             progress=not quiet, timing_only=timing_only, merge=merge,
+                             first_instance=first_instance))
 
 
 # ------------------------------------------------------------------------------- maps / viewer

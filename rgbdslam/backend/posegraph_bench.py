@@ -226,14 +226,17 @@ def _task(args):
 def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int = 50, workers: int = 1,
                   seed: int = 0, out_dir: str | Path | None = None, data_dir: str | Path | None = None,
                   methods=BENCH_METHODS, tol: float = 1e-6, criterion: str = "relative",
-                  progress: bool = True, reference: tuple[PoseGraph, np.ndarray, str] | None = None) -> dict:
+                  progress: bool = True, reference: tuple[PoseGraph, np.ndarray, str] | None = None,
+                  first_instance: int = 0) -> dict:
     """Run the protocol; write ``runs.csv``, ``table1.csv``, ``table2.csv``, ``report.md`` into ``out_dir``.
 
+    Instances ``first_instance .. first_instance + instances - 1`` are run (so a later call can add
+    instances; merge the runs.csv files with :func:`merge_runs`).
     ``reference`` = ``(noise-free graph, ground-truth poses, note)`` replaces the dataset's files
     (tests, other graphs).  Returns ``{"records": [...], "report": markdown, "note": reference note}``.
     """
-    if instances < 1 or max_iter < 1 or workers < 1:
-        raise InputError("--instances, --max-iter and --workers must be positive")
+    if instances < 1 or max_iter < 1 or workers < 1 or first_instance < 0:
+        raise InputError("--instances, --max-iter and --workers must be positive, --first-instance >= 0")
     unknown = [m for m in methods if m not in BENCH_METHODS]
     if unknown:
         raise InputError(f"unknown benchmark method(s) {unknown}; use {', '.join(BENCH_METHODS)}")
@@ -242,7 +245,7 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
     t_start = time.perf_counter()
     ref, gt, note = reference if reference is not None else reference_graph(dataset, data_dir)
     tasks = [(tuple(s), level_index(s), k, seed, tuple(methods), max_iter, tol)
-             for s in noise_levels for k in range(instances)]
+             for s in noise_levels for k in range(first_instance, first_instance + instances)]
     records: list[RunRecord] = []
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -267,7 +270,9 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
     records.sort(key=lambda r: (level_index((r.sigma_x, r.sigma_y, r.sigma_theta)), r.sigma_x, r.sigma_theta,
                                 r.instance, methods.index(r.method)))
     wall = time.perf_counter() - t_start
-    header = (f"dataset {DATASET_NAMES.get(dataset, dataset)}; {instances} instance(s) per level; max {max_iter} GN "
+    header = (f"dataset {DATASET_NAMES.get(dataset, dataset)}; {instances} instance(s) per level"
+              + (f" (instances {first_instance}..{first_instance + instances - 1})" if first_instance else "")
+              + f"; max {max_iter} GN "
               f"iterations; converged when {_crit_text(criterion, tol)}; seed {seed}; "
               f"{workers} worker(s); wall time {wall:.0f} s; machine: {platform.processor() or platform.machine()}, "
               f"{os.cpu_count()} CPUs, Python {platform.python_version()}\n\n{note}.\n")
@@ -399,7 +404,7 @@ def write_outputs(out_dir: Path, records, dataset, methods, report: str, criteri
 
 def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int = 50, workers: int = 1, seed: int = 0,
                   criterion: str = "relative", methods: str = ",".join(BENCH_METHODS), out_dir=None, data_dir=None,
-                  progress: bool = True, timing_only: bool = False, merge: tuple = ()) -> str:
+                  progress: bool = True, timing_only: bool = False, merge: tuple = (), first_instance: int = 0) -> str:
     """CLI entry: parse the option strings, run :func:`run_benchmark` (or only
     :func:`time_initialisers`, or only :func:`merge_runs`), return the markdown report."""
     if merge:
@@ -412,6 +417,7 @@ def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int =
         return time_initialisers(dataset, levels, seed=seed, data_dir=data_dir,
                                  methods=tuple(m for m in mlist if m != "ground_truth"))
     res = run_benchmark(dataset, levels, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
+                        first_instance=first_instance,
                         out_dir=out_dir, data_dir=data_dir, methods=mlist, criterion=criterion, progress=progress)
     return res["report"] + (f"\nwritten to {out_dir}/ (runs.csv, table1.csv, table2.csv, report.md)" if out_dir else "")
 
