@@ -170,3 +170,42 @@ def test_observe_uses_the_configured_measure():
     lc = LoopCloser(cfg, CAM, register=lambda *a: None)
     assert [lc.observe(feats(100, r)) for r in (0.010, 0.010, 0.010, 0.013)] == [False] * 4
     assert lc.observe(feats(121, 0.01)) is True and lc.stats["n_sharp"] == 1
+
+
+# ------------------------------------------------------------------ real frames (TUM fr1)
+
+import os  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parent.parent.parent / "shared" / "data"))
+RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
+
+
+@pytest.mark.skipif(not (RPY.is_dir() and DESK.is_dir()), reason=f"TUM test data not found under {DATA}")
+def test_real_revisit_accepted_and_other_room_rejected():
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.frontend.features import extract_features
+    from rgbdslam.geometry.se3 import rotation_angle
+
+    cfg = Config()
+    cfg.loop.enabled = True
+    cfg.loop.skip_recent = 0
+    rpy = open_sequence(RPY, cfg.dataset)
+    desk = open_sequence(DESK, cfg.dataset)
+    gt = rpy.groundtruth()
+
+    def gt_pose(i):
+        return gt.poses[int(np.argmin(np.abs(gt.timestamps - rpy.timestamps[i])))]
+
+    lc = LoopCloser(cfg, rpy.camera)
+    lc.add_keyframe(extract_features(rpy.load(0), cfg), gt_pose(0))
+    # frame 109 comes back to the view of frame 0 after the roll/pitch/yaw swings
+    edges = lc.detect(extract_features(rpy.load(109), cfg), gt_pose(109))
+    assert len(edges) == 1 and (edges[0].i, edges[0].j) == (0, 109)
+    err = inv(inv(gt_pose(0)) @ gt_pose(109)) @ edges[0].T_ij
+    # (ground truth is the nearest mocap sample: a few ms off during fast rotation)
+    assert np.linalg.norm(err[:3, 3]) < 0.03 and np.degrees(rotation_angle(err[:3, :3])) < 3.0
+    # a frame of another room (fr1/desk) must not close a loop with it
+    assert lc.detect(extract_features(desk.load(4), cfg), gt_pose(109)) == []
+    assert lc.stats["n_accepted"] == 1
