@@ -125,3 +125,32 @@ def test_impossible_min_support_is_a_config_error():
 
     with pytest.raises(ConfigError, match="min_support"):
         make(window=2, spatial_radius=0, min_support=3)
+
+
+def test_real_tum_frames_keep_most_depth_and_never_invent_any():
+    import os
+    from pathlib import Path
+
+    from rgbdslam.config import Config
+    from rgbdslam.datasets import open_sequence
+
+    data = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parent.parent.parent / "shared" / "data"))
+    root = data / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
+    if not root.is_dir():
+        pytest.skip(f"TUM test data not found at {root}")
+    cfg = Config()
+    seq = open_sequence(root, cfg.dataset)
+    gt = seq.groundtruth()
+    f = DepthFilter(DepthFilterConfig(enabled=True), seq.camera)
+    for i in range(3):
+        frame = seq.load(i)
+        pose = gt.poses[int(np.argmin(np.abs(gt.timestamps - frame.timestamp)))]
+        out = f(frame.depth, pose)
+        raw = frame.depth
+        in_range = (raw >= 0.3) & (raw <= 5.0)
+        assert np.all(out[~in_range] == 0)  # zero stays zero, range enforced
+        kept = np.count_nonzero(out) / np.count_nonzero(in_range)
+        assert kept > 0.95  # only isolated / edge pixels go
+        both = out > 0
+        tol = 0.01 + 0.0035 * raw[both] ** 2
+        assert np.all(np.abs(out[both] - raw[both]) <= tol + 1e-6)  # averages of agreeing samples only
