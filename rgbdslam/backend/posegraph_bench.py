@@ -330,8 +330,11 @@ def table_rows(records, dataset, methods, criterion: str = "relative"):
         k = level_index(s)
         p1 = PAPER_TABLE1[dataset][k] if k < 8 and dataset in PAPER_TABLE1 else None
         p2 = PAPER_TABLE2[dataset][k] if k < 8 and dataset in PAPER_TABLE2 else None
-        row1 = {"noise": ",".join(f"{v:g}" for v in s), "instances": S[(s, methods[0])]["n"], "criterion": criterion}
+        counts = sorted({S[(s, m)]["n"] for m in methods})
+        row1 = {"noise": ",".join(f"{v:g}" for v in s), "instances": "/".join(map(str, counts)), "criterion": criterion}
         row2 = dict(row1)
+        for m in methods:
+            row1[f"{m}_n"] = S[(s, m)]["n"]
         for m in methods:
             row1[f"{m}_rate"] = S[(s, m)]["rate"]
         for m in methods:
