@@ -123,7 +123,7 @@ class KeyframeConfig:
 class LoopConfig:
     """Sharpness-gated loop closure (spec section 4, docs/slam.md)."""
 
-    enabled: bool = False
+    enabled: bool = True
     # sharpness gate: measure > factor * median(measure of the previous window frames).
     # "n_detected" is the thesis' descriptor count; it only works if the count is not capped
     # by the ORB retention (features.n_features). "response" = sum of the ORB responses of the

@@ -122,7 +122,10 @@ class SLAM:
                 loops = self.loop.detect(result.features, pose)
             st.add_time("loop_closure", time.perf_counter() - t0)
 
-        is_kf = self.keyframe_policy.is_keyframe(frame.index, pose) or bool(loops)
+        is_kf = self.keyframe_policy.is_keyframe(frame.index, pose)
+        if loops and not is_kf:  # a loop edge needs the current frame in the graph
+            self.keyframe_policy.force(frame.index, pose)
+            is_kf = True
         if is_kf:
             self._add_keyframe(frame, result, pose, depth)
         rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
