@@ -25,7 +25,12 @@ fi
 "$PY" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else 1)' \
   || { echo "setup: rgbdslam needs Python >= 3.11; set PYTHON=/path/to/python3.11" >&2; exit 1; }
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
-.venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[test]"
+log=.venv/setup.log
+echo "setup: installing the pinned dependencies into .venv (a minute or two; log in $log)"
+if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[test]"; } >"$log" 2>&1; then
+  tail -n 20 "$log" >&2
+  echo "setup: pip install failed (see $log); check the network access to PyPI and run this script again" >&2
+  exit 1
+fi
 echo "$want" > "$stamp"
 echo "setup: ready (.venv)"
