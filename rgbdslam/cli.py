@@ -89,6 +89,28 @@ def demo(out_dir, frames, config_path, overrides):
     run_demo(out_dir, frames, cfg)
 
 
+@main.command("config")
+@config_option
+@set_option
+def show_config(config_path, overrides):
+    """Print the effective configuration (defaults, preset, overrides) as YAML."""
+    from rgbdslam.config import load_config
+
+    click.echo(load_config(config_path, overrides).dump(), nl=False)
+
+
+@main.command("info")
+@click.argument("sequence", type=click.Path(path_type=Path))
+@config_option
+@set_option
+def info(sequence, config_path, overrides):
+    """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import describe_sequence
+
+    click.echo(describe_sequence(sequence, load_config(config_path, overrides).dataset))
+
+
 # ------------------------------------------------------------------ commands added by stages
 
 @main.command()

@@ -133,3 +133,15 @@ def test_bad_override_is_one_line(desk9, tmp_path):
     res = CliRunner().invoke(main, ["run", str(desk9), "--set", "registration.nope=1"])
     assert res.exit_code == 2
     assert "registration.nope" in res.output
+
+
+def test_info_and_config_commands(desk9):
+    res = CliRunner().invoke(main, ["info", str(desk9)])
+    assert res.exit_code == 0, res.output
+    assert "fx 517.3" in res.output and "frames      9" in res.output
+    res = CliRunner().invoke(main, ["config", "-c", "tum_fr2", "--set", "registration.mp=6"])
+    assert res.exit_code == 0, res.output
+    import yaml
+
+    d = yaml.safe_load(res.output)
+    assert d["dataset"]["camera"] == "fr2" and d["registration"]["mp"] == 6

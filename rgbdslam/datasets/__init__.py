@@ -58,4 +58,22 @@ def open_sequence(path: str | Path, cfg=None) -> Sequence:
     return _REGISTRY[kind][1](path, cfg)
 
 
-__all__ = ["Frame", "Sequence", "open_sequence", "register", "available"]
+def describe_sequence(path: str | Path, cfg=None) -> str:
+    """A few lines on a sequence: reader, camera, frames, span, ground truth."""
+    seq = open_sequence(path, cfg)
+    ts = seq.timestamps
+    cam = seq.camera
+    gt = seq.groundtruth()
+    span = float(ts[-1] - ts[0]) if len(ts) else 0.0
+    lines = [
+        f"sequence    {seq.root}",
+        f"reader      {type(seq).__name__}",
+        f"camera      {cam.name or 'custom'}: fx {cam.fx} fy {cam.fy} cx {cam.cx} cy {cam.cy}, "
+        f"{cam.width}x{cam.height}, distortion {' '.join(f'{d:g}' for d in cam.dist)}",
+        f"frames      {len(seq)} over {span:.2f} s ({len(seq) / span if span > 0 else 0:.1f} Hz)",
+        f"groundtruth {f'{len(gt)} poses' if gt is not None else 'none'}",
+    ]
+    return "\n".join(lines)
+
+
+__all__ = ["Frame", "Sequence", "open_sequence", "register", "available", "describe_sequence"]
