@@ -142,6 +142,9 @@ class SLAM:
             st.add_time("pose_graph", time.perf_counter() - t0)
         if self.observer is not None:
             self.observer.log_frame(frame, result)
+            if getattr(result, "matches", None) is not None:
+                m = result.matches
+                self.observer.log_inlier_matches(frame.index, m[:, :2], m[:, 2:])
         return result
 
     def _pose_of(self, index: int) -> np.ndarray | None:

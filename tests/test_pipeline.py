@@ -145,3 +145,19 @@ def test_info_and_config_commands(desk9):
 
     d = yaml.safe_load(res.output)
     assert d["dataset"]["camera"] == "fr2" and d["registration"]["mp"] == 6
+
+
+def test_run_records_rerun_with_matches_and_trajectories(desk9, tmp_path):
+    import subprocess
+
+    from rgbdslam.viz.rerun_log import rerun_executable
+
+    rrd = tmp_path / "run.rrd"
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "run"), "--no-map", "-q",
+                                    "--rerun-save", str(rrd)])
+    assert res.exit_code == 0, res.output
+    out = subprocess.run([rerun_executable(), "rrd", "print", str(rrd)], capture_output=True, text=True,
+                         timeout=60).stdout
+    for entity in ("world/camera/image/matches", "world/camera/image/keypoints", "world/trajectory/groundtruth",
+                   "world/trajectory/estimate"):
+        assert entity in out, entity

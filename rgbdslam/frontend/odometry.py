@@ -72,6 +72,12 @@ class TrackResult:
     n_candidates: int = 0  # registrations that succeeded
     n_fused: int = 0  # candidates kept by the fusion
     reset: bool = False  # tracking restarted here after too many lost frames (relative is a guess)
+    matches: np.ndarray | None = None  # (K, 4) inlier matches to the newest kept reference: u_ref v_ref u_cur v_cur
+
+
+def _match_segments(ref, res: RegistrationResult, feats: FrameFeatures) -> np.ndarray:
+    """Pixel coordinates of a registration's inlier pairs, for inspection (Rerun)."""
+    return np.hstack([ref.features.uv[res.pairs[:, 0]], feats.uv[res.pairs[:, 1]]]).astype(np.float32)
 
 
 def point_information(P: np.ndarray, sigma: float) -> np.ndarray:
@@ -273,6 +279,7 @@ class Frontend:
             timings=timings,
             n_candidates=len(ok),
             n_fused=len(kept),
+            matches=_match_segments(*kept_pairs[0], feats),
         )
 
     def _register_all(self, refs: list[_Ref], feats: FrameFeatures, pred: np.ndarray) -> list:
