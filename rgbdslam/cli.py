@@ -161,6 +161,10 @@ def synth(out, frames, motion, noise, dropout, drift, seed, camera, size):
 
 _GRAPH_FORMATS = click.Choice(["auto", "g2o", "toro", "isam"])
 _INIT_METHODS = ["masat", "weighted_masat", "odometry", "spanning_tree", "lago", "chordal"]
+_optimizer_option = click.option(
+    "--optimizer", type=click.Choice(["gtsam", "g2o"]), default="gtsam", show_default=True,
+    help="Gauss-Newton: gtsam (Pose2 Logmap error, Expmap update) or g2o (g2o's SE(2) error and update, "
+         "NumPy/SciPy; SE(2) only).")
 
 
 @main.group()
@@ -201,13 +205,14 @@ def posegraph_init(file, method, out, fmt):
 @click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="relative", show_default=True,
               help="relative: |dchi2|/chi2 < tol (g2o's test); absolute: |dchi2| < tol.")
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="Input format.")
+@_optimizer_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, quiet):
+def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer, quiet):
     """Initialise and optimise the pose graph in FILE with Gauss-Newton (GTSAM); print the chi2 report."""
     from rgbdslam.backend.optimize import optimize_file
 
     click.echo(optimize_file(file, init=init, out=out, max_iter=max_iter, tol=tol, criterion=criterion, fmt=fmt,
-                             progress=not quiet))
+                             progress=not quiet, optimizer=optimizer))
 
 
 @posegraph.command("bench")
@@ -234,15 +239,16 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, quiet):
               help="Instead of running: merge these runs.csv files (later rows replace earlier) into new tables.")
 @click.option("--first-instance", default=0, show_default=True,
               help="Index of the first noisy instance (to add instances to an earlier run; see --merge-runs).")
+@_optimizer_option
 def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet,
-                    timing_only, merge, first_instance):
+                    timing_only, merge, first_instance, optimizer):
     """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
     from rgbdslam.backend.posegraph_bench import bench_command
 
     click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                              criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,
                              progress=not quiet, timing_only=timing_only, merge=merge,
-                             first_instance=first_instance))
+                             first_instance=first_instance, optimizer=optimizer))
 
 
 # ------------------------------------------------------------------------------- maps / viewer

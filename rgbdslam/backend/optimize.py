@@ -29,6 +29,7 @@ from rgbdslam.errors import InputError
 
 PRIOR_SIGMA = 1e-6
 CRITERIA = ("relative", "absolute")
+OPTIMIZERS = ("gtsam", "g2o")  # g2o = rgbdslam.backend.gn2d (g2o's SE(2) error and update, SE(2) only)
 
 
 def values_from_poses(dim: int, poses: np.ndarray) -> gtsam.Values:
@@ -117,6 +118,30 @@ def has_converged(prev: float, cur: float, tol: float, criterion: str) -> bool:
     return d < tol * max(cur, 1e-300)
 
 
+def iterate_until_converged(step: Callable[[], float], chi2_0: float, max_iter: int, tol: float, criterion: str,
+                            callback: Callable[[int, float], None] | None = None):
+    """Call ``step()`` (one GN iteration, returns the new χ²) until the convergence test passes,
+    at most ``max_iter`` times.  A ``RuntimeError`` from ``step`` or a non-finite χ² is a failure.
+    Returns ``(χ² history (entry 0 = chi2_0), converged, failure text, iterations run)``."""
+    prev = chi2_0
+    hist = [prev]
+    it = 0
+    for it in range(1, max_iter + 1):
+        try:
+            cur = step()
+        except RuntimeError as e:
+            return hist, False, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", it
+        hist.append(cur)
+        if callback:
+            callback(it, cur)
+        if not math.isfinite(cur):
+            return hist, False, "non-finite chi2", it
+        if has_converged(prev, cur, tol, criterion):
+            return hist, True, "", it
+        prev = cur
+    return hist, False, "", it
+
+
 def gauss_newton(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, tol: float = 1e-6,
                  criterion: str = "relative", keep_poses: bool = True,
                  callback: Callable[[int, float], None] | None = None) -> GNResult:
@@ -135,35 +160,31 @@ def gauss_newton(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, tol:
     params.setOrderingType("METIS")  # ~2x faster than COLAMD on City10k (measured)
     t0 = time.perf_counter()
     opt = gtsam.GaussNewtonOptimizer(fg, values_from_poses(graph.dim, initial), params)
-    prev = 2.0 * opt.error()
-    hist = [prev]
-    converged = False
-    failure = ""
-    it = 0
-    for it in range(1, max_iter + 1):
-        try:
-            opt.iterate()
-            cur = 2.0 * opt.error()
-        except RuntimeError as e:  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
-            failure = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
-            break
-        hist.append(cur)
-        if callback:
-            callback(it, cur)
-        if not math.isfinite(cur):
-            failure = "non-finite chi2"
-            break
-        if has_converged(prev, cur, tol, criterion):
-            converged = True
-            break
-        prev = cur
+
+    def step() -> float:
+        opt.iterate()  # gtsam raises IndeterminantLinearSystem etc. as RuntimeError
+        return 2.0 * opt.error()
+
+    hist, converged, failure, it = iterate_until_converged(step, 2.0 * opt.error(), max_iter, tol, criterion, callback)
     seconds = time.perf_counter() - t0
     poses = poses_from_values(graph.dim, opt.values(), graph.n_vertices) if keep_poses and not failure else None
     return GNResult(converged, it, hist[0], hist[-1], hist, seconds, poses, failure)
 
 
+def run_gauss_newton(graph: PoseGraph, initial: np.ndarray, optimizer: str = "gtsam", **kwargs) -> GNResult:
+    """:func:`gauss_newton` (``"gtsam"``) or :func:`rgbdslam.backend.gn2d.gauss_newton_g2o` (``"g2o"``)."""
+    if optimizer == "gtsam":
+        return gauss_newton(graph, initial, **kwargs)
+    if optimizer == "g2o":
+        from rgbdslam.backend.gn2d import gauss_newton_g2o
+
+        return gauss_newton_g2o(graph, initial, **kwargs)
+    raise InputError(f"unknown optimizer {optimizer!r}; use {' or '.join(OPTIMIZERS)}")
+
+
 def optimize_file(path, init: str = "masat", out=None, max_iter: int = 50, tol: float = 1e-6,
-                  criterion: str = "relative", fmt: str = "auto", progress: bool = True) -> str:
+                  criterion: str = "relative", fmt: str = "auto", progress: bool = True,
+                  optimizer: str = "gtsam") -> str:
     """Read a graph, initialise it (``init`` method or ``"file"`` for the file's own vertices), run
     Gauss–Newton with a progress bar, optionally write the result as g2o; returns the χ² report."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -187,14 +208,14 @@ def optimize_file(path, init: str = "masat", out=None, max_iter: int = 50, tol: 
         def cb(it, c):
             bar.update(job, completed=it, chi2=f"{c:.6g}")
 
-        res = gauss_newton(graph, poses, max_iter=max_iter, tol=tol, criterion=criterion, callback=cb)
+        res = run_gauss_newton(graph, poses, optimizer, max_iter=max_iter, tol=tol, criterion=criterion, callback=cb)
     if res.poses is None:
         raise InputError(f"{path}: Gauss-Newton failed ({res.failure}); try another --init")
     if out is not None:
         write_g2o(out, graph, res.poses)
     dof = max(degrees_of_freedom(graph), 1)
     status = "converged" if res.converged else ("failed: " + res.failure if res.failure else "not converged")
-    return (f"{graph.summary()}\ninit {init}: {t_init * 1e3:.1f} ms\n"
+    return (f"{graph.summary()}\ninit {init}: {t_init * 1e3:.1f} ms; optimizer {optimizer}\n"
             f"initial chi2 {res.chi2_initial:.6g} (reduced {res.chi2_initial / dof:.4g}); "
             f"final chi2 {res.chi2_final:.6g} (reduced {res.chi2_final / dof:.4g}); "
             f"{res.iterations} iteration(s), {status}; {res.seconds:.2f} s"

@@ -33,7 +33,7 @@ import numpy as np
 from rgbdslam.backend.graph import PoseGraph, se2_between, wrap_angle
 from rgbdslam.backend.graph_io import read_graph
 from rgbdslam.backend.initializers import initialize
-from rgbdslam.backend.optimize import degrees_of_freedom, gauss_newton, has_converged
+from rgbdslam.backend.optimize import OPTIMIZERS, degrees_of_freedom, gauss_newton, has_converged, run_gauss_newton
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
 
@@ -180,7 +180,8 @@ def _worker_init(dataset, data_dir, ref, gt):
 
 
 def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int, instance: int, seed: int,
-                 methods=BENCH_METHODS, max_iter: int = 50, tol: float = 1e-6) -> list[RunRecord]:
+                 methods=BENCH_METHODS, max_iter: int = 50, tol: float = 1e-6,
+                 optimizer: str = "gtsam") -> list[RunRecord]:
     """All initial guesses + GN on one noisy instance (seeded by ``(seed, dataset, level, instance)``)."""
     rng = np.random.default_rng([seed, DATASETS.index(dataset) if dataset in DATASETS else 99, level, instance])
     g = noisy_instance(ref, sigma, rng)
@@ -200,7 +201,7 @@ def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int
                                  t_init, 0.0, fail))
             continue
         # run to the stricter absolute test; the relative verdict is read off the same χ² history
-        r = gauss_newton(g, p, max_iter=max_iter, tol=tol, criterion="absolute", keep_poses=False)
+        r = run_gauss_newton(g, p, optimizer, max_iter=max_iter, tol=tol, criterion="absolute", keep_poses=False)
         ca, ia, xa = first_convergence(r.chi2_history, tol, "absolute")
         cr, ir, xr = first_convergence(r.chi2_history, tol, "relative")
         out.append(RunRecord(dataset, *map(float, sigma), instance, m, r.chi2_initial, ca, ia, xa / dof, cr, ir,
@@ -218,17 +219,17 @@ def first_convergence(history: list[float], tol: float, criterion: str) -> tuple
 
 
 def _task(args):
-    sigma, level, instance, seed, methods, max_iter, tol = args
+    sigma, level, instance, seed, methods, max_iter, tol, optimizer = args
     return run_instance(_WORKER["ref"], _WORKER["gt"], _WORKER["dataset"], sigma, level, instance, seed,
-                        methods, max_iter, tol)
+                        methods, max_iter, tol, optimizer)
 
 
 def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int = 50, workers: int = 1,
                   seed: int = 0, out_dir: str | Path | None = None, data_dir: str | Path | None = None,
                   methods=BENCH_METHODS, tol: float = 1e-6, criterion: str = "relative",
                   progress: bool = True, reference: tuple[PoseGraph, np.ndarray, str] | None = None,
-                  first_instance: int = 0) -> dict:
-    """Run the protocol; write ``runs.csv``, ``table1.csv``, ``table2.csv``, ``report.md`` into ``out_dir``.
+                  first_instance: int = 0, optimizer: str = "gtsam") -> dict:
+    """Run the protocol (GN: ``optimizer`` ``"gtsam"`` or ``"g2o"``, see :mod:`rgbdslam.backend.gn2d`); write ``runs.csv``, ``table1.csv``, ``table2.csv``, ``report.md`` into ``out_dir``.
 
     Instances ``first_instance .. first_instance + instances - 1`` are run (so a later call can add
     instances; merge the runs.csv files with :func:`merge_runs`).
@@ -242,9 +243,11 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
         raise InputError(f"unknown benchmark method(s) {unknown}; use {', '.join(BENCH_METHODS)}")
     if criterion not in ("absolute", "relative"):
         raise InputError(f"unknown convergence criterion {criterion!r}; use absolute or relative")
+    if optimizer not in OPTIMIZERS:
+        raise InputError(f"unknown optimizer {optimizer!r}; use {' or '.join(OPTIMIZERS)}")
     t_start = time.perf_counter()
     ref, gt, note = reference if reference is not None else reference_graph(dataset, data_dir)
-    tasks = [(tuple(s), level_index(s), k, seed, tuple(methods), max_iter, tol)
+    tasks = [(tuple(s), level_index(s), k, seed, tuple(methods), max_iter, tol, optimizer)
              for s in noise_levels for k in range(first_instance, first_instance + instances)]
     records: list[RunRecord] = []
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -272,7 +275,7 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
     wall = time.perf_counter() - t_start
     header = (f"dataset {DATASET_NAMES.get(dataset, dataset)}; {instances} instance(s) per level"
               + (f" (instances {first_instance}..{first_instance + instances - 1})" if first_instance else "")
-              + f"; max {max_iter} GN "
+              + f"; max {max_iter} GN ({optimizer}) "
               f"iterations; converged when {_crit_text(criterion, tol)}; seed {seed}; "
               f"{workers} worker(s); wall time {wall:.0f} s; machine: {platform.processor() or platform.machine()}, "
               f"{os.cpu_count()} CPUs, Python {platform.python_version()}\n\n{note}.\n")
@@ -407,7 +410,8 @@ def write_outputs(out_dir: Path, records, dataset, methods, report: str, criteri
 
 def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int = 50, workers: int = 1, seed: int = 0,
                   criterion: str = "relative", methods: str = ",".join(BENCH_METHODS), out_dir=None, data_dir=None,
-                  progress: bool = True, timing_only: bool = False, merge: tuple = (), first_instance: int = 0) -> str:
+                  progress: bool = True, timing_only: bool = False, merge: tuple = (), first_instance: int = 0,
+                  optimizer: str = "gtsam") -> str:
     """CLI entry: parse the option strings, run :func:`run_benchmark` (or only
     :func:`time_initialisers`, or only :func:`merge_runs`), return the markdown report."""
     if merge:
@@ -420,7 +424,7 @@ def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int =
         return time_initialisers(dataset, levels, seed=seed, data_dir=data_dir,
                                  methods=tuple(m for m in mlist if m != "ground_truth"))
     res = run_benchmark(dataset, levels, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
-                        first_instance=first_instance,
+                        first_instance=first_instance, optimizer=optimizer,
                         out_dir=out_dir, data_dir=data_dir, methods=mlist, criterion=criterion, progress=progress)
     return res["report"] + (f"\nwritten to {out_dir}/ (runs.csv, table1.csv, table2.csv, report.md)" if out_dir else "")
 

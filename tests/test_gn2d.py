@@ -1,0 +1,130 @@
+"""g2o-style SE(2) Gauss–Newton (rgbdslam.backend.gn2d): Jacobians, exactness, agreement with GTSAM."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rgbdslam.backend.gn2d import chi2_g2o, edge_errors, edge_jacobians, gauss_newton_g2o, oplus
+from rgbdslam.backend.graph import PoseGraph, se2_between, se2_compose, wrap_angle
+from rgbdslam.backend.graph_io import write_g2o
+from rgbdslam.backend.optimize import chi2, gauss_newton, optimize_file, run_gauss_newton
+from rgbdslam.backend.posegraph_bench import run_benchmark
+from rgbdslam.errors import InputError
+
+
+def grid_walk(n=120, seed=0):
+    """Noise-free Manhattan-like walk with loop closures (the bench tests' generator)."""
+    from test_posegraph_bench import manhattan_like
+
+    return manhattan_like(n, seed)
+
+
+def test_error_is_t2v_of_error_transform():
+    rng = np.random.default_rng(1)
+    m = 50
+    xi, xj, z = (np.column_stack([rng.normal(size=(m, 2)) * 3, rng.uniform(-np.pi, np.pi, m)]) for _ in range(3))
+    poses = np.vstack([xi, xj])
+    e = edge_errors(poses, np.arange(m), np.arange(m, 2 * m), z)
+    ref = se2_compose(se2_between(z, np.zeros_like(z)), se2_between(xi, xj))  # Z⁻¹ ∘ (X_i⁻¹ X_j)
+    np.testing.assert_allclose(e[:, :2], ref[:, :2], atol=1e-12)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (e[:, 2] - ref[:, 2]))), 0, atol=1e-12)
+    assert np.all((e[:, 2] >= -np.pi) & (e[:, 2] < np.pi))
+
+
+def test_oplus_is_world_frame_addition():
+    p = np.array([[1.0, 2.0, 3.0]])
+    np.testing.assert_allclose(oplus(p, np.array([[0.5, -1.0, 0.5]])), [[1.5, 1.0, 3.5 - 2 * np.pi]])
+
+
+def test_jacobians_match_finite_differences():
+    rng = np.random.default_rng(2)
+    m = 40
+    n = 2 * m
+    poses = np.column_stack([rng.normal(size=(n, 2)) * 5, rng.uniform(-3.0, 3.0, n)])
+    ei, ej = np.arange(m), np.arange(m, n)
+    z = np.column_stack([rng.normal(size=(m, 2)) * 2, rng.uniform(-3.0, 3.0, m)])
+    # keep the angle error away from the ±π wrap, where e_θ jumps
+    z[:, 2] = wrap_angle(poses[ej, 2] - poses[ei, 2] - rng.uniform(-1.0, 1.0, m))
+    A, B = edge_jacobians(poses, ei, ej, z)
+    h = 1e-6
+    for which, J in ((ei, A), (ej, B)):
+        for k in range(3):
+            d = np.zeros((n, 3))
+            d[which, k] = h
+            num = (edge_errors(oplus(poses, d), ei, ej, z) - edge_errors(oplus(poses, -d), ei, ej, z)) / (2 * h)
+            np.testing.assert_allclose(num, J[:, :, k], atol=1e-7)
+
+
+def test_consistent_graph_converges_to_exact_answer():
+    g, gt = grid_walk(150)
+    rng = np.random.default_rng(3)
+    init = gt + rng.normal(size=gt.shape) * [0.2, 0.2, 0.1]
+    init[0] = gt[0]  # vertex 0 is held fixed
+    res = gauss_newton_g2o(g, init, max_iter=30, tol=1e-12, criterion="absolute")
+    assert res.converged and not res.failure
+    assert res.chi2_final < 1e-15
+    np.testing.assert_allclose(res.poses[:, :2], gt[:, :2], atol=1e-9)
+    np.testing.assert_allclose(wrap_angle(res.poses[:, 2] - gt[:, 2]), 0, atol=1e-9)
+    np.testing.assert_array_equal(res.poses[0], gt[0])
+    assert res.chi2_history[0] == pytest.approx(chi2_g2o(g, init))
+    assert len(res.chi2_history) == res.iterations + 1
+
+
+def test_noisy_loop_matches_gtsam_where_error_models_coincide():
+    # a 4 x 3 rectangle walked twice, with small noise: small residual angles at the optimum
+    pts = [(0, 0), (1, 0), (2, 0), (3, 0), (3, 1), (3, 2), (2, 2), (1, 2), (0, 2), (0, 1)]
+    head = [0, 0, 0, np.pi / 2, np.pi / 2, np.pi, np.pi, np.pi, -np.pi / 2, -np.pi / 2]
+    gt = np.array([(x, y, t) for (x, y), t in zip(pts, head)] * 2, float)
+    gt[10:, 0] += 0.05  # the second lap is slightly offset
+    n = len(gt)
+    pairs = [(k, k + 1) for k in range(n - 1)] + [(k, k + 10) for k in range(10)] + [(n - 1, 0)]
+    ei = np.array([p[0] for p in pairs])
+    ej = np.array([p[1] for p in pairs])
+    rng = np.random.default_rng(4)
+    sig = np.array([0.02, 0.02, 0.01])
+    meas = se2_between(gt[ei], gt[ej]) + rng.normal(size=(len(ei), 3)) * sig
+    info = np.tile(np.diag(1 / sig**2), (len(ei), 1, 1))
+    g = PoseGraph(2, np.arange(n), gt.copy(), ei, ej, meas, info, True, "loop")
+    init = gt + rng.normal(size=gt.shape) * [0.05, 0.05, 0.03]
+    init[0] = gt[0]
+    ours = gauss_newton_g2o(g, init, max_iter=50, tol=1e-10, criterion="relative")
+    theirs = gauss_newton(g, init, max_iter=50, tol=1e-10, criterion="relative")
+    assert ours.converged and theirs.converged
+    assert ours.chi2_final == pytest.approx(theirs.chi2_final, rel=1e-3)
+    # at the optimum the two error models give nearly the same cost for the same poses
+    assert chi2_g2o(g, ours.poses) == pytest.approx(chi2(g, ours.poses), rel=1e-3)
+    np.testing.assert_allclose(ours.poses, theirs.poses, atol=2e-3)
+
+
+def test_failure_and_errors():
+    g, gt = grid_walk(30)
+    # vertex 29 has no edges left: H is singular -> a reported failure, not an exception
+    keep = (g.edges_i != 29) & (g.edges_j != 29)
+    g2 = PoseGraph(2, g.ids, g.poses, g.edges_i[keep], g.edges_j[keep], g.meas[keep], g.info[keep], True, "cut")
+    res = gauss_newton_g2o(g2, gt, max_iter=5)
+    assert not res.converged and res.failure and res.poses is None
+    with pytest.raises(InputError):
+        gauss_newton_g2o(g, gt[:5])
+    with pytest.raises(InputError):
+        run_gauss_newton(g, gt, "ceres")
+    g3 = PoseGraph(3, np.arange(2), np.tile(np.eye(4), (2, 1, 1)), np.array([0]), np.array([1]),
+                   np.eye(4)[None], np.eye(6)[None], True, "se3")
+    with pytest.raises(InputError):
+        gauss_newton_g2o(g3, g3.poses)
+
+
+def test_bench_and_optimize_file_with_g2o_optimizer(tmp_path):
+    g, gt = grid_walk(100)
+    res = run_benchmark("tiny", [(0.05, 0.05, 0.05)], instances=2, max_iter=30, workers=1, seed=0,
+                        methods=("masat", "ground_truth"), progress=False, reference=(g, gt, "synthetic"),
+                        optimizer="g2o")
+    assert "GN (g2o)" in res["report"]
+    assert len(res["records"]) == 4 and all(r.converged_rel for r in res["records"])
+    with pytest.raises(InputError):
+        run_benchmark("tiny", [(0.05, 0.05, 0.05)], instances=1, progress=False, reference=(g, gt, "s"),
+                      optimizer="nope")
+    path = tmp_path / "walk.g2o"
+    write_g2o(path, g, gt)
+    text = optimize_file(path, init="masat", out=tmp_path / "out.g2o", progress=False, optimizer="g2o")
+    assert "optimizer g2o" in text and "converged" in text
