@@ -185,7 +185,8 @@ def posegraph_info(file, fmt):
 @posegraph.command("init")
 @click.argument("file", type=click.Path(path_type=Path))
 @click.option("--method", type=click.Choice(_INIT_METHODS), default="masat", show_default=True,
-              help="Initial guess (lago = GTSAM LAGO for SE(2), chordal = GTSAM InitializePose3 for SE(3)).")
+              help="Initial guess (lago = GTSAM LAGO, SE(2); chordal = chordal relaxation: ours for SE(2), "
+                   "GTSAM InitializePose3 for SE(3)).")
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Output g2o file.")
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="Input format.")
 def posegraph_init(file, method, out, fmt):
@@ -227,7 +228,8 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="relative", show_default=True,
               help="Convergence test of Tables 1/2: |dchi2|/chi2 < 1e-6 (relative, g2o's) or |dchi2| < 1e-6 "
                    "(absolute); the report shows the other one as Table 1b.")
-@click.option("--methods", default="odometry,spanning_tree,masat,weighted_masat,lago,ground_truth", show_default=True,
+@click.option("--methods", default="odometry,spanning_tree,masat,weighted_masat,lago,chordal,ground_truth",
+              show_default=True,
               help="Comma-separated initial guesses to compare.")
 @click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
               help="Folder for runs.csv, table1.csv, table2.csv, report.md.")

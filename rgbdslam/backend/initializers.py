@@ -8,8 +8,9 @@
 * ``lago`` (SE(2)) — GTSAM's LAGO (``gtsam.lago.initialize(graph, useOdometricPath=False)``: its
   2kπ angle unwrapping along a spanning tree instead of the odometry chain, which was better on
   M3500 at σθ = 0.05–0.2 — both fail often at the paper's noise levels, see docs/posegraph.md);
-  ``chordal`` (SE(3)) — GTSAM's chordal relaxation (``gtsam.InitializePose3.initialize``).
-  ``lago`` on an SE(3) graph and ``chordal`` on an SE(2) graph run the other one.
+  ``chordal`` — SE(3): GTSAM's chordal relaxation (``gtsam.InitializePose3.initialize``); SE(2):
+  this project's chordal relaxation of the headings + linear positions
+  (:mod:`rgbdslam.backend.chordal2d`). ``lago`` on an SE(3) graph runs GTSAM's chordal one.
 
 All return poses with vertex 0 at the origin / identity: ``(n, 3)`` rows ``(x, y, theta)`` for
 SE(2), ``(n, 4, 4)`` matrices for SE(3).
@@ -129,6 +130,10 @@ def lago(graph: PoseGraph) -> np.ndarray:
 
 
 def chordal(graph: PoseGraph) -> np.ndarray:
+    if graph.dim == 2:
+        from rgbdslam.backend.chordal2d import chordal_se2
+
+        return chordal_se2(graph)
     return _gtsam_init(graph)
 
 
@@ -142,7 +147,9 @@ def initialize(graph: PoseGraph, method: str) -> np.ndarray:
         return odometry(graph)
     if method == "spanning_tree":
         return spanning_tree(graph)
-    if method in ("lago", "chordal"):
+    if method == "chordal":
+        return chordal(graph)
+    if method == "lago":
         return _gtsam_init(graph)
     raise InputError(f"unknown initialisation method {method!r}; use one of {', '.join(METHODS)}")
 

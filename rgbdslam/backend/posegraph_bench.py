@@ -39,9 +39,9 @@ from rgbdslam.io.atomic import atomic_write_text
 
 DATASETS = ("m3500", "city10k", "m10000")
 DATASET_NAMES = {"m3500": "M3500", "city10k": "City10k", "m10000": "M10000"}
-BENCH_METHODS = ("odometry", "spanning_tree", "masat", "weighted_masat", "lago", "ground_truth")
+BENCH_METHODS = ("odometry", "spanning_tree", "masat", "weighted_masat", "lago", "chordal", "ground_truth")
 METHOD_NAMES = {"odometry": "Odometry", "spanning_tree": "Sp. tree", "masat": "MASAT",
-                "weighted_masat": "w-MASAT", "lago": "LAGO", "ground_truth": "GT"}
+                "weighted_masat": "w-MASAT", "lago": "LAGO", "chordal": "Chordal", "ground_truth": "GT"}
 NOISE_LEVELS = ((0.1, 0.1, 0.1), (0.15, 0.15, 0.15), (0.2, 0.2, 0.2), (0.25, 0.25, 0.25),
                 (0.3, 0.3, 0.3), (0.35, 0.35, 0.35), (0.15, 0.15, 0.3), (0.3, 0.3, 0.15))
 
@@ -430,7 +430,7 @@ def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int =
 
 
 def time_initialisers(dataset: str, noise_levels, repeats: int = 5, seed: int = 0, data_dir=None,
-                      methods=("odometry", "spanning_tree", "masat", "weighted_masat", "lago")) -> str:
+                      methods=("odometry", "spanning_tree", "masat", "weighted_masat", "lago", "chordal")) -> str:
     """Best-of-``repeats`` wall time (ms) of each initial guess on one noisy instance per level.
 
     MASAT's cost depends only on the graph, so its row should be flat across noise levels.
