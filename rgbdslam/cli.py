@@ -162,9 +162,10 @@ def synth(out, frames, motion, noise, dropout, drift, seed, camera, size):
 _GRAPH_FORMATS = click.Choice(["auto", "g2o", "toro", "isam"])
 _INIT_METHODS = ["masat", "weighted_masat", "odometry", "spanning_tree", "lago", "chordal"]
 _optimizer_option = click.option(
-    "--optimizer", type=click.Choice(["gtsam", "g2o"]), default="gtsam", show_default=True,
-    help="Gauss-Newton: gtsam (Pose2 Logmap error, Expmap update) or g2o (g2o's SE(2) error and update, "
-         "NumPy/SciPy; SE(2) only).")
+    "--optimizer", type=click.Choice(["gtsam", "g2o", "lm"]), default="gtsam", show_default=True,
+    help="gtsam: Gauss-Newton (Pose2 Logmap error, Expmap update); g2o: Gauss-Newton with g2o's SE(2) error "
+         "and update (NumPy/SciPy; SE(2) only); lm: GTSAM Levenberg-Marquardt (robust from poor starts; "
+         "not the MASAT paper's protocol).")
 
 
 @main.group()
@@ -201,7 +202,7 @@ def posegraph_init(file, method, out, fmt):
 @click.option("--init", "init", type=click.Choice(_INIT_METHODS + ["file"]), default="masat", show_default=True,
               help="Initial guess ('file' = the file's own vertex estimates).")
 @click.option("--out", "-o", type=click.Path(path_type=Path), default=None, help="Output g2o file.")
-@click.option("--max-iter", default=50, show_default=True, help="Maximum Gauss-Newton iterations.")
+@click.option("--max-iter", default=50, show_default=True, help="Maximum iterations.")
 @click.option("--tol", default=1e-6, show_default=True, help="Convergence threshold on the chi2 change.")
 @click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="relative", show_default=True,
               help="relative: |dchi2|/chi2 < tol (g2o's test); absolute: |dchi2| < tol.")
@@ -209,7 +210,7 @@ def posegraph_init(file, method, out, fmt):
 @_optimizer_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer, quiet):
-    """Initialise and optimise the pose graph in FILE with Gauss-Newton (GTSAM); print the chi2 report."""
+    """Initialise and optimise the pose graph in FILE (Gauss-Newton, or --optimizer lm); print the chi2 report."""
     from rgbdslam.backend.optimize import optimize_file
 
     click.echo(optimize_file(file, init=init, out=out, max_iter=max_iter, tol=tol, criterion=criterion, fmt=fmt,
@@ -222,7 +223,7 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--noise", default="0.2,0.2,0.2", show_default=True,
               help="sx,sy,stheta (several separated by ';'), or 'all' for the spec's 8 levels.")
 @click.option("--instances", default=50, show_default=True, help="Noisy instances per noise level.")
-@click.option("--max-iter", default=50, show_default=True, help="Maximum Gauss-Newton iterations.")
+@click.option("--max-iter", default=50, show_default=True, help="Maximum iterations.")
 @click.option("--workers", default=1, show_default=True, help="Parallel worker processes.")
 @click.option("--seed", default=0, show_default=True, help="Seed of the noise.")
 @click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="relative", show_default=True,

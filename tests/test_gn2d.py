@@ -128,3 +128,23 @@ def test_bench_and_optimize_file_with_g2o_optimizer(tmp_path):
     write_g2o(path, g, gt)
     text = optimize_file(path, init="masat", out=tmp_path / "out.g2o", progress=False, optimizer="g2o")
     assert "optimizer g2o" in text and "converged" in text
+
+
+def test_levenberg_marquardt_agrees_with_gn_and_never_increases_chi2():
+    g, gt = grid_walk(120, seed=3)
+    rng = np.random.default_rng(9)
+    sig = np.array([0.1, 0.1, 0.1])
+    g.meas = g.meas + rng.normal(size=g.meas.shape) * sig
+    g.meas[:, 2] = wrap_angle(g.meas[:, 2])
+    g.info = np.tile(np.diag(1 / sig**2), (g.n_edges, 1, 1))
+    gn = run_gauss_newton(g, gt, "gtsam", max_iter=50, tol=1e-10, criterion="relative")
+    lm = run_gauss_newton(g, gt, "lm", max_iter=50, tol=1e-10, criterion="relative")
+    assert gn.converged and lm.converged
+    assert lm.chi2_final == pytest.approx(gn.chi2_final, rel=1e-6)
+    # from a poor start (odometry chaining of noisy edges) LM only takes steps that lower chi2
+    from rgbdslam.backend.initializers import initialize
+
+    lm2 = run_gauss_newton(g, initialize(g, "odometry"), "lm", max_iter=50, tol=1e-6, criterion="relative")
+    h = np.array(lm2.chi2_history)
+    assert h[-1] < h[0] / 10
+    assert np.all(np.diff(h) <= 1e-9 * h[:-1])
