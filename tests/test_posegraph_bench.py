@@ -146,3 +146,24 @@ def test_runs_csv_round_trip_and_merge(tmp_path):
     assert b["records"][0].method == "weighted_masat"
     with pytest.raises(InputError, match="does not exist"):
         load_runs(tmp_path / "nope.csv")
+
+
+def test_optimum_rate_counts_only_runs_ending_at_ground_truths_chi2():
+    from rgbdslam.backend.posegraph_bench import RunRecord, format_report, summarise
+
+    def rec(inst, method, conv, rchi2):
+        return RunRecord("m3500", 0.2, 0.2, 0.2, inst, method, 10.0, conv, 5, rchi2, conv, 5, rchi2, 0.0, 0.0)
+
+    records = [rec(0, "ground_truth", True, 1.000), rec(1, "ground_truth", True, 0.990),
+               rec(0, "masat", True, 1.0005),  # within 0.1 % of GT's: at the optimum
+               rec(1, "masat", True, 1.050),  # converged, but into a local minimum
+               rec(0, "chordal", False, 1.000), rec(1, "chordal", True, 0.990)]
+    S = summarise(records)
+    s = (0.2, 0.2, 0.2)
+    assert S[(s, "masat")]["rate"] == 1.0 and S[(s, "masat")]["opt_rate"] == 0.5
+    assert S[(s, "chordal")]["rate"] == 0.5 and S[(s, "chordal")]["opt_rate"] == 0.5
+    assert S[(s, "ground_truth")]["opt_rate"] == 1.0
+    assert "| 0.2,0.2,0.2 | 0.50 | 0.50 | 1.00 |" in format_report(records, "m3500", ("masat", "chordal", "ground_truth"))
+    # without ground-truth runs there is no reference: no Table 1c
+    assert np.isnan(summarise(records[2:])[(s, "masat")]["opt_rate"])
+    assert "Table 1c" not in format_report(records[2:], "m3500", ("masat", "chordal"))
