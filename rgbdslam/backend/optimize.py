@@ -208,7 +208,8 @@ def optimize_file(path, init: str = "masat", out=None, max_iter: int = 50, tol: 
     else:
         poses = initialize(graph, init)
     t_init = time.perf_counter() - t0
-    with Progress(TextColumn("Levenberg-Marquardt" if optimizer == "lm" else "Gauss-Newton"), BarColumn(), MofNCompleteColumn(), TextColumn("chi2 {task.fields[chi2]}"),
+    label = "Levenberg-Marquardt" if optimizer == "lm" else "Gauss-Newton"
+    with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TextColumn("chi2 {task.fields[chi2]}"),
                   TimeElapsedColumn(), disable=not progress) as bar:
         job = bar.add_task("gn", total=max_iter, chi2="")
 
