@@ -118,3 +118,36 @@ def test_real_city10k_chordal_beats_masat_initial_chi2():
     # measured: chordal ≈ 1.3-1.5, MASAT ≈ 20-140 at this noise level
     assert r_chordal < 2.0
     assert r_chordal < r_masat / 5
+
+
+def test_cli_init_and_optimize_with_chordal_and_lm(tmp_path):
+    from click.testing import CliRunner
+
+    from rgbdslam.backend.graph_io import read_graph, write_g2o
+    from rgbdslam.cli import main
+
+    rng = np.random.default_rng(11)
+    n = 40
+    gt = np.zeros((n, 3))
+    for k in range(1, n):  # a spiral walk, headings sweeping past ±pi
+        th = gt[k - 1, 2] + 0.35
+        gt[k] = [gt[k - 1, 0] + np.cos(th), gt[k - 1, 1] + np.sin(th), math.remainder(th, 2 * math.pi)]
+    pairs = [(k, k + 1) for k in range(n - 1)] + [(k, k + 18) for k in range(0, n - 18, 3)]
+    ei = np.array([p[0] for p in pairs]); ej = np.array([p[1] for p in pairs])
+    z = se2_between(gt[ei], gt[ej]) + rng.normal(size=(len(pairs), 3)) * 0.02
+    g = _graph(pairs, z, np.tile(np.diag([2500.0, 2500.0, 2500.0]), (len(pairs), 1, 1)), n)
+    src = tmp_path / "spiral.g2o"
+    write_g2o(src, g, np.zeros((n, 3)))
+    runner = CliRunner()
+    res = runner.invoke(main, ["posegraph", "init", str(src), "--method", "chordal", "--out", str(tmp_path / "i.g2o")])
+    assert res.exit_code == 0, res.output
+    assert "chordal initial guess" in res.output
+    init = read_graph(tmp_path / "i.g2o").poses
+    assert np.abs(init[:, :2] - gt[:, :2]).max() < 0.2  # the noise is 0.02 per edge
+    res = runner.invoke(main, ["posegraph", "optimize", str(src), "--init", "chordal", "--optimizer", "lm", "-q",
+                               "--out", str(tmp_path / "o.g2o")])
+    assert res.exit_code == 0, res.output
+    assert "optimizer lm" in res.output and "converged" in res.output
+    res = runner.invoke(main, ["posegraph", "init", str(tmp_path / "missing.g2o"), "--method", "chordal",
+                               "--out", str(tmp_path / "x.g2o")])
+    assert res.exit_code != 0 and "Traceback" not in res.output and "missing.g2o" in res.output
