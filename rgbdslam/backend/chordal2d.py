@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
+from rgbdslam.backend.gn2d import factor_spd
 from rgbdslam.backend.graph import PoseGraph, wrap_angle
 from rgbdslam.backend.masat import bfs_order
 from rgbdslam.errors import InputError
@@ -43,8 +43,7 @@ def _solve_anchored(A: sp.spmatrix, b: np.ndarray, n_unknowns: int, fixed: np.nd
     H = (A.T @ A).tocsc()
     rhs = A.T @ b
     try:
-        lu = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        sol = lu.solve(np.asarray(rhs, float))
+        sol = factor_spd(H).solve(np.asarray(rhs, float))
     except RuntimeError:
         raise InputError(f"{source}: the linear system of the chordal initial guess is singular "
                          "(is the graph connected?); try --method masat") from None
