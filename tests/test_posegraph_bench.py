@@ -181,3 +181,34 @@ def test_optimum_rate_counts_only_runs_ending_at_ground_truths_chi2():
     # without ground-truth runs there is no reference: no Table 1c
     assert np.isnan(summarise(records[2:])[(s, "masat")]["opt_rate"])
     assert "Table 1c" not in format_report(records[2:], "m3500", ("masat", "chordal"))
+
+
+def test_compare_to_paper_script(tmp_path, capsys):
+    """scripts/compare_to_paper.py: counts, Wilson interval and Fisher verdicts on hand-made runs."""
+    import importlib.util
+
+    from rgbdslam.backend.posegraph_bench import RunRecord, write_outputs
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "compare_to_paper.py"
+    spec = importlib.util.spec_from_file_location("compare_to_paper", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    s = (0.15, 0.15, 0.3)  # City10k: the paper's MASAT 0.22 (11/50), ground truth 0.80 (40/50)
+
+    def rec(inst, method, conv):
+        return RunRecord("city10k", *s, inst, method, 10.0, conv, 5, 1.0, conv, 5, 1.0, 0.0, 0.0)
+
+    records = ([rec(i, "masat", i < 11) for i in range(50)] + [rec(i, "weighted_masat", True) for i in range(50)]
+               + [rec(i, "ground_truth", False) for i in range(50)])
+    rows = {r["method"]: r for r in mod.compare(records, ["masat", "weighted_masat", "ground_truth"])}
+    assert (rows["masat"]["k"], rows["masat"]["n"], rows["masat"]["p"], rows["masat"]["verdict"]) == (11, 50, 1.0, "same")
+    assert rows["weighted_masat"]["paper_column"] == "masat" and rows["weighted_masat"]["verdict"] == "above"
+    assert rows["ground_truth"]["verdict"] == "below" and rows["ground_truth"]["lo"] == pytest.approx(0.0, abs=1e-12)
+    # Wilson upper bound of 0/n is z²/(n + z²)
+    assert rows["ground_truth"]["hi"] == pytest.approx(1.959964 ** 2 / (50 + 1.959964 ** 2), rel=1e-5)
+    write_outputs(tmp_path, records, "city10k", ("masat", "weighted_masat", "ground_truth"), "report")
+    assert mod.main([str(tmp_path / "runs.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "| 0.15,0.15,0.3 | w-MASAT | 50/50 | 1.00 [0.93, 1.00] | 0.22 (MASAT) |" in out
+    assert "3 comparisons at alpha 0.05: 1 above, 1 same, 1 below the paper" in out
+    assert mod.main([str(tmp_path / "nope.csv")]) == 2
