@@ -3,7 +3,7 @@
 Usage::
 
     .venv/bin/python scripts/compare_to_paper.py RUNS.csv [RUNS.csv ...] [--methods masat,weighted_masat]
-        [--alpha 0.05] [--paper-instances 50]
+        [--alpha 0.05] [--paper-instances 50] [--paired weighted_masat,masat]
 
 Reads the ``runs.csv`` files of ``rgbdslam posegraph bench`` (several files of one data set are
 merged as ``--merge-runs`` does: a later file's (noise, instance, method) rows replace earlier
@@ -12,6 +12,11 @@ relative test), its 95 % Wilson interval, the paper's rate, and the two-sided Fi
 of "our rate equals the paper's" (the paper's count is its rate × ``--paper-instances``).  The
 paper has no weighted MASAT or chordal column; those are compared with the paper's MASAT column,
 which is what the issue's target for weighted MASAT asks.
+
+``--paired A,B`` adds a paired comparison of two of our starts on the same instances (exact
+McNemar test: of the instances where exactly one of them converged, how many were A's), both for
+"converged" and for "converged to the optimum" (Table 1c's rule, needs ground-truth runs).  This
+answers "is A better than B?" with more power than comparing each with the paper.
 
 A verdict ``above`` / ``below`` means p < ``--alpha``; ``same`` means the difference is within
 sampling noise at these sample sizes.  With 50 instances on each side the Wilson interval of a
@@ -73,6 +78,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="odometry,spanning_tree,masat,weighted_masat,ground_truth")
     ap.add_argument("--alpha", type=float, default=0.05)
     ap.add_argument("--paper-instances", type=int, default=50)
+    ap.add_argument("--paired", default="", help="A,B: also compare our starts A and B on the same instances")
     a = ap.parse_args(argv)
     merged: dict = {}
     try:
@@ -92,6 +98,14 @@ def main(argv=None) -> int:
     tally = {v: sum(r["verdict"] == v for r in rows) for v in ("above", "same", "below")}
     print(f"\n{len(rows)} comparisons at alpha {a.alpha}: {tally['above']} above, {tally['same']} same, "
           f"{tally['below']} below the paper")
+    if a.paired:
+        m = [x.strip() for x in a.paired.split(",")]
+        if len(m) != 2:
+            print("error: --paired needs two starts, e.g. weighted_masat,masat", file=sys.stderr)
+            return 2
+        print(f"\nPaired: {pb.METHOD_NAMES.get(m[0], m[0])} against {pb.METHOD_NAMES.get(m[1], m[1])} "
+              "on the same instances (exact McNemar test)\n")
+        print(pb.format_paired(pb.paired_comparison(records, m[0], m[1], a.alpha), m[0], m[1]))
     return 0
 
 

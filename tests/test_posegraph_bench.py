@@ -212,3 +212,53 @@ def test_compare_to_paper_script(tmp_path, capsys):
     assert "| 0.15,0.15,0.3 | w-MASAT | 50/50 | 1.00 [0.93, 1.00] | 0.22 (MASAT) |" in out
     assert "3 comparisons at alpha 0.05: 1 above, 1 same, 1 below the paper" in out
     assert mod.main([str(tmp_path / "nope.csv")]) == 2
+
+
+def test_paired_comparison_exact_mcnemar_by_hand():
+    """8 instances where only A converged, none where only B did: p = 2 * 0.5**8 (two-sided)."""
+    from rgbdslam.backend.posegraph_bench import RunRecord, format_paired, paired_comparison
+
+    s = (0.2, 0.2, 0.2)
+
+    def rec(inst, method, conv, rchi2=1.0):
+        return RunRecord("m3500", *s, inst, method, 10.0, conv, 5, rchi2, conv, 5, rchi2, 0.0, 0.0)
+
+    recs = ([rec(i, "weighted_masat", i < 10, 1.0 if i < 2 else 1.5) for i in range(20)]
+            + [rec(i, "masat", i < 2) for i in range(20)] + [rec(i, "ground_truth", True) for i in range(20)])
+    (row,) = paired_comparison(recs, "weighted_masat", "masat")
+    c, o = row["converged"], row["optimum"]
+    assert row["n"] == 20 and (c["rate_a"], c["rate_b"], c["only_a"], c["only_b"]) == (0.5, 0.1, 8, 0)
+    assert c["p"] == pytest.approx(2 * 0.5 ** 8) and c["verdict"] == "weighted_masat better"
+    # A's 8 extra runs end 50 % above ground truth's χ²: local minima, so at the optimum the two are equal
+    assert (o["rate_a"], o["rate_b"], o["only_a"], o["only_b"], o["p"], o["verdict"]) == (0.1, 0.1, 0, 0, 1.0, "same")
+    assert "| 0.2,0.2,0.2 | 20 | 0.50 / 0.10 | 8 / 0 | 0.008 | 0.10 / 0.10 | 0 / 0 | 1.000 |" in \
+        format_paired([row], "weighted_masat", "masat")
+    # without ground-truth runs there is no optimum to compare with
+    assert paired_comparison(recs[:40], "weighted_masat", "masat")[0]["optimum"] is None
+
+
+def test_heterogeneous_noise_study_instances():
+    """scripts/study_heterogeneous_noise.py: each edge's information matches its own noise."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "study_heterogeneous_noise.py"
+    spec = importlib.util.spec_from_file_location("study_heterogeneous_noise", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    ref, _ = manhattan_like(400, seed=6)
+    odo = ref.edges_j == ref.edges_i + 1
+    assert odo.any() and (~odo).any()
+    s = mod.edge_scales(ref, "loops", 3.0, np.random.default_rng(0))
+    assert np.all(s[odo] == 1 / 3) and np.all(s[~odo] == 3.0)
+    s = mod.edge_scales(ref, "loguniform", 3.0, np.random.default_rng(0))
+    assert s.min() >= 1 / 3 and s.max() <= 3 and abs(np.log(s).mean()) < 0.15
+    sigma = (0.1, 0.2, 0.05)
+    g = mod.heterogeneous_instance(ref, sigma, "loops", 3.0, np.random.default_rng(1))
+    sig = np.sqrt(1.0 / np.diagonal(g.info, axis1=1, axis2=2))
+    assert np.allclose(sig[odo], np.array(sigma) / 3) and np.allclose(sig[~odo], np.array(sigma) * 3)
+    assert np.all(g.info[:, 0, 1] == 0)
+    # the noise has the advertised per-edge scale: whitened residuals are standard normal
+    r = (g.meas[:, :2] - ref.meas[:, :2]) / sig[:, :2]
+    assert abs(r.std() - 1) < 0.1 and abs(r.mean()) < 0.1
+    with pytest.raises(InputError, match="unknown noise model"):
+        mod.edge_scales(ref, "nope", 3.0, np.random.default_rng(0))

@@ -413,6 +413,56 @@ def format_report(records, dataset, methods=BENCH_METHODS, criterion: str = "rel
     return "\n".join(lines) + "\n"
 
 
+def paired_comparison(records, a: str, b: str, alpha: float = 0.05, criterion: str = "relative") -> list[dict]:
+    """Per noise level: exact McNemar test of start ``a`` against start ``b`` on the same instances,
+    for "converged" and for "converged to the optimum" (final χ² within :data:`OPTIMUM_RTOL` of GT + GN's;
+    ``None`` without ground-truth runs).  Of the instances where exactly one of the two converged,
+    ``only_a`` were ``a``'s; p is the two-sided binomial test of ``only_a`` against half of them."""
+    from scipy.stats import binomtest
+
+    by = {(r.sigma_x, r.sigma_y, r.sigma_theta, r.instance, r.method): r for r in records}
+    rows = []
+    for sigma in sorted({(r.sigma_x, r.sigma_y, r.sigma_theta) for r in records}, key=lambda s: (level_index(s), s)):
+        inst = sorted(k[3] for k in by if k[:3] == sigma and k[4] == a and (*sigma, k[3], b) in by)
+        if not inst:
+            continue
+        row = dict(sigma=sigma, n=len(inst))
+        for what in ("converged", "optimum"):
+            def ok(r, what=what):
+                conv, _, rchi2 = r.verdict(criterion)
+                if what == "converged":
+                    return conv
+                g = by.get((*sigma, r.instance, "ground_truth"))
+                return None if g is None else conv and rchi2 <= g.verdict(criterion)[2] * (1 + OPTIMUM_RTOL)
+            va = [ok(by[(*sigma, i, a)]) for i in inst]
+            vb = [ok(by[(*sigma, i, b)]) for i in inst]
+            if any(v is None for v in va + vb):
+                row[what] = None
+                continue
+            only_a = sum(x and not y for x, y in zip(va, vb))
+            only_b = sum(y and not x for x, y in zip(va, vb))
+            p = 1.0 if only_a + only_b == 0 else float(binomtest(only_a, only_a + only_b, 0.5).pvalue)
+            verdict = "same" if p >= alpha else (f"{a} better" if only_a > only_b else f"{b} better")
+            row[what] = dict(rate_a=sum(va) / len(va), rate_b=sum(vb) / len(vb), only_a=only_a, only_b=only_b,
+                             p=p, verdict=verdict)
+        rows.append(row)
+    return rows
+
+
+def format_paired(rows: list[dict], a: str, b: str) -> str:
+    na, nb = METHOD_NAMES.get(a, a), METHOD_NAMES.get(b, b)
+    out = [f"| noise | n | converged {na} / {nb} | only {na} / only {nb} | McNemar p | "
+           f"at optimum {na} / {nb} | only {na} / only {nb} | McNemar p |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        cells = []
+        for what in ("converged", "optimum"):
+            c = r[what]
+            cells += ["–", "–", "–"] if c is None else [f"{c['rate_a']:.2f} / {c['rate_b']:.2f}",
+                                                       f"{c['only_a']} / {c['only_b']}", f"{c['p']:.3f}"]
+        out.append(f"| {','.join(f'{s:g}' for s in r['sigma'])} | {r['n']} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def _csv_text(rows: list[dict]) -> str:
     buf = io.StringIO()
     if rows:
