@@ -28,49 +28,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from scipy.stats import binomtest, fisher_exact
-
 from rgbdslam.backend import posegraph_bench as pb
 from rgbdslam.errors import InputError
-
-_PAPER_COLUMN = {"odometry": "odometry", "spanning_tree": "spanning_tree", "masat": "masat",
-                 "weighted_masat": "masat", "chordal": "masat", "ground_truth": "ground_truth"}
-
-
-def compare(records, methods, alpha: float = 0.05, paper_n: int = 50) -> list[dict]:
-    """One row per (noise level, method) that has a paper column to compare with."""
-    dataset = records[0].dataset
-    groups: dict = {}
-    for r in records:
-        groups.setdefault(((r.sigma_x, r.sigma_y, r.sigma_theta), r.method), []).append(r.converged_rel)
-    rows = []
-    for sigma in sorted({k[0] for k in groups}, key=lambda s: (pb.level_index(s), s)):
-        level = pb.level_index(sigma)
-        for m in methods:
-            if (sigma, m) not in groups or m not in _PAPER_COLUMN or level >= len(pb.NOISE_LEVELS):
-                continue
-            conv = groups[(sigma, m)]
-            k, n = sum(conv), len(conv)
-            paper = pb.PAPER_TABLE1[dataset][level][pb._PAPER_T1_COLS.index(_PAPER_COLUMN[m])]
-            pk = round(paper * paper_n)
-            ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
-            p = float(fisher_exact([[k, n - k], [pk, paper_n - pk]])[1])
-            verdict = "same" if p >= alpha else ("above" if k / n > paper else "below")
-            rows.append(dict(dataset=dataset, sigma=sigma, method=m, k=k, n=n, rate=k / n, lo=ci.low, hi=ci.high,
-                             paper=paper, paper_column=_PAPER_COLUMN[m], p=p, verdict=verdict))
-    return rows
-
-
-def markdown(rows: list[dict]) -> str:
-    out = ["| noise | start | ours k/n | rate [95 % Wilson] | paper (column) | Fisher p | verdict |",
-           "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        col = "" if r["paper_column"] == r["method"] else f" ({pb.METHOD_NAMES[r['paper_column']]})"
-        out.append(f"| {','.join(f'{s:g}' for s in r['sigma'])} | {pb.METHOD_NAMES[r['method']]} | {r['k']}/{r['n']} | "
-                   f"{r['rate']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}] | {r['paper']:.2f}{col} | {r['p']:.3f} | "
-                   f"{r['verdict']} |")
-    return "\n".join(out)
-
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -92,9 +51,9 @@ def main(argv=None) -> int:
     if not records or len({r.dataset for r in records}) != 1:
         print("error: give runs.csv files of exactly one data set", file=sys.stderr)
         return 2
-    rows = compare(records, [m.strip() for m in a.methods.split(",") if m.strip()], a.alpha, a.paper_instances)
+    rows = pb.compare_with_paper(records, [m.strip() for m in a.methods.split(",") if m.strip()], a.alpha, a.paper_instances)
     print(f"{pb.DATASET_NAMES[records[0].dataset]} — `{' '.join(['scripts/compare_to_paper.py'] + (argv or sys.argv[1:]))}`\n")
-    print(markdown(rows))
+    print(pb.format_paper_comparison(rows))
     tally = {v: sum(r["verdict"] == v for r in rows) for v in ("above", "same", "below")}
     print(f"\n{len(rows)} comparisons at alpha {a.alpha}: {tally['above']} above, {tally['same']} same, "
           f"{tally['below']} below the paper")

@@ -187,7 +187,7 @@ def test_compare_to_paper_script(tmp_path, capsys):
     """scripts/compare_to_paper.py: counts, Wilson interval and Fisher verdicts on hand-made runs."""
     import importlib.util
 
-    from rgbdslam.backend.posegraph_bench import RunRecord, write_outputs
+    from rgbdslam.backend.posegraph_bench import RunRecord, compare_with_paper, format_report, write_outputs
 
     path = Path(__file__).resolve().parents[1] / "scripts" / "compare_to_paper.py"
     spec = importlib.util.spec_from_file_location("compare_to_paper", path)
@@ -200,12 +200,16 @@ def test_compare_to_paper_script(tmp_path, capsys):
 
     records = ([rec(i, "masat", i < 11) for i in range(50)] + [rec(i, "weighted_masat", True) for i in range(50)]
                + [rec(i, "ground_truth", False) for i in range(50)])
-    rows = {r["method"]: r for r in mod.compare(records, ["masat", "weighted_masat", "ground_truth"])}
+    rows = {r["method"]: r for r in compare_with_paper(records, ["masat", "weighted_masat", "ground_truth"])}
     assert (rows["masat"]["k"], rows["masat"]["n"], rows["masat"]["p"], rows["masat"]["verdict"]) == (11, 50, 1.0, "same")
     assert rows["weighted_masat"]["paper_column"] == "masat" and rows["weighted_masat"]["verdict"] == "above"
     assert rows["ground_truth"]["verdict"] == "below" and rows["ground_truth"]["lo"] == pytest.approx(0.0, abs=1e-12)
     # Wilson upper bound of 0/n is z²/(n + z²)
     assert rows["ground_truth"]["hi"] == pytest.approx(1.959964 ** 2 / (50 + 1.959964 ** 2), rel=1e-5)
+    # the bench report names the differences beyond sampling noise
+    rep = format_report(records, "city10k", ("masat", "weighted_masat", "ground_truth"))
+    assert "0.15,0.15,0.3 w-MASAT 1.00 vs the paper's MASAT 0.22 (above, p = 0.000)" in rep
+    assert "0.15,0.15,0.3 GT 0.00 vs 0.80 (below, p = 0.000)" in rep and "MASAT 0.22 vs" not in rep
     write_outputs(tmp_path, records, "city10k", ("masat", "weighted_masat", "ground_truth"), "report")
     assert mod.main([str(tmp_path / "runs.csv")]) == 0
     out = capsys.readouterr().out

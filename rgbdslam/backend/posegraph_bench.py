@@ -397,6 +397,13 @@ def format_report(records, dataset, methods=BENCH_METHODS, criterion: str = "rel
                   f"| noise | {head} |", "|---|" + "---|" * len(methods)]
         for r in t1:
             lines.append(f"| {r['noise']} | " + " | ".join(_fmt(r[f"{m}_optimum_rate"]) for m in methods) + " |")
+    diff = [r for r in compare_with_paper(records, methods, criterion=criterion) if r["verdict"] != "same"]
+    if dataset in PAPER_TABLE1:
+        lines += ["", "Differences from the paper's Table 1 beyond sampling noise (two-sided Fisher exact test, "
+                  "p < 0.05, the paper's count = rate × 50; w-MASAT and chordal against the paper's MASAT): "
+                  + ("; ".join(f"{','.join(f'{v:g}' for v in r['sigma'])} {METHOD_NAMES[r['method']]} {r['rate']:.2f} vs "
+                               + ("the paper's MASAT " if r["paper_column"] != r["method"] else "")
+                               + f"{r['paper']:.2f} ({r['verdict']}, p = {r['p']:.3f})" for r in diff) or "none") + "."]
     lines += ["", "Table 2 — mean GN iterations / mean reduced χ² over converged runs "
               "(paper's MASAT+GN in brackets):", "", f"| noise | {head} |", "|---|" + "---|" * len(methods)]
     for r in t2:
@@ -411,6 +418,52 @@ def format_report(records, dataset, methods=BENCH_METHODS, criterion: str = "rel
     for r in t1:
         lines.append(f"| {r['noise']} | " + " | ".join(_fmt(r[f'{m}_init_ms'], 1) for m in methods) + " |")
     return "\n".join(lines) + "\n"
+
+
+# the paper column a start is compared with (it has no weighted MASAT or chordal column)
+PAPER_COLUMN = {"odometry": "odometry", "spanning_tree": "spanning_tree", "masat": "masat",
+                 "weighted_masat": "masat", "chordal": "masat", "ground_truth": "ground_truth"}
+
+
+def compare_with_paper(records, methods, alpha: float = 0.05, paper_n: int = 50,
+                       criterion: str = "relative") -> list[dict]:
+    """Our Table 1 rates against the paper's, one row per (noise level, start) that has a paper
+    column (:data:`PAPER_COLUMN`): count ``k/n``, 95 % Wilson interval ``lo..hi``, the two-sided
+    Fisher exact p of "same rate" (the paper's count = its rate × ``paper_n``) and a verdict
+    ``above`` / ``below`` (p < ``alpha``) or ``same``."""
+    from scipy.stats import binomtest, fisher_exact
+
+    dataset = records[0].dataset
+    groups: dict = {}
+    for r in records:
+        groups.setdefault(((r.sigma_x, r.sigma_y, r.sigma_theta), r.method), []).append(r.verdict(criterion)[0])
+    rows = []
+    for sigma in sorted({k[0] for k in groups}, key=lambda s: (level_index(s), s)):
+        level = level_index(sigma)
+        for m in methods:
+            if dataset not in PAPER_TABLE1 or (sigma, m) not in groups or m not in PAPER_COLUMN or level >= len(NOISE_LEVELS):
+                continue
+            conv = groups[(sigma, m)]
+            k, n = sum(conv), len(conv)
+            paper = PAPER_TABLE1[dataset][level][_PAPER_T1_COLS.index(PAPER_COLUMN[m])]
+            pk = round(paper * paper_n)
+            ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
+            p = float(fisher_exact([[k, n - k], [pk, paper_n - pk]])[1])
+            verdict = "same" if p >= alpha else ("above" if k / n > paper else "below")
+            rows.append(dict(dataset=dataset, sigma=sigma, method=m, k=k, n=n, rate=k / n, lo=ci.low, hi=ci.high,
+                             paper=paper, paper_column=PAPER_COLUMN[m], p=p, verdict=verdict))
+    return rows
+
+
+def format_paper_comparison(rows: list[dict]) -> str:
+    out = ["| noise | start | ours k/n | rate [95 % Wilson] | paper (column) | Fisher p | verdict |",
+           "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        col = "" if r["paper_column"] == r["method"] else f" ({METHOD_NAMES[r['paper_column']]})"
+        out.append(f"| {','.join(f'{s:g}' for s in r['sigma'])} | {METHOD_NAMES[r['method']]} | {r['k']}/{r['n']} | "
+                   f"{r['rate']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}] | {r['paper']:.2f}{col} | {r['p']:.3f} | "
+                   f"{r['verdict']} |")
+    return "\n".join(out)
 
 
 def paired_comparison(records, a: str, b: str, alpha: float = 0.05, criterion: str = "relative") -> list[dict]:
