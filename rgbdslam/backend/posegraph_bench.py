@@ -318,7 +318,7 @@ def summarise(records: list[RunRecord], criterion: str = "relative") -> dict:
         conv = [x for x in v if x[0]]
         refs = [gt_chi2.get((key[0], r.instance)) for r in rs]
         if all(ref is not None and np.isfinite(ref) for ref in refs):
-            opt_rate = float(np.mean([x[0] and x[2] <= ref * (1 + OPTIMUM_RTOL) for x, ref in zip(v, refs)]))
+            opt_rate = float(np.mean([_at_optimum(x[0], x[2], ref) for x, ref in zip(v, refs)]))
         else:
             opt_rate = float("nan")
         out[key] = dict(
@@ -327,6 +327,15 @@ def summarise(records: list[RunRecord], criterion: str = "relative") -> dict:
             rchi2=float(np.mean([x[2] for x in conv])) if conv else float("nan"),
             init_s=float(np.mean([r.init_seconds for r in rs])), gn_s=float(np.mean([r.gn_seconds for r in rs])))
     return out
+
+
+def _noise_text(sigma) -> str:
+    return ",".join(f"{v:g}" for v in sigma)
+
+
+def _at_optimum(converged: bool, reduced_chi2: float, reference: float) -> bool:
+    """Table 1c's rule: converged, and within :data:`OPTIMUM_RTOL` of ground truth + GN's reduced χ²."""
+    return bool(converged and reduced_chi2 <= reference * (1 + OPTIMUM_RTOL))
 
 
 def _fmt(v, nd=2):
@@ -349,7 +358,7 @@ def table_rows(records, dataset, methods, criterion: str = "relative"):
         p1 = PAPER_TABLE1[dataset][k] if k < 8 and dataset in PAPER_TABLE1 else None
         p2 = PAPER_TABLE2[dataset][k] if k < 8 and dataset in PAPER_TABLE2 else None
         counts = sorted({S[(s, m)]["n"] for m in methods})
-        row1 = {"noise": ",".join(f"{v:g}" for v in s), "instances": "/".join(map(str, counts)), "criterion": criterion}
+        row1 = {"noise": _noise_text(s), "instances": "/".join(map(str, counts)), "criterion": criterion}
         row2 = dict(row1)
         for m in methods:
             row1[f"{m}_n"] = S[(s, m)]["n"]
@@ -397,11 +406,11 @@ def format_report(records, dataset, methods=BENCH_METHODS, criterion: str = "rel
                   f"| noise | {head} |", "|---|" + "---|" * len(methods)]
         for r in t1:
             lines.append(f"| {r['noise']} | " + " | ".join(_fmt(r[f"{m}_optimum_rate"]) for m in methods) + " |")
-    diff = [r for r in compare_with_paper(records, methods, criterion=criterion) if r["verdict"] != "same"]
     if dataset in PAPER_TABLE1:
+        diff = [r for r in compare_with_paper(records, methods, criterion=criterion) if r["verdict"] != "same"]
         lines += ["", "Differences from the paper's Table 1 beyond sampling noise (two-sided Fisher exact test, "
                   "p < 0.05, the paper's count = rate × 50; w-MASAT and chordal against the paper's MASAT): "
-                  + ("; ".join(f"{','.join(f'{v:g}' for v in r['sigma'])} {METHOD_NAMES[r['method']]} {r['rate']:.2f} vs "
+                  + ("; ".join(f"{_noise_text(r['sigma'])} {METHOD_NAMES[r['method']]} {r['rate']:.2f} vs "
                                + ("the paper's MASAT " if r["paper_column"] != r["method"] else "")
                                + f"{r['paper']:.2f} ({r['verdict']}, p = {r['p']:.3f})" for r in diff) or "none") + "."]
     lines += ["", "Table 2 — mean GN iterations / mean reduced χ² over converged runs "
@@ -441,7 +450,8 @@ def compare_with_paper(records, methods, alpha: float = 0.05, paper_n: int = 50,
     for sigma in sorted({k[0] for k in groups}, key=lambda s: (level_index(s), s)):
         level = level_index(sigma)
         for m in methods:
-            if dataset not in PAPER_TABLE1 or (sigma, m) not in groups or m not in PAPER_COLUMN or level >= len(NOISE_LEVELS):
+            if dataset not in PAPER_TABLE1 or m not in PAPER_COLUMN or (sigma, m) not in groups \
+                    or level >= len(NOISE_LEVELS):
                 continue
             conv = groups[(sigma, m)]
             k, n = sum(conv), len(conv)
@@ -460,7 +470,7 @@ def format_paper_comparison(rows: list[dict]) -> str:
            "|---|---|---|---|---|---|---|"]
     for r in rows:
         col = "" if r["paper_column"] == r["method"] else f" ({METHOD_NAMES[r['paper_column']]})"
-        out.append(f"| {','.join(f'{s:g}' for s in r['sigma'])} | {METHOD_NAMES[r['method']]} | {r['k']}/{r['n']} | "
+        out.append(f"| {_noise_text(r['sigma'])} | {METHOD_NAMES[r['method']]} | {r['k']}/{r['n']} | "
                    f"{r['rate']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}] | {r['paper']:.2f}{col} | {r['p']:.3f} | "
                    f"{r['verdict']} |")
     return "\n".join(out)
@@ -486,7 +496,7 @@ def paired_comparison(records, a: str, b: str, alpha: float = 0.05, criterion: s
                 if what == "converged":
                     return conv
                 g = by.get((*sigma, r.instance, "ground_truth"))
-                return None if g is None else conv and rchi2 <= g.verdict(criterion)[2] * (1 + OPTIMUM_RTOL)
+                return None if g is None else _at_optimum(conv, rchi2, g.verdict(criterion)[2])
             va = [ok(by[(*sigma, i, a)]) for i in inst]
             vb = [ok(by[(*sigma, i, b)]) for i in inst]
             if any(v is None for v in va + vb):
@@ -512,7 +522,7 @@ def format_paired(rows: list[dict], a: str, b: str) -> str:
             c = r[what]
             cells += ["–", "–", "–"] if c is None else [f"{c['rate_a']:.2f} / {c['rate_b']:.2f}",
                                                        f"{c['only_a']} / {c['only_b']}", f"{c['p']:.3f}"]
-        out.append(f"| {','.join(f'{s:g}' for s in r['sigma'])} | {r['n']} | " + " | ".join(cells) + " |")
+        out.append(f"| {_noise_text(r['sigma'])} | {r['n']} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 
 
@@ -575,7 +585,7 @@ def time_initialisers(dataset: str, noise_levels, repeats: int = 5, seed: int = 
                 initialize(g, m)
                 best = min(best, time.perf_counter() - t0)
             cells.append(f"{best * 1e3:.1f}")
-        lines.append(f"| {','.join(f'{v:g}' for v in s)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {_noise_text(s)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
