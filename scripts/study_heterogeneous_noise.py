@@ -39,9 +39,6 @@ from pathlib import Path
 import numpy as np
 
 from rgbdslam.backend import posegraph_bench as pb
-from rgbdslam.backend.graph import wrap_angle
-from rgbdslam.backend.initializers import initialize
-from rgbdslam.backend.optimize import degrees_of_freedom, run_gauss_newton
 from rgbdslam.errors import InputError
 
 _STATE: dict = {}
@@ -60,31 +57,14 @@ def edge_scales(ref, model: str, spread: float, rng: np.random.Generator) -> np.
 def heterogeneous_instance(ref, sigma, model: str, spread: float, rng: np.random.Generator):
     """A noisy copy of ``ref``: edge e gets N(0, s_e σ) noise and information diag(1/(s_e σ)²)."""
     sig = np.asarray(sigma, float)[None, :] * edge_scales(ref, model, spread, rng)[:, None]
-    g = ref.copy()
-    g.meas = ref.meas + rng.normal(size=ref.meas.shape) * sig
-    g.meas[:, 2] = wrap_angle(g.meas[:, 2])
-    g.info = np.zeros((ref.n_edges, 3, 3))
-    g.info[:, [0, 1, 2], [0, 1, 2]] = 1.0 / sig**2
-    g.has_poses = False
-    return g
+    return pb.noisy_instance(ref, sig, rng)
 
 
 def _run(instance: int) -> list[pb.RunRecord]:
     st = _STATE
     rng = np.random.default_rng([st["seed"], pb.DATASETS.index(st["dataset"]), 777, instance])
     g = heterogeneous_instance(st["ref"], st["sigma"], st["model"], st["spread"], rng)
-    dof = degrees_of_freedom(g)
-    out = []
-    for m in st["methods"]:
-        t0 = time.perf_counter()
-        p = st["gt"] if m == "ground_truth" else initialize(g, m)
-        t_init = time.perf_counter() - t0
-        r = run_gauss_newton(g, p, "gtsam", max_iter=50, tol=1e-6, criterion="absolute", keep_poses=False)
-        ca, ia, xa = pb.first_convergence(r.chi2_history, 1e-6, "absolute")
-        cr, ir, xr = pb.first_convergence(r.chi2_history, 1e-6, "relative")
-        out.append(pb.RunRecord(st["dataset"], *map(float, st["sigma"]), instance, m, r.chi2_initial, ca, ia, xa / dof,
-                                cr, ir, xr / dof, t_init, r.seconds, r.failure))
-    return out
+    return pb.run_starts(g, st["gt"], st["dataset"], st["sigma"], instance, st["methods"])
 
 
 def main(argv=None) -> int:

@@ -161,11 +161,14 @@ def reference_graph(dataset: str, data_dir: str | Path | None = None) -> tuple[P
 
 
 def noisy_instance(ref: PoseGraph, sigma, rng: np.random.Generator) -> PoseGraph:
-    sigma = np.asarray(sigma, float)
+    """A noisy copy of ``ref``: N(0, σ) on each edge's (x, y, θ) (θ wrapped), information diag(1/σ²).
+    ``sigma`` is one (3,) triple for every edge, or an (n_edges, 3) array of per-edge deviations."""
+    sigma = np.broadcast_to(np.asarray(sigma, float), ref.meas.shape)
     g = ref.copy()
     g.meas = ref.meas + rng.normal(size=ref.meas.shape) * sigma
     g.meas[:, 2] = wrap_angle(g.meas[:, 2])
-    g.info = np.broadcast_to(np.diag(1.0 / sigma**2), (ref.n_edges, 3, 3)).copy()
+    g.info = np.zeros((ref.n_edges, 3, 3))
+    g.info[:, [0, 1, 2], [0, 1, 2]] = 1.0 / sigma**2
     g.has_poses = False
     return g
 
@@ -184,7 +187,13 @@ def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int
                  optimizer: str = "gtsam") -> list[RunRecord]:
     """All initial guesses + GN on one noisy instance (seeded by ``(seed, dataset, level, instance)``)."""
     rng = np.random.default_rng([seed, DATASETS.index(dataset) if dataset in DATASETS else 99, level, instance])
-    g = noisy_instance(ref, sigma, rng)
+    return run_starts(noisy_instance(ref, sigma, rng), gt, dataset, sigma, instance, methods, max_iter, tol, optimizer)
+
+
+def run_starts(g: PoseGraph, gt: np.ndarray, dataset: str, sigma, instance: int, methods=BENCH_METHODS,
+               max_iter: int = 50, tol: float = 1e-6, optimizer: str = "gtsam") -> list[RunRecord]:
+    """Each initial guess of ``methods`` + at most ``max_iter`` GN iterations on the noisy graph ``g``;
+    one :class:`RunRecord` per method (``sigma`` and ``instance`` only label the records)."""
     dof = degrees_of_freedom(g)
     out = []
     for m in methods:
