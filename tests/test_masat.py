@@ -198,6 +198,37 @@ def test_odometry_and_spanning_tree_hand_computed():
     np.testing.assert_allclose(ms[2, :2], (gt[2, :2] + pred_from_3[:2]) / 2, atol=1e-12)
 
 
+def test_spanning_tree_tie_breaking_hand_computed():
+    """Square 0-2, 0-1, 1-3, 2-3 (edges in that file order): vertex 3 has two parents one level up.
+    By index, 1 is dequeued before 2 and places 3; in file order (g2o's), 0's first edge leads to 2."""
+    from rgbdslam.backend.initializers import bfs_tree_ordered
+
+    gt = np.array([[0, 0, 0], [1, 0, 0.5], [0, 1, -0.5], [1, 1, 1.0]], float)
+    noise = np.zeros((4, 3))
+    noise[2] = [0.2, 0.0, 0.0]  # corrupt 1->3
+    noise[3] = [0.0, -0.1, 0.05]  # corrupt 2->3
+    g = _graph2(gt, [(0, 2), (0, 1), (1, 3), (2, 3)], noise)
+    order, parent, edge_of = bfs_tree_ordered(4, g.edges_i, g.edges_j, "index")
+    assert order.tolist() == [0, 1, 2, 3] and parent.tolist() == [-1, 0, 0, 1] and edge_of[3] == 2
+    order, parent, edge_of = bfs_tree_ordered(4, g.edges_i, g.edges_j, "edge_order")
+    assert order.tolist() == [0, 2, 1, 3] and parent.tolist() == [-1, 0, 0, 2] and edge_of[3] == 3
+    by_index, by_file = spanning_tree(g), spanning_tree(g, "edge_order")
+    _se2_close(by_index[:3], gt[:3])
+    _se2_close(by_file[:3], gt[:3])
+    _se2_close(by_index[3], se2_compose(gt[1], g.meas[2]))
+    _se2_close(by_file[3], se2_compose(gt[2], g.meas[3]))
+    # a random order (seeded) is a valid BFS tree: every parent is one level up, and reproducible
+    depth = {0: 0, 1: 1, 2: 1, 3: 2}
+    for seed in range(5):
+        o, p, e = bfs_tree_ordered(4, g.edges_i, g.edges_j, seed)
+        assert all(depth[int(p[v])] == depth[v] - 1 for v in (1, 2, 3))
+        for v in (1, 2, 3):  # the placing edge joins the vertex and its parent
+            assert {int(g.edges_i[e[v]]), int(g.edges_j[e[v]])} == {v, int(p[v])}
+        np.testing.assert_array_equal(p, bfs_tree_ordered(4, g.edges_i, g.edges_j, seed)[1])
+    with pytest.raises(InputError, match="tie break"):
+        spanning_tree(g, "nope")
+
+
 def test_odometry_inverts_backward_edges_and_reports_gaps():
     gt = np.array([[0, 0, 0], [1, 0, 0.5], [2, 1, 1.0]])
     g = _graph2(gt, [(1, 0), (1, 2)])

@@ -208,14 +208,37 @@ def test_compare_to_paper_script(tmp_path, capsys):
     assert rows["ground_truth"]["hi"] == pytest.approx(1.959964 ** 2 / (50 + 1.959964 ** 2), rel=1e-5)
     # the bench report names the differences beyond sampling noise
     rep = format_report(records, "city10k", ("masat", "weighted_masat", "ground_truth"))
-    assert "0.15,0.15,0.3 w-MASAT 1.00 vs the paper's MASAT 0.22 (above, p = 0.000)" in rep
-    assert "0.15,0.15,0.3 GT 0.00 vs 0.80 (below, p = 0.000)" in rep and "MASAT 0.22 vs" not in rep
+    assert ("0.15,0.15,0.3 w-MASAT 1.00 vs the paper's MASAT 0.22 (above, p = 0.000, "
+            "Holm-adjusted over the table's 3 comparisons 0.000)") in rep
+    assert "0.15,0.15,0.3 GT 0.00 vs 0.80 (below, p = 0.000, " in rep and "MASAT 0.22 vs" not in rep
     write_outputs(tmp_path, records, "city10k", ("masat", "weighted_masat", "ground_truth"), "report")
     assert mod.main([str(tmp_path / "runs.csv")]) == 0
     out = capsys.readouterr().out
     assert "| 0.15,0.15,0.3 | w-MASAT | 50/50 | 1.00 [0.93, 1.00] | 0.22 (MASAT) |" in out
-    assert "3 comparisons at alpha 0.05: 1 above, 1 same, 1 below the paper" in out
+    assert "3 comparisons at alpha 0.05, each cell on its own: 1 above, 1 same, 1 below the paper" in out
+    assert "3 comparisons at alpha 0.05, Holm-adjusted over the table: 1 above, 1 same, 1 below the paper" in out
     assert mod.main([str(tmp_path / "nope.csv")]) == 2
+
+
+def test_holm_adjustment_by_hand():
+    """Holm–Bonferroni: sorted p (0.005, 0.01, 0.03, 0.04) times (4, 3, 2, 1) = (0.02, 0.03, 0.06, 0.04),
+    then the running maximum (0.02, 0.03, 0.06, 0.06), returned in the input order."""
+    from rgbdslam.backend.posegraph_bench import RunRecord, compare_with_paper, holm_adjust
+
+    np.testing.assert_allclose(holm_adjust([0.01, 0.04, 0.03, 0.005]), [0.03, 0.06, 0.06, 0.02])
+    np.testing.assert_allclose(holm_adjust([0.5, 0.6]), [1.0, 1.0])  # capped at 1
+    assert holm_adjust([]).shape == (0,)
+    # a cell "below" on its own (p < 0.05) but not after adjusting over the table's cells
+    s = [(0.15, 0.15, 0.3), (0.3, 0.3, 0.3)]  # M3500: the paper's MASAT 0.76 and 0.80
+
+    def rec(k, inst, conv):
+        return RunRecord("m3500", *s[k], inst, "masat", 10.0, conv, 5, 1.0, conv, 5, 1.0, 0.0, 0.0)
+
+    recs = [rec(0, i, i < 27) for i in range(50)] + [rec(1, i, i < 40) for i in range(50)]
+    rows = compare_with_paper(recs, ["masat"])
+    assert [(r["k"], r["verdict"]) for r in rows] == [(40, "same"), (27, "below")]  # level order: 0.3 before (0.15,0.15,0.3)
+    assert rows[1]["p"] < 0.05 and rows[1]["p_holm"] == pytest.approx(min(1.0, 2 * rows[1]["p"]))
+    assert rows[0]["p_holm"] == pytest.approx(1.0) and rows[1]["verdict_holm"] == "same"  # 2 x 0.035 = 0.07
 
 
 def test_paired_comparison_exact_mcnemar_by_hand():

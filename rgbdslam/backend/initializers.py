@@ -91,10 +91,66 @@ def odometry(graph: PoseGraph) -> np.ndarray:
     return _chain(graph, parent, np.arange(n), edge_of, fwd)
 
 
-def spanning_tree(graph: PoseGraph) -> np.ndarray:
-    order, parent = bfs_order(graph.n_vertices, graph.edges_i, graph.edges_j)
-    lut = _edge_lookup(graph)
+def bfs_tree_ordered(n: int, ei: np.ndarray, ej: np.ndarray, tie_break="index",
+                     root: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """BFS from ``root`` with a chosen order of each vertex's neighbours, which decides the parent
+    whenever several vertices one level up are adjacent (the first one dequeued wins).
+
+    ``tie_break``: ``"index"`` — neighbours by increasing vertex index (:func:`bfs_order`);
+    ``"edge_order"`` — by the position of the joining edge in the file, the order in which g2o
+    allocates edges and so (usually) the pointer order of its ``std::set`` of a vertex's edges;
+    an ``int`` — a random neighbour order seeded by it.  Returns ``(order, parent, edge_of)`` with
+    ``edge_of[v]`` the index of the edge that placed ``v`` (the first in the chosen order).
+    """
+    ei = np.asarray(ei, np.int64)
+    ej = np.asarray(ej, np.int64)
+    m = len(ei)
+    k = np.concatenate([np.arange(m), np.arange(m)])
+    a = np.concatenate([ei, ej])
+    b = np.concatenate([ej, ei])
+    if tie_break == "index":
+        key = b
+    elif tie_break == "edge_order":
+        key = k
+    elif isinstance(tie_break, (int, np.integer)) and not isinstance(tie_break, bool):
+        key = np.random.default_rng(int(tie_break)).permutation(2 * m)
+    else:
+        raise InputError(f"unknown spanning-tree tie break {tie_break!r}; use index, edge_order or an integer seed")
+    srt = np.lexsort((k, key, a))  # per vertex a: its incident edges in the chosen order
+    nbr, edge = b[srt].tolist(), k[srt].tolist()
+    ptr = np.searchsorted(a[srt], np.arange(n + 1)).tolist()
+    parent = [-1] * n
+    edge_of = [0] * n
+    seen = [False] * n
+    seen[root] = True
+    order = [root]
+    head = 0
+    while head < len(order):
+        u = order[head]
+        head += 1
+        for t in range(ptr[u], ptr[u + 1]):
+            v = nbr[t]
+            if not seen[v]:
+                seen[v] = True
+                parent[v] = u
+                edge_of[v] = edge[t]
+                order.append(v)
+    if len(order) < n:
+        raise InputError(f"pose graph is not connected: {n - len(order)} of {n} vertices cannot be reached "
+                         f"from vertex {root}; add edges to them or drop them")
+    return np.asarray(order, np.int64), np.asarray(parent, np.int64), np.asarray(edge_of, np.int64)
+
+
+def spanning_tree(graph: PoseGraph, tie_break="index") -> np.ndarray:
+    """BFS spanning-tree initial guess; ``tie_break`` as in :func:`bfs_tree_ordered` (the default
+    ``"index"`` is the benchmark's tree)."""
     n = graph.n_vertices
+    if tie_break != "index":
+        order, parent, edge_of = bfs_tree_ordered(n, graph.edges_i, graph.edges_j, tie_break)
+        fwd = np.asarray(graph.edges_i)[edge_of] == parent
+        return _chain(graph, parent, order, edge_of, fwd)
+    order, parent = bfs_order(n, graph.edges_i, graph.edges_j)
+    lut = _edge_lookup(graph)
     edge_of = np.zeros(n, np.int64)
     fwd = np.ones(n, bool)
     for v in order[1:].tolist():
