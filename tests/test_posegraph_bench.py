@@ -9,35 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rgbdslam.backend.graph import PoseGraph, se2_between
+from rgbdslam.backend.graph import se2_between
 from rgbdslam.backend.optimize import chi2, degrees_of_freedom, gauss_newton, has_converged
 from rgbdslam.backend.posegraph_bench import (NOISE_LEVELS, first_convergence, noisy_instance, parse_noise,
                                               run_benchmark)
+from rgbdslam.backend.synthetic_graph import manhattan_world as manhattan_like
 from rgbdslam.errors import InputError
 
 DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-
-
-def manhattan_like(n=150, seed=0):
-    """A small grid walk with loop closures between revisited places (noise-free)."""
-    rng = np.random.default_rng(seed)
-    poses = np.zeros((n, 3))
-    for k in range(1, n):
-        th = poses[k - 1, 2] + rng.choice([0.0, np.pi / 2, -np.pi / 2], p=[0.7, 0.15, 0.15])
-        poses[k] = [poses[k - 1, 0] + np.cos(th), poses[k - 1, 1] + np.sin(th), th]
-    poses[:, :2] = np.round(poses[:, :2])
-    poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    pairs = [(k, k + 1) for k in range(n - 1)]
-    d = np.linalg.norm(poses[:, None, :2] - poses[None, :, :2], axis=2)
-    for i in range(n):
-        for j in np.flatnonzero(d[i] < 1.01):
-            if j > i + 2 and len(pairs) < 3 * n:
-                pairs.append((i, int(j)))
-    ei = np.array([p[0] for p in pairs])
-    ej = np.array([p[1] for p in pairs])
-    g = PoseGraph(2, np.arange(n), poses.copy(), ei, ej, se2_between(poses[ei], poses[ej]),
-                  np.tile(np.eye(3), (len(ei), 1, 1)), True, "synthetic")
-    return g, poses
 
 
 def test_parse_noise():

@@ -186,9 +186,14 @@ def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int
                  methods=BENCH_METHODS, max_iter: int = 50, tol: float = 1e-6,
                  optimizer: str = "gtsam", custom: dict | None = None) -> list[RunRecord]:
     """All initial guesses + GN on one noisy instance (seeded by ``(seed, dataset, level, instance)``)."""
+    return run_starts(protocol_instance(ref, dataset, sigma, level, instance, seed), gt, dataset, sigma, instance,
+                      methods, max_iter, tol, optimizer, custom)
+
+
+def protocol_instance(ref: PoseGraph, dataset: str, sigma, level: int, instance: int, seed: int) -> PoseGraph:
+    """Noisy instance ``instance`` of noise level ``level`` — the same graph every run of the protocol uses."""
     rng = np.random.default_rng([seed, DATASETS.index(dataset) if dataset in DATASETS else 99, level, instance])
-    return run_starts(noisy_instance(ref, sigma, rng), gt, dataset, sigma, instance, methods, max_iter, tol, optimizer,
-                      custom)
+    return noisy_instance(ref, sigma, rng)
 
 
 def run_starts(g: PoseGraph, gt: np.ndarray, dataset: str, sigma, instance: int, methods=BENCH_METHODS,
