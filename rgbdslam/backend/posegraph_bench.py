@@ -460,7 +460,8 @@ def compare_with_paper(records, methods, alpha: float = 0.05, paper_n: int = 50,
     """Our Table 1 rates against the paper's, one row per (noise level, start) that has a paper
     column (:data:`PAPER_COLUMN`): count ``k/n``, 95 % Wilson interval ``lo..hi``, the two-sided
     Fisher exact p of "same rate" (the paper's count = its rate × ``paper_n``) and a verdict
-    ``above`` / ``below`` (p < ``alpha``) or ``same``."""
+    ``above`` / ``below`` (p < ``alpha``) or ``same``; ``p_holm`` / ``verdict_holm`` are the same
+    after a Holm–Bonferroni adjustment over all the rows returned (:func:`holm_adjust`)."""
     from scipy.stats import binomtest, fisher_exact
 
     dataset = records[0].dataset
