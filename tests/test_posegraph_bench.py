@@ -268,3 +268,33 @@ def test_heterogeneous_noise_study_instances():
     assert abs(r.std() - 1) < 0.1 and abs(r.mean()) < 0.1
     with pytest.raises(InputError, match="unknown noise model"):
         mod.edge_scales(ref, "nope", 3.0, np.random.default_rng(0))
+
+
+def test_spanning_tree_tie_study_reproduces_the_benchmark_column(tmp_path, capsys):
+    """scripts/study_spanning_tree_ties.py: its ``index`` tree is the benchmark's spanning tree, run
+    for run, on the protocol's own instances; other tie rules are valid but different trees."""
+    import importlib.util
+
+    from rgbdslam.backend.posegraph_bench import load_runs, reference_graph, run_instance
+
+    if not (DATA / "posegraph" / "iSAM" / "groundtruth" / "manhattanOlson3500_groundtruth.txt").is_file():
+        pytest.skip("M3500 ground truth not found (set RGBDSLAM_DATA)")
+    path = Path(__file__).resolve().parents[1] / "scripts" / "study_spanning_tree_ties.py"
+    spec = importlib.util.spec_from_file_location("study_spanning_tree_ties", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert (mod.tie_rule("index"), mod.tie_rule("edge_order"), mod.tie_rule("r7")) == ("index", "edge_order", 7)
+    with pytest.raises(InputError, match="tie-breaking rule"):
+        mod.tie_rule("random")
+    args = ["--dataset", "m3500", "--noise", "0.3,0.3,0.3", "--instances", "1", "--first-instance", "3",
+            "--workers", "1", "--optimizer", "gtsam", "--ties", "index,r0", "--data", str(DATA), "--out", str(tmp_path)]
+    assert mod.main(args) == 0
+    assert "| index | " in capsys.readouterr().out
+    recs = {(r.instance, r.method): r for r in load_runs(tmp_path / "runs.csv")}
+    ref, gt, _ = reference_graph("m3500", DATA)
+    for inst in (3,):
+        (bench,) = run_instance(ref, gt, "m3500", (0.3, 0.3, 0.3), 4, inst, 0, ("spanning_tree",))
+        mine = recs[(inst, "spanning_tree[index]")]
+        assert (mine.chi2_initial, mine.converged_rel, mine.iterations_rel, mine.reduced_chi2_rel) == \
+            (bench.chi2_initial, bench.converged_rel, bench.iterations_rel, bench.reduced_chi2_rel)
+        assert recs[(inst, "spanning_tree[r0]")].chi2_initial != bench.chi2_initial  # a different tree
