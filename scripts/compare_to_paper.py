@@ -19,10 +19,11 @@ McNemar test: of the instances where exactly one of them converged, how many wer
 answers "is A better than B?" with more power than comparing each with the paper.
 
 A verdict ``above`` / ``below`` means p < ``--alpha``; ``same`` means the difference is within
-sampling noise at these sample sizes.  A table compares dozens of cells, so some p < 0.05 are
-expected by chance alone (about 1 in 20 when nothing differs); the "Holm" columns adjust the
-p-values for the number of cells in the table (Holm–Bonferroni, family-wise error <= alpha).  With 50 instances on each side the Wilson interval of a
-rate near 0.5 is about ±0.13 wide, so most differences of 0.1 are ``same``.
+sampling noise at these sample sizes.  With 50 instances on each side the Wilson interval of a
+rate near 0.5 is about ±0.13 wide, so most differences of 0.1 are ``same``.  A table compares
+dozens of cells, so some p < 0.05 are expected by chance alone (about 1 in 20 when nothing
+differs); the "Holm" columns adjust the p-values for the number of cells in the table
+(Holm–Bonferroni, family-wise error <= alpha).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import sys
 
 from rgbdslam.backend import posegraph_bench as pb
 from rgbdslam.errors import InputError
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

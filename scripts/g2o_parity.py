@@ -165,9 +165,7 @@ def protocol(a) -> int:
             compared += 1
         lines.append(f"| {i} | {ok} / {it} / {x / dof:.4f} | {cell} | {same} |")
     ci = binomtest(conv, len(insts)).proportion_ci(0.95, method="wilson")
-    column = "spanning_tree" if own else pb.PAPER_COLUMN.get(a.method)
-    col = pb._PAPER_T1_COLS.index(column) if column in pb._PAPER_T1_COLS else None
-    paper = pb.PAPER_TABLE1[a.dataset][level][col] if col is not None and level < len(pb.NOISE_LEVELS) else None
+    paper = pb.paper_rate(a.dataset, level, "spanning_tree" if own else pb.PAPER_COLUMN.get(a.method))
     lines += ["", f"g2o converged {conv}/{len(insts)} = {conv / len(insts):.2f} [{ci.low:.2f}, {ci.high:.2f}]"
               + (f"; the paper {paper:.2f}" if paper is not None else "")
               + (f"; same verdict and iteration as ours on {agree}/{compared} instances" if compared else "")

@@ -93,7 +93,8 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - t0
     S = pb.summarise(recs)
     k = pb.level_index(sigma)
-    paper_txt = f"{pb.PAPER_TABLE1[a.dataset][k][1]:.2f}" if k < len(pb.NOISE_LEVELS) else "–"
+    paper = pb.paper_rate(a.dataset, k, "spanning_tree")
+    paper_txt = "–" if paper is None else f"{paper:.2f}"
     cmd = " ".join(["scripts/study_spanning_tree_ties.py"] + [shlex.quote(x) for x in (argv or sys.argv[1:])])
     lines = [f"`{cmd}` — {pb.DATASET_NAMES[a.dataset]}, noise {a.noise}, instances {instances.start}-"
              f"{instances.stop - 1} of seed {a.seed}, optimizer {a.optimizer}; {a.workers} worker(s), "

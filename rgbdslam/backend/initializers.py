@@ -144,22 +144,8 @@ def bfs_tree_ordered(n: int, ei: np.ndarray, ej: np.ndarray, tie_break="index",
 def spanning_tree(graph: PoseGraph, tie_break="index") -> np.ndarray:
     """BFS spanning-tree initial guess; ``tie_break`` as in :func:`bfs_tree_ordered` (the default
     ``"index"`` is the benchmark's tree)."""
-    n = graph.n_vertices
-    if tie_break != "index":
-        order, parent, edge_of = bfs_tree_ordered(n, graph.edges_i, graph.edges_j, tie_break)
-        fwd = np.asarray(graph.edges_i)[edge_of] == parent
-        return _chain(graph, parent, order, edge_of, fwd)
-    order, parent = bfs_order(n, graph.edges_i, graph.edges_j)
-    lut = _edge_lookup(graph)
-    edge_of = np.zeros(n, np.int64)
-    fwd = np.ones(n, bool)
-    for v in order[1:].tolist():
-        p = int(parent[v])
-        k = lut.get((p, v))
-        if k is None:
-            k = lut[(v, p)]
-            fwd[v] = False
-        edge_of[v] = k
+    order, parent, edge_of = bfs_tree_ordered(graph.n_vertices, graph.edges_i, graph.edges_j, tie_break)
+    fwd = np.asarray(graph.edges_i)[edge_of] == parent
     return _chain(graph, parent, order, edge_of, fwd)
 
 

@@ -455,6 +455,14 @@ PAPER_COLUMN = {"odometry": "odometry", "spanning_tree": "spanning_tree", "masat
                  "weighted_masat": "masat", "chordal": "masat", "ground_truth": "ground_truth"}
 
 
+def paper_rate(dataset: str, level: int, column: str | None) -> float | None:
+    """The paper's Table 1 convergence rate of ``column`` (one of its four starts) at noise level
+    ``level``; None where the paper has no such cell."""
+    if dataset not in PAPER_TABLE1 or column not in _PAPER_T1_COLS or not 0 <= level < len(NOISE_LEVELS):
+        return None
+    return PAPER_TABLE1[dataset][level][_PAPER_T1_COLS.index(column)]
+
+
 def compare_with_paper(records, methods, alpha: float = 0.05, paper_n: int = 50,
                        criterion: str = "relative") -> list[dict]:
     """Our Table 1 rates against the paper's, one row per (noise level, start) that has a paper
@@ -472,12 +480,11 @@ def compare_with_paper(records, methods, alpha: float = 0.05, paper_n: int = 50,
     for sigma in sorted({k[0] for k in groups}, key=lambda s: (level_index(s), s)):
         level = level_index(sigma)
         for m in methods:
-            if dataset not in PAPER_TABLE1 or m not in PAPER_COLUMN or (sigma, m) not in groups \
-                    or level >= len(NOISE_LEVELS):
+            paper = paper_rate(dataset, level, PAPER_COLUMN.get(m))
+            if paper is None or (sigma, m) not in groups:
                 continue
             conv = groups[(sigma, m)]
             k, n = sum(conv), len(conv)
-            paper = PAPER_TABLE1[dataset][level][_PAPER_T1_COLS.index(PAPER_COLUMN[m])]
             pk = round(paper * paper_n)
             ci = binomtest(k, n).proportion_ci(0.95, method="wilson")
             p = float(fisher_exact([[k, n - k], [pk, paper_n - pk]])[1])
