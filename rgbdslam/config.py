@@ -38,6 +38,7 @@ class DatasetConfig:
     max_frames: int | None = None
     stride: int = 1
     groundtruth: str | None = None  # PUT: ground-truth TUM file (default groundtruth.txt or the one *.tum)
+    prefetch: int = 4  # frames read ahead by a background thread during `run` (0 = read in the loop)
 
 
 @dataclass
@@ -125,10 +126,10 @@ class LoopConfig:
 
     enabled: bool = True
     # sharpness gate: measure > factor * median(measure of the previous window frames).
-    # "n_detected" is the thesis' descriptor count; it only works if the count is not capped
-    # by the ORB retention (features.n_features). "response" = sum of the ORB responses of the
-    # kept key points (Spearman 0.96 with the uncapped FAST count on fr1/rpy, docs/slam.md).
-    sharpness_measure: Literal["n_detected", "response"] = "response"
+    # "n_detected" is the thesis' count of detected features (FAST corners at ORB's threshold
+    # before ORB keeps the best features.n_features, features.count_detections). "response" =
+    # sum of the ORB responses of the kept key points (the default before 2026-11-30, docs/slam.md).
+    sharpness_measure: Literal["n_detected", "response"] = "n_detected"
     sharpness_factor: float = 1.2
     sharpness_window: int = 20
     sharpness_min_history: int = 5  # frames seen before the gate can open

@@ -285,12 +285,13 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     interrupted = False
     load_time = 0.0
     t_start = time.perf_counter()
+    frames = seq.prefetched(cfg.dataset.prefetch)
     try:
         with frame_progress(n, f"SLAM {seq.name}", enabled=progress) as advance:
-            for i in range(n):
+            for i, pending in frames:
                 t0 = time.perf_counter()
                 try:
-                    frame = seq.load(i)
+                    frame = pending.result()  # time waited for the reader thread counts as loading
                 except InputError as e:
                     slam.state.skipped.append(i)
                     console.print(f"[yellow]warning:[/] skipped frame {i}: {e}")
@@ -304,6 +305,8 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
                     write_tum(slam.odometry(), out_dir / "trajectory.tum")
     except KeyboardInterrupt:
         interrupted = True
+    finally:
+        frames.close()  # stops the reader thread
     wall = time.perf_counter() - t_start
     n_done = len(slam.state.records) + len(slam.state.lost) + len(slam.state.skipped)
 

@@ -282,3 +282,52 @@ def test_tum_to_put_script(tmp_path, capsys):
     assert (tmp_path / "p" / "groundtruth.txt").read_bytes() == (DESK / "groundtruth.txt").read_bytes()
     assert mod.main([str(tmp_path / "nope"), str(tmp_path / "q")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("ahead", [0, 1, 3])
+def test_prefetched_frames_are_load_in_order_with_errors_in_place(tmp_path, ahead):
+    import threading
+
+    root = make_tum(tmp_path / "s", [1.0, 1.1, 1.2, 1.3, 1.4], [1.0, 1.1, 1.2, 1.3, 1.4])
+    (root / "rgb" / "1.200000.png").write_bytes(b"not a png")
+    seq = open_sequence(root)
+    got = []
+    for i, pending in seq.prefetched(ahead):
+        try:
+            f = pending.result()
+        except InputError as e:
+            got.append((i, "error", str(e)))
+            continue
+        ref = seq.load(i)
+        assert f.index == ref.index == i and f.timestamp == ref.timestamp
+        assert np.array_equal(f.rgb, ref.rgb) and np.array_equal(f.depth, ref.depth)
+        got.append((i, "ok", ""))
+    assert [g[:2] for g in got] == [(0, "ok"), (1, "ok"), (2, "error"), (3, "ok"), (4, "ok")]
+    assert "1.200000.png" in got[2][2]  # the error names the file, as load() does
+    assert not [t for t in threading.enumerate() if t.name.startswith("frame-reader")]
+
+
+def test_prefetch_stops_reading_when_the_caller_stops(tmp_path):
+    import threading
+    import time
+
+    root = make_tum(tmp_path / "s", [1.0 + 0.1 * k for k in range(30)], [1.0 + 0.1 * k for k in range(30)])
+    seq = open_sequence(root)
+    loaded = []
+    real_load = seq.load
+
+    def slow_load(i):
+        time.sleep(0.01)
+        loaded.append(i)
+        return real_load(i)
+
+    seq.load = slow_load
+    frames = seq.prefetched(2)
+    for i, pending in frames:
+        pending.result()
+        if i == 3:
+            break
+    frames.close()
+    time.sleep(0.1)
+    assert max(loaded) <= 3 + 2 and len(loaded) < 30  # nothing beyond the read-ahead window
+    assert not [t for t in threading.enumerate() if t.name.startswith("frame-reader") and t.is_alive()]

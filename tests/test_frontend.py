@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from rgbdslam.config import Config
 from rgbdslam.datasets import open_sequence
-from rgbdslam.frontend.features import extract_features, lift
+from rgbdslam.frontend.features import count_detections, extract_features, lift
 from rgbdslam.frontend.odometry import build_frontend, register
 from rgbdslam.geometry.se3 import inv, rotation_angle
 
@@ -101,7 +101,7 @@ def test_lift_and_set_depth(desk):
     seq, frames = desk
     cfg = Config()
     f = extract_features(frames[0], cfg)
-    assert f.n_detected == len(f.desc) > 300
+    assert len(f.desc) > 300 and f.n_detected > 100
     assert f.valid.sum() > 0.5 * len(f.valid)
     assert np.isnan(f.pts[~f.valid]).all()
     # doubling the depth doubles the points
@@ -215,3 +215,30 @@ def test_ratio_test_and_grid_bucketing(desk):
     uv = np.array([[10, 10], [20, 20], [30, 30], [400, 10], [10, 300], [11, 11], [500, 400.0]])
     resp = np.array([1, 5, 3, 1, 1, 4, 2], np.float32)
     assert _bucket(uv, resp, cfg.features, (480, 640)).tolist() == [1, 3, 4, 5, 6]
+
+
+def test_detection_count_falls_with_blur_and_opens_the_gate(desk):
+    """The sharpness gate's measure (spec section 4) must see blur: ORB's kept count cannot
+    (it is capped at n_features), the uncapped detection count can."""
+    import dataclasses
+
+    import cv2
+
+    from rgbdslam.loop.gate import SharpnessGate
+
+    seq, frames = desk
+    cfg = Config()
+    sharp = frames[0]
+    counts, kept = [], []
+    for sigma in (2.0, 1.5, 1.0, 0.0):
+        rgb = cv2.GaussianBlur(sharp.rgb, (0, 0), sigma) if sigma else sharp.rgb
+        f = extract_features(dataclasses.replace(sharp, rgb=rgb), cfg)
+        counts.append(f.n_detected)
+        kept.append(len(f.desc))
+    assert counts == sorted(counts) and counts[-1] > 2 * counts[0]  # monotone in blur, large effect
+    # a slight blur (sigma 1 px) is invisible to the capped count, not to the detection count
+    assert kept[2] == kept[3] == cfg.features.n_features and counts[3] > 2 * counts[2]
+    gate = SharpnessGate(1.2, 20, min_history=3)
+    assert [gate(c) for c in counts] == [False, False, False, True]
+    # an image too small for ORB's border has nothing to detect
+    assert count_detections(np.zeros((40, 40), np.uint8), cfg.features) == 0

@@ -13,6 +13,7 @@ from click.testing import CliRunner
 from rgbdslam.cli import main
 from rgbdslam.config import load_config
 from rgbdslam.datasets import open_sequence
+from rgbdslam.datasets.base import Sequence
 from rgbdslam.evaluation.ate import ate
 from rgbdslam.io.trajectory import read_tum
 from rgbdslam.pipeline import run_sequence
@@ -73,6 +74,8 @@ def test_rpy200_accuracy(rpy200, tmp_path):
 class _InterruptingSequence:
     """Wraps a sequence and raises KeyboardInterrupt when frame ``at`` is loaded (a Ctrl-C)."""
 
+    prefetched = Sequence.prefetched  # reads through this wrapper's load, in the reader thread
+
     def __init__(self, seq, at):
         self._seq, self._at = seq, at
 
@@ -88,14 +91,17 @@ class _InterruptingSequence:
         return self._seq.load(i)
 
 
-def test_interrupted_run_keeps_valid_trajectory(synth_clean, tmp_path, monkeypatch):
+@pytest.mark.parametrize("prefetch", [0, 4])
+def test_interrupted_run_keeps_valid_trajectory(synth_clean, tmp_path, monkeypatch, prefetch):
     import rgbdslam.pipeline as pl
 
     seq = open_sequence(synth_clean)
     wrapped = _InterruptingSequence(seq, at=12)
     monkeypatch.setattr(pl, "open_sequence", lambda *a, **k: wrapped)
+    cfg = _fast_cfg()
+    cfg.dataset.prefetch = prefetch
     with pytest.raises(KeyboardInterrupt):
-        run_sequence(synth_clean, tmp_path / "int", _fast_cfg(), progress=False)
+        run_sequence(synth_clean, tmp_path / "int", cfg, progress=False)
     traj = read_tum(tmp_path / "int" / "trajectory.tum")
     assert len(traj) == 12
     assert json.loads((tmp_path / "int" / "run.json").read_text())["interrupted"] is True

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -23,6 +25,16 @@ class Frame:
     depth: np.ndarray  # (H, W) float32 metres, 0 = no measurement
     camera: Camera
     name: str = ""  # e.g. the colour file's relative path, for messages
+
+
+class _Deferred:
+    """A read that happens when its result is asked for (``Sequence.prefetched(0)``)."""
+
+    def __init__(self, load, i: int):
+        self._load, self._i = load, i
+
+    def result(self) -> Frame:
+        return self._load(self._i)
 
 
 class Sequence(ABC):
@@ -58,3 +70,28 @@ class Sequence(ABC):
         if not 0 <= i < len(self):
             raise IndexError(i)
         return self.load(i)
+
+    def prefetched(self, ahead: int = 4) -> Iterator[tuple[int, Future | _Deferred]]:
+        """``(i, future)`` for every frame in order; ``future.result()`` is ``load(i)`` (or raises
+        its error). One background thread reads up to ``ahead`` frames in advance, so image
+        decoding (cv2.imread releases the GIL) overlaps the caller's work on the previous frame.
+        ``ahead = 0`` reads each frame when its ``result()`` is asked for. Frames are read in order by a
+        single thread, so ``load`` need not be thread-safe. Leaving the loop early (break,
+        Ctrl-C) cancels the reads not yet started."""
+        n = len(self)
+        if ahead <= 0:
+            for i in range(n):
+                yield i, _Deferred(self.load, i)
+            return
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-reader")
+        pending: deque[tuple[int, Future]] = deque()
+        nxt = 0
+        try:
+            for _ in range(n):
+                while nxt < n and len(pending) < ahead:
+                    pending.append((nxt, pool.submit(self.load, nxt)))
+                    nxt += 1
+                yield pending.popleft()
+            pool.shutdown(wait=True)  # every read is done: let the thread end now
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)

@@ -29,7 +29,7 @@ class FrameFeatures:
     desc: np.ndarray  # (N, 32) uint8 ORB descriptors
     pts: np.ndarray  # (N, 3) camera-frame points, NaN where depth is invalid
     valid: np.ndarray  # (N,) bool, has valid depth
-    n_detected: int  # number of descriptors detected (loop-closure sharpness gate)
+    n_detected: int  # corners detected before ORB keeps the best n_features (sharpness gate)
     uv_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (N, 2) distorted pixels
     response: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (N,) ORB response
     _tree: cKDTree | None = field(default=None, repr=False)
@@ -62,6 +62,27 @@ class FrameFeatures:
 
 
 _ORB_CACHE: dict[tuple, cv2.ORB] = {}
+_FAST_CACHE: dict[int, cv2.FastFeatureDetector] = {}
+
+
+def count_detections(gray: np.ndarray, fc: FeaturesConfig) -> int:
+    """Corners ORB's detector finds in ``gray`` before it keeps the best ``n_features``.
+
+    FAST (with non-maximum suppression) at ORB's ``fast_threshold`` on the full-resolution
+    image, inside ORB's ``edge_threshold`` border. ORB's own count is not exposed by OpenCV and
+    is capped by its retention; this one is not capped, so it falls when the image is blurred
+    (the loop-closure sharpness gate, spec section 4). About 0.3 ms at 640x480; its rank
+    correlation with the count over the whole 8-level pyramid is 0.98 on fr1/rpy.
+    """
+    fast = _FAST_CACHE.get(fc.fast_threshold)
+    if fast is None:
+        fast = cv2.FastFeatureDetector_create(threshold=fc.fast_threshold, nonmaxSuppression=True)
+        _FAST_CACHE[fc.fast_threshold] = fast
+    b = fc.edge_threshold
+    h, w = gray.shape[:2]
+    if h <= 2 * b or w <= 2 * b:
+        return 0
+    return len(fast.detect(np.ascontiguousarray(gray[b:h - b, b:w - b])))
 
 
 def _orb(fc: FeaturesConfig, n_features: int) -> cv2.ORB:
@@ -120,7 +141,7 @@ def extract_features(frame: Frame, cfg: Config) -> FrameFeatures:
         desc=np.ascontiguousarray(desc),
         pts=np.full((len(uv), 3), np.nan),
         valid=np.zeros(len(uv), bool),
-        n_detected=len(uv),
+        n_detected=count_detections(gray, fc),
         uv_raw=uv_raw,
         response=response,
     )
