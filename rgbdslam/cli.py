@@ -115,7 +115,7 @@ def info(sequence, config_path, overrides):
 
 @main.command()
 @click.argument("gt", type=click.Path(path_type=Path))
-@click.argument("est", type=click.Path(path_type=Path))
+@click.argument("est", type=click.Path(path_type=Path), nargs=-1, required=True)
 @click.option("--align", type=click.Choice(["se3", "sim3", "none"]), default="se3", show_default=True,
               help="Alignment of EST onto GT before ATE (sim3 also fits a scale).")
 @click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair distance.")
@@ -129,11 +129,18 @@ def info(sequence, config_path, overrides):
               help="Folder for the PNG plots (default: EST's folder, files named <EST stem>_*.png).")
 @click.option("--no-plots", is_flag=True, help="Write no plots.")
 def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_path, plot_dir, no_plots):
-    """ATE and RPE of trajectory EST against ground truth GT (TUM format); prints a table."""
-    from rgbdslam.evaluation.report import evaluate_and_print
+    """ATE and RPE of trajectory EST against ground truth GT (TUM format); prints a table.
 
-    evaluate_and_print(gt, est, align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference,
-                       offset=offset, json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
+    Several ESTs are compared with the same settings: one table with a row each and
+    comparison_topview.png (in --plot-dir, default the current folder) with all of them."""
+    from rgbdslam.evaluation.report import compare_and_print, evaluate_and_print
+
+    opts = dict(align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference, offset=offset,
+                json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
+    if len(est) == 1:
+        evaluate_and_print(gt, est[0], **opts)
+    else:
+        compare_and_print(gt, list(est), **opts)
 
 
 @main.command()

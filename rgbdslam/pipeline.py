@@ -362,7 +362,7 @@ def _print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
     msg = (f"{s['frames']} frames, {s['tracked']} tracked, {s['lost']} lost"
            + (f", {s['skipped']} unreadable" if s["skipped"] else "")
            + f", {len(s['keyframes'])} keyframes, {len(s['loops'])} loops; "
-           f"{s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without image decoding)")
+           f"{s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without waiting for images)")
     console.print(msg)
     ev = s.get("evaluation") or {}
     ate = (ev.get("ate") or {}).get("rmse")

@@ -374,3 +374,51 @@ def test_cli_no_overlap_clear_message(tmp_path):
     assert res.exit_code != 0 and "Traceback" not in out
     assert "no overlapping timestamps" in out and str(gt) in out and str(est) in out
     assert not list(tmp_path.glob("*.png"))
+
+
+def test_cli_evaluate_compares_several_estimates(rpy200, tmp_path):
+    """`rgbdslam evaluate GT EST EST ...`: one row per estimate, numbers equal to evaluating each alone."""
+    gt_path = rpy200 / "groundtruth.txt"
+    (tmp_path / "runA").mkdir()
+    (tmp_path / "runB").mkdir()
+    est_a = make_perturbed_estimate(rpy200, tmp_path / "runA")
+    gt = read_tum(gt_path)
+    shifted = gt.poses.copy()
+    shifted[:, 0, 3] += 0.01 * np.cos(np.arange(len(gt)))  # a different, larger error
+    est_b = tmp_path / "runB" / est_a.name
+    write_tum(Trajectory(gt.timestamps, shifted), est_b)
+    res = CliRunner().invoke(main, ["evaluate", str(gt_path), str(est_a), str(est_b), "--json",
+                                    str(tmp_path / "c.json"), "--plot-dir", str(tmp_path / "plots")])
+    assert res.exit_code == 0, _out(res)
+    # the two files share a name: the table tells them apart by their folders
+    assert f"runA/{est_a.name}" in res.output and f"runB/{est_a.name}" in res.output
+    data = json.loads((tmp_path / "c.json").read_text())
+    assert [e["estimate"] for e in data["estimates"]] == [str(est_a), str(est_b)]
+    for e, path in zip(data["estimates"], (est_a, est_b)):
+        alone = evaluate_files(gt_path, path)
+        assert e["ate"]["rmse"] == pytest.approx(alone.ate.rmse, abs=1e-12)
+        assert e["rpe"]["rot"]["rmse"] == pytest.approx(alone.rpe.rot.rmse, abs=1e-12)
+    assert data["estimates"][0]["ate"]["rmse"] != data["estimates"][1]["ate"]["rmse"]
+    # one overlay and each estimate's own plots, prefixed so that they do not overwrite each other
+    pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))
+    assert "comparison_topview.png" in pngs
+    stem = est_a.stem
+    assert {f"runA_{stem}_ate_topview.png", f"runB_{stem}_ate_topview.png"} <= set(pngs)
+
+
+def test_cli_evaluate_same_estimate_twice_is_one_line(tmp_path):
+    gt = tmp_path / "gt.tum"
+    write_tum(straight_line(5, [1.0, 0, 0]), gt)
+    res = CliRunner().invoke(main, ["evaluate", str(gt), str(gt), str(gt), "--no-plots"])
+    out = _out(res)
+    assert res.exit_code != 0 and "Traceback" not in out and "twice" in out
+    assert len([ln for ln in out.splitlines() if ln.strip()]) == 1
+
+
+def test_short_names_are_the_shortest_distinct_suffixes():
+    from rgbdslam.evaluation.report import _short_names
+
+    assert _short_names(["x/a.tum", "y/b.tum"]) == ["a.tum", "b.tum"]
+    assert _short_names(["r/run1/trajectory.tum", "r/run2/trajectory.tum"]) == ["run1/trajectory.tum",
+                                                                               "run2/trajectory.tum"]
+    assert _short_names(["a/t.tum", "b/a/t.tum"]) == ["a/t.tum", "b/a/t.tum"]

@@ -34,28 +34,44 @@ def topview_axes(*position_sets: np.ndarray) -> tuple[int, int]:
     return a, b
 
 
-def plot_trajectory_topview(
-    gt: Trajectory, est_aligned: Trajectory, path: str | Path, title: str | None = None
-) -> Path:
-    """Ground truth vs aligned estimate projected on the two axes of largest extent (equal aspect)."""
-    a, b = topview_axes(gt.positions, est_aligned.positions)
+def _topview(gt: Trajectory, estimates: dict[str, Trajectory], colors: list[str], errors: bool,
+             title: str, path: str | Path) -> Path:
+    """Ground truth and estimates on the two axes of largest extent (equal aspect); with ``errors``
+    (one estimate associated pose for pose) the error segments too, thinned to ~100."""
+    a, b = topview_axes(gt.positions, *[e.positions for e in estimates.values()])
     fig = Figure(figsize=(6.4, 5.6))
     ax = fig.add_subplot(1, 1, 1)
-    g, e = gt.positions, est_aligned.positions
+    g = gt.positions
     ax.plot(g[:, a], g[:, b], "-", color="0.25", lw=1.6, label="ground truth")
-    ax.plot(e[:, a], e[:, b], "-", color="tab:blue", lw=1.2, label="estimate (aligned)")
-    if len(g) == len(e):  # associated pairs: draw the error segments, thinned to ~100
-        step = max(1, len(g) // 100)
-        for p, q in zip(g[::step], e[::step]):
-            ax.plot([p[a], q[a]], [p[b], q[b]], "-", color="tab:red", lw=0.5, alpha=0.6)
+    for color, (name, est) in zip(colors, estimates.items()):
+        e = est.positions
+        ax.plot(e[:, a], e[:, b], "-", color=color, lw=1.2, label=name)
+        if errors and len(g) == len(e):
+            step = max(1, len(g) // 100)
+            for p, q in zip(g[::step], e[::step]):
+                ax.plot([p[a], q[a]], [p[b], q[b]], "-", color="tab:red", lw=0.5, alpha=0.6)
     ax.plot(g[0, a], g[0, b], "o", color="0.25", ms=6, label="start")
     ax.set_xlabel(f"{_AXES[a]} [m]")
     ax.set_ylabel(f"{_AXES[b]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, lw=0.4, alpha=0.5)
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title or f"trajectory, top view ({_AXES[a]}-{_AXES[b]})")
+    ax.legend(loc="best", fontsize=8 if len(estimates) == 1 else 7)
+    ax.set_title(f"{title}, top view ({_AXES[a]}-{_AXES[b]})")
     return _save(fig, path)
+
+
+def plot_trajectory_topview(
+    gt: Trajectory, est_aligned: Trajectory, path: str | Path, title: str | None = None
+) -> Path:
+    """Ground truth vs aligned estimate, with error segments between associated poses."""
+    return _topview(gt, {"estimate (aligned)": est_aligned}, ["tab:blue"], True, title or "trajectory", path)
+
+
+def plot_trajectories_topview(gt: Trajectory, estimates: dict[str, Trajectory], path: str | Path,
+                              title: str | None = None) -> Path:
+    """Ground truth and several aligned estimates in one top view (``rgbdslam evaluate GT EST EST ...``)."""
+    colors = [f"C{k % 10}" for k in range(len(estimates))]
+    return _topview(gt, estimates, colors, False, title or f"{len(estimates)} estimates (aligned)", path)
 
 
 def plot_error_over_time(ate_result, path: str | Path, title: str | None = None) -> Path:

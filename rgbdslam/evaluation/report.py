@@ -2,6 +2,8 @@
 
 ``evaluate_files`` serves ``rgbdslam evaluate``; ``evaluate_trajectories`` serves the
 pipeline at the end of a run. Both return an :class:`EvaluationReport`.
+``compare_and_print`` serves ``rgbdslam evaluate GT EST EST ...``: one report per estimate,
+one table with a row each, one top view with all of them.
 """
 
 from __future__ import annotations
@@ -18,7 +20,12 @@ from rich.table import Table
 
 from rgbdslam.errors import InputError, RgbdslamError
 from rgbdslam.evaluation.ate import AteResult, ErrorStats, ate
-from rgbdslam.evaluation.plots import plot_error_over_time, plot_rpe, plot_trajectory_topview
+from rgbdslam.evaluation.plots import (
+    plot_error_over_time,
+    plot_rpe,
+    plot_trajectories_topview,
+    plot_trajectory_topview,
+)
 from rgbdslam.evaluation.rpe import RpeResult, rpe
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
@@ -174,6 +181,85 @@ def evaluate_and_print(
     for p in rep.plots + ([rep.json_path] if rep.json_path else []):
         console.print(f"wrote {escape(p)}")
     return rep
+
+
+def compare_and_print(
+    gt_path: str | Path,
+    est_paths: list[str | Path],
+    plot_dir: str | Path | None = None,
+    plots: bool = True,
+    json_path: str | Path | None = None,
+    console: Console | None = None,
+    **options: Any,
+) -> list[EvaluationReport]:
+    """``rgbdslam evaluate GT EST EST ...``: every estimate against the same ground truth with the
+    same settings; prints one comparison table (best ATE RMSE in bold).
+
+    Plots: each estimate's own plots (as for one estimate) and ``comparison_topview.png`` with
+    all estimates, in ``plot_dir`` (default: the current folder for the comparison, each
+    estimate's folder for its own plots). ``json_path`` gets ``{"ground_truth", "estimates":
+    [report, ...]}``. ``options`` as for :func:`evaluate_files` (align, delta, ...).
+    """
+    console = console or Console()
+    if len({str(p) for p in est_paths}) != len(est_paths):
+        raise InputError("the same estimate file is given twice; pass each EST once")
+    reports = []
+    names = _short_names([str(p) for p in est_paths])
+    for est, name in zip(est_paths, names):
+        if plot_dir is None:  # next to the estimate, as for one estimate
+            own_dir, prefix = Path(est).parent, f"{Path(est).stem}_"
+        else:  # one folder for all: prefixes that tell runA/trajectory.tum from runB/trajectory.tum
+            own_dir, prefix = Path(plot_dir), f"{Path(name).with_suffix('').as_posix().replace('/', '_')}_"
+        reports.append(evaluate_files(gt_path, est, plot_dir=own_dir if plots else None, plot_prefix=prefix,
+                                      **options))
+    console.print(format_comparison(reports))
+    written = [p for r in reports for p in r.plots]
+    if plots:
+        path = Path(plot_dir if plot_dir is not None else ".") / "comparison_topview.png"
+        _write(path, lambda p: plot_trajectories_topview(
+            reports[0].ate.gt, {n: r.ate.aligned for n, r in zip(names, reports)}, p))
+        written.append(str(path))
+    if json_path is not None:
+        doc = {"ground_truth": str(gt_path), "estimates": [r.to_dict() for r in reports]}
+        _write(json_path, lambda p: atomic_write_text(p, json.dumps(doc, indent=2) + "\n"))
+        written.append(str(json_path))
+    for p in written:
+        console.print(f"wrote {escape(p)}")
+    return reports
+
+
+def _short_names(paths: list[str]) -> list[str]:
+    """The shortest path suffixes (file, parent/file, ...) that tell the estimates apart."""
+    parts = [Path(p).parts for p in paths]
+    for k in range(1, max(len(x) for x in parts) + 1):
+        names = [str(Path(*x[-k:])) for x in parts]
+        if len(set(names)) == len(names):
+            return names
+    return [str(p) for p in paths]
+
+
+def format_comparison(reports: list[EvaluationReport]) -> Table:
+    """One row per estimate: ATE RMSE and max, RPE RMSE (translation, rotation), poses (the rest of the
+    statistics are in each report / the JSON)."""
+    names = _short_names([r.est_name for r in reports])
+    best = min(range(len(reports)), key=lambda k: reports[k].ate.rmse)
+    first = reports[0]
+    table = Table(title=escape(f"{len(reports)} estimates vs {first.gt_name}"), title_justify="left")
+    table.add_column("estimate", overflow="fold", min_width=min(36, max(len(n) for n in names)))
+    for col in ("ATE\nrmse", "ATE\nmax", "RPE t\nrmse", "RPE r\nrmse", "poses"):
+        table.add_column(col, justify="right", no_wrap=True)
+    for k, (name, rep) in enumerate(zip(names, reports)):
+        a, r = rep.ate, rep.rpe
+        cells = [f"{a.rmse:.4f}", f"{a.max:.4f}",
+                 "-" if r is None else f"{r.trans.rmse:.4f}", "-" if r is None else f"{r.rot.rmse:.3f}",
+                 str(a.n_pairs)]
+        style = "bold" if k == best and len(reports) > 1 else None
+        table.add_row(escape(name), *cells, style=style)
+    s = first.settings
+    table.caption = (f"ATE and RPE translation in m, RPE rotation in deg; alignment {s['align']}; association max difference {s['max_difference']:g} s, offset "
+                     f"{s['offset']:g} s; RPE delta {s['delta']:g} {s['delta_unit']}; bold: lowest ATE RMSE; "
+                     "all statistics in --json")
+    return table
 
 
 def write_plots(rep: EvaluationReport, plot_dir: str | Path, prefix: str = "") -> list[str]:
