@@ -285,7 +285,10 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     interrupted = False
     load_time = 0.0
     t_start = time.perf_counter()
-    frames = seq.prefetched(cfg.dataset.prefetch)
+    from rgbdslam.frontend.features import with_detections
+
+    # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
+    frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg))
     try:
         with frame_progress(n, f"SLAM {seq.name}", enabled=progress) as advance:
             for i, pending in frames:

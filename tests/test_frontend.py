@@ -242,3 +242,24 @@ def test_detection_count_falls_with_blur_and_opens_the_gate(desk):
     assert [gate(c) for c in counts] == [False, False, False, True]
     # an image too small for ORB's border has nothing to detect
     assert count_detections(np.zeros((40, 40), np.uint8), cfg.features) == 0
+
+
+def test_detections_made_ahead_are_used_only_for_their_config(desk):
+    import dataclasses
+
+    from rgbdslam.frontend.features import detect, with_detections
+
+    seq, frames = desk
+    cfg = Config()
+    plain = extract_features(frames[1], cfg)
+    ahead = with_detections(dataclasses.replace(frames[1]), cfg)
+    assert ahead.detections is not None
+    f = extract_features(ahead, cfg)
+    for name in ("uv", "uv_raw", "desc", "response", "valid"):
+        assert np.array_equal(getattr(f, name), getattr(plain, name)), name
+    assert f.n_detected == plain.n_detected
+    # detections made with other ORB settings are not reused
+    other = Config()
+    other.features.n_features = 300
+    stale = dataclasses.replace(frames[1], detections=detect(frames[1].rgb, other.features))
+    assert len(extract_features(stale, cfg).desc) == len(plain.desc) != 300

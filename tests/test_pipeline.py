@@ -167,3 +167,14 @@ def test_run_records_rerun_with_matches_and_trajectories(desk9, tmp_path):
     for entity in ("world/camera/image/matches", "world/camera/image/keypoints", "world/trajectory/groundtruth",
                    "world/trajectory/estimate"):
         assert entity in out, entity
+
+
+def test_reading_ahead_changes_nothing_but_speed(desk9, tmp_path):
+    """prefetch (a reader thread that also detects the key points) gives bit-identical poses."""
+    out = {}
+    for ahead in (0, 3):
+        summary = run_sequence(desk9, tmp_path / f"p{ahead}", _fast_cfg(f"dataset.prefetch={ahead}"), progress=False)
+        assert summary["tracked"] == 9
+        out[ahead] = read_tum(tmp_path / f"p{ahead}" / "trajectory.tum")
+    assert np.array_equal(out[0].timestamps, out[3].timestamps)
+    assert np.array_equal(out[0].poses, out[3].poses)

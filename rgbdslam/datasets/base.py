@@ -5,9 +5,9 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -25,6 +25,8 @@ class Frame:
     depth: np.ndarray  # (H, W) float32 metres, 0 = no measurement
     camera: Camera
     name: str = ""  # e.g. the colour file's relative path, for messages
+    # key points found ahead of time (frontend.features.detect, run in the reader thread), or None
+    detections: Any = field(default=None, repr=False, compare=False)
 
 
 class _Deferred:
@@ -35,6 +37,10 @@ class _Deferred:
 
     def result(self) -> Frame:
         return self._load(self._i)
+
+
+def _load_then(load: Callable[[int], Frame], then: Callable[[Frame], Frame] | None) -> Callable[[int], Frame]:
+    return load if then is None else (lambda i: then(load(i)))
 
 
 class Sequence(ABC):
@@ -71,25 +77,30 @@ class Sequence(ABC):
             raise IndexError(i)
         return self.load(i)
 
-    def prefetched(self, ahead: int = 4) -> Iterator[tuple[int, Future | _Deferred]]:
+    def prefetched(self, ahead: int = 4, then: Callable[[Frame], Frame] | None = None
+                   ) -> Iterator[tuple[int, Future | _Deferred]]:
         """``(i, future)`` for every frame in order; ``future.result()`` is ``load(i)`` (or raises
         its error). One background thread reads up to ``ahead`` frames in advance, so image
         decoding (cv2.imread releases the GIL) overlaps the caller's work on the previous frame.
         ``ahead = 0`` reads each frame when its ``result()`` is asked for. Frames are read in order by a
         single thread, so ``load`` need not be thread-safe. Leaving the loop early (break,
-        Ctrl-C) cancels the reads not yet started."""
+        Ctrl-C) cancels the reads not yet started. ``then`` (optional) is applied to each frame
+        in the same thread, after reading: work that needs only the frame (the pipeline detects
+        key points there, ``frontend.features.with_detections``); with ``ahead = 0`` it is not
+        applied, as it would only move the work without overlapping it."""
         n = len(self)
         if ahead <= 0:
             for i in range(n):
                 yield i, _Deferred(self.load, i)
             return
+        load = _load_then(self.load, then)
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-reader")
         pending: deque[tuple[int, Future]] = deque()
         nxt = 0
         try:
             for _ in range(n):
                 while nxt < n and len(pending) < ahead:
-                    pending.append((nxt, pool.submit(self.load, nxt)))
+                    pending.append((nxt, pool.submit(load, nxt)))
                     nxt += 1
                 yield pending.popleft()
             pool.shutdown(wait=True)  # every read is done: let the thread end now

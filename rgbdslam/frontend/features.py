@@ -8,6 +8,7 @@ the distorted colour image.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import cv2
@@ -61,8 +62,15 @@ class FrameFeatures:
         return int(np.count_nonzero(self.valid))
 
 
-_ORB_CACHE: dict[tuple, cv2.ORB] = {}
-_FAST_CACHE: dict[int, cv2.FastFeatureDetector] = {}
+_CACHE = threading.local()  # detectors per thread: an OpenCV detector object is not shared between threads
+
+
+def _cache(name: str) -> dict:
+    d = getattr(_CACHE, name, None)
+    if d is None:
+        d = {}
+        setattr(_CACHE, name, d)
+    return d
 
 
 def count_detections(gray: np.ndarray, fc: FeaturesConfig) -> int:
@@ -74,10 +82,11 @@ def count_detections(gray: np.ndarray, fc: FeaturesConfig) -> int:
     (the loop-closure sharpness gate, spec section 4). About 0.3 ms at 640x480; its rank
     correlation with the count over the whole 8-level pyramid is 0.98 on fr1/rpy.
     """
-    fast = _FAST_CACHE.get(fc.fast_threshold)
+    cache = _cache("fast")
+    fast = cache.get(fc.fast_threshold)
     if fast is None:
         fast = cv2.FastFeatureDetector_create(threshold=fc.fast_threshold, nonmaxSuppression=True)
-        _FAST_CACHE[fc.fast_threshold] = fast
+        cache[fc.fast_threshold] = fast
     b = fc.edge_threshold
     h, w = gray.shape[:2]
     if h <= 2 * b or w <= 2 * b:
@@ -87,7 +96,8 @@ def count_detections(gray: np.ndarray, fc: FeaturesConfig) -> int:
 
 def _orb(fc: FeaturesConfig, n_features: int) -> cv2.ORB:
     key = (n_features, fc.scale_factor, fc.n_levels, fc.edge_threshold, fc.patch_size, fc.fast_threshold)
-    orb = _ORB_CACHE.get(key)
+    cache = _cache("orb")
+    orb = cache.get(key)
     if orb is None:
         orb = cv2.ORB_create(
             nfeatures=n_features,
@@ -97,7 +107,7 @@ def _orb(fc: FeaturesConfig, n_features: int) -> cv2.ORB:
             patchSize=fc.patch_size,
             fastThreshold=fc.fast_threshold,
         )
-        _ORB_CACHE[key] = orb
+        cache[key] = orb
     return orb
 
 
@@ -115,10 +125,24 @@ def _bucket(uv: np.ndarray, response: np.ndarray, fc: FeaturesConfig, shape: tup
     return np.sort(order[rank < per_cell])
 
 
-def extract_features(frame: Frame, cfg: Config) -> FrameFeatures:
-    """ORB on the colour image of ``frame``, lifted to 3-D with its depth."""
-    fc = cfg.features
-    gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY) if frame.rgb.ndim == 3 else frame.rgb
+@dataclass(frozen=True)
+class Detections:
+    """What the colour image alone gives: ORB key points (distorted pixels), descriptors,
+    responses, and the uncapped detection count. Made by :func:`detect` for one features config."""
+
+    uv_raw: np.ndarray
+    desc: np.ndarray
+    response: np.ndarray
+    n_detected: int
+    config: FeaturesConfig
+
+
+def detect(rgb: np.ndarray, fc: FeaturesConfig) -> Detections:
+    """ORB (with optional grid bucketing) and the detection count on a colour or grey image.
+
+    Needs no depth, pose or earlier frame, so it can run ahead in the frame reader's thread
+    (OpenCV releases the GIL): see :func:`with_detections`."""
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
     bucketing = fc.grid_rows * fc.grid_cols > 1
     orb = _orb(fc, fc.n_features * 2 if bucketing else fc.n_features)
     kps, desc = orb.detectAndCompute(gray, None)
@@ -132,18 +156,35 @@ def extract_features(frame: Frame, cfg: Config) -> FrameFeatures:
         if bucketing:
             keep = _bucket(uv_raw, response, fc, gray.shape[:2])
             uv_raw, desc, response = uv_raw[keep], desc[keep], response[keep]
+    return Detections(uv_raw, np.ascontiguousarray(desc), response, count_detections(gray, fc), fc)
+
+
+def with_detections(frame: Frame, cfg: Config) -> Frame:
+    """``frame`` with its :class:`Detections` attached (``Sequence.prefetched(then=...)``)."""
+    frame.detections = detect(frame.rgb, cfg.features)
+    return frame
+
+
+def extract_features(frame: Frame, cfg: Config) -> FrameFeatures:
+    """ORB on the colour image of ``frame``, lifted to 3-D with its depth.
+
+    Uses ``frame.detections`` when they were made ahead with the same features config."""
+    fc = cfg.features
+    det = frame.detections
+    if not isinstance(det, Detections) or det.config != fc:
+        det = detect(frame.rgb, fc)
     camera = frame.camera
-    uv = camera.undistort_points(uv_raw) if fc.undistort else uv_raw.copy()
+    uv = camera.undistort_points(det.uv_raw) if fc.undistort else det.uv_raw.copy()
     feats = FrameFeatures(
         index=frame.index,
         timestamp=frame.timestamp,
         uv=uv,
-        desc=np.ascontiguousarray(desc),
+        desc=det.desc,
         pts=np.full((len(uv), 3), np.nan),
         valid=np.zeros(len(uv), bool),
-        n_detected=count_detections(gray, fc),
-        uv_raw=uv_raw,
-        response=response,
+        n_detected=det.n_detected,
+        uv_raw=det.uv_raw,
+        response=det.response,
     )
     lift(feats, frame.depth, camera, cfg)
     return feats
