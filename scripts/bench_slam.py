@@ -316,7 +316,8 @@ def markdown(rows, synth, index_rows, command: str, ablation=(), repeat: int = 1
          f"so frames/s are noisy: each is the median of {repeat} identical runs (same trajectory, checked), "
          "lower bounds of an idle machine's.", "",
          "Thesis table 4.3 columns (ATE RMSE in metres, whole pipeline frames/s including image "
-         "decoding, which a background thread overlaps with tracking (`dataset.prefetch`, 4 frames); a false loop is an accepted loop edge off the ground truth by > {FALSE_LOOP_T} m "
+         "decoding, which a background thread overlaps with tracking (`dataset.prefetch`, 4 frames); "
+         f"a false loop is an accepted loop edge off the ground truth by > {FALSE_LOOP_T} m "
          f"or > {FALSE_LOOP_R_DEG} deg):", "",
          "| sequence | configuration | frames | ATE RMSE (m) | frames/s (min–max) | keyframes | sharp | loops | false loops | LC ms/sharp frame | DIF ms |",
          "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -324,7 +325,7 @@ def markdown(rows, synth, index_rows, command: str, ablation=(), repeat: int = 1
         lcms = f"{r['lc_ms_per_sharp']:.1f}" if r["lc_ms_per_sharp"] is not None else "-"
         dif = f"{r['dif_ms']:.1f}" if r["dif_ms"] is not None else "-"
         lo, hi = r["fps_range"]
-        L.append(f"| {r['sequence']} | {r['config']} | {r['frames']} | {r['ate']:.4f} | {r['fps']:.1f} ({lo:.0f}–{hi:.0f}) | "
+        L.append(f"| {r['sequence']} | {r['config']} | {r['frames']} | {r['ate']:.4f} | {r['fps']:.1f} ({lo:.1f}–{hi:.1f}) | "
                  f"{r['keyframes']} | {r['sharp']} | {r['loops']} | {r['false_loops']} | {lcms} | {dif} |")
     if ablation:
         L += ["", "Ablation on freiburg1_rpy_head200 (base: ISLAM + LC + DIF with the defaults K=2, "
