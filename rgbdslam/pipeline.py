@@ -52,6 +52,7 @@ class SlamState:
     loops: list[tuple[int, int]] = field(default_factory=list)
     lost: list[int] = field(default_factory=list)
     skipped: list[int] = field(default_factory=list)
+    restarts: list[int] = field(default_factory=list)  # frames where tracking restarted after a loss
     timings: dict[str, list[float]] = field(default_factory=dict)
     sharp: int = 0
 
@@ -114,16 +115,22 @@ class SLAM:
             self.frontend.set_depth(frame.index, depth)
             st.add_time("depth_filter", time.perf_counter() - t0)
 
+        restart = bool(getattr(result, "reset", False))
+        if restart:  # the front end restarted after a loss: a new segment, to be relocalised
+            st.restarts.append(frame.index)
+            if self.loop is not None:
+                self.loop.new_segment()
         loops = []
         if self.loop is not None:
             t0 = time.perf_counter()
-            if self.loop.observe(result.features):
-                st.sharp += 1
+            sharp = self.loop.observe(result.features)
+            st.sharp += int(sharp)
+            if sharp or self.loop.relocalizing:  # relocalising: every frame searches the older segments
                 loops = self.loop.detect(result.features, pose)
             st.add_time("loop_closure", time.perf_counter() - t0)
 
         is_kf = self.keyframe_policy.is_keyframe(frame.index, pose)
-        if loops and not is_kf:  # a loop edge needs the current frame in the graph
+        if (loops or restart) and not is_kf:  # a loop edge / a segment's first pose needs a graph node
             self.keyframe_policy.force(frame.index, pose)
             is_kf = True
         if is_kf:
@@ -242,6 +249,8 @@ def _summary(seq: Sequence, slam: SLAM, n_frames: int, wall: float, load_time: f
         "skipped": len(st.skipped),
         "lost_frames": st.lost,
         "skipped_frames": st.skipped,
+        "restarts": st.restarts,
+        "relocalized": int(slam.loop.stats["n_relocalized"]) if slam.loop is not None else 0,
         "keyframes": st.keyframes,
         "timestamps_keyframes": [r.timestamp for r in st.records if r.index == r.keyframe],
         "loops": [list(x) for x in st.loops],
@@ -367,6 +376,12 @@ def _print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
            + f", {len(s['keyframes'])} keyframes, {len(s['loops'])} loops; "
            f"{s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without waiting for images)")
     console.print(msg)
+    if s.get("restarts"):
+        n, r = len(s["restarts"]), s.get("relocalized", 0)
+        frames = ", ".join(str(i) for i in s["restarts"])
+        console.print(f"[yellow]tracking restarted {n}× after a loss (frame {frames}); "
+                      + (f"{r} of {n} new segment(s) relocalised against the map[/]" if r else
+                         "not relocalised: those segments' poses are only known up to an offset[/]"))
     ev = s.get("evaluation") or {}
     ate = (ev.get("ate") or {}).get("rmse")
     if ate is not None:

@@ -153,6 +153,45 @@ def test_recent_keyframes_are_skipped(mapped):
     assert lc.candidates(cur) == []
 
 
+def test_relocalisation_after_a_restart(mapped):
+    """After new_segment the estimate says nothing about older keyframes: a geometrically sound
+    match is accepted whatever the estimate, even to a recent keyframe; it fixes the offset
+    between the segments, and later loops to that segment must agree with the offset."""
+    lc, places, poses, rng = mapped
+    lc.new_segment()
+    assert lc.relocalizing and lc.stats["n_segments"] == 2
+    # the restarted front end believes it is somewhere unrelated (3 m away, turned 90 degrees)
+    to_new = make_pose(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [3.0, -2.0, 0.5])
+    true_pose = poses[4] @ revisit_pose()
+    P, d = places[4]  # the newest keyframe: skipped as "recent" in normal mode, a candidate now
+    first = view(200, transform_points(poses[4], P), d, true_pose, rng)
+    lc.add_keyframe(first, to_new @ true_pose)  # the new segment's first keyframe
+    edges = lc.detect(first, to_new @ true_pose)
+    assert [(e.i, e.j) for e in edges] == [(40, 200)]
+    assert not lc.relocalizing and lc.stats["n_relocalized"] == 1
+    T_true = inv(poses[4]) @ true_pose
+    assert np.linalg.norm(edges[0].T_ij[:3, 3] - T_true[:3, 3]) < 0.01
+    # a later revisit of place 0: consistent with the offset -> accepted ...
+    P0, d0 = places[0]
+    pose0 = revisit_pose()
+    cur = view(210, P0, d0, pose0, rng)
+    assert [(e.i, e.j) for e in lc.detect(cur, to_new @ pose0)] == [(0, 210)]
+    # ... but if the new segment's estimate contradicts the offset by 3 m it is rejected
+    cur = view(220, P0, d0, pose0, rng)
+    rejected = lc.stats["n_rejected_consistency"]
+    assert lc.detect(cur, make_pose(np.eye(3), [0, 0, 3.0]) @ to_new @ pose0) == []
+    assert lc.stats["n_rejected_consistency"] == rejected + 1
+
+
+def test_no_relocalisation_without_a_restart(mapped):
+    lc, places, poses, rng = mapped
+    P, d = places[4]
+    far = make_pose(np.eye(3), [3.0, 0.0, 0.0])
+    cur = view(200, transform_points(poses[4], P), d, far @ poses[4] @ revisit_pose(), rng)
+    assert not lc.relocalizing
+    assert lc.detect(cur, far @ poses[4] @ revisit_pose()) == []  # recent keyframe: skipped
+
+
 def test_observe_uses_the_configured_measure():
     from types import SimpleNamespace
 

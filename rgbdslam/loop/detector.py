@@ -8,6 +8,13 @@ sound (enough inliers, small residual) and agrees with the current (odometry) es
 within a bound that grows with the distance travelled / angle turned since the keyframe
 (the drift the estimate may have accumulated). Accepted loops become ``LoopEdge`` records
 for the pose graph, which adds them with a robust kernel.
+
+Tracking loss: when the front end restarts after too many lost frames, the pipeline calls
+``new_segment``. The poses of the new segment have no known relation to the older ones, so
+the loop closer *relocalises*: every frame (not only sharp ones) queries all keyframes of
+earlier segments, recent ones included, and a match to another segment is accepted on its
+geometry alone (there is no estimate to agree with). The first such loop fixes the offset
+between the two segments' coordinates; later loops to that segment are checked against it.
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ class _Keyframe:
     pose: np.ndarray
     path: float  # metres travelled (keyframe to keyframe) since the first keyframe
     turn: float  # degrees turned since the first keyframe
+    segment: int = 0  # tracking segment (a new one starts after each front-end restart)
 
 
 def motion_between(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
@@ -75,9 +83,14 @@ class LoopCloser:
             from rgbdslam.frontend.odometry import register
         self._register = register
         self.query_times: list[tuple[int, float]] = []  # (keyframes in the map, seconds) per detect
+        self.segment = 0  # the current tracking segment
+        # older segment -> (4x4 map from current-segment to that segment's coordinates, path, turn at the link)
+        self._links: dict[int, tuple[np.ndarray, float, float]] = {}
+        self.relocalizing = False  # the current segment is not linked to any older one yet
         self.stats: dict[str, Any] = {
             "n_observed": 0, "n_sharp": 0, "n_queries": 0, "n_candidates": 0, "n_verified": 0,
-            "n_accepted": 0, "n_rejected_geometry": 0, "n_rejected_consistency": 0,
+            "n_accepted": 0, "n_rejected_geometry": 0, "n_rejected_consistency": 0, "n_segments": 1,
+            "n_relocalized": 0,
             "time_per_query_ms": 0.0, "index_time_per_query_ms": 0.0, "map_keyframes": 0, "map_entries": 0,
         }
         self._index_time = 0.0
@@ -101,28 +114,59 @@ class LoopCloser:
         return sharp
 
     # -------------------------------------------------------------- map
+    def new_segment(self) -> None:
+        """The front end restarted after a tracking loss: keyframes added from now on belong to a
+        new segment whose poses are unrelated to the earlier ones; relocalise against those."""
+        if not self.keyframes:
+            return
+        self.segment += 1
+        self._links = {}
+        self.relocalizing = True
+        self.stats["n_segments"] = self.segment + 1
+
     def add_keyframe(self, features, pose: np.ndarray) -> None:
         pose = np.array(pose, dtype=np.float64)
-        if self.keyframes:
-            last = self.keyframes[-1]
+        last = self.keyframes[-1] if self.keyframes else None
+        if last is not None and last.segment == self.segment:
             dt, dr = motion_between(last.pose, pose)
             path, turn = last.path + dt, last.turn + dr
-        else:
+        else:  # first keyframe of a segment: distances restart
             path, turn = 0.0, 0.0
         self.index.add(len(self.keyframes), features.desc)
-        self.keyframes.append(_Keyframe(int(features.index), features, pose, path, turn))
+        self.keyframes.append(_Keyframe(int(features.index), features, pose, path, turn, self.segment))
         self.stats["map_keyframes"] = len(self.keyframes)
         self.stats["map_entries"] = int(self.index.size)
 
-    def _travel_since(self, kf: _Keyframe, pose: np.ndarray) -> tuple[float, float]:
+    def _travel(self, pose: np.ndarray) -> tuple[float, float]:
+        """(metres, degrees) travelled in the current segment up to ``pose``."""
         last = self.keyframes[-1]
+        if last.segment != self.segment:
+            return 0.0, 0.0
         dt, dr = motion_between(last.pose, pose)
-        return last.path + dt - kf.path, last.turn + dr - kf.turn
+        return last.path + dt, last.turn + dr
+
+    def _estimate(self, kf: _Keyframe, pose: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+        """The current estimate of kf⁻¹·current and the travel (m, deg) it may have drifted over;
+        None when ``kf`` is in an older segment not linked to the current one (no estimate)."""
+        path, turn = self._travel(pose)
+        if kf.segment == self.segment:
+            return inv(kf.pose) @ pose, path - kf.path, turn - kf.turn
+        link = self._links.get(kf.segment)
+        if link is None:
+            return None
+        to_old, link_path, link_turn = link
+        # drift since the link on this side, plus the keyframe's distance from the link's keyframe on the other
+        return inv(kf.pose) @ to_old @ pose, abs(path - link_path) + kf.path, abs(turn - link_turn) + kf.turn
 
     # -------------------------------------------------------------- query
     def candidates(self, features) -> list[tuple[int, int]]:
-        """[(keyframe position, votes)] of the best non-recent keyframes, most votes first."""
-        n_old = len(self.keyframes) - self.lc.skip_recent
+        """[(keyframe position, votes)] of the best non-recent keyframes, most votes first.
+
+        While relocalising: the best keyframes of the older segments, recent ones included."""
+        if self.relocalizing:
+            n_old = sum(1 for k in self.keyframes if k.segment != self.segment)  # they come first
+        else:
+            n_old = len(self.keyframes) - self.lc.skip_recent
         if n_old <= 0 or len(features.desc) == 0:
             return []
         votes = self.index.votes(features.desc)[:n_old]
@@ -143,13 +187,17 @@ class LoopCloser:
             self.stats["n_rejected_geometry"] += 1
             return None
         T_ij = inv(res.T)  # res.T maps keyframe points into the current frame
-        T_est = inv(kf.pose) @ np.asarray(pose, dtype=np.float64)
-        et, er = motion_between(T_est, T_ij)
-        path, turn = self._travel_since(kf, pose)
-        if et > lc.consistency_translation + lc.drift_ratio_translation * path or \
-                er > lc.consistency_rotation_deg + lc.drift_ratio_rotation * turn:
-            self.stats["n_rejected_consistency"] += 1
-            return None
+        pose = np.asarray(pose, dtype=np.float64)
+        est = self._estimate(kf, pose)
+        if est is None:  # relocalisation: nothing to agree with; the geometry checks above decide
+            et = er = float("nan")
+        else:
+            T_est, path, turn = est
+            et, er = motion_between(T_est, T_ij)
+            if et > lc.consistency_translation + lc.drift_ratio_translation * path or \
+                    er > lc.consistency_rotation_deg + lc.drift_ratio_rotation * turn:
+                self.stats["n_rejected_consistency"] += 1
+                return None
         info = getattr(res, "information", None)
         if info is None or not np.all(np.isfinite(info)):
             pairs = getattr(res, "pairs", None)
@@ -157,6 +205,21 @@ class LoopCloser:
             info = fallback_information(pts, max(residual / np.sqrt(3.0), lc.sigma_floor))
         return LoopEdge(kf.index, int(features.index), T_ij, np.asarray(info, dtype=np.float64),
                         int(res.n_inliers), residual, votes, et, er)
+
+    def _link(self, edges: list[LoopEdge], pose: np.ndarray) -> None:
+        """Record the offset to every older segment a new loop reaches for the first time."""
+        by_index = {k.index: k for k in self.keyframes}
+        for e in edges:
+            kf = by_index[e.i]
+            if kf.segment == self.segment or kf.segment in self._links:
+                continue
+            pose = np.asarray(pose, dtype=np.float64)
+            to_old = kf.pose @ e.T_ij @ inv(pose)  # current-segment coordinates -> kf's segment's
+            path, turn = self._travel(pose)
+            self._links[kf.segment] = (to_old, path, turn)
+            if self.relocalizing:
+                self.relocalizing = False
+                self.stats["n_relocalized"] += 1
 
     def detect(self, features, pose: np.ndarray) -> list[LoopEdge]:
         """Loop edges between earlier keyframes and the current (sharp) frame."""
@@ -173,6 +236,7 @@ class LoopCloser:
         edges.sort(key=lambda e: -e.n_inliers)
         edges = edges[: self.lc.max_loops_per_frame]
         self.stats["n_accepted"] += len(edges)
+        self._link(edges, pose)
         t2 = time.perf_counter()
         self._index_time += t1 - t0
         self._total_time += t2 - t0
