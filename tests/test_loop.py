@@ -176,6 +176,9 @@ def test_relocalisation_after_a_restart(mapped):
     pose0 = revisit_pose()
     cur = view(210, P0, d0, pose0, rng)
     assert [(e.i, e.j) for e in lc.detect(cur, to_new @ pose0)] == [(0, 210)]
+    # the keyframe just before the loss is not "recent" for the new segment (skip_recent = 2 here)
+    cur = view(215, transform_points(poses[4], P), d, true_pose, rng)
+    assert [(e.i, e.j) for e in lc.detect(cur, to_new @ true_pose)] == [(40, 215)]
     # ... but if the new segment's estimate contradicts the offset by 3 m it is rejected
     cur = view(220, P0, d0, pose0, rng)
     rejected = lc.stats["n_rejected_consistency"]

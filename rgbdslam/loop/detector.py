@@ -84,7 +84,9 @@ class LoopCloser:
         self._register = register
         self.query_times: list[tuple[int, float]] = []  # (keyframes in the map, seconds) per detect
         self.segment = 0  # the current tracking segment
-        # older segment -> (4x4 map from current-segment to that segment's coordinates, path, turn at the link)
+        self._segment_start = 0  # position in self.keyframes of its first keyframe
+        # older segment -> (4x4 map from current-segment to that segment's coordinates, path and turn
+        # of the current segment at the link, path and turn of the linked keyframe in its segment)
         self._links: dict[int, tuple[np.ndarray, float, float]] = {}
         self.relocalizing = False  # the current segment is not linked to any older one yet
         self.stats: dict[str, Any] = {
@@ -120,6 +122,7 @@ class LoopCloser:
         if not self.keyframes:
             return
         self.segment += 1
+        self._segment_start = len(self.keyframes)
         self._links = {}
         self.relocalizing = True
         self.stats["n_segments"] = self.segment + 1
@@ -154,19 +157,21 @@ class LoopCloser:
         link = self._links.get(kf.segment)
         if link is None:
             return None
-        to_old, link_path, link_turn = link
+        to_old, link_path, link_turn, kf_path, kf_turn = link
         # drift since the link on this side, plus the keyframe's distance from the link's keyframe on the other
-        return inv(kf.pose) @ to_old @ pose, abs(path - link_path) + kf.path, abs(turn - link_turn) + kf.turn
+        return (inv(kf.pose) @ to_old @ pose, abs(path - link_path) + abs(kf.path - kf_path),
+                abs(turn - link_turn) + abs(kf.turn - kf_turn))
 
     # -------------------------------------------------------------- query
     def candidates(self, features) -> list[tuple[int, int]]:
         """[(keyframe position, votes)] of the best non-recent keyframes, most votes first.
 
-        While relocalising: the best keyframes of the older segments, recent ones included."""
-        if self.relocalizing:
-            n_old = sum(1 for k in self.keyframes if k.segment != self.segment)  # they come first
-        else:
-            n_old = len(self.keyframes) - self.lc.skip_recent
+        "Recent" means among the last ``skip_recent`` keyframes of the current segment: a
+        keyframe before a tracking loss is never recent, the loss is what a loop bridges.
+        While relocalising only the older segments' keyframes are candidates."""
+        n = len(self.keyframes)
+        first = self._segment_start  # position of the current segment's first keyframe
+        n_old = first if self.relocalizing else max(first, n - self.lc.skip_recent)
         if n_old <= 0 or len(features.desc) == 0:
             return []
         votes = self.index.votes(features.desc)[:n_old]
@@ -216,7 +221,7 @@ class LoopCloser:
             pose = np.asarray(pose, dtype=np.float64)
             to_old = kf.pose @ e.T_ij @ inv(pose)  # current-segment coordinates -> kf's segment's
             path, turn = self._travel(pose)
-            self._links[kf.segment] = (to_old, path, turn)
+            self._links[kf.segment] = (to_old, path, turn, kf.path, kf.turn)
             if self.relocalizing:
                 self.relocalizing = False
                 self.stats["n_relocalized"] += 1
