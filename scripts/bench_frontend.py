@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import re
 import subprocess
 import sys
 import time
@@ -181,19 +180,10 @@ def main(argv=None) -> int:
             "mean CPU ms (process time per frame) is the load-independent cost.\n\n"
             + table + "\n"
         )
-        write_section(ROOT / "docs" / "benchmarks.md", section)
+        from _docs import replace_section
+
+        replace_section(section)
     return 0
-
-
-def write_section(path: Path, section: str) -> None:
-    """Replace (or append) the '## Front end' section of ``path``, leaving other sections alone."""
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    pat = re.compile(r"^## Front end\n.*?(?=^## |\Z)", re.S | re.M)
-    if pat.search(text):
-        text = pat.sub(lambda _m: section + "\n", text)
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    path.write_text(text)
 
 
 if __name__ == "__main__":

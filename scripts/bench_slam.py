@@ -353,20 +353,6 @@ def markdown(rows, synth, index_rows, command: str, ablation=(), repeat: int = 1
     return "\n".join(L) + "\n"
 
 
-def write_docs(section: str) -> None:
-    path = ROOT / "docs" / "benchmarks.md"
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    start = text.find("## Full SLAM")
-    if start >= 0:
-        end = text.find("\n## ", start + 1)
-        text = text[:start] + section + ("" if end < 0 else text[end + 1:])
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    from rgbdslam.io.atomic import atomic_write_text
-
-    atomic_write_text(path, text)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data")
@@ -389,10 +375,9 @@ def main(argv=None) -> int:
     synth = None if a.skip_synthetic else run_synthetic(out, a.synthetic_frames, rec)
     index_rows = [] if a.skip_index else run_index_scaling(data)
     md = markdown(rows, synth, index_rows, command, ablation, a.repeat)
-    print(md)
-    if a.write_docs:
-        write_docs(md)
-    return 0
+    from _docs import publish
+
+    return publish(md, a.write_docs)
 
 
 if __name__ == "__main__":
