@@ -163,6 +163,9 @@ class RerunLogger:
             if feats is not None:
                 self._log_keypoints(feats)
         self.rec.log("stats/lost", rr.Scalars(float(lost)))
+        if getattr(result, "reset", False):
+            self.rec.log("log", rr.TextLog(f"frame {index}: tracking restarted after a loss; relocalising "
+                                           "against the map", level="WARN"))
         for key in ("n_matches", "n_inliers"):
             v = getattr(result, key, None)
             if v is not None:
