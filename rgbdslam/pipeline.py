@@ -108,14 +108,16 @@ class SLAM:
         if getattr(result, "information", None) is not None:
             self._info_since_kf.append(result.information)
 
+        restart = bool(getattr(result, "reset", False))
         depth = frame.depth
         if self.depth_filter is not None:
+            if restart:  # the last depth maps' poses are unrelated to this one's: nothing to warp
+                self.depth_filter.reset()
             t0 = time.perf_counter()
             depth = self.depth_filter(frame.depth, pose)
             self.frontend.set_depth(frame.index, depth)
             st.add_time("depth_filter", time.perf_counter() - t0)
 
-        restart = bool(getattr(result, "reset", False))
         if restart:  # the front end restarted after a loss: a new segment, to be relocalised
             st.restarts.append(frame.index)
             if self.loop is not None:

@@ -87,7 +87,7 @@ class LoopCloser:
         self._segment_start = 0  # position in self.keyframes of its first keyframe
         # older segment -> (4x4 map from current-segment to that segment's coordinates, path and turn
         # of the current segment at the link, path and turn of the linked keyframe in its segment)
-        self._links: dict[int, tuple[np.ndarray, float, float]] = {}
+        self._links: dict[int, tuple[np.ndarray, float, float, float, float]] = {}
         self.relocalizing = False  # the current segment is not linked to any older one yet
         self.stats: dict[str, Any] = {
             "n_observed": 0, "n_sharp": 0, "n_queries": 0, "n_candidates": 0, "n_verified": 0,
