@@ -92,6 +92,7 @@ class SLAM:
         self.state = SlamState()
         self._last_kf: FrameRecord | None = None
         self._info_since_kf: list[np.ndarray] = []
+        self.optimised: dict[int, np.ndarray] | None = None  # keyframe poses after finish()
 
     # ------------------------------------------------------------------ one frame
     def track(self, frame: Frame):
@@ -202,6 +203,7 @@ class SLAM:
             return odo
         t0 = time.perf_counter()
         optimised = self.graph.optimize()
+        self.optimised = optimised
         self.state.add_time("pose_graph", time.perf_counter() - t0)
         kf_pose = {r.index: r.pose for r in self.state.records if r.index == r.keyframe}
         poses = []
@@ -270,6 +272,10 @@ def _write_outputs(out_dir: Path, slam: SLAM, summary: dict, final: Trajectory |
     odo = slam.odometry()
     write_tum(odo, out_dir / "odometry.tum")
     write_tum(final if final is not None else odo, out_dir / "trajectory.tum")
+    if slam.graph is not None and slam.graph.order:
+        from rgbdslam.backend.graph_io import write_g2o
+
+        write_g2o(out_dir / "posegraph.g2o", slam.graph.as_graph(slam.optimised))
     atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
 
 

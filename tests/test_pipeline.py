@@ -193,6 +193,19 @@ def test_tracking_loss_is_relocalised(tmp_path):
     assert s["lost_frames"] == list(range(50, 85)) and s["restarts"] == [85]
     assert s["relocalized"] == 1
     assert s["evaluation"]["ate"]["rmse"] < 0.02
+    # the keyframe graph is written as g2o: a vertex per keyframe at its final pose, an odometry
+    # edge between consecutive keyframes (the restart's too) and every loop edge
+    from rgbdslam.backend.graph_io import read_graph
+
+    g = read_graph(tmp_path / "run" / "posegraph.g2o")
+    assert g.ids.tolist() == s["keyframes"]
+    assert g.n_edges == len(s["keyframes"]) - 1 + len(s["loops"])
+    final = read_tum(tmp_path / "run" / "trajectory.tum")
+    at = {round(t, 6): P for t, P in zip(final.timestamps, final.poses)}
+    kf_poses = np.array([at[round(t, 6)] for t in s["timestamps_keyframes"]])
+    assert np.allclose(g.poses, kf_poses, atol=1e-9)
+    restart_edge = g.ids[g.edges_j].tolist().index(85)
+    assert np.abs(g.info[restart_edge]).max() < 1e-5  # the restart's edge carries (almost) no information
     # without loop closure nothing relates the segments: the second one is off by decimetres
     s0 = run_sequence(seq, tmp_path / "run0", _fast_cfg("loop.enabled=false"), progress=False)
     assert s0["restarts"] == [85] and s0["evaluation"]["ate"]["rmse"] > 0.1

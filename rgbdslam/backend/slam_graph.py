@@ -177,6 +177,28 @@ class PoseGraph:
         c = self.correction()
         return {i: self._estimate.get(i, c @ self.guess[i]) for i in self.order}
 
+    def as_graph(self, poses: dict[int, np.ndarray] | None = None):
+        """The keyframe graph as a :class:`rgbdslam.backend.graph.PoseGraph` (SE(3), vertex ids =
+        frame indices, information in g2o order) for ``write_g2o``; vertices at ``poses``
+        (default: the front-end guesses). The robust kernel of loop edges is not part of it."""
+        from rgbdslam.backend.graph import PoseGraph as FileGraph, info6_g2o_to_gtsam
+
+        pos = {n: k for k, n in enumerate(self.order)}
+        edges = self._edges()
+        poses = poses or self.guess
+        return FileGraph(
+            dim=3,
+            ids=np.array(self.order, dtype=np.int64),
+            poses=np.array([poses.get(i, self.guess[i]) for i in self.order], float).reshape(-1, 4, 4),
+            edges_i=np.array([pos[i] for i, _, _, _ in edges], dtype=np.int64),
+            edges_j=np.array([pos[j] for _, j, _, _ in edges], dtype=np.int64),
+            meas=np.array([T for _, _, T, _ in edges], float).reshape(-1, 4, 4),
+            info=info6_g2o_to_gtsam(np.array([I for _, _, _, I in edges], float).reshape(-1, 6, 6)),  # swap back
+            has_poses=True,
+            source="rgbdslam run",
+            notes=[f"{len(self.odometry)} odometry edges, then {len(self.loops)} loop edges"],
+        )
+
     # ------------------------------------------------------------------ initial values
     def _edges(self) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
         return self.odometry + [(int(e.i), int(e.j), np.asarray(e.T_ij, float), np.asarray(e.information, float))
