@@ -319,7 +319,9 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
                     continue
                 load_time += time.perf_counter() - t0
                 slam.track(frame)
-                advance()
+                st = slam.state
+                advance(f"{len(st.loops)} loops, {len(st.lost)} lost" + (f", {len(st.restarts)} restarts"
+                                                                      if st.restarts else ""))
                 if (i + 1) % FLUSH_EVERY == 0 and slam.state.records:
                     write_tum(slam.odometry(), out_dir / "odometry.tum")
                     write_tum(slam.odometry(), out_dir / "trajectory.tum")
