@@ -263,3 +263,8 @@ def test_detections_made_ahead_are_used_only_for_their_config(desk):
     other.features.n_features = 300
     stale = dataclasses.replace(frames[1], detections=detect(frames[1].rgb, other.features))
     assert len(extract_features(stale, cfg).desc) == len(plain.desc) != 300
+    # nor are detections of another image (a frame copied with a new colour image)
+    other_image = dataclasses.replace(ahead, rgb=frames[2].rgb)
+    assert other_image.detections is ahead.detections
+    assert np.array_equal(extract_features(other_image, cfg).desc,
+                          extract_features(dataclasses.replace(frames[2]), cfg).desc)

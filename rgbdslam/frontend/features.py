@@ -135,6 +135,7 @@ class Detections:
     response: np.ndarray
     n_detected: int
     config: FeaturesConfig
+    image: np.ndarray = field(repr=False, compare=False)  # the image they were found in (identity is checked)
 
 
 def detect(rgb: np.ndarray, fc: FeaturesConfig) -> Detections:
@@ -156,7 +157,7 @@ def detect(rgb: np.ndarray, fc: FeaturesConfig) -> Detections:
         if bucketing:
             keep = _bucket(uv_raw, response, fc, gray.shape[:2])
             uv_raw, desc, response = uv_raw[keep], desc[keep], response[keep]
-    return Detections(uv_raw, np.ascontiguousarray(desc), response, count_detections(gray, fc), fc)
+    return Detections(uv_raw, np.ascontiguousarray(desc), response, count_detections(gray, fc), fc, rgb)
 
 
 def with_detections(frame: Frame, cfg: Config) -> Frame:
@@ -168,10 +169,11 @@ def with_detections(frame: Frame, cfg: Config) -> Frame:
 def extract_features(frame: Frame, cfg: Config) -> FrameFeatures:
     """ORB on the colour image of ``frame``, lifted to 3-D with its depth.
 
-    Uses ``frame.detections`` when they were made ahead with the same features config."""
+    Uses ``frame.detections`` when they were made ahead in this frame's image with the same
+    features config."""
     fc = cfg.features
     det = frame.detections
-    if not isinstance(det, Detections) or det.config != fc:
+    if not isinstance(det, Detections) or det.image is not frame.rgb or det.config != fc:
         det = detect(frame.rgb, fc)
     camera = frame.camera
     uv = camera.undistort_points(det.uv_raw) if fc.undistort else det.uv_raw.copy()
