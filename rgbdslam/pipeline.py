@@ -118,6 +118,8 @@ class SLAM:
             depth = self.depth_filter(frame.depth, pose)
             self.frontend.set_depth(frame.index, depth)
             st.add_time("depth_filter", time.perf_counter() - t0)
+            if self.observer is not None:
+                self.observer.log_filtered_depth(frame.index, frame.timestamp, depth)
 
         if restart:  # the front end restarted after a loss: a new segment, to be relocalised
             st.restarts.append(frame.index)
@@ -128,6 +130,8 @@ class SLAM:
             t0 = time.perf_counter()
             sharp = self.loop.observe(result.features)
             st.sharp += int(sharp)
+            if self.observer is not None:
+                self.observer.log_gate(frame.index, frame.timestamp, *self.loop.gate.last, sharp)
             if sharp or self.loop.relocalizing:  # relocalising: every frame searches the older segments
                 loops = self.loop.detect(result.features, pose)
             st.add_time("loop_closure", time.perf_counter() - t0)

@@ -160,12 +160,13 @@ def test_run_records_rerun_with_matches_and_trajectories(desk9, tmp_path):
 
     rrd = tmp_path / "run.rrd"
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "run"), "--no-map", "-q",
-                                    "--rerun-save", str(rrd)])
+                                    "--rerun-save", str(rrd), "--set", "depth_filter.enabled=true"])
     assert res.exit_code == 0, res.output
     out = subprocess.run([rerun_executable(), "rrd", "print", str(rrd)], capture_output=True, text=True,
                          timeout=60).stdout
     for entity in ("world/camera/image/matches", "world/camera/image/keypoints", "world/trajectory/groundtruth",
-                   "world/trajectory/estimate"):
+                   "world/trajectory/estimate", "world/camera/image/depth_filtered", "loop/sharpness",
+                   "loop/threshold", "loop/sharp"):
         assert entity in out, entity
 
 

@@ -21,6 +21,7 @@ class SharpnessGate:
         self.history: deque[float] = deque(maxlen=self.window)
         self.n_seen = 0
         self.n_sharp = 0
+        self.last: tuple[float, float] = (float("nan"), float("inf"))  # (measure, threshold) of the last frame
 
     def threshold(self) -> float:
         """The count a frame must exceed now (inf until ``min_history`` frames were seen)."""
@@ -30,7 +31,9 @@ class SharpnessGate:
 
     def __call__(self, n_detected: float) -> bool:
         """Judge a frame by its descriptor count, then add the count to the window."""
-        sharp = n_detected > self.threshold()
+        threshold = self.threshold()
+        sharp = n_detected > threshold
+        self.last = (float(n_detected), threshold)
         self.history.append(float(n_detected))
         self.n_seen += 1
         self.n_sharp += int(sharp)

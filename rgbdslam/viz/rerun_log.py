@@ -184,6 +184,26 @@ class RerunLogger:
         mm = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
         self.rec.log("world/camera/image/depth", rr.DepthImage(mm, meter=1000.0))
 
+    def log_filtered_depth(self, index: int, timestamp: float, depth: np.ndarray) -> None:
+        """DIF's output for frame ``index``, next to the measured depth. Called before
+        ``log_frame`` of the same frame, it logs the frames whose images ``log_frame`` will log."""
+        if self.n_frames % max(1, int(self.cfg.output.rerun_log_every)) != 0:
+            return
+        depth = np.asarray(depth, dtype=np.float32)
+        if self.scale < 1.0:
+            depth = cv2.resize(depth, self.img_size, interpolation=cv2.INTER_NEAREST)
+        mm = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
+        self._set_time(index, timestamp)
+        self.rec.log("world/camera/image/depth_filtered", self.rr.DepthImage(mm, meter=1000.0))
+
+    def log_gate(self, index: int, timestamp: float, measure: float, threshold: float, sharp: bool) -> None:
+        """The loop-closure sharpness gate: the frame's measure, the threshold it had to exceed, the verdict."""
+        self._set_time(index, timestamp)
+        self.rec.log("loop/sharpness", self.rr.Scalars(float(measure)))
+        if np.isfinite(threshold):
+            self.rec.log("loop/threshold", self.rr.Scalars(float(threshold)))
+        self.rec.log("loop/sharp", self.rr.Scalars(float(sharp)))
+
     def _log_keypoints(self, feats) -> None:
         uv = getattr(feats, "uv_raw", None)
         if uv is None or len(uv) == 0:  # distorted pixels match the logged (raw) image; else the ideal ones
