@@ -416,4 +416,14 @@ def run_demo(out_dir: str | Path, frames: int, cfg: Config) -> dict[str, Any]:
         console.print(f"generating a synthetic sequence of {frames} frames in {seq_dir}")
         generate_sequence(seq_dir, frames=frames, motion="loop", noise=True, seed=0)
         atomic_write_text(marker, json.dumps(want))
-    return run_sequence(seq_dir, out_dir / "run", cfg)
+    run = out_dir / "run"
+    summary = run_sequence(seq_dir, run, cfg)
+    if (run / "trajectory.tum").exists() and summary.get("evaluation"):
+        from rgbdslam.evaluation.report import compare_and_print
+
+        # what loop closure and the pose graph added to the front end, against the exact ground truth
+        compare_and_print(seq_dir / "groundtruth.txt", [run / "odometry.tum", run / "trajectory.tum"],
+                          plots=False, console=console)
+    console.print(f"next: [bold]rgbdslam view {run}[/] (Rerun), the map in {run / 'map'}, "
+                  f"the plots in {run / 'plots'}; `rgbdslam run SEQUENCE` for your own data")
+    return summary

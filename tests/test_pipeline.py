@@ -210,3 +210,18 @@ def test_tracking_loss_is_relocalised(tmp_path):
     # without loop closure nothing relates the segments: the second one is off by decimetres
     s0 = run_sequence(seq, tmp_path / "run0", _fast_cfg("loop.enabled=false"), progress=False)
     assert s0["restarts"] == [85] and s0["evaluation"]["ate"]["rmse"] > 0.1
+
+
+def test_demo_command(tmp_path):
+    """README command 1's `rgbdslam demo`, smaller: sequence generated once, run, accuracy table."""
+    args = ["demo", "--out", str(tmp_path / "demo"), "--frames", "40", "--set", "mapping.enabled=false"]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    assert "generating a synthetic sequence of 40 frames" in res.output
+    assert "odometry.tum" in res.output and "trajectory.tum" in res.output and "rgbdslam view" in res.output
+    run = json.loads((tmp_path / "demo" / "run" / "run.json").read_text())
+    assert run["tracked"] == 40 and run["evaluation"]["ate"]["rmse"] < 0.02
+    again = CliRunner().invoke(main, args)  # the sequence is reused, the result is the same
+    assert again.exit_code == 0 and "generating" not in again.output
+    rerun = json.loads((tmp_path / "demo" / "run" / "run.json").read_text())
+    assert rerun["evaluation"]["ate"]["rmse"] == run["evaluation"]["ate"]["rmse"]
