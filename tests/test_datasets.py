@@ -335,3 +335,21 @@ def test_prefetch_stops_reading_when_the_caller_stops(tmp_path):
         t.join(timeout=5.0)  # the read in progress finishes, then the thread ends
     assert not [t for t in readers if t.is_alive()]
     assert max(loaded) <= 3 + 2 and len(loaded) < 30  # nothing beyond the read-ahead window
+
+
+@need_desk
+def test_tum_folders_without_lists_are_read_by_file_name(tmp_path):
+    """rgb/ and depth/ of time-stamp-named PNGs without rgb.txt/depth.txt: the same sequence."""
+    root = tmp_path / "rgbd_dataset_freiburg1_desk_nolists"
+    shutil.copytree(DESK, root)
+    (root / "rgb.txt").unlink()
+    (root / "depth.txt").unlink()
+    a, b = open_sequence(DESK), open_sequence(root)
+    assert isinstance(b, TumSequence) and b.camera.name == a.camera.name == "fr1"
+    assert np.array_equal(a.timestamps, b.timestamps)
+    assert [p.name for p in a.rgb_files] == [p.name for p in b.rgb_files]
+    assert [p.name for p in a.depth_files] == [p.name for p in b.depth_files]
+    # a stray file that is not named by a time stamp: one clear sentence
+    cv2.imwrite(str(root / "rgb" / "snapshot.png"), np.zeros((4, 4, 3), np.uint8))
+    with pytest.raises(InputError, match=r"snapshot\.png is not named by its time stamp.*write rgb\.txt"):
+        open_sequence(root)

@@ -51,7 +51,8 @@ def open_sequence(path: str | Path, cfg=None) -> Sequence:
         kind = next((n for n, (detect, _) in _REGISTRY.items() if detect(path)), None)
         if kind is None:
             raise InputError(
-                f"{path} is not a known sequence layout: expected rgb.txt and depth.txt (TUM) or a 'matched' file (PUT)"
+                f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
+                f"with time-stamp-named PNGs (TUM), or a 'matched' file (PUT)"
             )
     if kind not in _REGISTRY:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")

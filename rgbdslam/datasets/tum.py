@@ -2,7 +2,9 @@
 
 Layout: ``rgb.txt`` and ``depth.txt`` ('timestamp filename' lines, '#' comments), the
 images they name (colour 8-bit, depth 16-bit PNG with 5000 units per metre, 0 = no
-measurement) and an optional ``groundtruth.txt`` (TUM trajectory). Colour and depth are
+measurement) and an optional ``groundtruth.txt`` (TUM trajectory). Without the two lists,
+folders ``rgb/`` and ``depth/`` of PNGs named by their time stamps (``1305031102.175304.png``,
+as TUM's and many bag-extraction tools write them) are read in time order. Colour and depth are
 paired with TUM ``associate.py`` semantics, or read from an associations file
 ('rgb_ts rgb_file depth_ts depth_file').
 
@@ -169,6 +171,35 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
     return np.array(stamps, dtype=np.float64), names
 
 
+def _stamp(name: str) -> float | None:
+    try:
+        t = float(Path(name).stem)
+    except ValueError:
+        return None
+    return t if np.isfinite(t) else None
+
+
+def list_from_folder(folder: Path) -> tuple[np.ndarray, list[str]]:
+    """'timestamp filename' pairs of the PNGs in ``folder`` named by their time stamps, in time
+    order (what rgb.txt / depth.txt would list); file names relative to the folder's parent."""
+    files = sorted(folder.glob("*.png"))
+    bad = [f.name for f in files if _stamp(f.name) is None]
+    if bad or not files:
+        what = f"{bad[0]} is not named by its time stamp" if bad else "there are no PNG images"
+        raise InputError(f"{folder}: {what}; without {folder.name}.txt the images must be named like "
+                         f"1305031102.175304.png, or write {folder.name}.txt ('timestamp filename' lines)")
+    stamps = np.array([_stamp(f.name) for f in files])
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], [f"{folder.name}/{files[k].name}" for k in order]
+
+
+def _image_list(root: Path, kind: str) -> tuple[np.ndarray, list[str]]:
+    """``kind``.txt if present, else the time-stamp-named PNGs of the folder ``kind``/."""
+    if (root / f"{kind}.txt").is_file() or not (root / kind).is_dir():
+        return read_file_list(root / f"{kind}.txt")
+    return list_from_folder(root / kind)
+
+
 def read_associations(path: Path) -> tuple[np.ndarray, list[str], np.ndarray, list[str]]:
     """Read 'rgb_ts rgb_file depth_ts depth_file' lines (the output of TUM associate.py)."""
     if not path.is_file():
@@ -249,7 +280,13 @@ def choose_camera(root: Path, camera: str = "auto") -> Camera:
 
 
 def _is_tum(path: Path) -> bool:
-    return (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
+    def listed(kind: str) -> bool:
+        if (path / f"{kind}.txt").is_file():
+            return True
+        folder = path / kind
+        return folder.is_dir() and any(_stamp(f.name) is not None for f in folder.glob("*.png"))
+
+    return listed("rgb") and listed("depth")
 
 
 @register("tum", _is_tum)
@@ -272,8 +309,8 @@ class TumSequence(RgbdFileSequence):
             order = np.argsort(ts_rgb, kind="stable")
             ia = ib = order
         else:
-            ts_rgb, f_rgb = read_file_list(root / "rgb.txt")
-            ts_d, f_d = read_file_list(root / "depth.txt")
+            ts_rgb, f_rgb = _image_list(root, "rgb")
+            ts_d, f_d = _image_list(root, "depth")
             ia, ib = associate(ts_rgb, ts_d, cfg.max_difference, cfg.offset)
             if len(ia) == 0:
                 raise InputError(
