@@ -26,6 +26,7 @@ import numpy as np
 from rgbdslam import __version__
 from rgbdslam.config import Config, save_config
 from rgbdslam.datasets import Frame, Sequence, open_sequence
+from rgbdslam.datasets.base import depth_warning
 from rgbdslam.errors import InputError, RgbdslamError, TrackingLost
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
@@ -322,6 +323,8 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
                     advance()
                     continue
                 load_time += time.perf_counter() - t0
+                if not slam.state.records and not slam.state.lost and (warning := depth_warning(frame)):
+                    console.print(f"[yellow]warning:[/] {warning}")  # once, on the first readable frame
                 slam.track(frame)
                 st = slam.state
                 advance(f"{len(st.loops)} loops, {len(st.lost)} lost" + (f", {len(st.restarts)} restarts"

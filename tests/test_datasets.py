@@ -353,3 +353,33 @@ def test_tum_folders_without_lists_are_read_by_file_name(tmp_path):
     cv2.imwrite(str(root / "rgb" / "snapshot.png"), np.zeros((4, 4, 3), np.uint8))
     with pytest.raises(InputError, match=r"snapshot\.png is not named by its time stamp.*write rgb\.txt"):
         open_sequence(root)
+
+
+def test_depth_warning_flags_implausible_depth():
+    from rgbdslam.datasets.base import Frame, depth_warning
+
+    def frame(depth):
+        return Frame(0, 0.0, np.zeros((4, 5, 3), np.uint8), np.asarray(depth, np.float32), CAMERAS["fr1"], "d.png")
+
+    assert depth_warning(frame(np.full((4, 5), 1.2))) is None  # a desk at 1.2 m
+    assert depth_warning(frame(np.full((4, 5), 7.5))) is None  # a far wall: still a camera's range
+    far = depth_warning(frame(np.full((4, 5), 24.0)))  # millimetres read with 5000 per metre ... x5
+    assert "median of 24.0 m" in far and "depth_scale=1000" in far and "d.png" in far
+    near = depth_warning(frame(np.full((4, 5), 0.2)))  # ... or the other way round
+    assert "20.0 cm" in near and "depth_scale" in near
+    empty = np.zeros((4, 5))
+    assert "almost empty" in depth_warning(frame(empty))
+    half = np.zeros((4, 5))
+    half[:2] = 1.0  # half the pixels valid: the median is over the valid ones
+    assert depth_warning(frame(half)) is None
+
+
+@need_desk
+def test_info_reports_depth_of_the_first_frame():
+    from rgbdslam.config import DatasetConfig
+    from rgbdslam.datasets import describe_sequence
+
+    text = describe_sequence(DESK)
+    assert "depth       frame 0:" in text and "warning" not in text
+    wrong = describe_sequence(DESK, DatasetConfig(depth_scale=1.0))  # raw units taken as metres
+    assert "warning" in wrong and "depth_scale=1000" in wrong

@@ -10,6 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
 
@@ -74,6 +76,16 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
         f"frames      {len(seq)} over {span:.2f} s ({len(seq) / span if span > 0 else 0:.1f} Hz)",
         f"groundtruth {f'{len(gt)} poses' if gt is not None else 'none'}",
     ]
+    if len(seq):
+        from rgbdslam.datasets.base import depth_warning
+
+        first = seq.load(0)
+        valid = first.depth[first.depth > 0]
+        lines.append(f"depth       frame 0: {valid.size / first.depth.size:.0%} valid, median "
+                     f"{float(np.median(valid)) if valid.size else 0:.2f} m")
+        warning = depth_warning(first)
+        if warning:
+            lines.append(f"warning     {warning}")
     return "\n".join(lines)
 
 

@@ -29,6 +29,28 @@ class Frame:
     detections: Any = field(default=None, repr=False, compare=False)
 
 
+def depth_warning(frame: Frame) -> str | None:
+    """A sentence when the frame's metric depth does not look like an RGB-D camera's (wrong
+    ``dataset.depth_scale`` or an empty depth stream), else None. RGB-D cameras measure about
+    0.3-8 m, so a median of the valid pixels above 8 m or below 0.25 m is suspect. A heuristic:
+    it catches a scale off by 5 (TUM's 5000 per metre read as millimetres, or back) in most
+    indoor scenes, not every wrong scale."""
+    d = np.asarray(frame.depth)
+    valid = d[d > 0]
+    where = f"the depth of frame {frame.index}" + (f" ({frame.name})" if frame.name else "")
+    if valid.size < 0.01 * d.size:
+        return (f"{where} is almost empty ({valid.size} of {d.size} pixels); check the depth images "
+                f"and depth.txt pairing (tracking needs depth)")
+    med = float(np.median(valid))
+    if med > 8.0:
+        return (f"{where} has a median of {med:.1f} m, more than an RGB-D camera sees; if the images store "
+                f"millimetres set --set dataset.depth_scale=1000 (TUM uses 5000 per metre)")
+    if med < 0.25:
+        return (f"{where} has a median of {med * 100:.1f} cm, less than an RGB-D camera sees; check "
+                f"dataset.depth_scale (raw units per metre: TUM 5000, PUT/Kinect mm 1000)")
+    return None
+
+
 class _Deferred:
     """A read that happens when its result is asked for (``Sequence.prefetched(0)``)."""
 
