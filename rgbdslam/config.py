@@ -133,6 +133,10 @@ class LoopConfig:
     sharpness_factor: float = 1.2
     sharpness_window: int = 20
     sharpness_min_history: int = 5  # frames seen before the gate can open
+    # also search a frame when none of the last query_gap frames was searched (0 = sharp frames
+    # only, the thesis' gate): where every frame is equally sharp the gate never opens and a
+    # revisit goes unnoticed (docs/slam.md, benchmarks.md "Synthetic variants")
+    query_gap: int = 5
     # candidate search
     index: Literal["lsh", "brute"] = "lsh"
     lsh_tables: int = 8  # hash tables, each keyed on lsh_bits random descriptor bits

@@ -133,7 +133,8 @@ class SLAM:
             st.sharp += int(sharp)
             if self.observer is not None:
                 self.observer.log_gate(frame.index, frame.timestamp, *self.loop.gate.last, sharp)
-            if sharp or self.loop.relocalizing:  # relocalising: every frame searches the older segments
+            # relocalising: every frame searches the older segments; due: none searched for query_gap frames
+            if sharp or self.loop.relocalizing or self.loop.due(frame.index):
                 loops = self.loop.detect(result.features, pose)
             st.add_time("loop_closure", time.perf_counter() - t0)
 

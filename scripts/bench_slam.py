@@ -256,6 +256,7 @@ ABLATION = {
                                                                       "depth_filter.min_support": 1},
     "ISLAM+LC gate on the sum of ORB responses": {"depth_filter.enabled": False,
                                                    "loop.sharpness_measure": "response"},
+    "ISLAM+LC sharp frames only (loop.query_gap=0)": {"depth_filter.enabled": False, "loop.query_gap": 0},
     "ISLAM+LC frames read in the loop (dataset.prefetch=0)": {"depth_filter.enabled": False,
                                                                "dataset.prefetch": 0},
     "ISLAM+LC init=odometry": {"depth_filter.enabled": False, "backend.init": "odometry"},

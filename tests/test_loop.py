@@ -195,6 +195,19 @@ def test_no_relocalisation_without_a_restart(mapped):
     assert lc.detect(cur, far @ poses[4] @ revisit_pose()) == []  # recent keyframe: skipped
 
 
+def test_query_gap_makes_a_search_due():
+    from types import SimpleNamespace
+
+    cfg = loop_config()
+    cfg.loop.query_gap = 3
+    lc = LoopCloser(cfg, CAM, register=lambda *a: None)
+    assert lc.due(3) and not lc.due(2)  # nothing searched yet: due from frame query_gap on
+    lc.detect(SimpleNamespace(index=10, desc=np.zeros((0, 32), np.uint8)), np.eye(4))
+    assert [lc.due(i) for i in (11, 12, 13, 20)] == [False, False, True, True]
+    cfg.loop.query_gap = 0  # the thesis' gate alone: never due
+    assert not LoopCloser(cfg, CAM, register=lambda *a: None).due(1000)
+
+
 def test_observe_uses_the_configured_measure():
     from types import SimpleNamespace
 

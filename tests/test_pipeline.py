@@ -205,8 +205,11 @@ def test_tracking_loss_is_relocalised(tmp_path):
     at = {round(t, 6): P for t, P in zip(final.timestamps, final.poses)}
     kf_poses = np.array([at[round(t, 6)] for t in s["timestamps_keyframes"]])
     assert np.allclose(g.poses, kf_poses, atol=1e-9)
-    restart_edge = g.ids[g.edges_j].tolist().index(85)
-    assert np.abs(g.info[restart_edge]).max() < 1e-5  # the restart's edge carries (almost) no information
+    from rgbdslam.backend.graph import info6_g2o_to_gtsam
+    from rgbdslam.frontend.odometry import RESTART_INFORMATION
+
+    restart_edge = g.ids[g.edges_j].tolist().index(85)  # carries no more than the restart's weak information
+    assert np.all(np.diag(info6_g2o_to_gtsam(g.info[restart_edge])) <= np.diag(RESTART_INFORMATION) * (1 + 1e-9))
     # without loop closure nothing relates the segments: the second one is off by decimetres
     s0 = run_sequence(seq, tmp_path / "run0", _fast_cfg("loop.enabled=false"), progress=False)
     assert s0["restarts"] == [85] and s0["evaluation"]["ate"]["rmse"] > 0.1

@@ -156,17 +156,25 @@ class PoseGraph:
     def update(self) -> dict[int, np.ndarray]:
         """Push pending factors and values into iSAM2 and refresh the current estimate."""
         t0 = time.perf_counter()
+        if self.stats.get("isam2_failed"):
+            return dict(self._estimate)
         if self._isam is None:
             params = gtsam.ISAM2Params()
             params.setRelinearizeThreshold(0.01)
             params.relinearizeSkip = 1
             self._isam = gtsam.ISAM2(params)
-        self._isam.update(self._pending, self._pending_values)
-        for _ in range(self.cfg.isam2_extra_updates):  # relinearisation steps after a loop
-            self._isam.update()
+        try:
+            self._isam.update(self._pending, self._pending_values)
+            for _ in range(self.cfg.isam2_extra_updates):  # relinearisation steps after a loop
+                self._isam.update()
+            est = self._isam.calculateEstimate()
+        except RuntimeError as e:  # e.g. an ill-conditioned system: keep going without iSAM2
+            # every factor is also in self.factors, so the final batch still sees them all
+            self.stats["isam2_failed"] = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            self._isam = None
+            return dict(self._estimate)
         self._pending = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
-        est = self._isam.calculateEstimate()
         self._estimate = {i: est.atPose3(key(i)).matrix() for i in self.order if est.exists(key(i))}
         self.stats["isam2_updates"] += 1
         self.stats["isam2_time_s"] += time.perf_counter() - t0
@@ -276,7 +284,12 @@ class PoseGraph:
             params.setRelativeErrorTol(self.cfg.relative_error_tol)
             opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         initial_error = graph.error(values)
-        result = opt.optimize()
+        try:
+            result = opt.optimize()
+        except RuntimeError as e:  # a failed batch must not lose the run: keep the initial guess
+            self.stats.update({"init": self.cfg.init, "nodes": len(self.order), "batch_failed": str(e).strip()[:200],
+                               "batch_time_s": time.perf_counter() - t0})
+            return {i: init[i] for i in self.order}
         self.stats.update({
             "init": self.cfg.init, "nodes": len(self.order), "odometry_edges": len(self.odometry),
             "loop_edges": len(self.loops), "initial_error": float(initial_error),

@@ -333,7 +333,9 @@ class Frontend:
 
         A restart keeps the last tracked pose for this frame (constant position: after a long
         loss the velocity is unknown), drops the old references and continues from here; its
-        ``relative`` carries a weak information (1e-6 I) so a pose graph can bridge it.
+        ``relative`` carries a weak information (``RESTART_INFORMATION``: σ = π rad and 5 m) so a
+        pose graph can bridge it without trusting it; weaker still made iSAM2's linear systems
+        indeterminate once a loop closed across the restart.
         """
         self._n_lost += 1
         rc = self.cfg.registration
@@ -344,7 +346,7 @@ class Frontend:
             self.refs.append(_Ref(feats, last.copy()))
             self._velocity = None
             self._n_lost = 0
-            return TrackResult(frame.index, frame.timestamp, last.copy(), False, feats, np.eye(4), np.eye(6) * 1e-6,
+            return TrackResult(frame.index, frame.timestamp, last.copy(), False, feats, np.eye(4), RESTART_INFORMATION,
                                n_matches, 0, 0.0, timings, n_candidates=n_cand, reset=True)
         return TrackResult(frame.index, frame.timestamp, None, True, feats, None, None, n_matches, 0, 0.0,
                            timings, n_candidates=n_cand)
@@ -352,6 +354,11 @@ class Frontend:
     def predict_pose(self, index: int) -> np.ndarray | None:
         """Constant-velocity prediction of frame ``index``'s pose (for writing lost frames)."""
         return self._predict(index) if self.refs else None
+
+
+# information of the relative pose across a restart (GTSAM order: rotation, then translation):
+# σ = π rad and 5 m, i.e. "unknown" next to any registration, yet well conditioned
+RESTART_INFORMATION = np.diag([1.0 / np.pi**2] * 3 + [1.0 / 25.0] * 3)
 
 
 def build_frontend(cfg: Config, camera: Camera) -> Frontend:

@@ -89,6 +89,7 @@ class LoopCloser:
         # of the current segment at the link, path and turn of the linked keyframe in its segment)
         self._links: dict[int, tuple[np.ndarray, float, float, float, float]] = {}
         self.relocalizing = False  # the current segment is not linked to any older one yet
+        self._last_query = 0  # frame index of the last search (see due)
         self.stats: dict[str, Any] = {
             "n_observed": 0, "n_sharp": 0, "n_queries": 0, "n_candidates": 0, "n_verified": 0,
             "n_accepted": 0, "n_rejected_geometry": 0, "n_rejected_consistency": 0, "n_segments": 1,
@@ -106,6 +107,11 @@ class LoopCloser:
             if r is not None and len(r) == len(features.desc):
                 return float(np.sum(r))
         return float(features.n_detected)
+
+    def due(self, index: int) -> bool:
+        """True when no frame was searched in the last ``loop.query_gap`` frames (0: never)."""
+        gap = self.lc.query_gap
+        return gap > 0 and index - self._last_query >= gap
 
     def observe(self, features) -> bool:
         """Update the sharpness gate with the frame's measure (``features.n_detected`` or the
@@ -230,6 +236,7 @@ class LoopCloser:
         """Loop edges between earlier keyframes and the current (sharp) frame."""
         t0 = time.perf_counter()
         self.stats["n_queries"] += 1
+        self._last_query = int(features.index)
         cands = self.candidates(features)
         t1 = time.perf_counter()
         self.stats["n_candidates"] += len(cands)
