@@ -30,3 +30,32 @@ def publish(section: str, write_docs: bool) -> int:
     if write_docs:
         replace_section(section)
     return 0
+
+
+def reference_timing(reps: int = 20) -> str:
+    """A fixed workload timed on this machine now, printed next to a benchmark's numbers, so that
+    runs on different days (the machines are shared and their speed varies) can be compared:
+    ORB (1000 features) on a seeded 640x480 texture and a 1000x1000 Hamming matrix (NumPy)."""
+    import time
+
+    import cv2
+    import numpy as np
+
+    from rgbdslam.frontend.matching import descriptor_words, hamming_matrix
+
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (480, 640), dtype=np.uint8), (0, 0), 1.5)
+    orb = cv2.ORB_create(1000)
+    words = descriptor_words(rng.integers(0, 256, (1000, 32), dtype=np.uint8))
+
+    def median_ms(fn) -> float:
+        fn()
+        times = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return 1e3 * float(np.median(times))
+
+    return (f"reference workload (median of {reps}): ORB on 640x480 {median_ms(lambda: orb.detectAndCompute(img, None)):.1f} ms, "
+            f"1000x1000 Hamming matrix {median_ms(lambda: hamming_matrix(words, words)):.1f} ms")

@@ -125,6 +125,9 @@ def main(argv=None) -> int:
     ap.add_argument("--write-docs", action="store_true", help="write the table into docs/benchmarks.md")
     args = ap.parse_args(argv)
 
+    from _docs import reference_timing
+
+    reference = reference_timing()
     seq = open_sequence(args.sequence)
     gt = seq.groundtruth()
     t0 = time.perf_counter()
@@ -170,7 +173,8 @@ def main(argv=None) -> int:
         section = (
             "## Front end\n\n"
             f"Sequence: `{args.sequence}` ({len(frames)} frames, 640x480). Machine: {machine()} "
-            "(shared with other jobs while measured, so timings are noisy).\n"
+            "(shared with other jobs while measured, so timings are noisy). "
+            f"Speed of the machine before the runs: {reference}.\n"
             f"Command: `{cmd.strip()}`\n\n"
             f"Image decoding (excluded from the times below): {decode * 1e3:.1f} ms/frame. "
             "Per-frame time = `Frontend.track` (ORB + matching + registration + fusion). "

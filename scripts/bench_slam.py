@@ -309,9 +309,10 @@ def _orb_pool(data: Path) -> list[np.ndarray]:
 # ------------------------------------------------------------------------------ markdown
 
 
-def markdown(rows, synth, index_rows, command: str, ablation=(), repeat: int = 1) -> str:
+def markdown(rows, synth, index_rows, command: str, ablation=(), repeat: int = 1, reference=()) -> str:
     L = ["## Full SLAM", "",
          f"Command: `{command}`  ",
+         *[f"Speed of the machine, {when}: {ref}  " for when, ref in reference],
          f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
          f"Python {platform.python_version()}, {time.strftime('%Y-%m-%d')}; shared with other jobs, "
          f"so frames/s are noisy: each is the median of {repeat} identical runs (same trajectory, checked), "
@@ -370,12 +371,16 @@ def main(argv=None) -> int:
     command = "python scripts/bench_slam.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     data = data_root(a.data)
     out = Path(a.out) if a.out else Path(tempfile.mkdtemp(prefix="bench_slam_"))
+    from _docs import reference_timing
+
+    reference = [("before the runs", reference_timing())]
     rec = _Recorder()
     rows = [] if a.skip_table else run_table(data, out, rec, a.frames, a.repeat)
     ablation = [] if a.skip_ablation else run_ablation(data, out, a.frames, a.repeat)
     synth = None if a.skip_synthetic else run_synthetic(out, a.synthetic_frames, rec)
     index_rows = [] if a.skip_index else run_index_scaling(data)
-    md = markdown(rows, synth, index_rows, command, ablation, a.repeat)
+    reference.append(("after them", reference_timing()))
+    md = markdown(rows, synth, index_rows, command, ablation, a.repeat, reference)
     from _docs import publish
 
     return publish(md, a.write_docs)
