@@ -125,7 +125,7 @@ def _bucket(uv: np.ndarray, response: np.ndarray, fc: FeaturesConfig, shape: tup
     return np.sort(order[rank < per_cell])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Detections:
     """What the colour image alone gives: ORB key points (distorted pixels), descriptors,
     responses, and the uncapped detection count. Made by :func:`detect` for one features config."""
