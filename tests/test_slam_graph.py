@@ -145,3 +145,28 @@ def test_isam2_failure_is_survived_and_the_batch_still_solves(monkeypatch):
     assert g.update() == {}  # later updates are skipped, not retried
     out = g.optimize()
     assert 0.2 < out[2][0, 3] < 0.25  # the loop pulled node 2 back from the odometry's 0.25
+
+
+def test_failed_batch_keeps_the_initial_guess(monkeypatch):
+    """If GTSAM's batch optimiser throws, the run keeps the initial guess (MASAT) and says so."""
+    import rgbdslam.backend.slam_graph as sg
+
+    class FailingLM:
+        def __init__(self, *args):
+            pass
+
+        def optimize(self):
+            raise RuntimeError("Indeterminate linear system detected while working near variable x2")
+
+    monkeypatch.setattr(sg.gtsam, "LevenbergMarquardtOptimizer", FailingLM)
+    cfg = BackendConfig()
+    cfg.isam2 = False
+    g = PoseGraph(cfg)
+    g.add_node(0, np.eye(4))
+    g.add_node(1, make_pose(np.eye(3), [0.1, 0, 0]))
+    g.add_odometry(0, 1, make_pose(np.eye(3), [0.12, 0, 0]), np.eye(6) * 1e4)
+    out = g.optimize()
+    assert "Indeterminate" in g.stats["batch_failed"]
+    init = g.initial_values()
+    assert all(np.allclose(out[i], init[i]) for i in (0, 1))
+    assert np.allclose(out[1][:3, 3], [0.12, 0, 0])  # MASAT chains the odometry edge
