@@ -88,6 +88,12 @@ class RegistrationConfig:
     min_agreement: float = 0.5  # lost if the agreeing candidates hold less of the total weight
     pregate: float | None = None  # drop pairs this far (m) from the constant-velocity prediction first
     guided_gate: float | None = 0.05  # older ISLAM references: gate (m) around the newest one's pose, no RANSAC
+    # newest reference: when the previous frame's constant-velocity prediction was off by less than
+    # half this (m; translation + rotation x 2 m), match guided within this gate around the prediction
+    # (no brute-force Hamming matrix, no RANSAC); brute force when that keeps fewer than
+    # predicted_min_inliers inliers (None = always brute force; docs/frontend.md)
+    predicted_gate: float | None = 0.05
+    predicted_min_inliers: int = 60
     joint_refit: bool = False  # after fusion: one weighted SVD fit on the inliers of all kept references
     joint_gate: float = 0.02  # metres, pairs further from the fused pose are left out of the joint refit
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit

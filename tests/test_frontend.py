@@ -268,3 +268,31 @@ def test_detections_made_ahead_are_used_only_for_their_config(desk):
     assert other_image.detections is ahead.detections
     assert np.array_equal(extract_features(other_image, cfg).desc,
                           extract_features(dataclasses.replace(frames[2]), cfg).desc)
+
+
+def test_newest_reference_guided_by_a_good_prediction(rpy200):
+    """registration.predicted_gate: at 30 Hz the newest reference is matched around the
+    prediction on most frames, as accurately as by brute force; at a third of the frame rate the
+    predictions are poor and brute force is used."""
+    from rgbdslam.evaluation.ate import ate as ate_of
+    from rgbdslam.io.trajectory import Trajectory
+
+    seq = open_sequence(rpy200)
+    gt = seq.groundtruth()
+    frames = [seq.load(i) for i in range(90)]
+
+    def track(cfg, step):
+        fe = build_frontend(cfg, seq.camera)
+        res = [fe.track(f) for f in frames[::step]]
+        ok = [r for r in res if not r.lost]
+        traj = Trajectory(np.array([r.timestamp for r in ok]), np.array([r.pose for r in ok]))
+        return fe.n_newest_guided, len(res), ate_of(gt, traj).rmse
+
+    guided, n, ate_guided = track(Config(), 1)
+    off = Config()
+    off.registration.predicted_gate = None
+    none, _, ate_brute = track(off, 1)
+    assert none == 0 and guided > 0.5 * n
+    assert ate_guided < 1.1 * ate_brute
+    guided3, n3, _ = track(Config(), 3)
+    assert guided3 < 0.3 * n3  # 10 Hz: the previous prediction is rarely good enough

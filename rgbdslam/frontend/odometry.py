@@ -189,6 +189,8 @@ class Frontend:
         self.refs: deque[_Ref] = deque(maxlen=self.mp)
         self._velocity: tuple[np.ndarray, int] | None = None  # (motion between last two tracked, index gap)
         self._n_lost = 0  # consecutive lost frames
+        self._prediction_error = np.inf  # how far the last tracked frame was from its prediction (m)
+        self.n_newest_guided = 0  # frames whose newest reference was matched around the prediction
         self._executor = ThreadPoolExecutor(max_workers=rc.threads) if rc.threads > 1 and self.mp > 1 else None
 
     def close(self) -> None:
@@ -261,6 +263,8 @@ class Frontend:
         info = sum(res.information for res in kept)
         last = self.refs[-1]
         relative = inv(last.pose) @ pose
+        miss = inv(pred) @ pose  # how far the prediction was off: translation + rotation at 2 m
+        self._prediction_error = float(np.linalg.norm(miss[:3, 3]) + 2.0 * rotation_angle(miss[:3, :3]))
         self._velocity = (relative, frame.index - last.features.index)
         self._n_lost = 0
         self.refs.append(_Ref(feats, pose))
@@ -293,13 +297,30 @@ class Frontend:
         cfg = self.cfg
         gate = cfg.registration.guided_gate
         if gate is not None and len(refs) > 1:
-            first = register(refs[0].features, feats, cfg, inv(pred) @ refs[0].pose)
+            first = self._register_newest_guided(refs[0], feats, pred)
+            if first is None:
+                first = register(refs[0].features, feats, cfg, inv(pred) @ refs[0].pose)
             if first is not None:
                 P1 = refs[0].pose @ inv(first.T)
                 jobs = [(r.features, feats, cfg, inv(P1) @ r.pose, gate) for r in refs[1:]]
                 return [first] + self._map(jobs)
             return [first] + self._map([(r.features, feats, cfg, inv(pred) @ r.pose) for r in refs[1:]])
         return self._map([(r.features, feats, cfg, inv(pred) @ r.pose) for r in refs])
+
+    def _register_newest_guided(self, ref: _Ref, feats: FrameFeatures, pred: np.ndarray) -> RegistrationResult | None:
+        """The newest reference matched only around the prediction (``registration.predicted_gate``),
+        when the last prediction was good; None = use brute force. At 30 Hz this is most frames
+        and saves the Hamming matrix and RANSAC; after a jerk or at a low frame rate the previous
+        prediction error is large and brute force is used (docs/frontend.md)."""
+        rc = self.cfg.registration
+        pg = rc.predicted_gate
+        if pg is None or self._velocity is None or not self._prediction_error < 0.5 * pg:
+            return None
+        res = register(ref.features, feats, self.cfg, inv(pred) @ ref.pose, pg)
+        if res is None or res.n_inliers < rc.predicted_min_inliers:
+            return None
+        self.n_newest_guided += 1
+        return res
 
     def _joint_refit(self, pose: np.ndarray, pairs: list, feats: FrameFeatures) -> np.ndarray:
         """One weighted SVD fit of the current pose on the inlier pairs of all kept references.
@@ -338,6 +359,7 @@ class Frontend:
         indeterminate once a loop closed across the restart.
         """
         self._n_lost += 1
+        self._prediction_error = np.inf  # the next prediction spans a gap: match it by brute force
         rc = self.cfg.registration
         if self.refs and rc.max_lost > 0 and self._n_lost >= rc.max_lost \
                 and feats.n_valid >= max(3, rc.min_points):
