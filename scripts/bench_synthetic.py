@@ -33,7 +33,8 @@ sys.path.insert(0, str(ROOT))
 from rgbdslam.config import load_config  # noqa: E402
 
 DEFAULT_VARIANTS = ["sharp frames only=loop.query_gap=0",
-                    "ORB response gate, sharp frames only=loop.sharpness_measure=response,loop.query_gap=0"]
+                    "ORB response gate, sharp frames only=loop.sharpness_measure=response,loop.query_gap=0",
+                    "newest reference by brute force always=registration.predicted_gate=null"]
 
 
 def parse_variant(text: str) -> tuple[str, list[str]]:
