@@ -156,7 +156,9 @@ class PoseGraph:
     def update(self) -> dict[int, np.ndarray]:
         """Push pending factors and values into iSAM2 and refresh the current estimate."""
         t0 = time.perf_counter()
-        if self.stats.get("isam2_failed"):
+        if self.stats.get("isam2_failed"):  # off for this run: the batch holds every factor anyway
+            self._pending = gtsam.NonlinearFactorGraph()
+            self._pending_values = gtsam.Values()
             return dict(self._estimate)
         if self._isam is None:
             params = gtsam.ISAM2Params()
@@ -172,7 +174,7 @@ class PoseGraph:
             # every factor is also in self.factors, so the final batch still sees them all
             self.stats["isam2_failed"] = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             self._isam = None
-            return dict(self._estimate)
+            return self.update()  # clears what is pending
         self._pending = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
         self._estimate = {i: est.atPose3(key(i)).matrix() for i in self.order if est.exists(key(i))}
