@@ -161,6 +161,14 @@ class LoopConfig:
     drift_ratio_translation: float = 0.1  # extra metres allowed per metre travelled since the keyframe
     drift_ratio_rotation: float = 0.1  # extra degrees allowed per degree turned since the keyframe
     sigma_floor: float = 0.005  # metres: lower bound of the residual used for the edge information
+    # relocalisation after a tracking loss (no estimate to agree with): a match into an older
+    # segment links the segments only once relocalize_confirm matches (distinct frames or distinct
+    # keyframes, within relocalize_window frames) put the camera at the same place in that segment,
+    # within relocalize_translation / relocalize_rotation_deg; 1 = the first sound match links
+    relocalize_confirm: int = 2
+    relocalize_window: int = 15  # frames a match waits for its confirmation
+    relocalize_translation: float = 0.1  # metres
+    relocalize_rotation_deg: float = 5.0
 
 
 @dataclass

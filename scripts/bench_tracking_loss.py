@@ -10,8 +10,10 @@ Two sequences, each in a temporary copy (the data are never modified):
 * a synthetic loop (``generate_sequence(motion='loop', noise=True, frames=120, seed=0)``) with
   frames 50-84 black, while the camera moves on and comes back to the start.
 
-Each is run with the default configuration and with ``loop.enabled=false`` (nothing can then
-relate the segment after the restart to the one before). Reported: tracked frames, the
+Each is run with the default configuration, with ``loop.relocalize_confirm=1`` (the first
+geometrically sound match links the segments, without waiting for a second one to agree) and
+with ``loop.enabled=false`` (nothing can then relate the segment after the restart to the one
+before). Reported: tracked frames, the
 restart, the frame of the first loop into an older segment (relocalisation), loops, and the
 ATE of all tracked frames and of the frames before / after the gap (one alignment for all).
 ``--write-docs`` replaces the "## Tracking loss" section of docs/benchmarks.md.
@@ -70,7 +72,8 @@ def run_case(name: str, seq: Path, first: int, stop: int, out: Path) -> list[dic
 
     stamps = open_sequence(seq).timestamps
     rows = []
-    for label, sets in (("default", []), ("loop.enabled=false", ["loop.enabled=false"])):
+    for label, sets in (("default", []), ("loop.relocalize_confirm=1", ["loop.relocalize_confirm=1"]),
+                        ("loop.enabled=false", ["loop.enabled=false"])):
         cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *sets])
         s = run_sequence(seq, out / f"{name}_{label.replace('=', '_')}", cfg, progress=False)
         older = [j for i, j in s["loops"] if s["restarts"] and i < s["restarts"][0] <= j]

@@ -154,9 +154,10 @@ def test_recent_keyframes_are_skipped(mapped):
 
 
 def test_relocalisation_after_a_restart(mapped):
-    """After new_segment the estimate says nothing about older keyframes: a geometrically sound
-    match is accepted whatever the estimate, even to a recent keyframe; it fixes the offset
-    between the segments, and later loops to that segment must agree with the offset."""
+    """After new_segment the estimate says nothing about older keyframes: geometrically sound
+    matches are accepted whatever the estimate, even to a recent keyframe, once a second one
+    (here the next frame) confirms the first; the link fixes the offset between the segments,
+    and later loops to that segment must agree with the offset."""
     lc, places, poses, rng = mapped
     lc.new_segment()
     assert lc.relocalizing and lc.stats["n_segments"] == 2
@@ -166,9 +167,13 @@ def test_relocalisation_after_a_restart(mapped):
     P, d = places[4]  # the newest keyframe: skipped as "recent" in normal mode, a candidate now
     first = view(200, transform_points(poses[4], P), d, true_pose, rng)
     lc.add_keyframe(first, to_new @ true_pose)  # the new segment's first keyframe
-    edges = lc.detect(first, to_new @ true_pose)
-    assert [(e.i, e.j) for e in edges] == [(40, 200)]
+    assert lc.detect(first, to_new @ true_pose) == []  # sound, but waits for a confirmation
+    assert lc.relocalizing and lc.stats["n_accepted"] == 0
+    moved = true_pose @ make_pose(np.eye(3), [0.02, 0.0, 0.01])
+    edges = lc.detect(view(201, transform_points(poses[4], P), d, moved, rng), to_new @ moved)
+    assert [(e.i, e.j) for e in edges] == [(40, 201)]
     assert not lc.relocalizing and lc.stats["n_relocalized"] == 1
+    true_pose = moved
     T_true = inv(poses[4]) @ true_pose
     assert np.linalg.norm(edges[0].T_ij[:3, 3] - T_true[:3, 3]) < 0.01
     # a later revisit of place 0: consistent with the offset -> accepted ...
@@ -184,6 +189,53 @@ def test_relocalisation_after_a_restart(mapped):
     rejected = lc.stats["n_rejected_consistency"]
     assert lc.detect(cur, make_pose(np.eye(3), [0, 0, 3.0]) @ to_new @ pose0) == []
     assert lc.stats["n_rejected_consistency"] == rejected + 1
+
+
+def _twin_then_true(lc, places, poses, rng):
+    """After a restart the camera first sees a twin of place 4 one metre away (same structure,
+    same descriptors: a geometrically perfect false match), then moves to the real place 4."""
+    lc.new_segment()
+    to_new = make_pose(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [3.0, -2.0, 0.5])
+    twin = make_pose(np.eye(3), [1.0, 0.0, 0.0])
+    P, d = places[4]
+    out = []
+    for j, world in ((200, twin @ poses[4] @ revisit_pose()), (205, poses[4] @ revisit_pose(0.08)),
+                     (206, poses[4] @ revisit_pose(0.09))):
+        points = transform_points((twin if j == 200 else np.eye(4)) @ poses[4], P)
+        out.append(lc.detect(view(j, points, d, world, rng), to_new @ world))
+    return out, to_new
+
+
+def test_a_false_relocalisation_waits_and_the_true_one_links(mapped):
+    lc, places, poses, rng = mapped
+    (at_twin, first_true, second_true), to_new = _twin_then_true(lc, places, poses, rng)
+    assert at_twin == [] and first_true == []  # the twin and the real place disagree by 1 m
+    assert [(e.i, e.j) for e in second_true] == [(40, 206)]  # two true matches agree
+    to_old = lc._links[0][0]  # maps new-segment to old-segment coordinates: inverse of to_new
+    assert np.allclose(to_old, inv(to_new), atol=0.02)
+
+
+def test_without_confirmation_the_twin_links_wrongly(mapped):
+    """relocalize_confirm = 1 (the behaviour before 2026-11-30): the first sound match links,
+    the twin's, one metre off; the true matches that follow are then rejected as inconsistent."""
+    lc, places, poses, rng = mapped
+    lc.lc.relocalize_confirm = 1
+    (at_twin, first_true, second_true), to_new = _twin_then_true(lc, places, poses, rng)
+    assert [(e.i, e.j) for e in at_twin] == [(40, 200)]
+    assert np.linalg.norm(lc._links[0][0][:3, 3] - inv(to_new)[:3, 3]) > 0.9
+    assert first_true == [] and second_true == [] and lc.stats["n_rejected_consistency"] == 2
+
+
+def test_unconfirmed_relocalisation_matches_expire(mapped):
+    lc, places, poses, rng = mapped
+    lc.lc.relocalize_window = 3
+    lc.new_segment()
+    P, d = places[4]
+    pose = poses[4] @ revisit_pose()
+    assert lc.detect(view(200, transform_points(poses[4], P), d, pose, rng), pose) == []
+    # three frames later the first match is out of the window: the second one waits alone
+    assert lc.detect(view(203, transform_points(poses[4], P), d, pose, rng), pose) == []
+    assert lc.stats["n_relocalize_unconfirmed"] == 1 and lc.relocalizing
 
 
 def test_no_relocalisation_without_a_restart(mapped):

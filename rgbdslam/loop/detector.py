@@ -13,8 +13,13 @@ Tracking loss: when the front end restarts after too many lost frames, the pipel
 ``new_segment``. The poses of the new segment have no known relation to the older ones, so
 the loop closer *relocalises*: every frame (not only sharp ones) queries all keyframes of
 earlier segments, recent ones included, and a match to another segment is accepted on its
-geometry alone (there is no estimate to agree with). The first such loop fixes the offset
-between the two segments' coordinates; later loops to that segment are checked against it.
+geometry alone (there is no estimate to agree with). Geometry alone can be fooled (a repeated
+texture, a twin desk), and a wrong link misplaces the whole segment, so a match links the
+segments only once ``loop.relocalize_confirm`` matches from distinct frames or to distinct
+keyframes, within ``loop.relocalize_window`` frames, put the camera at the same place in the
+older segment; until then the matches wait and nothing enters the pose graph. The confirmed
+link fixes the offset between the two segments' coordinates; later loops to that segment are
+checked against it.
 """
 
 from __future__ import annotations
@@ -89,11 +94,14 @@ class LoopCloser:
         # of the current segment at the link, path and turn of the linked keyframe in its segment)
         self._links: dict[int, tuple[np.ndarray, float, float, float, float]] = {}
         self.relocalizing = False  # the current segment is not linked to any older one yet
+        # relocalisation matches waiting for confirmation: (frame index, keyframe, edge, 4x4 map
+        # from current-segment to the keyframe's segment's coordinates)
+        self._pending: list[tuple[int, _Keyframe, LoopEdge, np.ndarray]] = []
         self._last_query = 0  # frame index of the last search (see due)
         self.stats: dict[str, Any] = {
             "n_observed": 0, "n_sharp": 0, "n_queries": 0, "n_candidates": 0, "n_verified": 0,
             "n_accepted": 0, "n_rejected_geometry": 0, "n_rejected_consistency": 0, "n_segments": 1,
-            "n_relocalized": 0,
+            "n_relocalized": 0, "n_relocalize_unconfirmed": 0,
             "time_per_query_ms": 0.0, "index_time_per_query_ms": 0.0, "map_keyframes": 0, "map_entries": 0,
         }
         self._index_time = 0.0
@@ -130,6 +138,7 @@ class LoopCloser:
         self.segment += 1
         self._segment_start = len(self.keyframes)
         self._links = {}
+        self._expire(None)
         self.relocalizing = True
         self.stats["n_segments"] = self.segment + 1
 
@@ -217,6 +226,45 @@ class LoopCloser:
         return LoopEdge(kf.index, int(features.index), T_ij, np.asarray(info, dtype=np.float64),
                         int(res.n_inliers), residual, votes, et, er)
 
+    def _expire(self, index: int | None) -> None:
+        """Forget waiting relocalisation matches older than the window (all when ``index`` is None)."""
+        keep = [] if index is None else [p for p in self._pending if index - p[0] < self.lc.relocalize_window]
+        self.stats["n_relocalize_unconfirmed"] += len(self._pending) - len(keep)
+        self._pending = keep
+
+    def _confirmed(self, edges: list[LoopEdge], pose: np.ndarray, index: int) -> list[LoopEdge]:
+        """While relocalising: the frame's matches into older segments that enough waiting
+        matches agree with (``loop.relocalize_*``); the others wait for confirmation.
+
+        Each match says where the current frame is in the older segment (keyframe pose · T_ij);
+        a waiting match from an earlier frame says it through its map between the segments
+        (to_old · current pose), which the new segment's odometry carries forward."""
+        lc = self.lc
+        by_index = {k.index: k for k in self.keyframes}
+        self._expire(index)
+        pose = np.asarray(pose, dtype=np.float64)
+        new = []
+        for e in edges:
+            kf = by_index[e.i]
+            if kf.segment == self.segment:
+                continue
+            new.append((index, kf, e, kf.pose @ e.T_ij @ inv(pose)))
+        self._pending.extend(new)
+        out = []
+        for _, kf, e, to_old in new:
+            here = to_old @ pose
+            agree = 0
+            for _, kf2, _, to_old2 in self._pending:
+                if kf2.segment != kf.segment:
+                    continue
+                dt, dr = motion_between(here, to_old2 @ pose)
+                agree += int(dt <= lc.relocalize_translation and dr <= lc.relocalize_rotation_deg)
+            if agree >= lc.relocalize_confirm:
+                out.append(e)
+        if out:  # linked: the waiting matches have done their job (the agreeing ones are in the link)
+            self._pending = []
+        return out
+
     def _link(self, edges: list[LoopEdge], pose: np.ndarray) -> None:
         """Record the offset to every older segment a new loop reaches for the first time."""
         by_index = {k.index: k for k in self.keyframes}
@@ -245,6 +293,8 @@ class LoopCloser:
             e = self.verify(self.keyframes[k], features, pose, v)
             if e is not None:
                 edges.append(e)
+        if self.relocalizing:
+            edges = self._confirmed(edges, pose, int(features.index))
         edges.sort(key=lambda e: -e.n_inliers)
         edges = edges[: self.lc.max_loops_per_frame]
         self.stats["n_accepted"] += len(edges)
