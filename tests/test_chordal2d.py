@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +13,7 @@ from rgbdslam.backend.graph import PoseGraph, se2_between
 from rgbdslam.backend.initializers import initialize
 from rgbdslam.errors import InputError
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+from conftest import DATA, need
 
 
 def _graph(pairs, z, info=None, n=None):
@@ -104,9 +102,7 @@ def test_disconnected_graph_is_a_clear_error():
 
 
 def test_real_city10k_chordal_beats_masat_initial_chi2():
-    path = DATA / "posegraph" / "iSAM" / "groundtruth" / "city10000_groundtruth.txt"
-    if not path.is_file():
-        pytest.skip("City10k ground truth not found (set RGBDSLAM_DATA)")
+    need(DATA / "posegraph" / "iSAM" / "groundtruth" / "city10000_groundtruth.txt")
     from rgbdslam.backend.optimize import chi2, degrees_of_freedom
     from rgbdslam.backend.posegraph_bench import noisy_instance, reference_graph
 

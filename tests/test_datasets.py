@@ -3,7 +3,6 @@ association edge cases and error messages on small hand-made folders."""
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
@@ -19,9 +18,10 @@ from rgbdslam.errors import InputError
 from rgbdslam.evaluation.associate import associate
 from rgbdslam.geometry.camera import CAMERAS
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+from conftest import DATA
+
 DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
-need_desk = pytest.mark.skipif(not DESK.is_dir(), reason=f"TUM fr1/desk excerpt not found at {DESK} (set RGBDSLAM_DATA)")
+need_desk = pytest.mark.usefixtures("desk9")  # fails when the excerpt is missing (conftest.need)
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -128,16 +128,11 @@ def test_impossible_min_support_is_a_config_error():
 
 
 def test_real_tum_frames_keep_most_depth_and_never_invent_any():
-    import os
-    from pathlib import Path
-
+    from conftest import TUM_DESK9, need
     from rgbdslam.config import Config
     from rgbdslam.datasets import open_sequence
 
-    data = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parent.parent.parent / "shared" / "data"))
-    root = data / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
-    if not root.is_dir():
-        pytest.skip(f"TUM test data not found at {root}")
+    root = need(TUM_DESK9)
     cfg = Config()
     seq = open_sequence(root, cfg.dataset)
     gt = seq.groundtruth()

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from rgbdslam.backend.graph_io import detect_format, graph_info, read_graph, write_g2o
 from rgbdslam.errors import InputError
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+from conftest import DATA, need
 
 G2O_SE2 = """\
 VERTEX_SE2 0 0 0 0
@@ -164,9 +162,7 @@ def test_sparse_vertex_ids_are_kept(tmp_path):
 
 
 def test_real_m3500_counts():
-    path = DATA / "posegraph" / "iSAM" / "manhattanOlson3500.txt"
-    if not path.is_file():
-        pytest.skip(f"M3500 not found at {path} (set RGBDSLAM_DATA)")
+    path = need(DATA / "posegraph" / "iSAM" / "manhattanOlson3500.txt")
     g = read_graph(path)
     assert (g.dim, g.n_vertices, g.n_edges) == (2, 3500, 5598)
     np.testing.assert_allclose(g.info[0], np.eye(3) * 2000.0, rtol=1e-9)

@@ -281,15 +281,13 @@ def test_observe_uses_the_configured_measure():
 
 # ------------------------------------------------------------------ real frames (TUM fr1)
 
-import os  # noqa: E402
-from pathlib import Path  # noqa: E402
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parent.parent.parent / "shared" / "data"))
+from conftest import DATA  # noqa: E402
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
 
 
-@pytest.mark.skipif(not (RPY.is_dir() and DESK.is_dir()), reason=f"TUM test data not found under {DATA}")
+@pytest.mark.usefixtures("desk9", "rpy200")
 def test_real_revisit_accepted_and_other_room_rejected():
     from rgbdslam.datasets import open_sequence
     from rgbdslam.frontend.features import extract_features

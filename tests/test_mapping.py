@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
@@ -20,7 +19,7 @@ from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.mapping.fusion import VoxelCloud, fuse, fuse_run, match_frames, select_by_motion
 from rgbdslam.mapping.map2d import FREE, OCCUPIED, UNKNOWN, build_map2d, up_from_accelerometer, write_map2d
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+from conftest import DATA
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 
 W, H, F = 160, 120, 100.0  # a small ideal pinhole camera
@@ -251,7 +250,7 @@ def test_accelerometer_gravity_convention():
 # ----------------------------------------------------------------------------- real frames
 
 
-@pytest.mark.skipif(not RPY.is_dir(), reason=f"TUM fr1/rpy head200 not found at {RPY} (set RGBDSLAM_DATA)")
+@pytest.mark.usefixtures("rpy200")
 def test_rpy_groundtruth_fusion_finds_floor_and_desk(tmp_path):
     """20 keyframes of fr1/rpy fused with the ground truth: the floor found by RANSAC is the
     motion-capture floor (z = 0 up to a few cm), and the desk in front of the camera is occupied."""

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import os
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,7 @@ from rgbdslam.backend.posegraph_bench import (NOISE_LEVELS, first_convergence, n
 from rgbdslam.backend.synthetic_graph import manhattan_world as manhattan_like
 from rgbdslam.errors import InputError
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+from conftest import DATA, need
 
 
 def test_parse_noise():
@@ -94,8 +93,7 @@ def test_tiny_benchmark_masat_converges_and_workers_do_not_change_results(tmp_pa
 
 
 def test_real_m3500_masat_converges_at_low_noise(tmp_path):
-    if not (DATA / "posegraph" / "iSAM" / "groundtruth" / "manhattanOlson3500_groundtruth.txt").is_file():
-        pytest.skip("M3500 ground truth not found (set RGBDSLAM_DATA)")
+    need(DATA / "posegraph" / "iSAM" / "groundtruth" / "manhattanOlson3500_groundtruth.txt")
     res = run_benchmark("m3500", [(0.1, 0.1, 0.1)], instances=2, workers=1, seed=0, progress=False,
                         data_dir=DATA, methods=("masat", "weighted_masat", "ground_truth"))
     recs = res["records"]
@@ -277,8 +275,7 @@ def test_spanning_tree_tie_study_reproduces_the_benchmark_column(tmp_path, capsy
 
     from rgbdslam.backend.posegraph_bench import load_runs, reference_graph, run_instance
 
-    if not (DATA / "posegraph" / "iSAM" / "groundtruth" / "manhattanOlson3500_groundtruth.txt").is_file():
-        pytest.skip("M3500 ground truth not found (set RGBDSLAM_DATA)")
+    need(DATA / "posegraph" / "iSAM" / "groundtruth" / "manhattanOlson3500_groundtruth.txt")
     path = Path(__file__).resolve().parents[1] / "scripts" / "study_spanning_tree_ties.py"
     spec = importlib.util.spec_from_file_location("study_spanning_tree_ties", path)
     mod = importlib.util.module_from_spec(spec)
