@@ -239,12 +239,19 @@ def test_unconfirmed_relocalisation_matches_expire(mapped):
 
 
 def test_no_relocalisation_without_a_restart(mapped):
+    """The same sound match with an estimate 3 m off: rejected on consistency while tracking,
+    kept (waiting for its confirmation) only after a restart, where the estimate means nothing."""
     lc, places, poses, rng = mapped
-    P, d = places[4]
+    P, d = places[0]  # not a recent keyframe: a candidate in both modes
     far = make_pose(np.eye(3), [3.0, 0.0, 0.0])
-    cur = view(200, transform_points(poses[4], P), d, far @ poses[4] @ revisit_pose(), rng)
-    assert not lc.relocalizing
-    assert lc.detect(cur, far @ poses[4] @ revisit_pose()) == []  # recent keyframe: skipped
+    for k, relocalizing in enumerate((False, True)):
+        if relocalizing:
+            lc.new_segment()
+        cur = view(200 + k, P, d, revisit_pose(), rng)
+        assert lc.relocalizing == relocalizing
+        assert lc.detect(cur, far @ revisit_pose()) == []
+        assert lc.stats["n_verified"] == k + 1 and lc.stats["n_rejected_consistency"] == 1
+    assert len(lc._pending) == 1 and lc._pending[0][0] == 201
 
 
 def test_query_gap_makes_a_search_due():

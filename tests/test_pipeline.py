@@ -53,22 +53,29 @@ def test_run_is_reproducible(synth_clean, tmp_path):
 
 def test_run_folder_contents(desk9, tmp_path):
     out = tmp_path / "desk"
-    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(out), "--no-map", "-q"])
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(out), "--no-map", "-q",
+                                    "--set", "registration.mp=3", "--set", "loop.min_votes=17"])
     assert res.exit_code == 0, res.output
     for name in ("trajectory.tum", "odometry.tum", "config.yaml", "run.json", "evaluation.json"):
         assert (out / name).is_file(), name
     run = json.loads((out / "run.json").read_text())
     assert run["frames"] == 9 and run["tracked"] + run["lost"] == 9
     assert run["evaluation"]["ate"]["rmse"] < 0.03
-    # the config written next to the outputs loads back and equals the one used
-    assert load_config(out / "config.yaml").to_dict()["registration"] == load_config().to_dict()["registration"]
+    # the config written next to the outputs loads back and equals the one used (overrides included)
+    used = load_config(None, ["registration.mp=3", "loop.min_votes=17"]).to_dict()
+    saved = load_config(out / "config.yaml").to_dict()
+    assert saved["registration"]["mp"] == 3 and saved["loop"]["min_votes"] == 17
+    assert {k: v for k, v in saved.items() if k != "mapping"} == {k: v for k, v in used.items() if k != "mapping"}
 
 
 def test_rpy200_accuracy(rpy200, tmp_path):
-    """Issue 2's acceptance: fr1/rpy head200 within 0.05 m ATE RMSE (the default is stricter, see benchmarks)."""
+    """fr1/rpy head200 with the defaults: 0.0177 m ATE RMSE with 31 loops (benchmarks.md). The
+    front end alone gives 0.027 m, so the bound fails if loop closure or the pose graph stops
+    helping; issue 2 asked for 0.05 m."""
     summary = run_sequence(rpy200, tmp_path / "rpy", _fast_cfg(), progress=False)
-    assert summary["evaluation"]["ate"]["rmse"] <= 0.05
-    assert summary["lost"] <= 5
+    assert summary["evaluation"]["ate"]["rmse"] < 0.022
+    assert summary["lost"] == 0 and summary["restarts"] == []
+    assert len(summary["loops"]) >= 10
 
 
 class _InterruptingSequence:
@@ -103,8 +110,57 @@ def test_interrupted_run_keeps_valid_trajectory(synth_clean, tmp_path, monkeypat
     with pytest.raises(KeyboardInterrupt):
         run_sequence(synth_clean, tmp_path / "int", cfg, progress=False)
     traj = read_tum(tmp_path / "int" / "trajectory.tum")
-    assert len(traj) == 12
-    assert json.loads((tmp_path / "int" / "run.json").read_text())["interrupted"] is True
+    assert len(traj) == 12 and np.all(np.isfinite(traj.poses))
+    assert len(read_tum(tmp_path / "int" / "odometry.tum")) == 12
+    run = json.loads((tmp_path / "int" / "run.json").read_text())
+    assert run["interrupted"] is True and run["frames"] == 12 and run["tracked"] == 12
+    # the 12 poses are the right ones, not merely 12 lines (noise-free: millimetres)
+    assert ate(open_sequence(synth_clean).groundtruth(), traj).rmse < 0.005
+
+
+def test_interrupt_before_any_frame_is_an_interrupt_not_a_tracking_failure(synth_clean, tmp_path, monkeypatch):
+    import rgbdslam.pipeline as pl
+
+    monkeypatch.setattr(pl, "open_sequence", lambda *a, **k: _InterruptingSequence(open_sequence(synth_clean), at=0))
+    with pytest.raises(KeyboardInterrupt):
+        run_sequence(synth_clean, tmp_path / "int", _fast_cfg("dataset.prefetch=0"), progress=False)
+    run = json.loads((tmp_path / "int" / "run.json").read_text())
+    assert run["interrupted"] is True and run["tracked"] == 0
+
+
+def test_ctrl_c_on_the_command_line_exits_130_and_says_work_was_saved(synth_clean, tmp_path, monkeypatch):
+    import rgbdslam.pipeline as pl
+
+    monkeypatch.setattr(pl, "open_sequence", lambda *a, **k: _InterruptingSequence(open_sequence(synth_clean), at=8))
+    res = CliRunner().invoke(main, ["run", str(synth_clean), "--out", str(tmp_path / "run"), "--no-map", "-q"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 130
+    assert "interrupted: finished work was saved" in res.output
+    assert len(read_tum(tmp_path / "run" / "trajectory.tum")) == 8
+
+
+class _CheckingSequence(_InterruptingSequence):
+    """Records, when frame ``at`` is loaded, how many poses trajectory.tum holds on disk."""
+
+    def __init__(self, seq, at, path):
+        super().__init__(seq, at=-1)
+        self._check, self._path, self.seen = at, path, None
+
+    def load(self, i):
+        if i == self._check:
+            self.seen = len(read_tum(self._path)) if self._path.is_file() else 0
+        return self._seq.load(i)
+
+
+def test_long_runs_write_their_trajectory_every_50_frames(synth_clean, tmp_path, monkeypatch):
+    """A run killed hard (no chance to clean up) still leaves the trajectory of the last 50-frame
+    block: by the time frame 55 is read, trajectory.tum on disk holds frames 0-49."""
+    import rgbdslam.pipeline as pl
+
+    wrapped = _CheckingSequence(open_sequence(synth_clean), 55, tmp_path / "run" / "trajectory.tum")
+    monkeypatch.setattr(pl, "open_sequence", lambda *a, **k: wrapped)
+    run_sequence(synth_clean, tmp_path / "run", _fast_cfg("dataset.prefetch=0", "dataset.max_frames=60"),
+                 progress=False)
+    assert pl.FLUSH_EVERY == 50 and wrapped.seen == 50
 
 
 def test_corrupt_image_is_skipped_not_fatal(desk9, tmp_path):
@@ -113,8 +169,10 @@ def test_corrupt_image_is_skipped_not_fatal(desk9, tmp_path):
     victim = sorted((seq_dir / "rgb").glob("*.png"))[4]
     victim.write_bytes(b"not a png")
     summary = run_sequence(seq_dir, tmp_path / "run", _fast_cfg(), progress=False)
-    assert summary["skipped"] == 1
-    assert summary["tracked"] >= 7
+    assert summary["skipped"] == 1 and summary["skipped_frames"] == [4]
+    assert summary["tracked"] == 8 and summary["lost"] == 0
+    stamps = read_tum(tmp_path / "run" / "trajectory.tum").timestamps
+    assert len(stamps) == 8 and open_sequence(desk9).timestamps[4] not in stamps
 
 
 def test_empty_depth_everywhere_is_a_clear_error(desk9, tmp_path):
@@ -123,22 +181,41 @@ def test_empty_depth_everywhere_is_a_clear_error(desk9, tmp_path):
     for p in (seq_dir / "depth").glob("*.png"):
         cv2.imwrite(str(p), np.zeros((480, 640), np.uint16))
     res = CliRunner().invoke(main, ["run", str(seq_dir), "--out", str(tmp_path / "run"), "--no-map", "-q"])
-    assert res.exit_code != 0
-    assert "Traceback" not in res.output
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 3  # TrackingLost, not a crash (1)
     assert "could be tracked" in res.output
+    run = json.loads((tmp_path / "run" / "run.json").read_text())  # what happened is still recorded
+    assert run["tracked"] == 0 and run["lost"] == 9
 
 
 def test_missing_sequence_is_one_line(tmp_path):
     res = CliRunner().invoke(main, ["run", str(tmp_path / "nope"), "--out", str(tmp_path / "run")])
-    assert res.exit_code == 2
-    assert "does not exist" in res.output and "Traceback" not in res.output
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2
+    assert "does not exist" in res.output and str(tmp_path / "nope") in res.output
     assert len(res.output.strip().splitlines()) == 1
 
 
-def test_bad_override_is_one_line(desk9, tmp_path):
-    res = CliRunner().invoke(main, ["run", str(desk9), "--set", "registration.nope=1"])
-    assert res.exit_code == 2
+def test_bad_override_is_one_line(tmp_path):
+    """The config is checked before the sequence is opened: no data needed."""
+    res = CliRunner().invoke(main, ["run", str(tmp_path), "--set", "registration.nope=1"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2
     assert "registration.nope" in res.output
+    assert len(res.output.strip().splitlines()) == 1
+
+
+def test_evaluation_failure_does_not_fail_a_finished_run(desk9, tmp_path):
+    """Ground truth of another time span: the run is written, evaluation is skipped with a warning."""
+    seq_dir = tmp_path / "desk"
+    shutil.copytree(desk9, seq_dir)
+    lines = (seq_dir / "groundtruth.txt").read_text().splitlines()
+    shifted = [ln if ln.startswith("#") else " ".join([f"{float(ln.split()[0]) + 1000:.4f}", *ln.split()[1:]])
+               for ln in lines if ln.strip()]
+    (seq_dir / "groundtruth.txt").write_text("\n".join(shifted) + "\n")
+    res = CliRunner().invoke(main, ["run", str(seq_dir), "--out", str(tmp_path / "run"), "--no-map"])
+    assert res.exit_code == 0, res.output
+    assert "no evaluation" in res.output and "no overlapping timestamps" in res.output
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["tracked"] == 9 and run.get("evaluation") == {}
+    assert len(read_tum(tmp_path / "run" / "trajectory.tum")) == 9
 
 
 def test_info_and_config_commands(desk9):
@@ -154,20 +231,17 @@ def test_info_and_config_commands(desk9):
 
 
 def test_run_records_rerun_with_matches_and_trajectories(desk9, tmp_path):
-    import subprocess
-
-    from rgbdslam.viz.rerun_log import rerun_executable
-
     rrd = tmp_path / "run.rrd"
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "run"), "--no-map", "-q",
                                     "--rerun-save", str(rrd), "--set", "depth_filter.enabled=true"])
     assert res.exit_code == 0, res.output
-    out = subprocess.run([rerun_executable(), "rrd", "print", str(rrd)], capture_output=True, text=True,
-                         timeout=60).stdout
+    from test_rerun import entity_paths
+
+    paths = entity_paths(rrd)
     for entity in ("world/camera/image/matches", "world/camera/image/keypoints", "world/trajectory/groundtruth",
                    "world/trajectory/estimate", "world/camera/image/depth_filtered", "loop/sharpness",
                    "loop/threshold", "loop/sharp"):
-        assert entity in out, entity
+        assert "/" + entity in paths, entity
 
 
 def test_reading_ahead_changes_nothing_but_speed(desk9, tmp_path):
@@ -228,3 +302,37 @@ def test_demo_command(tmp_path):
     assert again.exit_code == 0 and "generating" not in again.output
     rerun = json.loads((tmp_path / "demo" / "run" / "run.json").read_text())
     assert rerun["evaluation"]["ate"]["rmse"] == run["evaluation"]["ate"]["rmse"]
+
+
+def test_run_with_the_default_mapping_writes_the_map_from_the_filtered_depth(synth_clean, tmp_path):
+    """`rgbdslam run` fuses the map by default; with DIF on, fusion reads the filtered keyframe
+    depth the run saved. The cloud lies on the synthetic scene: every point is at most a few
+    centimetres from the depth the ground truth renders (checked against the first frame)."""
+    import open3d as o3d
+
+    from rgbdslam.geometry.se3 import transform_points
+
+    cfg = load_config(None, ["output.plots=false", "dataset.max_frames=30", "depth_filter.enabled=true"])
+    s = run_sequence(synth_clean, tmp_path / "run", cfg, progress=False)
+    kf_depth = sorted((tmp_path / "run" / "keyframes").glob("depth_*.png"))
+    assert len(kf_depth) == len(s["keyframes"]) >= 2
+    m = s["map"]
+    assert m["frames_fused"] == len(s["keyframes"]) and m["cloud_points"] > 10_000 and m["mesh_triangles"] > 0
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["map"]["cloud_points"] == m["cloud_points"]
+    cloud = np.asarray(o3d.io.read_point_cloud(m["cloud"]).points)
+    assert len(cloud) == m["cloud_points"]
+    # points seen by frame 0: their depth in frame 0 (the map is in the run's coordinates, whose
+    # frame-0 pose trajectory.tum holds; ATE < 1 mm) matches frame 0's depth image
+    seq = open_sequence(synth_clean)
+    f0 = seq.load(0)
+    pose0 = read_tum(tmp_path / "run" / "trajectory.tum").poses[0]
+    assert s["evaluation"]["ate"]["rmse"] < 0.002
+    pc = transform_points(np.linalg.inv(pose0), cloud)
+    uv = seq.camera.project(pc)
+    u, v = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+    inside = (pc[:, 2] > 0.1) & (u >= 0) & (u < f0.depth.shape[1]) & (v >= 0) & (v < f0.depth.shape[0])
+    z = f0.depth[v[inside], u[inside]]
+    front = z > 0
+    err = np.abs(pc[inside][front, 2] - z[front])
+    assert front.sum() > 5000
+    assert np.median(err) < 0.01  # occluded points (behind what frame 0 sees) are the tail
