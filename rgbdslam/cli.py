@@ -11,7 +11,7 @@ from pathlib import Path
 
 import click
 
-from rgbdslam.errors import RgbdslamError
+from rgbdslam.errors import InputError, RgbdslamError
 
 
 class _Group(click.Group):
@@ -49,20 +49,26 @@ set_option = click.option(
 
 
 @main.command()
-@click.argument("sequence", type=click.Path(path_type=Path))
+@click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="SEQUENCE...")
 @config_option
 @set_option
 @click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
-              help="Output folder (default: runs/<sequence name>).")
+              help="Output folder (default: runs/<sequence name>); with several sequences the folder "
+                   "that holds one subfolder per sequence and summary.md/.csv (default: runs).")
 @click.option("--no-map", is_flag=True, help="Skip map fusion at the end of the run.")
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
 @click.option("--rerun-save", type=click.Path(path_type=Path), default=None, help="Record the run to an .rrd file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def run(sequence, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet):
-    """Run SLAM on SEQUENCE (a TUM or PUT folder) and write trajectory.tum into --out."""
-    from rgbdslam.config import load_config
-    from rgbdslam.pipeline import run_sequence
+def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet):
+    """Run SLAM on SEQUENCE (a TUM or PUT folder) and write trajectory.tum into --out.
 
+    Several sequences run one after the other with the same config (camera "auto" is decided
+    per sequence); a table of their results is printed and written to OUT/summary.md and .csv."""
+    from rgbdslam.config import load_config
+    from rgbdslam.pipeline import format_batch_table, run_sequence, run_sequences
+
+    if len(sequences) > 1 and rerun_save is not None:
+        raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
     cfg = load_config(config_path, overrides)
     if no_map:
         cfg.mapping.enabled = False
@@ -70,8 +76,16 @@ def run(sequence, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_sa
         cfg.output.rerun = True
     if rerun_save is not None:
         cfg.output.rerun_save = str(rerun_save)
-    out_dir = out_dir or Path("runs") / sequence.resolve().name
-    run_sequence(sequence, out_dir, cfg, progress=not quiet)
+    if len(sequences) == 1:
+        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet)
+        return
+    out_root = out_dir or Path("runs")
+    rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet)
+    click.echo(format_batch_table(rows))
+    failed = [r for r in rows if r["status"] != "ok"]
+    if failed:
+        raise InputError(f"{len(failed)} of {len(rows)} sequences failed (first: {Path(failed[0]['sequence']).name}); "
+                         f"see {out_root / 'summary.md'}")
 
 
 @main.command()

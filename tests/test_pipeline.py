@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -336,3 +337,29 @@ def test_run_with_the_default_mapping_writes_the_map_from_the_filtered_depth(syn
     err = np.abs(pc[inside][front, 2] - z[front])
     assert front.sum() > 5000
     assert np.median(err) < 0.01  # occluded points (behind what frame 0 sees) are the tail
+
+
+def test_several_sequences_in_one_run_command(desk9, tmp_path):
+    """`rgbdslam run A B C`: each into OUT/<name> (a repeated name gets _2), a failing one is
+    reported and skipped, the table on stdout and summary.csv hold each run's own numbers."""
+    import csv
+
+    out = tmp_path / "batch"
+    res = CliRunner().invoke(main, ["run", str(desk9), str(tmp_path / "missing"), str(desk9), "--out", str(out),
+                                    "--no-map", "-q", "--set", "output.plots=false"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2
+    assert "1 of 3 sequences failed (first: missing)" in res.output
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [r["status"] for r in rows] == ["ok", rows[1]["status"], "ok"] and "does not exist" in rows[1]["status"]
+    assert [Path(r["out"]).name for r in rows] == [desk9.name, "missing", desk9.name + "_2"]
+    for r in (rows[0], rows[2]):
+        run = json.loads((Path(r["out"]) / "run.json").read_text())
+        assert int(r["tracked"]) == run["tracked"] == 9 and int(r["loops"]) == len(run["loops"])
+        assert float(r["ate_rmse"]) == pytest.approx(run["evaluation"]["ate"]["rmse"], rel=1e-12)
+    table = [ln for ln in res.output.splitlines() if ln.startswith(f"| {desk9.name} | ok | 9 | 9 |")]
+    assert len(table) == 2 and (out / "summary.md").read_text().count("| ok |") == 2
+
+
+def test_rerun_save_needs_a_single_sequence(desk9, tmp_path):
+    res = CliRunner().invoke(main, ["run", str(desk9), str(desk9), "--rerun-save", str(tmp_path / "x.rrd")])
+    assert res.exit_code == 2 and "single SEQUENCE" in res.output and not (tmp_path / "x.rrd").exists()
