@@ -7,17 +7,66 @@ from rgbdslam.config import PRESET_DIR, Config, load_config, save_config
 from rgbdslam.errors import ConfigError
 
 
-def test_defaults_roundtrip(tmp_path):
-    cfg = load_config()
+# One non-default value per section, of every kind of type the config uses (Literal, float,
+# int, bool, optional str set, optional float set, optional float cleared to None).
+NON_DEFAULT = {
+    "dataset.associations": "assoc.txt",  # None -> str
+    "dataset.max_difference": 0.035,
+    "features.n_features": 1500,
+    "matching.ratio": 0.8,  # None -> float
+    "registration.mp": 6,
+    "registration.guided_gate": None,  # float -> None
+    "registration.fusion": "thesis",
+    "depth_filter.enabled": True,
+    "keyframes.min_rotation_deg": 7.5,
+    "loop.min_votes": 7,
+    "backend.init": "odometry",
+    "mapping.gravity": "camera",
+    "mapping.mesh": False,
+    "output.rerun_save": "rec.rrd",
+}
+
+
+def test_non_default_roundtrip(tmp_path):
+    overrides = [f"{k}=" + ("" if v is None else str(v)) for k, v in NON_DEFAULT.items()]
+    cfg = load_config("tum_fr2", overrides)
+    defaults = Config()
+    sections = {k.split(".")[0] for k in NON_DEFAULT}
+    assert sections == set(defaults.to_dict())  # every section has a changed value
+    for key, value in NON_DEFAULT.items():
+        section, name = key.split(".")
+        assert getattr(getattr(cfg, section), name) == value, key
+        assert getattr(getattr(defaults, section), name) != value, key  # really non-default
+    assert cfg.dataset.camera == "fr2" and cfg.dataset.kind == "tum"  # from the preset
     save_config(cfg, tmp_path / "c.yaml")
+    # the file alone (no preset, no overrides) gives back the whole config
     again = load_config(tmp_path / "c.yaml")
     assert again.to_dict() == cfg.to_dict()
+    assert again.to_dict() != defaults.to_dict()
+    # and the file holds every key of every section, not only the changed ones
+    written = yaml.safe_load((tmp_path / "c.yaml").read_text())
+    assert written == cfg.to_dict()
 
 
-@pytest.mark.parametrize("preset", sorted(p.stem for p in PRESET_DIR.glob("*.yaml")))
+def _presets():
+    return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
+
+
+@pytest.mark.parametrize("preset", _presets())
 def test_every_preset_loads(preset):
+    data = yaml.safe_load((PRESET_DIR / f"{preset}.yaml").read_text())
+    assert isinstance(data, dict) and data, f"{preset}.yaml sets no keys"
     cfg = load_config(preset)
-    assert isinstance(cfg, Config)
+    # expected: the dataclass defaults with exactly the preset's keys replaced
+    expected = Config().to_dict()
+    n_keys = 0
+    for section, values in data.items():
+        for key, value in values.items():
+            assert getattr(getattr(cfg, section), key) == value, f"{preset}: {section}.{key}"
+            expected[section][key] = value
+            n_keys += 1
+    assert n_keys > 0
+    assert cfg.to_dict() == expected
 
 
 def test_required_presets_exist():

@@ -51,41 +51,27 @@ def make_tum(root: Path, rgb_ts, depth_ts, size=(8, 6), depth_value=5000) -> Pat
 # ----------------------------------------------------------------------------- association
 
 
-def test_associate_greedy_smallest_difference_first():
-    a = np.array([1.00, 1.03, 1.06])
-    b = np.array([1.025, 1.061, 1.2])
-    ia, ib = associate(a, b, max_difference=0.02)
-    # 1.03<->1.025 (0.005) wins over 1.00<->1.025 (0.025 > 0.02 anyway); 1.06<->1.061; 1.00 unmatched
-    assert ia.tolist() == [1, 2] and ib.tolist() == [0, 1]
-
-
-def test_associate_one_to_one_and_offset():
-    a = np.array([0.0, 0.010])
-    b = np.array([0.004])
-    ia, ib = associate(a, b, max_difference=0.02)
-    assert ia.tolist() == [0] and ib.tolist() == [0]  # |0-0.004| < |0.01-0.004|, b used once
-    ia, ib = associate(a, b, max_difference=0.02, offset=0.006)  # b+offset = 0.010
-    assert ia.tolist() == [1] and ib.tolist() == [0]
-    ia, ib = associate(a, b, max_difference=0.004)  # strict '<' like associate.py
-    assert len(ia) == 0 and len(ib) == 0
-
-
-def test_associate_matches_reference_bruteforce():
-    rng = np.random.default_rng(3)
-    for _ in range(50):
-        a = np.unique(np.round(rng.uniform(0, 1, rng.integers(1, 25)), 3))
-        b = np.unique(np.round(rng.uniform(0, 1, rng.integers(1, 25)), 3))
-        rng.shuffle(a)
-        rng.shuffle(b)
-        pm = sorted((abs(x - y), x, y) for x in a for y in b if abs(x - y) < 0.03)
-        fa, fb, ref = set(a), set(b), []
-        for _, x, y in pm:
-            if x in fa and y in fb:
-                fa.remove(x)
-                fb.remove(y)
-                ref.append((x, y))
-        ia, ib = associate(a, b, 0.03)
-        assert list(zip(a[ia], b[ib])) == sorted(ref)
+def test_associate_greedy_smallest_difference_first(tmp_path):
+    # Two rgb stamps compete for the depth stamp 1.012:
+    #   rgb 1.000 - depth 1.012: 0.012      rgb 1.000 - depth 0.985: 0.015
+    #   rgb 1.010 - depth 1.012: 0.002      rgb 1.010 - depth 0.985: 0.025 (>= 0.02, no candidate)
+    # Greedy over all candidates by difference: (1.010, 1.012) at 0.002 first, then (1.000, 1.012)
+    # is blocked and (1.000, 0.985) at 0.015 is taken: both rgb frames are paired.
+    # First come, first served (each rgb in turn takes its nearest free depth) would give
+    # 1.000 -> 1.012 and leave 1.010 without a partner.
+    rgb = np.array([1.000, 1.010])
+    depth = np.array([0.985, 1.012])
+    ia, ib = associate(rgb, depth, max_difference=0.02)
+    assert ia.tolist() == [0, 1] and ib.tolist() == [0, 1]
+    # the same through the TUM reader (rgb.txt / depth.txt)
+    seq = open_sequence(make_tum(tmp_path / "s", rgb.tolist(), depth.tolist()))
+    np.testing.assert_allclose(seq.timestamps, [1.000, 1.010])
+    np.testing.assert_allclose(seq.depth_timestamps, [0.985, 1.012])
+    # the contest decided by the difference, not by the order of the lists: reversed input,
+    # same pairs (indices refer to the given order)
+    ia, ib = associate(rgb[::-1], depth[::-1], max_difference=0.02)
+    assert sorted(zip(rgb[::-1][ia], depth[::-1][ib])) == [(1.000, 0.985), (1.010, 1.012)]
+    # (the general greedy semantics, offset, strict '<' and TUM parity are in test_evaluation.py)
 
 
 # ----------------------------------------------------------------------------- TUM on real data

@@ -210,10 +210,35 @@ def test_rpe_rotation_drift_hand_worked():
     r = rpe(gt, est, delta=2, delta_unit="f")
     np.testing.assert_allclose(r.rot_errors, 4.0, atol=1e-9)
     assert r.trans.max == pytest.approx(0.0, abs=1e-12)
-    # error is E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j): in a turning body frame the same world
-    # velocity error shows as the same norm, so a rotating pair of identical motions gives 0
-    turning = straight_line(10, [0.5, 0, 0], rot_step_deg=5.0)
-    assert rpe(turning, turning).trans.max < 1e-12
+
+
+def test_rpe_is_measured_in_the_body_frame():
+    # E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j) compares the motions in each trajectory's own body frame.
+    # gt: heading 0, 1 m per frame along world x. est: the same world positions, but the camera
+    # is yawed by a constant 90 deg, so in its body frame the same world step is [0, -1, 0]
+    # (Rz(90)^T [1, 0, 0]). Body frame: E = (I, [0,-1,0] - [1,0,0]) -> trans sqrt(2), rot 0.
+    # A world-frame comparison (t_j - t_i of each, and R_j R_i^T) would give 0 and 0.
+    gt = straight_line(6, [1.0, 0, 0])
+    est_poses = gt.poses.copy()
+    est_poses[:, :3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    r = rpe(gt, Trajectory(gt.timestamps, est_poses), delta=1, delta_unit="f")
+    assert r.n_pairs == 5
+    np.testing.assert_allclose(r.trans_errors, np.sqrt(2.0), atol=1e-12)
+    np.testing.assert_allclose(r.rot_errors, 0.0, atol=1e-9)
+    # 2-frame pairs: body steps [2,0,0] (gt) and [0,-2,0] (est) -> 2 sqrt(2)
+    r2 = rpe(gt, Trajectory(gt.timestamps, est_poses), delta=2, delta_unit="f")
+    np.testing.assert_allclose(r2.trans_errors, 2.0 * np.sqrt(2.0), atol=1e-12)
+    # the converse: est turns 90 deg per frame and steps 1 m along its own x each frame (world
+    # positions differ from gt's), gt steps 1 m along x without turning: same body-frame
+    # translation, so trans 0 (world frame: |[0,1,0] - [1,0,0]| etc. would not be 0); rot 90.
+    step = np.eye(4)
+    step[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    step[:3, 3] = [1.0, 0, 0]
+    spin = np.stack([np.linalg.matrix_power(step, k) for k in range(6)])
+    assert np.linalg.norm(spin[2, :3, 3] - spin[1, :3, 3] - [1.0, 0, 0]) > 1.0  # world steps differ
+    r3 = rpe(gt, Trajectory(gt.timestamps, spin), delta=1, delta_unit="f")
+    np.testing.assert_allclose(r3.trans_errors, 0.0, atol=1e-12)
+    np.testing.assert_allclose(r3.rot_errors, 90.0, atol=1e-9)
 
 
 def test_rpe_error_product_order():
@@ -322,6 +347,20 @@ def _out(result) -> str:
     return result.output
 
 
+def _assert_one_line_error(result, *names: str) -> str:
+    """The CLI turned a RgbdslamError into exit code 2 and one ``error: ...`` line on stderr
+    naming ``names``. An uncaught exception would instead be ``result.exception`` itself
+    (exit code 1), and click's own usage errors print several lines."""
+    assert isinstance(result.exception, SystemExit), repr(result.exception)
+    assert result.exit_code == 2 and result.exception.code == 2, (result.exit_code, _out(result))
+    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert [ln for ln in _out(result).splitlines() if ln.strip()] == lines  # nothing else printed
+    for name in names:
+        assert name in lines[0], (name, lines[0])
+    return lines[0]
+
+
 def test_cli_evaluate_writes_json_and_plots(rpy200, tmp_path):
     est_path = make_perturbed_estimate(rpy200, tmp_path)
     gt_path = rpy200 / "groundtruth.txt"
@@ -344,10 +383,7 @@ def test_cli_missing_file_one_line_error(tmp_path):
     gt = tmp_path / "gt.tum"
     write_tum(straight_line(5, [1.0, 0, 0]), gt)
     res = CliRunner().invoke(main, ["evaluate", str(gt), str(tmp_path / "nope.tum"), "--no-plots"])
-    out = _out(res)
-    assert res.exit_code != 0
-    assert "nope.tum" in out and "Traceback" not in out
-    assert len([ln for ln in out.splitlines() if ln.strip()]) == 1
+    _assert_one_line_error(res, str(tmp_path / "nope.tum"))
 
 
 def test_cli_malformed_line_names_file_and_line(tmp_path):
@@ -358,10 +394,7 @@ def test_cli_malformed_line_names_file_and_line(tmp_path):
     lines[3] = "0.2 1.0 0.0 0.0 0.0 0.0 zero 1.0"
     bad.write_text("\n".join(lines) + "\n")
     res = CliRunner().invoke(main, ["evaluate", str(gt), str(bad), "--no-plots"])
-    out = _out(res)
-    assert res.exit_code != 0 and "Traceback" not in out
-    assert f"{bad}:4" in out
-    assert len([ln for ln in out.splitlines() if ln.strip()]) == 1
+    _assert_one_line_error(res, f"{bad}:4")
 
 
 def test_cli_no_overlap_clear_message(tmp_path):
@@ -370,9 +403,7 @@ def test_cli_no_overlap_clear_message(tmp_path):
     write_tum(traj, gt)
     write_tum(Trajectory(traj.timestamps + 50.0, traj.poses), est)
     res = CliRunner().invoke(main, ["evaluate", str(gt), str(est), "--no-plots"])
-    out = _out(res)
-    assert res.exit_code != 0 and "Traceback" not in out
-    assert "no overlapping timestamps" in out and str(gt) in out and str(est) in out
+    _assert_one_line_error(res, "no overlapping timestamps", str(gt), str(est))
     assert not list(tmp_path.glob("*.png"))
 
 
@@ -410,9 +441,7 @@ def test_cli_evaluate_same_estimate_twice_is_one_line(tmp_path):
     gt = tmp_path / "gt.tum"
     write_tum(straight_line(5, [1.0, 0, 0]), gt)
     res = CliRunner().invoke(main, ["evaluate", str(gt), str(gt), str(gt), "--no-plots"])
-    out = _out(res)
-    assert res.exit_code != 0 and "Traceback" not in out and "twice" in out
-    assert len([ln for ln in out.splitlines() if ln.strip()]) == 1
+    _assert_one_line_error(res, f"estimate file {gt} is given twice")
 
 
 def test_short_names_are_the_shortest_distinct_suffixes():

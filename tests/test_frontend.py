@@ -104,11 +104,29 @@ def test_lift_and_set_depth(desk):
     assert len(f.desc) > 300 and f.n_detected > 100
     assert f.valid.sum() > 0.5 * len(f.valid)
     assert np.isnan(f.pts[~f.valid]).all()
-    # doubling the depth doubles the points
-    p = f.pts.copy()
-    lift(f, frames[0].depth * 2, seq.camera, cfg)
-    ok = f.valid & np.isfinite(p[:, 0])
-    assert np.allclose(f.pts[ok], 2 * p[ok])
+    # doubling the depth doubles the points; with max_depth lowered to 2.8 m, the key points whose
+    # doubled depth (read at the rounded distorted key point) exceeds 2.8 m become invalid
+    p, was_valid = f.pts.copy(), f.valid.copy()
+    cam = seq.camera
+    u = np.clip(np.rint(f.uv_raw[:, 0]).astype(int), 0, cam.width - 1)
+    v = np.clip(np.rint(f.uv_raw[:, 1]).astype(int), 0, cam.height - 1)
+    z2 = 2.0 * frames[0].depth[v, u].astype(np.float64)
+    cfg2 = Config()
+    cfg2.matching.max_depth = 2.8
+    expect = (z2 >= cfg2.matching.min_depth) & (z2 <= 2.8)
+    beyond = was_valid & (z2 > 2.8)
+    assert expect.sum() > 0.2 * len(f.uv) and beyond.sum() > 0.2 * len(f.uv)  # both cases well populated
+    lift(f, frames[0].depth * 2, cam, cfg2)
+    np.testing.assert_array_equal(f.valid, expect)
+    assert not f.valid[beyond].any() and np.isnan(f.pts[beyond]).all()
+    assert np.isnan(f.pts[~f.valid]).all()
+    ok = f.valid & was_valid
+    assert ok.sum() > 0.2 * len(f.uv)
+    np.testing.assert_allclose(f.pts[ok], 2 * p[ok], rtol=1e-12)
+    # pinhole back-projection of the undistorted key point at the doubled depth
+    np.testing.assert_allclose(f.pts[ok, 2], z2[ok], rtol=1e-12)
+    np.testing.assert_allclose(f.pts[ok, 0], (f.uv[ok, 0] - cam.cx) / cam.fx * z2[ok], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(f.pts[ok, 1], (f.uv[ok, 1] - cam.cy) / cam.fy * z2[ok], rtol=1e-9, atol=1e-12)
     # set_depth replaces a reference's depth: all-zero depth leaves it without points
     fe = build_frontend(cfg, seq.camera)
     fe.track(frames[0])

@@ -31,20 +31,51 @@ def test_svd_fit_exact():
     assert np.abs(Tb - T).max() < 1e-9
 
 
-def test_svd_fit_reflection_case():
-    # Planar points mirrored through the plane z=0: the unconstrained least-squares answer
-    # is a reflection (det -1); the fix must return a proper rotation.
-    S = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0.5, 0.2, 0]], float)
-    D = S * np.array([1, 1, -1]) + np.array([0.0, 0.0, 0.0])
+def _naive_rotation(S, D):
+    """Arun's SVD answer without the reflection fix: V U^T for H = sum (s - p)(d - q)^T."""
+    U, _, Vt = np.linalg.svd((S - S.mean(0)).T @ (D - D.mean(0)))
+    return Vt.T @ U.T
+
+
+def test_svd_fit_reflection_case_planar_points():
+    # Coplanar points (z = 0) moved by a proper rotation: H has rank 2, the sign of its third
+    # singular vectors is arbitrary, and the naive V U^T is then a reflection for some rotations.
+    # The fix must recover every rotation and translation exactly.
+    rng = np.random.default_rng(0)
+    S = np.c_[rng.uniform(-1, 1, (8, 2)), np.zeros(8)]
+    t = np.array([0.3, -0.2, 1.0])
+    naive_dets = []
+    for R in Rotation.random(20, random_state=1).as_matrix():
+        D = S @ R.T + t
+        naive_dets.append(np.linalg.det(_naive_rotation(S, D)))
+        T = fit_rigid(S, D)
+        assert np.isclose(np.linalg.det(T[:3, :3]), 1.0)
+        np.testing.assert_allclose(T[:3, :3], R, atol=1e-9)
+        np.testing.assert_allclose(T[:3, 3], t, atol=1e-9)
+        Tb = fit_rigid_batch(S[None], D[None])[0]
+        np.testing.assert_allclose(Tb[:3, :3], R, atol=1e-9)
+    # precondition: the naive SVD did produce reflections here, so the fix was exercised
+    assert sum(np.isclose(d, -1.0) for d in naive_dets) >= 3, np.round(naive_dets)
+
+
+def test_svd_fit_reflection_case_mirrored_points():
+    # Non-planar points mirrored through z = 0, with the largest spread along z: the best
+    # orthogonal matrix is the mirror diag(1, 1, -1) itself, the best rotation is not identity.
+    # Centred S with S^T S = diag(2, 8, 18) (x, y, z spreads 1, 2, 3 in +- pairs):
+    S = np.array([[1, 0, 0], [-1, 0, 0], [0, 2, 0], [0, -2, 0], [0, 0, 3], [0, 0, -3]], float)
+    D = S * np.array([1, 1, -1])
+    # Maximise tr(R H), H = sum s d^T = diag(2, 8, -18): over diagonal sign rotations
+    # I -> -8, diag(1,-1,-1) -> 12, diag(-1,1,-1) -> 24, diag(-1,-1,1) -> -28. The optimum over
+    # SO(3) is sigma1 + sigma2 - sigma3 = 18 + 8 - 2 = 24, reached by diag(-1, 1, -1)
+    # (180 deg about y), leaving residual only along x: d - R s = (2 x, 0, 0).
+    assert np.isclose(np.linalg.det(_naive_rotation(S, D)), -1.0)  # naive: the mirror
     T = fit_rigid(S, D)
     assert np.isclose(np.linalg.det(T[:3, :3]), 1.0)
-    # For coplanar points on z=0, the mirrored set equals the set: identity is the best rotation.
-    assert np.allclose(T, np.eye(4), atol=1e-12)
-    # Non-planar mirrored set: still a rotation (det +1), never the reflection diag(1,1,-1).
-    S2 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0], [1, 1, 1]])
-    R = fit_rigid(S2, S2 * np.array([1, 1, -1]))[:3, :3]
-    assert np.isclose(np.linalg.det(R), 1.0)
-    assert not np.allclose(R, np.diag([1, 1, -1.0]))
+    np.testing.assert_allclose(T[:3, :3], np.diag([-1.0, 1.0, -1.0]), atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], 0.0, atol=1e-12)
+    # weighted (uniform weights) and batched variants agree
+    np.testing.assert_allclose(fit_rigid(S, D, np.full(6, 0.5)), T, atol=1e-12)
+    np.testing.assert_allclose(fit_rigid_batch(S[None], D[None])[0], T, atol=1e-12)
 
 
 def test_isvd_with_30_percent_outliers():
@@ -122,4 +153,9 @@ def test_ransac_rigid_seeded():
     assert out1 is not None
     assert np.array_equal(out1[0], out2[0])
     assert np.abs(out1[0] - T).max() < 1e-9
-    assert out1[1][50:].all()
+    mask = out1[1]
+    # every displaced pair is more than the 1 cm threshold off (precondition), and all are rejected
+    assert (np.linalg.norm(transform_points(T, S[:50]) - D[:50], axis=1) > 0.01).all()
+    assert not mask[:50].any()
+    assert mask[50:].all() and mask.sum() == 100
+    assert np.array_equal(out2[1], mask)

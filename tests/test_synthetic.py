@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from scipy.spatial.transform import Rotation
 
 from rgbdslam.cli import main
 from rgbdslam.config import DatasetConfig
@@ -162,8 +163,24 @@ def test_motions_stay_inside_looking_at_surfaces(motion):
     np.testing.assert_allclose(poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2), np.tile(np.eye(3), (300, 1, 1)), atol=1e-12)
     steps = np.linalg.norm(np.diff(pos, axis=0), axis=1)
     assert steps.max() < 0.03  # smooth: < 3 cm per frame at 30 Hz
-    if motion != "static":
-        assert steps.sum() > 0.05 or motion == "rpy"
+    rel = np.swapaxes(poses[:1, :3, :3], 1, 2) @ poses[:, :3, :3]  # rotation from the first pose
+    if motion == "static":
+        np.testing.assert_array_equal(poses, np.broadcast_to(poses[0], poses.shape))  # no motion at all
+    elif motion == "rpy":
+        # rotation about the optical centre: the camera stays put ...
+        np.testing.assert_allclose(pos, np.broadcast_to(pos[0], pos.shape), atol=1e-12)
+        # ... and turns +-20 deg about each camera axis (R = R0 Ry(yaw) Rx(pitch) Rz(roll); in
+        # 10 s at 30 Hz every sine with period 4-6 s reaches its extremes within 1/60 s)
+        yaw, pitch, roll = np.degrees(Rotation.from_matrix(rel).as_euler("YXZ")).T
+        for name, a in (("yaw", yaw), ("pitch", pitch), ("roll", roll)):
+            assert np.abs(a).max() <= 20.0 + 1e-9, name
+            assert a.max() > 19.9 and a.min() < -19.9, (name, a.min(), a.max())
+        # smooth: the angular speed is at most the sum of the axes' peak rates,
+        # 20 deg * 2 pi * (1/4 + 1/5 + 1/6) / s = 77.5 deg/s, i.e. 2.58 deg per frame at 30 Hz
+        step_rot = np.swapaxes(poses[:-1, :3, :3], 1, 2) @ poses[1:, :3, :3]
+        assert np.degrees(Rotation.from_matrix(step_rot).magnitude()).max() < 2.6
+    else:
+        assert steps.sum() > 0.05
     cam = scaled_camera("ros_default", 80, 60)
     rays, scene = Rays(cam), Scene(0, surfaces=scene_surfaces())
     for k in range(0, 300, 30):
@@ -216,5 +233,12 @@ def test_synth_command(tmp_path):
     # regenerating into the same folder replaces the old sequence
     res = CliRunner().invoke(main, ["synth", str(out), "-n", "2", "--size", "160", "120"])
     assert res.exit_code == 0 and len(list((out / "rgb").iterdir())) == 2
-    res = CliRunner().invoke(main, ["synth", str(out), "--motion", "spin"])
-    assert res.exit_code == 2 and "Traceback" not in res.output
+    # an out-of-range option reaches the library's InputError: the CLI turns it into exit code 2
+    # and one "error: ..." line (an uncaught exception would be res.exception, exit code 1)
+    res = CliRunner().invoke(main, ["synth", str(tmp_path / "bad"), "--dropout", "1.5"])
+    assert isinstance(res.exception, SystemExit) and res.exception.code == 2 and res.exit_code == 2
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
+    assert "dropout" in lines[0] and "1.5" in lines[0] and "[0, 1)" in lines[0]
+    assert res.stderr.strip() == lines[0]
+    assert not (tmp_path / "bad").exists()  # rejected before anything is written

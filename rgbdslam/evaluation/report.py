@@ -201,8 +201,11 @@ def compare_and_print(
     [report, ...]}``. ``options`` as for :func:`evaluate_files` (align, delta, ...).
     """
     console = console or Console()
-    if len({str(p) for p in est_paths}) != len(est_paths):
-        raise InputError("the same estimate file is given twice; pass each EST once")
+    seen: set[str] = set()
+    for p in est_paths:
+        if str(p) in seen:
+            raise InputError(f"estimate file {p} is given twice; pass each EST once")
+        seen.add(str(p))
     reports = []
     names = _short_names([str(p) for p in est_paths])
     for est, name in zip(est_paths, names):
