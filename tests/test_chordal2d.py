@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -143,7 +144,60 @@ def test_cli_init_and_optimize_with_chordal_and_lm(tmp_path):
     res = runner.invoke(main, ["posegraph", "optimize", str(src), "--init", "chordal", "--optimizer", "lm", "-q",
                                "--out", str(tmp_path / "o.g2o")])
     assert res.exit_code == 0, res.output
-    assert "optimizer lm" in res.output and "converged" in res.output
-    res = runner.invoke(main, ["posegraph", "init", str(tmp_path / "missing.g2o"), "--method", "chordal",
+    assert "optimizer lm" in res.output
+    assert re.search(r"; \d+ iteration\(s\), converged; ", res.output), res.output  # not "not converged"
+    opt = read_graph(tmp_path / "o.g2o").poses
+    # GTSAM's optimum (error Logmap(Z^-1 X_i^-1 X_j)), vertex 0 at the chordal guess's origin, found
+    # independently by SciPy least squares from the ground truth
+    np.testing.assert_allclose(opt[0], [0.0, 0.0, 0.0], atol=1e-9)
+    ref = _gtsam_optimum(g, gt)
+    # converged (3 iterations): 2e-7 off; stopped after 2 (not converged): 9e-6 off, after 1: 2e-3 off
+    np.testing.assert_allclose(opt[:, :2], ref[:, :2], atol=1e-6)
+    np.testing.assert_allclose(_wrapdiff(opt[:, 2], ref[:, 2]), 0, atol=1e-6)
+    assert np.abs(opt[:, :2] - gt[:, :2]).max() < 0.2  # and the optimum is near the truth
+    missing = tmp_path / "missing.g2o"
+    res = runner.invoke(main, ["posegraph", "init", str(missing), "--method", "chordal",
                                "--out", str(tmp_path / "x.g2o")])
-    assert res.exit_code != 0 and "Traceback" not in res.output and "missing.g2o" in res.output
+    # an RgbdslamError becomes sys.exit(error.exit_code) (rgbdslam/cli.py); InputError's code is 2
+    assert isinstance(res.exception, SystemExit) and res.exit_code == InputError.exit_code == 2, res.exception
+    assert res.stdout == ""
+    assert res.stderr == f"error: pose-graph file {missing} does not exist; check the path\n"
+    assert not (tmp_path / "x.g2o").exists()
+
+
+def _pose2_logmap(p):
+    """Pose2 logarithm: (v, w) with t = V(w) v, V(w) = [[s, -(1-c)], [1-c, s]] / w (V = I at w = 0)."""
+    w = p[:, 2]
+    s, omc = np.sin(w), 1.0 - np.cos(w)
+    small = np.abs(w) < 1e-10
+    k = np.where(small, 1.0, w / np.where(small, 1.0, s * s + omc * omc))
+    vx = np.where(small, p[:, 0], k * (s * p[:, 0] + omc * p[:, 1]))
+    vy = np.where(small, p[:, 1], k * (-omc * p[:, 0] + s * p[:, 1]))
+    return np.column_stack([vx, vy, w])
+
+
+def _compose(a, b):
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1],
+                            np.angle(np.exp(1j * (a[:, 2] + b[:, 2])))])
+
+
+def _inverse(a):
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    return np.column_stack([-(c * a[:, 0] + s * a[:, 1]), s * a[:, 0] - c * a[:, 1], -a[:, 2]])
+
+
+def _gtsam_optimum(g, start):
+    """argmin sum e^T Omega e, e = Logmap(Z^-1 X_i^-1 X_j), vertex 0 at the origin (diagonal Omega)."""
+    from scipy.optimize import least_squares
+
+    w = np.sqrt(np.diagonal(g.info, axis1=1, axis2=2))
+
+    def f(v):
+        p = np.vstack([np.zeros((1, 3)), v.reshape(-1, 3)])
+        err = _pose2_logmap(_compose(_inverse(g.meas), _compose(_inverse(p[g.edges_i]), p[g.edges_j])))
+        return (err * w).ravel()
+
+    r = least_squares(f, np.asarray(start, float)[1:].ravel(), method="lm", jac="3-point",
+                      xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    return np.vstack([np.zeros((1, 3)), r.x.reshape(-1, 3)])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -166,5 +167,56 @@ def test_real_m3500_counts():
     g = read_graph(path)
     assert (g.dim, g.n_vertices, g.n_edges) == (2, 3500, 5598)
     np.testing.assert_allclose(g.info[0], np.eye(3) * 2000.0, rtol=1e-9)
-    assert "duplicated vertex pairs: 145" in graph_info(path)
+    # the vertex pairs counted straight from the file's edge records (all ODOMETRY in M3500)
+    per_pair = Counter()
+    for line in path.read_text().splitlines():
+        f = line.split()
+        if f and f[0] in ("ODOMETRY", "EDGE2"):
+            i, j = int(f[1]), int(f[2])
+            per_pair[min(i, j), max(i, j)] += 1
+    assert sum(per_pair.values()) == g.n_edges
+    repeats = sum(c - 1 for c in per_pair.values())  # edges after the first on the same pair
+    multi = sum(c > 1 for c in per_pair.values())  # pairs joined by more than one edge
+    assert repeats > multi > 0  # some pairs have three edges, so the two counts differ
+    assert (f"edges repeating a vertex pair: {repeats} (on {multi} vertex pairs with more than one edge)"
+            in graph_info(path))
     assert math.isclose(g.meas[3, 2], 1.56679)
+
+
+def test_cli_posegraph_info_counts_on_hand_made_file(tmp_path):
+    """4 vertices, 7 edges: 1->2 twice, 0-2 three times (once stored 2->0).
+    |i-j| = 1: 0-1, 1-2, 1-2, 2-3 -> 4; other: the three 0-2 edges.
+    Repeating a pair: 1 (1-2) + 2 (0-2) = 3 edges on 2 pairs.  Degrees: 0: 1 + 3 = 4,
+    1: 1 + 2 = 3, 2: 2 + 3 + 1 = 6, 3: 1 -> min 1, mean 14 / 4 = 3.50, max 6."""
+    from click.testing import CliRunner
+
+    from rgbdslam.cli import main
+
+    e = " 1 0 0 1 0 0 1 0 1\n"
+    text = ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\nVERTEX_SE2 3 3 0 0\nFIX 0\n"
+            + "".join(f"EDGE_SE2 {i} {j}" + e for i, j in ((0, 1), (1, 2), (2, 3), (0, 2), (1, 2), (2, 0), (0, 2))))
+    path = _write(tmp_path, "h.g2o", text)
+    res = CliRunner().invoke(main, ["posegraph", "info", str(path)])
+    assert res.exit_code == 0 and res.exception is None, res.output
+    assert res.stdout.splitlines() == [
+        f"SE(2) pose graph from {path} (g2o): 4 vertices, 7 edges (with vertex estimates)",
+        ("odometry-like edges (between vertices adjacent in id order): 4; other edges: 3; "
+         "edges repeating a vertex pair: 3 (on 2 vertex pairs with more than one edge)"),
+        "vertex degree: min 1, mean 3.50, max 6",
+        "note: ignored 1 FIX record(s)",
+    ]
+    res = CliRunner().invoke(main, ["posegraph", "info", str(path), "--format", "toro"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == InputError.exit_code == 2
+    assert res.stderr == f"error: {path}:1: unsupported record 'VERTEX_SE2'; remove it or convert the file to g2o\n"
+
+
+def test_a_repeated_vertex_line_does_not_hide_a_missing_vertex(tmp_path):
+    """Vertex 0 listed twice, vertex 2 not at all: the file does not give every estimate."""
+    text = ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 0 0\nVERTEX_SE2 1 1 0 0\n"
+            "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\n")
+    g = read_graph(_write(tmp_path, "r.g2o", text))
+    assert g.n_vertices == 3 and not g.has_poses
+    assert g.poses[0].tolist() == [1.0, 0.0, 0.0]  # the last line of vertex 0 wins, and says so
+    assert any("1 repeated vertex line" in n for n in g.notes)
+    full = read_graph(_write(tmp_path, "f.g2o", text + "VERTEX_SE2 2 2 0 0\n"))
+    assert full.has_poses

@@ -23,8 +23,11 @@ def test_parse_noise():
     assert parse_noise("0.1") == [(0.1, 0.1, 0.1)]
     assert parse_noise("0.1;0.15,0.15,0.3") == [(0.1, 0.1, 0.1), (0.15, 0.15, 0.3)]
     assert parse_noise("all") == list(NOISE_LEVELS) and len(NOISE_LEVELS) == 8
-    for bad in ("abc", "0.1,0.2", "-0.1,0.1,0.1"):
-        with pytest.raises(InputError):
+    for bad, match in (("abc", r"--noise 'abc' is not 'all' or numbers like 0\.2,0\.2,0\.2"),
+                       ("0.1,0.2", r"--noise '0\.1,0\.2' needs three positive standard deviations"),
+                       ("-0.1,0.1,0.1", r"--noise '-0\.1,0\.1,0\.1' needs three positive standard deviations"),
+                       ("0.1;0,0.1,0.1", r"--noise '0,0\.1,0\.1' needs three positive")):  # names the bad level
+        with pytest.raises(InputError, match=match):
             parse_noise(bad)
 
 
@@ -46,6 +49,26 @@ def test_convergence_tests_on_hand_histories():
     assert not has_converged(1000.0, 1000.0 - 5e-4, 1e-6, "absolute")
     assert has_converged(1000.0, 1000.0 - 5e-7, 1e-6, "absolute")
     assert not has_converged(float("nan"), 1.0, 1e-6, "absolute")
+    # a graph that fits exactly: chi2 jitters around 1e-28, a 50 % relative change; below 1 the
+    # relative test measures against 1, so it passes (and a real change below 1 still fails it)
+    assert has_converged(2e-28, 1e-28, 1e-6, "relative")
+    assert not has_converged(0.5, 0.4, 1e-6, "relative")
+    assert not has_converged(2.0, 1.0, 1e-6, "relative")
+
+
+def test_noise_free_graph_from_ground_truth_converges_at_once():
+    """Exact measurements, exact start: chi2 ~ 0; the first iteration must report convergence."""
+    from rgbdslam.backend.graph import PoseGraph
+
+    rng = np.random.default_rng(3)
+    poses = np.column_stack([rng.uniform(-5, 5, 12), rng.uniform(-5, 5, 12), rng.uniform(-3, 3, 12)])
+    i = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 0, 3, 5])
+    j = np.array([1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 6, 9, 11])
+    g = PoseGraph(dim=2, ids=np.arange(12), poses=poses, edges_i=i, edges_j=j,
+                  meas=se2_between(poses[i], poses[j]), info=np.tile(np.eye(3) * 100.0, (len(i), 1, 1)))
+    res = gauss_newton(g, poses, max_iter=50)
+    assert res.chi2_final < 1e-12
+    assert res.converged and res.iterations == 1
     hist = [100.0, 50.0, 40.0, 40.0 - 1e-5, 40.0 - 1e-5 - 1e-8]
     assert first_convergence(hist, 1e-6, "relative") == (True, 3, 40.0 - 1e-5)
     assert first_convergence(hist, 1e-6, "absolute") == (True, 4, hist[4])
@@ -295,3 +318,21 @@ def test_spanning_tree_tie_study_reproduces_the_benchmark_column(tmp_path, capsy
         assert (mine.chi2_initial, mine.converged_rel, mine.iterations_rel, mine.reduced_chi2_rel) == \
             (bench.chi2_initial, bench.converged_rel, bench.iterations_rel, bench.reduced_chi2_rel)
         assert recs[(inst, "spanning_tree[r0]")].chi2_initial != bench.chi2_initial  # a different tree
+
+
+def test_cli_bench_without_dataset_is_a_usage_error(tmp_path):
+    """``posegraph bench`` with neither --dataset nor --merge-runs: one line saying what is missing,
+    exit code 2 (InputError, rgbdslam/cli.py), nothing run or written."""
+    from click.testing import CliRunner
+
+    from rgbdslam.cli import main
+
+    res = CliRunner().invoke(main, ["posegraph", "bench", "--instances", "1", "-q", "--out", str(tmp_path / "o")])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == InputError.exit_code == 2, res.exception
+    assert res.stdout == ""
+    assert res.stderr == "error: --dataset is required (m3500, city10k or m10000) unless --merge-runs is given\n"
+    assert not (tmp_path / "o").exists()
+    # an unknown dataset is refused by click itself (also exit code 2, usage text on stderr)
+    res = CliRunner().invoke(main, ["posegraph", "bench", "--dataset", "m999", "-q"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2
+    assert "Invalid value for '--dataset': 'm999' is not one of 'm3500', 'city10k', 'm10000'." in res.stderr

@@ -131,10 +131,13 @@ def _assemble(path, dim, vid, vposes, ei_raw, ej_raw, meas, info, edge_lines, fm
         raise InputError(f"{path}:{edge_lines[self_loops[0]]}: edge from a vertex to itself; remove the line")
     poses = empty_poses(dim, len(ids))
     if len(vid):
-        poses[np.searchsorted(ids, vid)] = vposes
+        poses[np.searchsorted(ids, vid)] = vposes  # a repeated vertex: its last line wins
+    n_est = len(np.unique(vid))
+    if n_est < len(vid):
+        notes = [*notes, f"{len(vid) - n_est} repeated vertex line(s): the last estimate of each vertex is used"]
     del index
     return PoseGraph(dim=dim, ids=ids, poses=poses, edges_i=ei, edges_j=ej, meas=meas, info=info,
-                     has_poses=len(vid) == len(ids), source=f"{path} ({fmt})", notes=notes)
+                     has_poses=n_est == len(ids), source=f"{path} ({fmt})", notes=notes)
 
 
 def _sym_from_upper(vals: np.ndarray, d: int) -> np.ndarray:
@@ -280,16 +283,18 @@ def write_g2o(path: str | Path, graph: PoseGraph, poses: np.ndarray | None = Non
 
 
 def graph_info(path: str | Path, fmt: str = "auto") -> str:
-    """A few lines describing a pose-graph file (kind, counts, degrees, duplicate pairs, notes)."""
+    """A few lines describing a pose-graph file (kind, counts, degrees, repeated vertex pairs, notes)."""
     g = read_graph(path, fmt)
     a = np.minimum(g.edges_i, g.edges_j)
     b = np.maximum(g.edges_i, g.edges_j)
-    pairs = np.unique(np.stack([a, b], 1), axis=0)
+    _, per_pair = np.unique(np.stack([a, b], 1), axis=0, return_counts=True)
     deg = np.bincount(np.concatenate([g.edges_i, g.edges_j]), minlength=g.n_vertices)
     seq = int(np.sum(np.abs(g.edges_i - g.edges_j) == 1))
+    # an edge "repeats" when an earlier edge joins the same two vertices (either direction)
     lines = [g.summary(),
-             f"odometry-like edges (|i-j| = 1): {seq}; other edges: {g.n_edges - seq}; "
-             f"duplicated vertex pairs: {g.n_edges - len(pairs)}",
+             (f"odometry-like edges (between vertices adjacent in id order): {seq}; other edges: {g.n_edges - seq}; "
+              f"edges repeating a vertex pair: {g.n_edges - len(per_pair)} "
+              f"(on {int(np.sum(per_pair > 1))} vertex pairs with more than one edge)"),
              f"vertex degree: min {deg.min()}, mean {deg.mean():.2f}, max {deg.max()}"]
     lines += [f"note: {n}" for n in g.notes]
     return "\n".join(lines)

@@ -5,8 +5,8 @@ of the predictions ``pose(v) ∘ z_vw`` of **all** its already-fixed neighbours 
 fixed when it leaves the queue, so "already fixed" = earlier in the BFS order).  SE(2) averages
 x, y and the circular mean of the angles; SE(3) averages translations and takes the chordal
 mean of the rotations (the arithmetic mean of the rotation matrices projected back onto SO(3)).
-Every edge gives one prediction, so a duplicated measurement (M3500 has 145 duplicated vertex
-pairs) counts twice.  The run time depends only on the graph, never on the measurements' noise.
+Every edge gives one prediction, so a repeated measurement (M3500 has 145 edges that repeat a
+vertex pair) counts once per edge.  The run time depends only on the graph, never on the measurements' noise.
 
 ``weighted=True`` is our improvement: each vertex carries an (isotropic) translation variance
 ``vt`` and rotation variance ``vr``, propagated along the prediction
