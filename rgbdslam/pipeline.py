@@ -241,6 +241,46 @@ def _make_observer(cfg: Config, camera: Camera, gt: Trajectory | None):
     return RerunLogger(cfg, camera, gt, spawn=cfg.output.rerun, save_path=cfg.output.rerun_save)
 
 
+def tracking_segments(tracked: list[int], restarts: list[int], loops: list[tuple[int, int]]) -> list[dict[str, Any]]:
+    """The run's tracking segments and which of them share one map.
+
+    A segment runs from the first tracked frame (or a restart after a tracking loss) to the
+    frame before the next restart. Loops between two segments relate their coordinates; the
+    segments connected by loops to the one with the most tracked frames form the map
+    (``"map": true``). A segment outside it was never relocalised: its poses are right only up
+    to an unknown offset, so fusing it would put a ghost copy of its scene into the map.
+    Returns ``[{"first", "last", "frames", "map"}]`` in time order (empty without tracked frames).
+    """
+    tracked = sorted(int(i) for i in tracked)
+    if not tracked:
+        return []
+    starts = sorted({tracked[0], *(int(r) for r in restarts if r > tracked[0])})
+    seg_of = lambda i: int(np.searchsorted(starts, i, side="right")) - 1  # noqa: E731
+    parent = list(range(len(starts)))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for i, j in loops:
+        a, b = root(seg_of(i)), root(seg_of(j))
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    counts = np.bincount([seg_of(i) for i in tracked], minlength=len(starts))
+    size: dict[int, int] = {}
+    for k, c in enumerate(counts):
+        size[root(k)] = size.get(root(k), 0) + int(c)
+    main = max(size, key=lambda r: (size[r], -r))  # most frames; ties: the earliest
+    out = []
+    for k, first in enumerate(starts):
+        members = [i for i in tracked if seg_of(i) == k]
+        out.append({"first": first, "last": members[-1] if members else first, "frames": len(members),
+                    "map": root(k) == main})
+    return out
+
+
 def _summary(seq: Sequence, slam: SLAM, n_frames: int, wall: float, load_time: float,
              interrupted: bool) -> dict[str, Any]:
     st = slam.state
@@ -261,6 +301,7 @@ def _summary(seq: Sequence, slam: SLAM, n_frames: int, wall: float, load_time: f
         "skipped_frames": st.skipped,
         "restarts": st.restarts,
         "relocalized": int(slam.loop.stats["n_relocalized"]) if slam.loop is not None else 0,
+        "segments": tracking_segments([r.index for r in st.records], st.restarts, st.loops),
         "keyframes": st.keyframes,
         "timestamps_keyframes": [r.timestamp for r in st.records if r.index == r.keyframe],
         "loops": [list(x) for x in st.loops],
@@ -400,6 +441,12 @@ def _print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
         console.print(f"[yellow]tracking restarted {n}× after a loss (frame {frames}); "
                       + (f"{r} of {n} new segment(s) relocalised against the map[/]" if r else
                          "not relocalised: those segments' poses are only known up to an offset[/]"))
+        off = [g for g in s.get("segments", []) if not g["map"]]
+        if off:
+            spans = ", ".join(f"{g['first']}–{g['last']}" for g in off)
+            console.print(f"[yellow]frames {spans} ({sum(g['frames'] for g in off)} tracked) are not linked to the "
+                          f"map by any loop: trajectory.tum keeps them (up to an unknown offset), the map leaves "
+                          f"them out[/]")
     ev = s.get("evaluation") or {}
     ate = (ev.get("ate") or {}).get("rmse")
     if ate is not None:

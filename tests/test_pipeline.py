@@ -285,9 +285,38 @@ def test_tracking_loss_is_relocalised(tmp_path):
 
     restart_edge = g.ids[g.edges_j].tolist().index(85)  # carries no more than the restart's weak information
     assert np.all(np.diag(info6_g2o_to_gtsam(g.info[restart_edge])) <= np.diag(RESTART_INFORMATION) * (1 + 1e-9))
-    # without loop closure nothing relates the segments: the second one is off by decimetres
+    assert s["segments"] == [{"first": 0, "last": 49, "frames": 50, "map": True},
+                             {"first": 85, "last": 119, "frames": 35, "map": True}]
+    # without loop closure nothing relates the segments: the second one is off by decimetres,
+    # so the map leaves it out (the larger first segment is the map)
     s0 = run_sequence(seq, tmp_path / "run0", _fast_cfg("loop.enabled=false"), progress=False)
     assert s0["restarts"] == [85] and s0["evaluation"]["ate"]["rmse"] > 0.1
+    assert [g["map"] for g in s0["segments"]] == [True, False]
+    from rgbdslam.config import MappingConfig
+    from rgbdslam.mapping.fusion import fuse_run
+
+    fused = fuse_run(tmp_path / "run0", MappingConfig(mesh=False, map2d=False), progress=False)
+    kf = s0["keyframes"]
+    assert any(i >= 85 for i in kf) and fused.frames == [i for i in kf if i < 85]
+
+
+def test_tracking_segments_hand_worked():
+    from rgbdslam.pipeline import tracking_segments
+
+    frames = [*range(0, 10), *range(20, 30), *range(40, 45)]
+    # a loop from segment 1 back to segment 0 joins them (20 frames); segment 2 (5 frames) is alone
+    assert tracking_segments(frames, [20, 40], [(3, 25), (22, 28)]) == [
+        {"first": 0, "last": 9, "frames": 10, "map": True},
+        {"first": 20, "last": 29, "frames": 10, "map": True},
+        {"first": 40, "last": 44, "frames": 5, "map": False}]
+    # no loops: the largest segment is the map, even when it is not the first
+    assert [g["map"] for g in tracking_segments([*range(0, 5), *range(10, 30)], [10], [])] == [False, True]
+    # a loop within segment 2 links nothing to the others; equal sizes: the earliest wins
+    assert [g["map"] for g in tracking_segments([*range(0, 5), *range(10, 15)], [10], [(11, 14)])] == [True, False]
+    # segment 2 links to segment 1 only; 1+2 (10 + 5) outweigh segment 0 (10)
+    assert [g["map"] for g in tracking_segments(frames, [20, 40], [(21, 42)])] == [False, True, True]
+    assert tracking_segments(list(range(7)), [], []) == [{"first": 0, "last": 6, "frames": 7, "map": True}]
+    assert tracking_segments([], [5], []) == []
 
 
 def test_demo_command(tmp_path):

@@ -415,7 +415,9 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     """Fuse the map of a finished run folder into ``run_dir``/map (see :func:`fuse`).
 
     Frames: run.json's keyframes when ``keyframes_only`` (chosen by motion when the run has
-    none), else every tracked frame. The sequence is re-opened with the run's dataset config."""
+    none), else every tracked frame; frames of tracking segments that no loop linked to the
+    map (run.json ``segments``, after a tracking loss) are left out. The sequence is re-opened
+    with the run's dataset config."""
     run_dir = Path(run_dir)
     info, run_cfg, traj = read_run(run_dir)
     cfg = cfg or run_cfg.mapping
@@ -429,6 +431,12 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
         frames = [int(tracked[k]) for k in pick]
     else:
         frames = [int(i) for i in tracked]
+    off = [g for g in info.get("segments") or [] if not g.get("map", True)]
+    if off:  # never relocalised after a tracking loss: unknown offset, would be a ghost copy
+        frames = [i for i in frames if not any(g["first"] <= i <= g["last"] for g in off)]
+        if not frames:
+            raise InputError(f"{run_dir / 'run.json'}: no frame of the run is in a tracking segment that "
+                             f"belongs to the map; re-run with loop closure on (loop.enabled=true)")
     depth_dir = run_dir / "keyframes"
     return fuse(seq, traj, frames, cfg, run_dir / "map", depth_dir if depth_dir.is_dir() else None, progress)
 
