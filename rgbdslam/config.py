@@ -133,7 +133,7 @@ class LoopConfig:
     enabled: bool = True
     # sharpness gate: measure > factor * median(measure of the previous window frames).
     # "n_detected" is the thesis' count of detected features (FAST corners at ORB's threshold
-    # before ORB keeps the best features.n_features, features.count_detections). "response" =
+    # before ORB keeps the best features.n_features: rgbdslam.frontend.features.count_detections). "response" =
     # sum of the ORB responses of the kept key points (the default before 2026-11-30, docs/slam.md).
     sharpness_measure: Literal["n_detected", "response"] = "n_detected"
     sharpness_factor: float = 1.2
@@ -175,7 +175,7 @@ class LoopConfig:
 class BackendConfig:
     """GTSAM pose graph over keyframes (docs/slam.md)."""
 
-    enabled: bool = False
+    enabled: bool = False  # a graph of odometry edges only; loop.enabled (the default) builds it anyway
     init: Literal["masat", "weighted_masat", "odometry", "spanning_tree", "isam2"] = "masat"
     robust_kernel: Literal["none", "huber", "cauchy"] = "cauchy"  # applied to loop edges
     kernel_width: float = 1.0  # in whitened units (sigmas)
