@@ -17,6 +17,7 @@ from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 import yaml
 
+from rgbdslam.io.text import read_text
 from rgbdslam.errors import ConfigError
 
 PRESET_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -344,7 +345,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     if path is not None:
         p = resolve_preset(path)
         try:
-            data = yaml.safe_load(p.read_text())
+            data = yaml.safe_load(read_text(p, "config file"))
         except yaml.YAMLError as e:
             raise ConfigError(f"config file {p} is not valid YAML ({e.__class__.__name__}); fix its syntax") from None
         merge(cfg, data, str(p))

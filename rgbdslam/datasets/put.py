@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rgbdslam.io.text import read_text
 from rgbdslam.datasets import register
 from rgbdslam.datasets.tum import (
     CAMERA_FILE,
@@ -57,7 +58,7 @@ def read_matched(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def read_initial_position(path: Path) -> np.ndarray:
     """``initialPosition``: 'x y z qx qy qz qw' -> 4x4 camera-to-world pose."""
     try:
-        vals = [float(x) for x in path.read_text().replace(",", " ").split()]
+        vals = [float(x) for x in read_text(path, "initialPosition file").replace(",", " ").split()]
     except ValueError:
         vals = []
     if len(vals) != 7 or not np.isfinite(vals).all() or np.linalg.norm(vals[3:]) < 1e-9:

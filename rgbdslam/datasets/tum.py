@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 import yaml
 
+from rgbdslam.io.text import read_text
 from rgbdslam.datasets import register
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
@@ -142,11 +143,10 @@ class RgbdFileSequence(Sequence):
 def data_lines(path: Path):
     """Yield ``(line_number, fields)`` of the data lines of a text list ('#' comments and
     blank lines skipped; fields split on white space or commas)."""
-    with path.open() as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if s and not s.startswith("#"):
-                yield lineno, s.replace(",", " ").split()
+    for lineno, line in enumerate(read_text(path, "list file").splitlines(), 1):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            yield lineno, s.replace(",", " ").split()
 
 
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -229,7 +229,7 @@ def camera_from_yaml(path: Path) -> Camera:
     """A camera from ``camera.yaml``: ``camera: <known name>`` and/or explicit intrinsics
     ``fx fy cx cy width height dist`` (explicit values override the named camera's)."""
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(read_text(path, "camera file"))
     except yaml.YAMLError:
         raise InputError(f"{path} is not valid YAML; fix it or delete it to use the default camera") from None
     if not isinstance(data, dict):

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rgbdslam.io.text import read_text
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text
@@ -42,28 +43,27 @@ def read_tum(path: str | Path) -> Trajectory:
     if not path.is_file():
         raise InputError(f"trajectory file {path} does not exist; check the path")
     stamps, rows = [], []
-    with path.open() as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.replace(",", " ").split()
-            try:
-                vals = [float(x) for x in parts]
-            except ValueError:
-                raise InputError(
-                    f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw'; got {s[:60]!r}"
-                ) from None
-            if len(vals) != 8:
-                raise InputError(
-                    f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw'; got {len(vals)}"
-                )
-            q = np.array(vals[4:8])
-            n = np.linalg.norm(q)
-            if not np.isfinite(vals).all() or n < 1e-9:
-                raise InputError(f"{path}:{lineno}: non-finite value or zero quaternion; fix or delete the line")
-            stamps.append(vals[0])
-            rows.append(vals[1:8])
+    for lineno, line in enumerate(read_text(path, "trajectory file").splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.replace(",", " ").split()
+        try:
+            vals = [float(x) for x in parts]
+        except ValueError:
+            raise InputError(
+                f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw'; got {s[:60]!r}"
+            ) from None
+        if len(vals) != 8:
+            raise InputError(
+                f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw'; got {len(vals)}"
+            )
+        q = np.array(vals[4:8])
+        n = np.linalg.norm(q)
+        if not np.isfinite(vals).all() or n < 1e-9:
+            raise InputError(f"{path}:{lineno}: non-finite value or zero quaternion; fix or delete the line")
+        stamps.append(vals[0])
+        rows.append(vals[1:8])
     if not rows:
         raise InputError(f"trajectory file {path} holds no poses; it must have lines 'timestamp tx ty tz qx qy qz qw'")
     a = np.array(rows)
