@@ -23,6 +23,11 @@ class _Group(click.Group):
         except RgbdslamError as e:
             click.secho(f"error: {e}", fg="red", err=True)
             sys.exit(e.exit_code)
+        except OSError as e:  # an output path that is a file, a folder without write access, a full disk
+            what = f"{e.filename}: " if e.filename else ""
+            click.secho(f"error: {what}{e.strerror or e}; check that the path is a writable folder "
+                        f"(or readable file) and the disk is not full", fg="red", err=True)
+            sys.exit(2)
         except KeyboardInterrupt:
             click.secho("interrupted: finished work was saved", fg="yellow", err=True)
             sys.exit(130)

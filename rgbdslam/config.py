@@ -9,6 +9,7 @@ message naming the key.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -286,7 +287,14 @@ def _check_value(key: str, value: Any, hint: Any) -> Any:
         if isinstance(value, int) and not isinstance(value, bool):
             return value
     elif hint is float:
+        if isinstance(value, str):  # YAML 1.1 reads "1e-8" (no dot) as a string
+            try:
+                value = float(value)
+            except ValueError:
+                pass
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):
+                raise ConfigError(f"config key '{key}' must be a finite number; got {value!r}")
             return float(value)
     elif hint is str:
         if isinstance(value, str):
@@ -296,6 +304,69 @@ def _check_value(key: str, value: Any, hint: Any) -> Any:
     raise ConfigError(
         f"config key '{key}' expects {getattr(hint, '__name__', hint)}; got {value!r}"
     )
+
+
+# Ranges: every number must be >= 0 unless listed in SIGNED; those in POSITIVE must be > 0
+# (integers: >= 1); BOUNDS gives closed intervals [lo, hi] and ORDERED pairs (a, b) need a < b.
+SIGNED = {"registration.beta", "mapping.obstacle_min_height", "mapping.obstacle_max_height", "dataset.offset"}
+POSITIVE = {
+    "dataset.max_difference", "dataset.depth_scale", "dataset.depth_correction", "dataset.max_frames",
+    "dataset.stride",
+    "features.n_features", "features.n_levels", "features.fast_threshold", "features.grid_rows",
+    "features.grid_cols",
+    "matching.ratio", "matching.prefilter_threshold", "matching.prefilter_iterations", "matching.max_depth",
+    "registration.ransac_iterations", "registration.ransac_threshold", "registration.max_iterations",
+    "registration.e_start", "registration.e_min", "registration.mp", "registration.alpha",
+    "registration.reject_translation", "registration.reject_rotation", "registration.pregate",
+    "registration.guided_gate", "registration.predicted_gate", "registration.joint_gate",
+    "registration.threads", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
+    "depth_filter.max_depth",
+    "keyframes.max_gap",
+    "loop.sharpness_factor", "loop.sharpness_window", "loop.lsh_tables", "loop.lsh_bits", "loop.min_votes",
+    "loop.max_candidates", "loop.min_inliers", "loop.max_residual", "loop.max_loops_per_frame",
+    "loop.consistency_translation", "loop.consistency_rotation_deg", "loop.sigma_floor",
+    "loop.relocalize_confirm", "loop.relocalize_window", "loop.relocalize_translation",
+    "loop.relocalize_rotation_deg",
+    "backend.kernel_width", "backend.max_iterations", "backend.relative_error_tol", "backend.prior_sigma",
+    "mapping.depth_max", "mapping.voxel_size", "mapping.cloud_pixel_stride", "mapping.outlier_std",
+    "mapping.tsdf_voxel", "mapping.sdf_trunc", "mapping.mesh_min_frames", "mapping.tsdf_initial_blocks",
+    "mapping.grid_resolution", "mapping.floor_max_tilt_deg", "mapping.floor_distance",
+    "mapping.floor_ransac_iterations", "mapping.floor_band", "mapping.obstacle_min_points",
+    "output.rerun_image_width", "output.rerun_log_every",
+}
+BOUNDS = {
+    "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
+    "features.edge_threshold": (1, 255), "matching.ratio": (0.0, 1.0), "matching.max_hamming": (0, 256),
+    "registration.min_agreement": (0.0, 1.0), "registration.min_points": (3, 10**9),
+    "registration.predicted_min_inliers": (3, 10**9), "loop.lsh_bits": (1, 64), "loop.min_inliers": (3, 10**9),
+    "mapping.floor_max_tilt_deg": (0.0, 90.0),
+}
+ORDERED = [("matching.min_depth", "matching.max_depth"), ("depth_filter.min_depth", "depth_filter.max_depth"),
+           ("mapping.depth_min", "mapping.depth_max"), ("mapping.obstacle_min_height", "mapping.obstacle_max_height")]
+
+
+def validate(cfg: Config) -> Config:
+    """Check every number's range (see POSITIVE, BOUNDS, ORDERED); ConfigError names the key."""
+    for section in dataclasses.fields(cfg):
+        obj = getattr(cfg, section.name)
+        for f in dataclasses.fields(obj):
+            key, v = f"{section.name}.{f.name}", getattr(obj, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                continue
+            lo, hi = BOUNDS.get(key, (None, None))
+            if lo is not None and not lo <= v <= hi:
+                raise ConfigError(f"config key '{key}' must be between {lo:g} and {hi:g}; got {v!r}")
+            if key in POSITIVE and not v > 0:
+                raise ConfigError(f"config key '{key}' must be {'at least 1' if isinstance(v, int) else 'positive'}; "
+                                  f"got {v!r}")
+            if key not in SIGNED and v < 0:
+                raise ConfigError(f"config key '{key}' must not be negative; got {v!r}")
+    for a, b in ORDERED:
+        va = getattr(getattr(cfg, a.split(".")[0]), a.split(".")[1])
+        vb = getattr(getattr(cfg, b.split(".")[0]), b.split(".")[1])
+        if not va < vb:
+            raise ConfigError(f"config key '{a}' ({va!r}) must be smaller than '{b}' ({vb!r})")
+    return cfg
 
 
 def _apply(section_obj: Any, section: str, values: dict[str, Any], source: str) -> None:
@@ -359,7 +430,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         except yaml.YAMLError:
             value = raw
         merge(cfg, {section: {name: value}}, f"--set {item}")
-    return cfg
+    return validate(cfg)
 
 
 def save_config(cfg: Config, path: str | Path) -> None:

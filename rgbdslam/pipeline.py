@@ -34,6 +34,28 @@ from rgbdslam.io.atomic import atomic_path, atomic_write_text
 from rgbdslam.io.trajectory import Trajectory, write_tum
 
 FLUSH_EVERY = 50  # frames between intermediate trajectory writes
+MAX_FRAME_WARNINGS = 5  # per-frame warnings printed before the rest are only counted
+# what a run writes into its folder; a new run into the same folder first moves these to previous/
+RUN_ARTEFACTS = ("trajectory.tum", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
+                 "plots", "map", "keyframes", "recording.rrd")
+
+
+def keep_previous_run(out_dir: Path) -> bool:
+    """Move an earlier run's files in ``out_dir`` to ``out_dir/previous`` (replacing an older
+    ``previous``), so that a new run that fails or is interrupted part-way never overwrites a
+    finished one. True when there was a run to move."""
+    import shutil
+
+    if not (out_dir / "run.json").is_file():
+        return False
+    prev = out_dir / "previous"
+    if prev.exists():
+        shutil.rmtree(prev) if prev.is_dir() else prev.unlink()
+    prev.mkdir()
+    for name in RUN_ARTEFACTS:
+        if (out_dir / name).exists():
+            (out_dir / name).replace(prev / name)
+    return True
 
 
 @dataclass
@@ -338,6 +360,8 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if keep_previous_run(out_dir):
+        console.print(f"note: the earlier run in {out_dir} was moved to {out_dir / 'previous'}")
     save_config(cfg, out_dir / "config.yaml")
     gt = seq.groundtruth()
     observer = _make_observer(cfg, seq.camera, gt)
@@ -361,7 +385,11 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
                     frame = pending.result()  # time waited for the reader thread counts as loading
                 except InputError as e:
                     slam.state.skipped.append(i)
-                    console.print(f"[yellow]warning:[/] skipped frame {i}: {e}")
+                    if len(slam.state.skipped) <= MAX_FRAME_WARNINGS:
+                        console.print(f"[yellow]warning:[/] skipped frame {i}: {e}")
+                    if len(slam.state.skipped) == MAX_FRAME_WARNINGS:
+                        console.print(f"[yellow]warning:[/] further unreadable frames are skipped silently; "
+                                      f"run.json lists them all (skipped_frames)")
                     advance()
                     continue
                 load_time += time.perf_counter() - t0
@@ -381,13 +409,15 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     wall = time.perf_counter() - t_start
     n_done = len(slam.state.records) + len(slam.state.lost) + len(slam.state.skipped)
 
-    if not slam.state.records:
+    if not slam.state.records or (len(slam.state.records) == 1 and n_done > 1 and not interrupted):
+        # nothing, or only the first frame (the origin; no frame after it registered): no trajectory
         summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
         atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
         if interrupted:
             raise KeyboardInterrupt
+        what = "no frame" if not slam.state.records else f"no frame after the first ({slam.state.records[0].index})"
         raise TrackingLost(
-            f"no frame of {seq.root} could be tracked; check that depth images are valid and the camera "
+            f"{what} of {seq.root} could be tracked; check that depth images are valid and the camera "
             f"preset matches (--config), e.g. tum_fr1 for freiburg1"
         )
     final = slam.finish()

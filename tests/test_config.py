@@ -111,3 +111,31 @@ def test_invalid_yaml(tmp_path):
     p.write_text("dataset: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_config(p)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("features.n_levels=0", "'features.n_levels' must be between 1 and 16; got 0"),
+    ("features.scale_factor=0.5", "'features.scale_factor' must be between 1 and 4; got 0.5"),
+    ("registration.max_iterations=0", "'registration.max_iterations' must be at least 1; got 0"),
+    ("registration.mp=-1", "'registration.mp' must be at least 1; got -1"),
+    ("mapping.tsdf_voxel=0", "'mapping.tsdf_voxel' must be positive; got 0.0"),
+    ("mapping.cloud_pixel_stride=0", "'mapping.cloud_pixel_stride' must be at least 1; got 0"),
+    ("matching.ratio=2", "'matching.ratio' must be between 0 and 1; got 2.0"),
+    ("keyframes.max_gap=-1", "'keyframes.max_gap' must be at least 1; got -1"),
+    ("loop.query_gap=-3", "'loop.query_gap' must not be negative; got -3"),
+    ("dataset.depth_scale=.nan", "'dataset.depth_scale' must be a finite number; got nan"),
+    ("mapping.depth_min=5", "'mapping.depth_min' (5.0) must be smaller than 'mapping.depth_max' (3.0)"),
+])
+def test_out_of_range_values_are_one_clear_error(override, message):
+    with pytest.raises(ConfigError) as e:
+        load_config(None, [override])
+    assert message in str(e.value)
+
+
+def test_range_edges_and_yaml_quirks_are_accepted():
+    """0 where 0 means 'off', the lowest legal values, a signed key, and YAML 1.1's '1e-8' string."""
+    cfg = load_config(None, ["loop.query_gap=0", "registration.max_lost=0", "depth_filter.window=0",
+                             "features.n_levels=1", "registration.beta=-2", "backend.relative_error_tol=1e-8",
+                             "matching.ratio=1"])
+    assert cfg.loop.query_gap == 0 and cfg.features.n_levels == 1 and cfg.registration.beta == -2.0
+    assert cfg.backend.relative_error_tol == 1e-8 and isinstance(cfg.backend.relative_error_tol, float)

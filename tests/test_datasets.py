@@ -195,6 +195,28 @@ def test_camera_choice(tmp_path):
     (d / "camera.yaml").write_text("camera: nikon\n")
     with pytest.raises(InputError, match="unknown camera 'nikon'"):
         choose_camera(d)
+    for bad in ("fx: 0\nfy: 501\ncx: 1\ncy: 1\n", "fx: .nan\nfy: 501\ncx: 1\ncy: 1\n",
+                "fx: 500\nfy: -5\ncx: 1\ncy: 1\n", "fx: 500\nfy: 500\ncx: 1\ncy: 1\nwidth: 0\n"):
+        (d / "camera.yaml").write_text(bad)
+        with pytest.raises(InputError, match="fx and fy must be positive, width and height at least 1"):
+            choose_camera(d)
+
+
+def test_a_time_stamp_listed_twice_is_an_error(tmp_path):
+    """Association would keep one image of each repeated stamp and silently drop the others."""
+    root = make_tum(tmp_path / "seq", [1.0, 1.1, 1.2], [1.0, 1.1, 1.2])
+    lines = (root / "rgb.txt").read_text().splitlines()
+    lines[-1] = lines[-1].replace("1.200000 ", "1.100000 ", 1)  # rgb/1.200000.png listed at 1.1
+    (root / "rgb.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"rgb.txt: 1 time stamp\(s\) are listed more than once \(e.g. 1.100000\)"):
+        TumSequence(root)
+
+
+def test_a_binary_list_file_is_one_clear_error(tmp_path):
+    root = make_tum(tmp_path / "seq", [1.0, 1.1], [1.0, 1.1])
+    (root / "rgb.txt").write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")
+    with pytest.raises(InputError, match=r"list file .*rgb.txt is not UTF-8 text"):
+        TumSequence(root)
 
 
 # ----------------------------------------------------------------------------- PUT

@@ -392,3 +392,54 @@ def test_several_sequences_in_one_run_command(desk9, tmp_path):
 def test_rerun_save_needs_a_single_sequence(desk9, tmp_path):
     res = CliRunner().invoke(main, ["run", str(desk9), str(desk9), "--rerun-save", str(tmp_path / "x.rrd")])
     assert res.exit_code == 2 and "single SEQUENCE" in res.output and not (tmp_path / "x.rrd").exists()
+
+
+def test_a_new_run_into_a_run_folder_keeps_the_finished_one(desk9, tmp_path, monkeypatch):
+    """Re-running into a folder that holds a finished run and stopping part-way (Ctrl-C) must not
+    cost the finished run: it is moved to previous/ before the new run writes anything."""
+    import rgbdslam.pipeline as pl
+
+    out = tmp_path / "run"
+    run_sequence(desk9, out, _fast_cfg(), progress=False)
+    first = (out / "trajectory.tum").read_text()
+    assert len(read_tum(out / "trajectory.tum")) == 9
+    monkeypatch.setattr(pl, "open_sequence", lambda *a, **k: _InterruptingSequence(open_sequence(desk9), at=3))
+    with pytest.raises(KeyboardInterrupt):
+        run_sequence(desk9, out, _fast_cfg("dataset.prefetch=0"), progress=False)
+    assert (out / "previous" / "trajectory.tum").read_text() == first
+    assert json.loads((out / "previous" / "run.json").read_text())["interrupted"] is False
+    assert len(read_tum(out / "trajectory.tum")) == 3
+    assert json.loads((out / "run.json").read_text())["interrupted"] is True
+
+
+def test_only_the_first_frame_tracked_is_a_tracking_failure(desk9, tmp_path):
+    """Frames 1-8 black: frame 0 is the origin and nothing registers after it. That is no
+    trajectory (exit 3), not a one-pose 'success'; the five per-frame warnings cap the output."""
+    seq_dir = tmp_path / "desk"
+    shutil.copytree(desk9, seq_dir)
+    for p in sorted((seq_dir / "rgb").glob("*.png"))[1:]:
+        cv2.imwrite(str(p), np.zeros((480, 640, 3), np.uint8))
+    res = CliRunner().invoke(main, ["run", str(seq_dir), "--out", str(tmp_path / "run"), "--no-map", "-q"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 3
+    assert "no frame after the first (0) of" in res.output
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["tracked"] == 1 and run["lost"] == 8
+
+
+def test_unreadable_frames_warn_five_times_then_are_counted(desk9, tmp_path):
+    seq_dir = tmp_path / "desk"
+    shutil.copytree(desk9, seq_dir)
+    for p in sorted((seq_dir / "rgb").glob("*.png"))[1:8]:
+        p.write_bytes(b"not a png")
+    res = CliRunner().invoke(main, ["run", str(seq_dir), "--out", str(tmp_path / "run"), "--no-map", "-q"])
+    assert res.output.count("skipped frame") == 5
+    assert "further unreadable frames are skipped silently" in res.output
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["skipped_frames"] == list(range(1, 8))
+
+
+def test_an_output_path_under_a_file_is_one_line(desk9, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "afile" / "run"), "-q"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and str(tmp_path / "afile") in lines[0]

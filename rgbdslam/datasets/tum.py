@@ -194,10 +194,20 @@ def list_from_folder(folder: Path) -> tuple[np.ndarray, list[str]]:
 
 
 def _image_list(root: Path, kind: str) -> tuple[np.ndarray, list[str]]:
-    """``kind``.txt if present, else the time-stamp-named PNGs of the folder ``kind``/."""
+    """``kind``.txt if present, else the time-stamp-named PNGs of the folder ``kind``/.
+    A time stamp listed twice is an error: association would silently keep only one image."""
     if (root / f"{kind}.txt").is_file() or not (root / kind).is_dir():
-        return read_file_list(root / f"{kind}.txt")
-    return list_from_folder(root / kind)
+        source = root / f"{kind}.txt"
+        ts, files = read_file_list(source)
+    else:
+        source = root / kind
+        ts, files = list_from_folder(source)
+    uniq, counts = np.unique(ts, return_counts=True)
+    if len(uniq) < len(ts):
+        t = uniq[np.argmax(counts > 1)]
+        raise InputError(f"{source}: {len(ts) - len(uniq)} time stamp(s) are listed more than once (e.g. {t:.6f}); "
+                         f"give every image its own time stamp")
+    return ts, files
 
 
 def read_associations(path: Path) -> tuple[np.ndarray, list[str], np.ndarray, list[str]]:
@@ -261,6 +271,11 @@ def camera_from_yaml(path: Path) -> Camera:
         raise InputError(f"{path}: intrinsics must be numbers (dist a list of 5 numbers)") from None
     if len(dist) not in (4, 5, 8):
         raise InputError(f"{path}: dist must have 4, 5 or 8 coefficients (k1 k2 p1 p2 [k3 ...]); got {len(dist)}")
+    if not (np.isfinite([cam.fx, cam.fy, cam.cx, cam.cy, *dist]).all() and cam.fx > 0 and cam.fy > 0
+            and cam.width > 0 and cam.height > 0):
+        raise InputError(f"{path}: fx and fy must be positive, width and height at least 1, and every value "
+                         f"finite; got fx {cam.fx}, fy {cam.fy}, cx {cam.cx}, cy {cam.cy}, "
+                         f"{cam.width}x{cam.height}")
     return cam
 
 
