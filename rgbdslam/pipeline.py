@@ -489,6 +489,8 @@ def run_demo(out_dir: str | Path, frames: int, cfg: Config) -> dict[str, Any]:
     from rgbdslam.datasets.synthetic import generate_sequence
     from rgbdslam.ui import console
 
+    if frames < 2:
+        raise InputError(f"--frames must be at least 2 for a trajectory (got {frames})")
     out_dir = Path(out_dir)
     seq_dir = out_dir / "sequence"
     marker = seq_dir / "demo.json"

@@ -443,3 +443,10 @@ def test_an_output_path_under_a_file_is_one_line(desk9, tmp_path):
     assert isinstance(res.exception, SystemExit) and res.exit_code == 2
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and str(tmp_path / "afile") in lines[0]
+
+
+def test_demo_with_too_few_frames_is_one_line_before_any_work(tmp_path):
+    res = CliRunner().invoke(main, ["demo", "--out", str(tmp_path / "demo"), "--frames", "0"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2
+    assert res.output.strip() == "error: --frames must be at least 2 for a trajectory (got 0)"
+    assert not (tmp_path / "demo").exists()
