@@ -413,6 +413,8 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
         # nothing, or only the first frame (the origin; no frame after it registered): no trajectory
         summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
         atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
+        if observer is not None:  # nothing worth recording: an earlier .rrd at that path stays
+            observer.abort()
         if interrupted:
             raise KeyboardInterrupt
         what = "no frame" if not slam.state.records else f"no frame after the first ({slam.state.records[0].index})"

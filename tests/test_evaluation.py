@@ -451,3 +451,87 @@ def test_short_names_are_the_shortest_distinct_suffixes():
     assert _short_names(["r/run1/trajectory.tum", "r/run2/trajectory.tum"]) == ["run1/trajectory.tum",
                                                                                "run2/trajectory.tum"]
     assert _short_names(["a/t.tum", "b/a/t.tum"]) == ["a/t.tum", "b/a/t.tum"]
+
+
+# ------------------------------------------------------------------- degenerate inputs (one line each)
+
+
+def test_cli_fewer_than_three_pairs_is_rejected_for_alignment(tmp_path):
+    """One associated pose used to give "ATE 0.0000" (an SE(3) fit to one pose is exact)."""
+    gt, one, two = tmp_path / "gt.tum", tmp_path / "one_pose.tum", tmp_path / "two.tum"
+    traj = wavy(20)
+    write_tum(traj, gt)
+    write_tum(traj.subset(np.array([3])), one)
+    write_tum(traj.subset(np.array([3, 9])), two)
+    res = CliRunner().invoke(main, ["evaluate", str(gt), str(one), "--no-plots"])
+    assert _assert_one_line_error(res) == (
+        f"error: {gt} and {one}: only 1 pose pair matched in time, but SE(3) alignment needs at least 3 (it would "
+        f"fit fewer almost exactly, so the ATE would mean nothing); check that both files are of the same sequence, "
+        f"raise --max-difference, or use --align none")
+    res = CliRunner().invoke(main, ["evaluate", str(gt), str(two), "--no-plots", "--align", "sim3"])
+    assert "only 2 pose pairs matched in time, but Sim(3) alignment needs at least 3" in _assert_one_line_error(res)
+    # without alignment one pair is a plain distance: allowed
+    assert ate(traj, traj.subset(np.array([3])), align="none").n_pairs == 1
+    assert not list(tmp_path.glob("*.png"))
+
+
+def test_cli_sim3_with_static_ground_truth_is_rejected(tmp_path):
+    """A ground truth that does not move used to give "scale 0.0000" (the estimate shrunk to a point)."""
+    est_traj = wavy(30)
+    static = np.tile(np.eye(4), (30, 1, 1))
+    static[:, :3, 3] = [1.0, 2.0, 3.0]
+    gt, est = tmp_path / "static.tum", tmp_path / "est.tum"
+    write_tum(Trajectory(est_traj.timestamps, static), gt)
+    write_tum(est_traj, est)
+    res = CliRunner().invoke(main, ["evaluate", str(gt), str(est), "--align", "sim3", "--no-plots"])
+    assert _assert_one_line_error(res) == (
+        f"error: {gt} and {est}: the ground truth does not move (the spread of its 30 matched positions is below "
+        f"1e-06 m), so the Sim(3) scale is undefined (it would come out as 0); use --align se3")
+    # rigid alignment stays valid: the rotation is not unique, but every choice gives the same errors,
+    # the estimate's distances from its own centroid
+    r = ate(read_tum(gt), read_tum(est), align="se3")
+    p = read_tum(est).positions
+    np.testing.assert_allclose(r.errors, np.linalg.norm(p - p.mean(axis=0), axis=1), atol=1e-6)
+
+
+@pytest.mark.parametrize("delta", ["inf", "nan", "-1"])
+def test_cli_delta_must_be_finite_and_positive(tmp_path, delta):
+    gt = tmp_path / "gt.tum"
+    write_tum(wavy(10), gt)
+    res = CliRunner().invoke(main, ["evaluate", str(gt), str(gt), "--delta", delta, "--no-plots"])
+    shown = {"inf": "inf", "nan": "nan", "-1": "-1.0"}[delta]
+    assert _assert_one_line_error(res) == f"error: RPE delta must be a finite positive number, got {shown}; pass e.g. --delta 1"
+    # a huge whole number of frames simply has no pair (it used to overflow)
+    assert len(delta_pairs(np.arange(5.0), np.tile(np.eye(4), (5, 1, 1)), 1e300, "f")) == 0
+
+
+def test_cli_max_difference_must_be_finite(tmp_path):
+    gt = tmp_path / "gt.tum"
+    write_tum(wavy(10), gt)
+    res = CliRunner().invoke(main, ["evaluate", str(gt), str(gt), "--max-difference", "inf", "--no-plots"])
+    assert _assert_one_line_error(res) == "error: --max-difference must be a positive number of seconds (e.g. 0.02); got inf"
+
+
+def test_cli_duplicate_estimate_stamps_are_an_error(tmp_path):
+    """Two poses at one time stamp used to be accepted silently (association took one of them)."""
+    gt, est = tmp_path / "gt.tum", tmp_path / "dup.tum"
+    traj = wavy(10)
+    write_tum(traj, gt)
+    lines = gt.read_text().splitlines()
+    est.write_text("\n".join(lines + [lines[4], lines[4]]) + "\n")
+    res = CliRunner().invoke(main, ["evaluate", str(gt), str(est), "--no-plots"])
+    assert _assert_one_line_error(res) == (
+        f"error: {gt} and {est}: the estimate has more than one pose at time stamp {traj.timestamps[3]:.6f} (and 1 "
+        f"more repeat); an estimate needs one pose per time stamp: remove the duplicate lines")
+
+
+def test_cli_compare_checks_every_estimate_before_writing(tmp_path):
+    gt, good, bad = tmp_path / "gt.tum", tmp_path / "good.tum", tmp_path / "one.tum"
+    traj = wavy(20)
+    write_tum(traj, gt)
+    write_tum(traj, good)
+    write_tum(traj.subset(np.array([0])), bad)
+    res = CliRunner().invoke(main, ["evaluate", str(gt), str(good), str(bad), "--plot-dir", str(tmp_path / "p"),
+                                    "--json", str(tmp_path / "c.json")])
+    assert "only 1 pose pair matched in time" in _assert_one_line_error(res, str(bad))
+    assert not (tmp_path / "p").exists() and not (tmp_path / "c.json").exists()

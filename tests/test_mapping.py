@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -269,3 +270,153 @@ def test_rpy_groundtruth_fusion_finds_floor_and_desk(tmp_path):
     assert np.degrees(np.arccos(grid.world_to_map[2, 2])) < 5  # floor normal ~ mocap z
     assert abs(grid.world_to_map[2, 3]) < 0.08  # floor height ~ 0
     assert (grid.image == OCCUPIED).sum() > 50 and (grid.image == FREE).sum() > 50
+
+
+# ----------------------------------------------------------------------------- bad settings / run.json
+
+
+def _map_state(run: Path) -> dict[str, bytes]:
+    """Every file in run/map (hidden ones too) with its bytes."""
+    return {p.name: p.read_bytes() for p in sorted((run / "map").iterdir())}
+
+
+def _fuse_cli(run: Path, *sets: str):
+    from click.testing import CliRunner
+
+    from rgbdslam.cli import main
+
+    args = ["fuse", str(run), "-q"]
+    for s in sets:
+        args += ["--set", s]
+    return CliRunner().invoke(main, args)
+
+
+def _one_line_error(res) -> str:
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2, (res.exception, res.output)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
+    return lines[0]
+
+
+def test_fuse_empty_depth_range_names_the_settings_and_keeps_the_map(plane_run):
+    """No depth in [depth_min, depth_max] used to end in "could not write cloud.ply; check that the
+    folder is writable" (after an Open3D warning); now one line names the settings, before any write."""
+    seq_dir, run = plane_run
+    assert _fuse_cli(run, "mapping.map2d=false").exit_code == 0
+    before = _map_state(run)
+    res = _fuse_cli(run, "mapping.map2d=false", "mapping.depth_min=2", "mapping.depth_max=3")
+    assert _one_line_error(res) == (
+        "error: the map would be empty: no depth of the 3 frames to fuse lies between mapping.depth_min=2 and "
+        "mapping.depth_max=3 m; widen that range (defaults 0.3 and 3.0)")
+    assert "Open3D" not in res.output
+    assert _map_state(run) == before
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("grid_resolution", 0.0, "mapping.grid_resolution must be at least 0.001 (metres per cell, e.g. 0.05); got 0.0"),
+    ("cloud_pixel_stride", 0, "mapping.cloud_pixel_stride must be at least 1 (e.g. 2); got 0"),
+    ("outlier_std", 0.0, "mapping.outlier_std must be greater than 0 (e.g. 2.0); got 0.0"),
+    ("tsdf_voxel", 0.0, "mapping.tsdf_voxel must be at least 0.001 (metres, e.g. 0.01); got 0.0"),
+    ("voxel_size", -0.01, "mapping.voxel_size must be at least 0.001 (metres, e.g. 0.01); got -0.01"),
+    ("voxel_size", float("nan"), "mapping.voxel_size must be a finite number; got nan"),
+    ("mesh_min_frames", 1.5, "mapping.mesh_min_frames must be a whole number; got 1.5"),
+    ("depth_min", 3.0, "mapping.depth_min (3.0) must be smaller than mapping.depth_max (3.0); only depth between "
+                       "them is fused"),
+    ("gravity", "down", "mapping.gravity must be auto, accelerometer or camera; got 'down'"),
+])
+def test_bad_mapping_settings_are_rejected_before_anything_is_written(plane_run, key, value, message):
+    """fuse/fuse_run check the settings first (a MappingConfig made in Python skips load_config's
+    checks): grid_resolution=0 used to crash in the 2-D map after cloud.ply and mesh.ply were replaced."""
+    from rgbdslam.errors import InputError
+
+    seq_dir, run = plane_run
+    fuse_run(run, _cfg(), progress=False)
+    before = _map_state(run)
+    with pytest.raises(InputError) as e:
+        fuse_run(run, _cfg(**{key: value, "map2d": True}), progress=False)
+    assert str(e.value) == message
+    assert _map_state(run) == before
+
+
+def test_cli_grid_resolution_zero_is_one_line_and_keeps_the_map(plane_run):
+    seq_dir, run = plane_run
+    assert _fuse_cli(run, "mapping.map2d=false").exit_code == 0
+    before = _map_state(run)
+    line = _one_line_error(_fuse_cli(run, "mapping.grid_resolution=0"))
+    assert "mapping.grid_resolution" in line  # (load_config or validate_mapping: whichever checks first)
+    assert _map_state(run) == before
+
+
+def test_failure_part_way_leaves_the_earlier_map_whole(plane_run):
+    """A fusion that fails after the cloud and mesh are made (here: the 2-D map wants an
+    accelerometer the sequence does not have) changes no file: everything is written into a
+    temporary folder that replaces the map files only when all are complete."""
+    from rgbdslam.errors import InputError
+
+    seq_dir, run = plane_run
+    fuse_run(run, _cfg(), progress=False)
+    before = _map_state(run)
+    with pytest.raises(InputError) as e:
+        fuse_run(run, _cfg(voxel_size=0.02, map2d=True, gravity="accelerometer"), progress=False)
+    assert str(e.value) == ("mapping.gravity is 'accelerometer' but the sequence has no usable accelerometer.txt; "
+                            "set mapping.gravity=auto")
+    assert _map_state(run) == before  # no new cloud beside an old mesh, no temporary folder
+
+
+def test_a_finished_fusion_leaves_no_files_of_an_earlier_one(plane_run):
+    seq_dir, run = plane_run
+    fuse_run(run, _cfg(), progress=False)
+    (run / "map" / "map2d.png").write_bytes(b"from an older fusion")
+    res = fuse_run(run, _cfg(mesh=False), progress=False)
+    assert sorted(_map_state(run)) == ["cloud.ply"] and res.cloud_path == run / "map" / "cloud.ply"
+
+
+def test_map2d_refuses_a_huge_grid(monkeypatch):
+    from rgbdslam.errors import InputError
+    from rgbdslam.mapping import map2d
+
+    monkeypatch.setattr(map2d, "MAX_CELLS", 1000)
+    traj = Trajectory([0.0], _level_camera(0.2, 2.5)[None])
+    with pytest.raises(InputError) as e:
+        build_map2d(_box_scene(), traj, MappingConfig(grid_resolution=0.1))
+    assert re.fullmatch(r"the 2-D map would have \d+ x \d+ cells at mapping\.grid_resolution=0\.1 m \(at most 1000 "
+                        r"allowed\); raise mapping\.grid_resolution \(e\.g\. [0-9.]+\) or set mapping\.map2d=false",
+                        str(e.value)), str(e.value)
+
+
+FIX = "re-run `rgbdslam run` to rewrite it, or correct the field"
+
+
+@pytest.mark.parametrize("edit, message", [
+    ({"keyframes": ["a"]}, f"'keyframes' must be a list of frame numbers (whole numbers); found 'a'; {FIX}"),
+    ({"keyframes": 3}, f"'keyframes' must be a list of frame numbers (whole numbers); found 3; {FIX}"),
+    ({"segments": "x"}, "'segments' must be a list of objects with whole numbers 'first' and 'last' (and true/false "
+                        f"'map'); got 'x'; {FIX}"),
+    ({"sequence": 5}, f"'sequence' must be the path of the sequence folder as a string; got 5; {FIX}"),
+])
+def test_hand_edited_run_json_is_one_line(plane_run, edit, message):
+    seq_dir, run = plane_run
+    info = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**info, **edit}))
+    assert _one_line_error(_fuse_cli(run)) == f"error: {run / 'run.json'}: {message}"
+    assert not (run / "map").exists()
+
+
+def test_run_json_keyframe_outside_the_sequence_is_an_error(plane_run):
+    """It used to be dropped silently; a frame number the sequence does not have means run.json
+    is not of this sequence (as it is now), so the map would not be the run's."""
+    seq_dir, run = plane_run
+    (run / "run.json").write_text(json.dumps({"sequence": str(seq_dir), "keyframes": [0, 2, 7]}))
+    assert _one_line_error(_fuse_cli(run)) == (
+        f"error: {run / 'run.json'}: frame 7 is not in the sequence {seq_dir} (frames 0..2); run.json does not "
+        f"belong to this sequence as it is now: re-run `rgbdslam run`")
+
+
+def test_run_json_not_utf8_or_not_an_object(plane_run):
+    seq_dir, run = plane_run
+    (run / "run.json").write_bytes(b"\xff\xfe{}")
+    assert _one_line_error(_fuse_cli(run)) == (
+        f"error: run file {run / 'run.json'} is not UTF-8 text (byte 0); give the text file itself, not a binary or "
+        f"compressed copy")
+    (run / "run.json").write_text("[1, 2]")
+    assert _one_line_error(_fuse_cli(run)) == f"error: {run / 'run.json'} must hold a JSON object (the run summary), not list; {FIX}"

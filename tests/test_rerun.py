@@ -87,17 +87,11 @@ def test_spawn_without_display_fails_in_one_line(tmp_path, monkeypatch):
 
 
 def test_view_run_folder_without_display_writes_recording(tmp_path, monkeypatch):
-    from test_mapping import POSES, _write_tum_folder  # the hand-rendered plane sequence
+    from test_mapping import POSES
 
-    monkeypatch.delenv("DISPLAY", raising=False)
-    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    seq, run = tmp_path / "seq", tmp_path / "run"
+    seq, run = _plane_run_with_recording(tmp_path, monkeypatch)
     stamps = [100.0, 100.5, 101.0]
-    _write_tum_folder(seq, POSES, stamps)
-    run.mkdir()
-    write_tum(Trajectory(stamps, np.array(POSES)), run / "trajectory.tum")
     write_tum(Trajectory(stamps, np.array(POSES)), run / "odometry.tum")
-    (run / "run.json").write_text(json.dumps({"sequence": str(seq), "keyframes": [0, 2], "loops": [[0, 2]]}))
     runner = CliRunner()
     res = runner.invoke(main, ["fuse", str(run), "-q", "--set", "mapping.map2d=false"])
     assert res.exit_code == 0, res.output
@@ -114,3 +108,112 @@ def test_view_run_folder_without_display_writes_recording(tmp_path, monkeypatch)
     assert runner.invoke(main, ["view", str(rrd)]).exit_code == 0
     bad = runner.invoke(main, ["view", str(tmp_path / "nothing")])
     assert bad.exit_code == 2 and "does not exist" in bad.output
+
+
+# ----------------------------------------------------------------------------- failures keep earlier recordings
+
+
+def _hidden(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+def test_logger_replaces_the_file_only_when_closed(tmp_path):
+    """The recording goes to a temporary file beside --rerun-save; close() renames it over the
+    target. A logger that is dropped unclosed (a run that failed) or aborted leaves the earlier
+    recording byte for byte and no temporary file."""
+    import gc
+
+    good = tmp_path / "good.rrd"
+    log = RerunLogger(Config(), CAM, None, spawn=False, save_path=good)
+    for i in range(3):
+        log.log_frame(_frame(i), _result(i))
+    assert not good.exists() and len(_hidden(tmp_path)) == 1  # only the temporary file so far
+    log.close()
+    before = good.read_bytes()
+    assert "/world/camera/image/rgb" in entity_paths(good) and _hidden(tmp_path) == []
+
+    failed = RerunLogger(Config(), CAM, None, spawn=False, save_path=good)  # a run that fails part-way
+    failed.log_frame(_frame(0), _result(0))
+    del failed
+    gc.collect()
+    assert good.read_bytes() == before and _hidden(tmp_path) == []
+
+    aborted = RerunLogger(Config(), CAM, None, spawn=False, save_path=good)
+    aborted.log_frame(_frame(0), _result(0))
+    aborted.abort()
+    assert good.read_bytes() == before and _hidden(tmp_path) == []
+
+
+def test_failed_run_keeps_earlier_rerun_save(tmp_path):
+    """`rgbdslam run SEQ --rerun-save good.rrd` that fails (here: the map would be empty) leaves the
+    good.rrd of an earlier run as it was (it used to be replaced by the failed run's recording)."""
+    import gc
+
+    from rgbdslam.datasets.synthetic import generate_sequence
+
+    seq, good = tmp_path / "seq", tmp_path / "good.rrd"
+    generate_sequence(seq, frames=4, motion="xyz", width=160, height=120)
+    runner = CliRunner()
+    args = ["run", str(seq), "-o", str(tmp_path / "run"), "-q", "--rerun-save", str(good)]
+    res = runner.invoke(main, args)
+    assert res.exit_code == 0, res.output
+    before = good.read_bytes()
+    res = runner.invoke(main, args + ["--set", "mapping.depth_min=0.01", "--set", "mapping.depth_max=0.02"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2, res.output
+    n = len(json.loads((tmp_path / "run" / "run.json").read_text())["keyframes"])  # the frames fuse used
+    used = " (the run's filtered keyframe depth where present)" if (tmp_path / "run" / "keyframes").is_dir() else ""
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"error: the map would be empty: no depth of the {n} frame{'s' if n != 1 else ''} to fuse{used} lies between "
+        f"mapping.depth_min=0.01 and mapping.depth_max=0.02 m; widen that range (defaults 0.3 and 3.0)")
+    del res
+    gc.collect()  # the failed run's logger is dropped unclosed: its temporary file goes with it
+    assert good.read_bytes() == before and _hidden(tmp_path) == []
+
+
+def _plane_run_with_recording(tmp_path, monkeypatch):
+    from test_mapping import POSES, _write_tum_folder  # the hand-rendered plane sequence
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    seq, run = tmp_path / "seq", tmp_path / "run"
+    stamps = [100.0, 100.5, 101.0]
+    _write_tum_folder(seq, POSES, stamps)
+    run.mkdir()
+    write_tum(Trajectory(stamps, np.array(POSES)), run / "trajectory.tum")
+    (run / "run.json").write_text(json.dumps({"sequence": str(seq), "keyframes": [0, 2], "loops": [[0, 2]]}))
+    return seq, run
+
+
+def test_view_failure_leaves_no_temporary_files_and_keeps_earlier_save(tmp_path, monkeypatch):
+    seq, run = _plane_run_with_recording(tmp_path, monkeypatch)
+    runner = CliRunner()
+    out = tmp_path / "out"  # no .rrd suffix: the temporary file used to be ./.out.tmp
+    assert runner.invoke(main, ["view", str(run), "--save", str(out), "-q"]).exit_code == 0
+    assert runner.invoke(main, ["view", str(run), "-q"]).exit_code == 0
+    saved, recording = out.read_bytes(), (run / "recording.rrd").read_bytes()
+    bad = sorted((seq / "rgb").iterdir())[2]  # keyframe 2 cannot be read: recording fails part-way
+    bad.write_bytes(b"not a png")
+    for args in (["view", str(run), "--save", str(out), "-q"],
+                 ["view", str(run), "--save", str(run / "recording.rrd"), "-q"]):
+        res = runner.invoke(main, args)
+        assert isinstance(res.exception, SystemExit) and res.exit_code == 2, res.output
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and str(bad) in lines[0], res.stderr
+    assert out.read_bytes() == saved and (run / "recording.rrd").read_bytes() == recording
+    assert _hidden(tmp_path) == [] and _hidden(run) == []
+
+
+@pytest.mark.parametrize("edit, message", [
+    ({"sequence": 5}, "'sequence' must be the path of the sequence folder as a string; got 5"),
+    ({"keyframes": ["a"]}, "'keyframes' must be a list of frame numbers (whole numbers); found 'a'"),
+    ({"loops": [[0]]}, "'loops' must be a list of frame-number pairs [i, j]; got [[0]]"),
+])
+def test_view_hand_edited_run_json_is_one_line(tmp_path, monkeypatch, edit, message):
+    seq, run = _plane_run_with_recording(tmp_path, monkeypatch)
+    info = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**info, **edit}))
+    res = CliRunner().invoke(main, ["view", str(run), "-q"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2, res.output
+    assert res.stderr.strip() == (f"error: {run / 'run.json'}: {message}; re-run `rgbdslam run` to rewrite it, "
+                                  f"or correct the field")
+    assert not (run / "recording.rrd").exists() and _hidden(run) == []

@@ -242,3 +242,71 @@ def test_synth_command(tmp_path):
     assert "dropout" in lines[0] and "1.5" in lines[0] and "[0, 1)" in lines[0]
     assert res.stderr.strip() == lines[0]
     assert not (tmp_path / "bad").exists()  # rejected before anything is written
+
+
+# ----------------------------------------------------------------------------- an existing sequence is safe
+
+
+def _tree(folder) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seed", "-1"], "--seed must be a whole number >= 0 (got -1)"),
+    (["--size", "100000", "100000"], "image size 100000x100000 is out of range; --size W H must be whole numbers "
+                                     "from 16 to 4096 (e.g. --size 640 480)"),
+    (["--size", "8", "8"], "image size 8x8 is out of range; --size W H must be whole numbers from 16 to 4096 "
+                           "(e.g. --size 640 480)"),
+    (["--frames", "0"], "--frames must be a whole number from 1 to 100000 (got 0)"),
+    (["--dropout", "nan"], "dropout must be in [0, 1) (got nan)"),
+    (["--drift", "0.5"], "drift must be a small relative depth error in (-0.5, 0.5) (got 0.5)"),
+])
+def test_bad_parameters_leave_the_existing_sequence(tmp_path, args, message):
+    """Every parameter is checked before the output folder is touched: `synth S --seed -1` used to
+    delete the sequence S and then fail with a traceback (--size 100000 100000: MemoryError)."""
+    out = tmp_path / "S"
+    generate_sequence(out, frames=2, motion="static", width=32, height=24)
+    before = _tree(out)
+    res = CliRunner().invoke(main, ["synth", str(out), "--frames", "5", *args] if "--frames" not in args
+                             else ["synth", str(out), *args])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2, res.output
+    assert res.stderr.strip() == f"error: {message}" and res.output.strip() == f"error: {message}"
+    assert _tree(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["S"]
+
+
+@pytest.mark.parametrize("failure", [KeyboardInterrupt, InputError])
+def test_failure_or_ctrl_c_while_rendering_keeps_the_old_sequence(tmp_path, monkeypatch, failure):
+    """The new sequence is rendered into a temporary sibling folder that replaces S only when
+    complete: Ctrl-C (or a write error) part-way leaves S as it was and no partial folder."""
+    from rgbdslam.datasets import synthetic
+
+    out = tmp_path / "S"
+    generate_sequence(out, frames=2, motion="static", width=32, height=24)
+    before = _tree(out)
+    real, calls = synthetic._write_frame, []
+
+    def write_then_fail(*a, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise failure("cannot write frame 1") if failure is InputError else failure()
+        return real(*a, **kw)
+
+    monkeypatch.setattr(synthetic, "_write_frame", write_then_fail)
+    with pytest.raises(failure):
+        generate_sequence(out, frames=4, motion="xyz", width=32, height=24, seed=3)
+    assert _tree(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["S"]
+    assert len(open_sequence(out)) == 2
+
+
+def test_regenerating_replaces_the_frames_and_keeps_other_files(tmp_path):
+    out = tmp_path / "S"
+    generate_sequence(out, frames=3, motion="static", width=32, height=24)
+    (out / "notes.txt").write_text("mine")
+    generate_sequence(out, frames=2, motion="xyz", width=48, height=32, seed=1)
+    seq = open_sequence(out)
+    assert len(seq) == 2 and (seq.camera.width, seq.camera.height) == (48, 32)
+    assert len(list((out / "rgb").iterdir())) == 2 and (out / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["S"]
+    new = tmp_path / "T"
+    generate_sequence(new, frames=1, motion="static", width=32, height=24)
+    assert new.stat().st_mode & 0o055  # a plain folder's permissions, not the temporary folder's 0700

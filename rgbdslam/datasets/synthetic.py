@@ -14,6 +14,12 @@ Poses are camera-to-world with the camera's optical frame (x right, y down, z fo
 
 from __future__ import annotations
 
+import contextlib
+import os
+import shutil
+import signal
+import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -355,18 +361,100 @@ def dropout_mask(shape: tuple[int, int], fraction: float, rng: np.random.Generat
 # ----------------------------------------------------------------------------- writer
 
 
-def _prepare_output(out: Path) -> None:
+MAX_SIZE = 4096  # pixels per image side
+MAX_FRAMES = 100_000  # ~55 min at 30 Hz
+GENERATED = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml", "synthetic.yaml")
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
+def validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera) -> None:
+    """Check every parameter of :func:`generate_sequence` before anything is written; an
+    InputError names the parameter (as the ``synth`` option) and its valid range."""
+    if not _is_int(frames) or not 1 <= frames <= MAX_FRAMES:
+        raise InputError(f"--frames must be a whole number from 1 to {MAX_FRAMES} (got {frames!r})")
+    if motion not in MOTIONS:
+        raise InputError(f"unknown motion '{motion}'; choose one of {', '.join(MOTIONS)}")
+    if camera not in CAMERAS:
+        raise InputError(f"unknown camera '{camera}'; choose one of {', '.join(CAMERAS)}")
+    if not (_is_int(width) and _is_int(height) and 16 <= width <= MAX_SIZE and 16 <= height <= MAX_SIZE):
+        raise InputError(f"image size {width}x{height} is out of range; --size W H must be whole numbers from 16 "
+                         f"to {MAX_SIZE} (e.g. --size 640 480)")
+    if not isinstance(noise, (bool, np.bool_)):
+        raise InputError(f"noise must be true or false (got {noise!r})")
+    if isinstance(dropout, bool) or not isinstance(dropout, (int, float)) or not 0.0 <= dropout < 1.0:
+        raise InputError(f"dropout must be in [0, 1) (got {dropout})")
+    if isinstance(drift, bool) or not isinstance(drift, (int, float)) or not -0.5 < drift < 0.5:
+        raise InputError(f"drift must be a small relative depth error in (-0.5, 0.5) (got {drift})")
+    if not _is_int(seed) or seed < 0:
+        raise InputError(f"--seed must be a whole number >= 0 (got {seed!r})")
+
+
+def _check_output(out: Path) -> None:
+    """``out`` may be new, an empty folder or an earlier synthetic sequence (which is replaced)."""
     if out.exists() and not out.is_dir():
         raise InputError(f"{out} exists and is not a folder; give a folder for the synthetic sequence")
     if out.is_dir() and any(out.iterdir()) and not (out / "synthetic.yaml").is_file():
         raise InputError(f"{out} is not empty and is not a synthetic sequence; give a new or empty folder")
-    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):  # written last: a cut run is not a sequence
-        (out / name).unlink(missing_ok=True)
-    for sub in ("rgb", "depth"):
-        d = out / sub
-        d.mkdir(parents=True, exist_ok=True)
-        for p in d.glob("*.png"):
-            p.unlink()
+
+
+@contextlib.contextmanager
+def _interrupt_deferred():
+    """Ctrl-C inside the block is raised at its end (main thread only), so the few renames that
+    swap a finished sequence into place are never cut in the middle."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    hit: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda *_: hit.append(1))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+        if hit:
+            raise KeyboardInterrupt
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif os.path.lexists(path):
+        path.unlink()
+
+
+def _replace_folder(new: Path, out: Path) -> None:
+    """Put the finished sequence in ``new`` (a temporary sibling of ``out``) in the place of ``out``.
+
+    A new ``out`` is the renamed ``new``. An existing ``out`` (an earlier synthetic sequence or an
+    empty folder) keeps its folder and any file the generator does not write (notes, a demo marker);
+    only the generated entries (:data:`GENERATED`) are swapped, by renames that Ctrl-C cannot cut."""
+    if not out.exists():
+        umask = os.umask(0)  # mkdtemp made the folder owner-only; give it a plain mkdir()'s permissions
+        os.umask(umask)
+        os.chmod(new, 0o777 & ~umask)
+        os.replace(new, out)
+        return
+    replaced = new / ".replaced"  # removed with ``new`` at the end
+    replaced.mkdir()
+    moved_out, moved_in = [], []
+    with _interrupt_deferred():
+        try:
+            for name in GENERATED:
+                if os.path.lexists(out / name):
+                    os.replace(out / name, replaced / name)
+                    moved_out.append(name)
+            for name in GENERATED:
+                os.replace(new / name, out / name)
+                moved_in.append(name)
+        except OSError:  # put the earlier sequence back as it was
+            for name in moved_in:
+                _remove(out / name)
+            for name in moved_out:
+                os.replace(replaced / name, out / name)
+            raise
+    shutil.rmtree(new, ignore_errors=True)
 
 
 def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, drift: float, rng) -> None:
@@ -408,17 +496,39 @@ def generate_sequence(
     metre), ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``, ``camera.yaml`` (read by the TUM
     reader), ``synthetic.yaml`` (these parameters).
     """
-    if not 0.0 <= dropout < 1.0:
-        raise InputError(f"dropout must be in [0, 1) (got {dropout})")
-    if not -0.5 < drift < 0.5:
-        raise InputError(f"drift must be a small relative depth error in (-0.5, 0.5) (got {drift})")
+    validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera)
     start = time.perf_counter()
     out = Path(out_dir)
+    _check_output(out)
     cam = scaled_camera(camera, width, height)
     poses = make_trajectory(motion, frames)
-    _prepare_output(out)
-    params = dict(frames=frames, motion=motion, width=width, height=height, noise=bool(noise),
+    params = dict(frames=int(frames), motion=motion, width=int(width), height=int(height), noise=bool(noise),
                   dropout=float(dropout), drift=float(drift), seed=int(seed), camera=camera)
+    # rendered into a temporary sibling folder that replaces ``out`` only when complete: a
+    # failure or Ctrl-C part-way leaves an earlier sequence in ``out`` as it was
+    target = out.resolve()
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=target.parent))
+    except OSError as e:
+        raise InputError(f"cannot create the sequence folder {out} ({e.strerror or e}); choose a writable "
+                         f"place") from None
+    try:
+        _render_into(work, cam, poses, params, progress)
+        _replace_folder(work, target)
+    finally:
+        if not (work / ".replaced").is_dir() or not any((work / ".replaced").iterdir()):
+            shutil.rmtree(work, ignore_errors=True)  # else it holds the earlier sequence a failed swap kept
+    seconds = time.perf_counter() - start
+    return {"path": str(out), "frames": frames, "seconds": seconds, "camera": cam.name, **params}
+
+
+def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progress: bool) -> None:
+    """Write the whole sequence into the (new, temporary) folder ``out``."""
+    frames, camera, seed = params["frames"], params["camera"], params["seed"]
+    noise, dropout, drift = params["noise"], params["dropout"], params["drift"]
+    (out / "rgb").mkdir()
+    (out / "depth").mkdir()
     atomic_write_text(out / "synthetic.yaml", yaml.safe_dump({"generator": "rgbdslam synthetic v1", **params}, sort_keys=False))
     atomic_write_text(
         out / "camera.yaml",
@@ -439,8 +549,6 @@ def generate_sequence(
     atomic_write_text(out / "rgb.txt", "# color images (synthetic)\n" + header + "".join(f"{t:.6f} rgb/{n}\n" for t, n in zip(stamps, names)))
     atomic_write_text(out / "depth.txt", "# depth maps (synthetic)\n" + header + "".join(f"{t:.6f} depth/{n}\n" for t, n in zip(stamps, names)))
     write_tum(Trajectory(stamps, poses), out / "groundtruth.txt")
-    seconds = time.perf_counter() - start
-    return {"path": str(out), "frames": frames, "seconds": seconds, "camera": cam.name, **params}
 
 
 def synth_command(out_dir: str | Path, **kwargs) -> dict:

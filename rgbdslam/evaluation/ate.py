@@ -8,6 +8,7 @@ The estimate's positions are associated with the ground truth by timestamp
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,14 @@ from rgbdslam.evaluation.associate import associate
 from rgbdslam.io.trajectory import Trajectory
 
 ALIGN_MODES = ("se3", "sim3", "none")
+_NAMES = {"se3": "SE(3)", "sim3": "Sim(3)"}
+MIN_ALIGN_PAIRS = 3  # an SE(3)/Sim(3) fit to fewer pose pairs is exact by construction: ATE 0
+STATIC_SPREAD = 1e-6  # metres: positions within this of their mean do not move (no scale to fit)
+
+
+class PairingError(InputError):
+    """The two trajectories cannot be paired or aligned; :func:`rgbdslam.evaluation.report.evaluate_files`
+    prefixes the message with both file names."""
 
 
 @dataclass
@@ -80,9 +89,16 @@ def align(model: np.ndarray, data: np.ndarray, mode: str = "se3") -> tuple[np.nd
         return np.eye(3), np.zeros(3), 1.0
     n = model.shape[1]
     if n == 0:
-        raise InputError("cannot align an empty trajectory; check that the timestamps overlap")
-    # With fewer than 3 (non-collinear) points the rotation is not unique; the SVD still
-    # returns a valid one that attains the minimum.
+        raise PairingError("cannot align an empty trajectory; check that the timestamps overlap")
+    if n < MIN_ALIGN_PAIRS:
+        raise PairingError(
+            f"only {n} pose pair{'s' if n != 1 else ''} matched in time, but {_NAMES[mode]} alignment needs at least "
+            f"{MIN_ALIGN_PAIRS} (it would fit fewer almost exactly, so the ATE would mean nothing); check that both "
+            f"files are of the same sequence, raise --max-difference, or use --align none"
+        )
+    # With collinear (or identical) ground-truth positions the rotation about the line is not
+    # unique; the SVD returns one that attains the minimum, and the per-pose errors (the ATE)
+    # are the same for all of them, so rigid alignment stays valid. A scale is not: see below.
     mu_m = model.mean(axis=1, keepdims=True)
     mu_d = data.mean(axis=1, keepdims=True)
     mc = model - mu_m
@@ -96,9 +112,20 @@ def align(model: np.ndarray, data: np.ndarray, mode: str = "se3") -> tuple[np.nd
     s = 1.0
     if mode == "sim3":
         var_m = float(np.mean(np.sum(mc * mc, axis=0)))
-        if var_m <= 0:
-            raise InputError("the estimate does not move, so its scale cannot be aligned; use --align se3")
+        var_d = float(np.mean(np.sum(dc * dc, axis=0)))
+        if var_d <= STATIC_SPREAD**2:
+            raise PairingError(
+                f"the ground truth does not move (the spread of its {n} matched positions is below "
+                f"{STATIC_SPREAD:g} m), so the Sim(3) scale is undefined (it would come out as 0); use --align se3"
+            )
+        if var_m <= STATIC_SPREAD**2:
+            raise PairingError("the estimate does not move, so its scale cannot be aligned; use --align se3")
         s = float(np.trace(np.diag(D) @ S) / var_m)
+        if not np.isfinite(s) or s <= 1e-9:
+            raise PairingError(
+                f"the Sim(3) scale came out as {s:.3g}: the estimate's motion does not correspond to the ground "
+                f"truth's at all; check the files, or use --align se3"
+            )
     t = (mu_d - s * R @ mu_m).reshape(3)
     return R, t, s
 
@@ -117,16 +144,36 @@ def apply_alignment(traj: Trajectory, R: np.ndarray, t: np.ndarray, s: float = 1
 def associate_trajectories(
     gt: Trajectory, est: Trajectory, max_difference: float = 0.02, offset: float = 0.0
 ) -> tuple[Trajectory, Trajectory]:
-    """The associated sub-trajectories (same length, sorted by time); InputError if none overlap."""
+    """The associated sub-trajectories (same length, sorted by time); InputError if none overlap,
+    if the estimate has two poses at one time stamp (which one to use is ambiguous) or if
+    ``max_difference`` / ``offset`` are not sane numbers."""
+    if not (math.isfinite(max_difference) and max_difference > 0):
+        raise InputError(f"--max-difference must be a positive number of seconds (e.g. 0.02); got {max_difference}")
+    if not math.isfinite(offset):
+        raise InputError(f"--offset must be a finite number of seconds; got {offset}")
+    check_unique_stamps(est, "the estimate")
     ia, ib = associate(gt.timestamps, est.timestamps, max_difference, offset)
     if len(ia) == 0:
-        raise InputError(
+        raise PairingError(
             f"no overlapping timestamps between ground truth ({len(gt)} poses, "
             f"{_span(gt)}) and estimate ({len(est)} poses, {_span(est)}) within "
             f"max_difference={max_difference} s, offset={offset} s; check that both files are of the "
             f"same sequence, or raise --max-difference / set --offset"
         )
     return gt.subset(ia), est.subset(ib)
+
+
+def check_unique_stamps(traj: Trajectory, name: str) -> None:
+    """InputError when ``traj`` (sorted by time, as read_tum returns it) has repeated time stamps:
+    an estimate must have one pose per time; which of two would be evaluated is arbitrary."""
+    ts = np.sort(traj.timestamps)
+    dup = np.flatnonzero(np.diff(ts) == 0)
+    if len(dup):
+        more = f" (and {len(dup) - 1} more repeat{'s' if len(dup) > 2 else ''})" if len(dup) > 1 else ""
+        raise PairingError(
+            f"{name} has more than one pose at time stamp {ts[dup[0]]:.6f}{more}; an estimate needs one pose per "
+            f"time stamp: remove the duplicate lines"
+        )
 
 
 def _span(traj: Trajectory) -> str:
@@ -145,7 +192,9 @@ def ate(
     """Absolute trajectory error of ``est`` against ``gt`` (TUM ``evaluate_ate.py`` semantics).
 
     ``offset`` is added to the estimate's stamps for association; ``align`` is ``se3``,
-    ``sim3`` or ``none``. Raises InputError when no timestamps associate.
+    ``sim3`` or ``none``. Raises InputError when no timestamps associate, when SE(3)/Sim(3)
+    alignment has fewer than 3 pairs, or when the Sim(3) scale is undefined (a static ground
+    truth).
     """
     mode = align
     g, e = associate_trajectories(gt, est, max_difference, offset)

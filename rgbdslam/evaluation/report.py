@@ -19,14 +19,14 @@ from rich.markup import escape
 from rich.table import Table
 
 from rgbdslam.errors import InputError, RgbdslamError
-from rgbdslam.evaluation.ate import AteResult, ErrorStats, ate
+from rgbdslam.evaluation.ate import AteResult, ErrorStats, PairingError, ate
 from rgbdslam.evaluation.plots import (
     plot_error_over_time,
     plot_rpe,
     plot_trajectories_topview,
     plot_trajectory_topview,
 )
-from rgbdslam.evaluation.rpe import RpeResult, rpe
+from rgbdslam.evaluation.rpe import RpeResult, check_delta, rpe
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
 
@@ -98,8 +98,10 @@ def evaluate_trajectories(
     RPE uses the same association; with ``align='sim3'`` the estimate's relative
     translations are multiplied by the ATE scale. If no RPE pair fits (e.g. ``delta`` longer
     than the overlap) the report carries ``rpe=None`` and ``rpe_note`` instead of failing.
-    Raises InputError when no timestamps associate.
+    Raises InputError when no timestamps associate, and for the cases :func:`ate` rejects;
+    ``delta`` is checked first, before any work.
     """
+    check_delta(delta, delta_unit)
     a = ate(gt, est, max_difference=max_difference, offset=offset, align=align)
     r: RpeResult | None = None
     note = None
@@ -142,10 +144,8 @@ def evaluate_files(
             offset=offset, json_path=json_path, plot_dir=plot_dir, plot_prefix=plot_prefix,
             gt_name=str(gt_path), est_name=str(est_path),
         )
-    except InputError as e:
-        if str(e).startswith("no overlapping timestamps"):
-            raise InputError(f"{gt_path} and {est_path}: {e}") from None
-        raise
+    except PairingError as e:  # about the two files together: name both
+        raise InputError(f"{gt_path} and {est_path}: {e}") from None
 
 
 def _read(path: str | Path) -> Trajectory:
@@ -208,14 +208,17 @@ def compare_and_print(
         seen.add(str(p))
     reports = []
     names = _short_names([str(p) for p in est_paths])
-    for est, name in zip(est_paths, names):
+    for est in est_paths:  # every estimate first: one that fails stops the command before any file is written
+        reports.append(evaluate_files(gt_path, est, **options))
+    console.print(format_comparison(reports))
+    for est, name, rep in zip(est_paths, names, reports):
+        if not plots:
+            break
         if plot_dir is None:  # next to the estimate, as for one estimate
             own_dir, prefix = Path(est).parent, f"{Path(est).stem}_"
         else:  # one folder for all: prefixes that tell runA/trajectory.tum from runB/trajectory.tum
             own_dir, prefix = Path(plot_dir), f"{Path(name).with_suffix('').as_posix().replace('/', '_')}_"
-        reports.append(evaluate_files(gt_path, est, plot_dir=own_dir if plots else None, plot_prefix=prefix,
-                                      **options))
-    console.print(format_comparison(reports))
+        rep.plots = write_plots(rep, own_dir, prefix)
     written = [p for r in reports for p in r.plots]
     if plots:
         path = Path(plot_dir if plot_dir is not None else ".") / "comparison_topview.png"

@@ -17,6 +17,7 @@ A pose with no such ``j`` starts no pair.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,18 +52,24 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     return np.arctan2(np.linalg.norm(w, axis=-1) / 2.0, c)
 
 
-def delta_pairs(stamps: np.ndarray, gt_poses: np.ndarray, delta: float, delta_unit: str) -> np.ndarray:
-    """Index pairs ``(i, j)`` a fixed ``delta`` apart along an associated sequence; (M, 2) ints."""
+def check_delta(delta: float, delta_unit: str) -> None:
+    """InputError unless ``delta`` is a finite positive number (whole for frames) and the unit known."""
     if delta_unit not in DELTA_UNITS:
         raise InputError(f"unknown RPE delta unit {delta_unit!r}; use one of {', '.join(DELTA_UNITS)}")
-    if not delta > 0:
-        raise InputError(f"RPE delta must be positive, got {delta}; pass e.g. --delta 1")
+    if isinstance(delta, bool) or not isinstance(delta, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(delta) or not delta > 0:
+        raise InputError(f"RPE delta must be a finite positive number, got {delta}; pass e.g. --delta 1")
+    if delta_unit == "f" and not float(delta).is_integer():
+        raise InputError(f"a delta in frames must be a whole number, got {delta}")
+
+
+def delta_pairs(stamps: np.ndarray, gt_poses: np.ndarray, delta: float, delta_unit: str) -> np.ndarray:
+    """Index pairs ``(i, j)`` a fixed ``delta`` apart along an associated sequence; (M, 2) ints."""
+    check_delta(delta, delta_unit)
     n = len(stamps)
     i = np.arange(n)
     if delta_unit == "f":
-        if float(delta) != int(delta):
-            raise InputError(f"a delta in frames must be a whole number, got {delta}")
-        j = i + int(delta)
+        j = i + min(int(delta), n)  # a delta longer than the sequence gives no pair (and no overflow)
     else:
         if delta_unit == "s":
             axis = np.asarray(stamps, dtype=np.float64)

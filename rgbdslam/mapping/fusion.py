@@ -18,7 +18,11 @@ the world-to-camera extrinsic, i.e. the inverse.
 from __future__ import annotations
 
 import json
+import math
+import os
 import resource
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,10 +39,14 @@ from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 from rgbdslam.io.atomic import atomic_path
+from rgbdslam.io.text import read_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
 
 DEPTH_PNG_SCALE = 5000.0  # keyframes/depth_*.png units per metre
 STAMP_TOLERANCE = 1e-3  # seconds: a trajectory line belongs to a frame when the stamps agree this well
+# the files a fusion writes into its folder: all of them come from one fusion (see _commit)
+MAP_FILES = ("cloud.ply", "mesh.ply", "map2d.png", "map2d.yaml", "map2d_preview.png")
+MIN_VOXEL = 1e-3  # metres: voxel_keys has 21 bits per axis (+-1 km at 1 mm); finer grids are not sane
 
 
 @dataclass
@@ -265,6 +273,78 @@ def _write_ply(path: Path, geom, mesh: bool) -> None:
             raise InputError(f"could not write {path}; check that the folder is writable and the disk not full")
 
 
+# ----------------------------------------------------------------------------- settings
+
+
+def _number(cfg: MappingConfig, key: str, integer: bool = False) -> float:
+    v = getattr(cfg, key)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (integer and not float(v).is_integer()):
+        kind = "a whole number" if integer else "a number"
+        raise InputError(f"mapping.{key} must be {kind}; got {v!r}")
+    if not math.isfinite(v):
+        raise InputError(f"mapping.{key} must be a finite number; got {v!r}")
+    return v
+
+
+def validate_mapping(cfg: MappingConfig) -> None:
+    """Check the mapping settings fusion uses, before anything is read or written; an
+    InputError names the first bad ``mapping.<key>`` and what it must be."""
+    rules = [  # key, lower bound, strict, whole number, hint
+        ("depth_min", 0.0, False, False, "metres, e.g. 0.3"),
+        ("depth_max", 0.0, True, False, "metres, e.g. 3.0"),
+        ("voxel_size", MIN_VOXEL, False, False, "metres, e.g. 0.01"),
+        ("cloud_pixel_stride", 1, False, True, "e.g. 2"),
+        ("outlier_neighbors", 0, False, True, "0 turns outlier removal off"),
+        ("outlier_std", 0.0, True, False, "e.g. 2.0"),
+        ("tsdf_voxel", MIN_VOXEL, False, False, "metres, e.g. 0.01"),
+        ("sdf_trunc", 0.0, True, False, "metres, e.g. 0.04"),
+        ("mesh_min_frames", 1, False, True, "e.g. 2"),
+        ("tsdf_initial_blocks", 1, False, True, "e.g. 2000"),
+        ("select_translation", 0.0, False, False, "metres, e.g. 0.05"),
+        ("select_rotation_deg", 0.0, False, False, "degrees, e.g. 5"),
+        ("grid_resolution", MIN_VOXEL, False, False, "metres per cell, e.g. 0.05"),
+        ("floor_max_tilt_deg", 0.0, False, False, "degrees, e.g. 20"),
+        ("floor_distance", 0.0, True, False, "metres, e.g. 0.02"),
+        ("floor_ransac_iterations", 1, False, True, "e.g. 500"),
+        ("floor_band", 0.0, True, False, "metres, e.g. 0.05"),
+        ("obstacle_min_height", None, False, False, "metres, e.g. 0.10"),
+        ("obstacle_max_height", None, False, False, "metres, e.g. 1.80"),
+        ("obstacle_min_points", 1, False, True, "e.g. 3"),
+        ("seed", 0, False, True, "e.g. 0"),
+    ]
+    for key, lo, strict, integer, hint in rules:
+        v = _number(cfg, key, integer)
+        if lo is not None and (v <= lo if strict else v < lo):
+            bound = f"greater than {lo:g}" if strict else f"at least {lo:g}"
+            raise InputError(f"mapping.{key} must be {bound} ({hint}); got {v!r}")
+    if not cfg.depth_min < cfg.depth_max:
+        raise InputError(f"mapping.depth_min ({cfg.depth_min!r}) must be smaller than mapping.depth_max "
+                         f"({cfg.depth_max!r}); only depth between them is fused")
+    if cfg.floor_max_tilt_deg > 90:
+        raise InputError(f"mapping.floor_max_tilt_deg must be at most 90 degrees; got {cfg.floor_max_tilt_deg!r}")
+    if not cfg.obstacle_min_height < cfg.obstacle_max_height:
+        raise InputError(f"mapping.obstacle_min_height ({cfg.obstacle_min_height!r}) must be smaller than "
+                         f"mapping.obstacle_max_height ({cfg.obstacle_max_height!r})")
+    if cfg.gravity not in ("auto", "accelerometer", "camera"):
+        raise InputError(f"mapping.gravity must be auto, accelerometer or camera; got {cfg.gravity!r}")
+    for key in ("keyframes_only", "undistort", "mesh", "map2d"):
+        if not isinstance(getattr(cfg, key), bool):
+            raise InputError(f"mapping.{key} must be true or false; got {getattr(cfg, key)!r}")
+
+
+def _commit(stage: Path, out_dir: Path) -> None:
+    """Move the finished map files from ``stage`` into ``out_dir`` and remove the files of
+    :data:`MAP_FILES` this fusion did not make (an older mesh, a 2-D map made with other
+    settings), so the folder never mixes two fusions. Nothing is computed here, so nothing
+    can fail part-way: only renames, after every file was written completely."""
+    made = [name for name in MAP_FILES if (stage / name).is_file()]
+    for name in made:
+        os.replace(stage / name, out_dir / name)
+    for name in MAP_FILES:
+        if name not in made and (out_dir / name).is_file():
+            (out_dir / name).unlink()
+
+
 # ----------------------------------------------------------------------------- fusion
 
 
@@ -280,16 +360,24 @@ def fuse(
     """Fuse the frames ``frame_indices`` (positions in ``sequence``) posed by ``trajectory``
     (camera-to-world, matched to frames by time stamp) into ``out_dir``/cloud.ply and mesh.ply
     (and the 2-D map when ``cfg.map2d``). ``depth_dir`` holds depth_<index:06d>.png files used
-    instead of the raw depth where present. Frames without a pose are skipped."""
+    instead of the raw depth where present. Frames without a pose are skipped.
+
+    The settings are checked first (:func:`validate_mapping`). All files are written into a
+    temporary folder inside ``out_dir`` and moved into place only when every one of them is
+    complete (:func:`_commit`): a failure or Ctrl-C part-way leaves the earlier map as it was."""
     from rgbdslam.ui import console, frame_progress
 
     t_start = time.perf_counter()
     rss0 = _rss_mb()
+    validate_mapping(cfg)
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     depth_dir = Path(depth_dir) if depth_dir is not None else None
     stamps = np.asarray(sequence.timestamps)
-    idx = [int(i) for i in frame_indices if 0 <= int(i) < len(stamps)]
+    idx = [int(i) for i in frame_indices]
+    bad = [i for i in idx if not 0 <= i < len(stamps)]
+    if bad:
+        raise InputError(f"frame {bad[0]} to fuse is not in {sequence.root} (frames 0..{len(stamps) - 1}); "
+                         f"give frame indices of this sequence")
     rows = match_frames(stamps[idx], trajectory) if idx else np.zeros(0, int)
     todo = [(i, r) for i, r in zip(idx, rows) if r >= 0]
     if not todo:
@@ -297,12 +385,38 @@ def fuse(
             f"no frame of {sequence.root} to fuse has a pose in the trajectory; check that the trajectory's "
             f"time stamps are the sequence's colour stamps"
         )
+    created = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".fusing-", dir=out_dir))
+    try:
+        res = _fuse_into(stage, sequence, trajectory, todo, cfg, depth_dir, progress, console, frame_progress)
+        _commit(stage, out_dir)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created and not any(out_dir.iterdir()):
+            out_dir.rmdir()  # a failed first fusion leaves no empty map folder
+        raise
+    shutil.rmtree(stage, ignore_errors=True)
+    res.out_dir = out_dir
+    for attr in ("cloud_path", "mesh_path", "map2d_path"):
+        if getattr(res, attr) is not None:
+            setattr(res, attr, out_dir / getattr(res, attr).name)
+    res.seconds = time.perf_counter() - t_start
+    res.peak_rss_mb = _peak_rss_mb()
+    res.rss_growth_mb = max(_peak_rss_mb() - rss0, 0.0)
+    return res
+
+
+def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: list[tuple[int, int]],
+               cfg: MappingConfig, depth_dir: Path | None, progress: bool, console, frame_progress) -> FuseResult:
+    """The work of :func:`fuse`, writing into the (temporary) folder ``stage``."""
     camera = sequence.camera
     undistort = _Undistorter(camera, cfg.undistort)
     tsdf = _Tsdf(cfg, camera) if cfg.mesh else None
     acc = VoxelCloud(cfg.voxel_size)
     timings = {"load": 0.0, "tsdf": 0.0, "cloud": 0.0}
     fused: list[int] = []
+    n_depth = 0  # pixels with a depth inside [depth_min, depth_max]
     with frame_progress(len(todo), "fusing map", enabled=progress) as advance:
         for i, r in todo:
             t0 = time.perf_counter()
@@ -312,6 +426,7 @@ def fuse(
                 depth = read_depth_png(depth_dir / f"depth_{i:06d}.png")
             rgb, depth = undistort(frame.rgb, depth.astype(np.float32, copy=False))
             depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0).astype(np.float32)
+            n_depth += int(np.count_nonzero(depth))
             pose = trajectory.poses[r]
             t1 = time.perf_counter()
             timings["load"] += t1 - t0
@@ -325,18 +440,35 @@ def fuse(
             timings["cloud"] += time.perf_counter() - t2
             fused.append(i)
             advance()
+    if n_depth == 0:
+        used = " (the run's filtered keyframe depth where present)" if depth_dir is not None else ""
+        raise InputError(
+            f"the map would be empty: no depth of the {len(fused)} frame{'s' if len(fused) != 1 else ''} to fuse{used} lies between "
+            f"mapping.depth_min={cfg.depth_min:g} and mapping.depth_max={cfg.depth_max:g} m; widen that range "
+            f"(defaults 0.3 and 3.0)"
+        )
 
     t0 = time.perf_counter()
     points, colors = acc.result()
     del acc
+    if len(points) == 0:
+        raise InputError(
+            f"the map would be empty: no pixel sampled every mapping.cloud_pixel_stride={cfg.cloud_pixel_stride} "
+            f"pixels has a depth in range; lower mapping.cloud_pixel_stride (default 2)"
+        )
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) * (1 / 255.0))
     if cfg.outlier_neighbors > 0 and len(points) > cfg.outlier_neighbors:
         _, keep = cloud.remove_statistical_outlier(cfg.outlier_neighbors, cfg.outlier_std)
         keep = np.asarray(keep, dtype=np.int64)
+        if len(keep) == 0:
+            raise InputError(
+                f"statistical outlier removal left no point of the {len(points)} in the cloud; raise "
+                f"mapping.outlier_std (now {cfg.outlier_std:g}) or set mapping.outlier_neighbors=0"
+            )
         cloud = cloud.select_by_index(keep)
         points, colors = points[keep], colors[keep]
-    cloud_path = out_dir / "cloud.ply"
+    cloud_path = stage / "cloud.ply"
     _write_ply(cloud_path, cloud, mesh=False)
     timings["cloud"] += time.perf_counter() - t0
 
@@ -348,10 +480,9 @@ def fuse(
         n_vert, n_tri = len(mesh.vertices), len(mesh.triangles)
         if n_tri:
             mesh.compute_vertex_normals()
-            mesh_path = out_dir / "mesh.ply"
+            mesh_path = stage / "mesh.ply"
             _write_ply(mesh_path, mesh, mesh=True)
-        else:
-            (out_dir / "mesh.ply").unlink(missing_ok=True)  # never leave an older run's mesh behind
+        else:  # _commit removes an older run's mesh.ply: never leave it behind
             console.print(
                 f"[yellow]warning:[/] the TSDF mesh is empty (no voxel was seen by {min_frames} frames); "
                 f"mesh.ply not written; lower mapping.mesh_min_frames"
@@ -367,10 +498,10 @@ def fuse(
 
         t0 = time.perf_counter()
         grid = build_map2d(points, trajectory, cfg, accelerometer=_accelerometer_of(sequence))
-        map2d_path = write_map2d(grid, out_dir, trajectory)
+        map2d_path = write_map2d(grid, stage, trajectory)
         timings["map2d"] = time.perf_counter() - t0
     return FuseResult(
-        out_dir=out_dir,
+        out_dir=stage,
         cloud_path=cloud_path,
         mesh_path=mesh_path,
         map2d_path=map2d_path,
@@ -378,9 +509,9 @@ def fuse(
         n_points=len(points),
         n_vertices=n_vert,
         n_triangles=n_tri,
-        seconds=time.perf_counter() - t_start,
-        peak_rss_mb=_peak_rss_mb(),
-        rss_growth_mb=max(_peak_rss_mb() - rss0, 0.0),
+        seconds=0.0,
+        peak_rss_mb=0.0,
+        rss_growth_mb=0.0,
         timings=timings,
         cloud_points=points,
         cloud_colors=colors,
@@ -393,22 +524,67 @@ def _accelerometer_of(sequence: Sequence) -> Path | None:
     return p if p.is_file() else None
 
 
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _check_run_info(info: Any, path: Path) -> dict[str, Any]:
+    """The fields of run.json that fusion and the viewer read, with the types they need;
+    an InputError names ``path`` and the field otherwise."""
+    fix = "re-run `rgbdslam run` to rewrite it, or correct the field"
+    if not isinstance(info, dict):
+        raise InputError(f"{path} must hold a JSON object (the run summary), not {type(info).__name__}; {fix}")
+    if "sequence" not in info:
+        raise InputError(f"{path} has no 'sequence' entry; it must name the sequence folder the run used")
+    if not isinstance(info["sequence"], str) or not info["sequence"].strip():
+        raise InputError(f"{path}: 'sequence' must be the path of the sequence folder as a string; got "
+                         f"{info['sequence']!r}; {fix}")
+    kf = info.get("keyframes")
+    if kf is not None and not (isinstance(kf, list) and all(_is_int(i) for i in kf)):
+        bad = kf if not isinstance(kf, list) else next(i for i in kf if not _is_int(i))
+        raise InputError(f"{path}: 'keyframes' must be a list of frame numbers (whole numbers); found {bad!r}; {fix}")
+    loops = info.get("loops")
+    if loops is not None and not (isinstance(loops, list) and all(
+            isinstance(x, list) and len(x) == 2 and all(_is_int(i) for i in x) for x in loops)):
+        raise InputError(f"{path}: 'loops' must be a list of frame-number pairs [i, j]; got {loops!r:.60}; {fix}")
+    segs = info.get("segments")
+    if segs is not None:
+        ok = isinstance(segs, list) and all(
+            isinstance(g, dict) and _is_int(g.get("first")) and _is_int(g.get("last"))
+            and isinstance(g.get("map", True), bool) for g in segs)
+        if not ok:
+            raise InputError(f"{path}: 'segments' must be a list of objects with whole numbers 'first' and 'last' "
+                             f"(and true/false 'map'); got {segs!r:.60}; {fix}")
+    return info
+
+
 def read_run(run_dir: str | Path) -> tuple[dict[str, Any], Config, Trajectory]:
-    """run.json, the configuration used and the final trajectory of a run folder."""
+    """run.json (its fields checked, see :func:`_check_run_info`), the configuration used and the
+    final trajectory of a run folder."""
     run_dir = Path(run_dir)
     info_path = run_dir / "run.json"
     if not info_path.is_file():
         raise InputError(f"{run_dir} is not a run folder: {info_path.name} is missing; give the --out folder of `rgbdslam run`")
     try:
-        info = json.loads(info_path.read_text())
-    except json.JSONDecodeError:
-        raise InputError(f"{info_path} is not valid JSON; re-run `rgbdslam run` to rewrite it") from None
-    if not isinstance(info, dict) or "sequence" not in info:
-        raise InputError(f"{info_path} has no 'sequence' entry; it must name the sequence folder the run used")
+        info = json.loads(read_text(info_path, "run file"))
+    except json.JSONDecodeError as e:
+        raise InputError(f"{info_path} is not valid JSON (line {e.lineno}); re-run `rgbdslam run` to rewrite it") from None
+    info = _check_run_info(info, info_path)
     cfg_path = run_dir / "config.yaml"
     cfg = load_config(cfg_path) if cfg_path.is_file() else Config()
     traj = read_tum(run_dir / "trajectory.tum")
     return info, cfg, traj
+
+
+def check_run_frames(run_dir: str | Path, info: dict[str, Any], n_frames: int) -> None:
+    """run.json's keyframes and loop frames must be frames of its sequence (``n_frames`` of them):
+    one outside means run.json does not belong to the sequence as it is now."""
+    path = Path(run_dir) / "run.json"
+    frames = list(info.get("keyframes") or []) + [i for pair in info.get("loops") or [] for i in pair]
+    bad = [i for i in frames if not 0 <= i < n_frames]
+    if bad:
+        raise InputError(f"{path}: frame {bad[0]} is not in the sequence {info['sequence']} (frames 0..{n_frames - 1}); "
+                         f"run.json does not belong to this sequence as it is now: re-run `rgbdslam run`")
 
 
 def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bool = True) -> FuseResult:
@@ -417,11 +593,14 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     Frames: run.json's keyframes when ``keyframes_only`` (chosen by motion when the run has
     none), else every tracked frame; frames of tracking segments that no loop linked to the
     map (run.json ``segments``, after a tracking loss) are left out. The sequence is re-opened
-    with the run's dataset config."""
+    with the run's dataset config. The settings and run.json are checked before anything is
+    written; a keyframe outside the sequence is an error (run.json is not of this sequence)."""
     run_dir = Path(run_dir)
     info, run_cfg, traj = read_run(run_dir)
     cfg = cfg or run_cfg.mapping
+    validate_mapping(cfg)
     seq = open_sequence(info["sequence"], run_cfg.dataset)
+    check_run_frames(run_dir, info, len(seq))
     rows = match_frames(np.asarray(seq.timestamps), traj)
     tracked = np.flatnonzero(rows >= 0)
     if cfg.keyframes_only and info.get("keyframes"):

@@ -35,9 +35,11 @@ import yaml
 from rgbdslam.config import MappingConfig
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_path, atomic_write_text
+from rgbdslam.io.text import read_text
 from rgbdslam.io.trajectory import Trajectory
 
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
+MAX_CELLS = 25_000_000  # a 5000 x 5000 grid: 250 m x 250 m at 5 cm
 
 
 @dataclass
@@ -63,18 +65,19 @@ class Map2D:
 def read_accelerometer(path: str | Path) -> np.ndarray:
     """TUM accelerometer.txt -> (N, 4) array ``timestamp ax ay az``."""
     rows = []
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            try:
-                vals = [float(x) for x in s.split()]
-            except ValueError:
-                raise InputError(f"{path}:{lineno}: expected 'timestamp ax ay az'; fix or delete the line") from None
-            if len(vals) != 4:
-                raise InputError(f"{path}:{lineno}: expected 4 numbers 'timestamp ax ay az'; got {len(vals)}")
-            rows.append(vals)
+    for lineno, line in enumerate(read_text(path, "accelerometer file").splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        try:
+            vals = [float(x) for x in s.split()]
+        except ValueError:
+            raise InputError(f"{path}:{lineno}: expected 'timestamp ax ay az'; fix or delete the line") from None
+        if len(vals) != 4:
+            raise InputError(f"{path}:{lineno}: expected 4 numbers 'timestamp ax ay az'; got {len(vals)}")
+        if not np.isfinite(vals).all():
+            raise InputError(f"{path}:{lineno}: non-finite value; fix or delete the line")
+        rows.append(vals)
     return np.array(rows).reshape(-1, 4)
 
 
@@ -168,6 +171,10 @@ def build_map2d(points: np.ndarray, trajectory: Trajectory, cfg: MappingConfig,
                 accelerometer: str | Path | None = None) -> Map2D:
     """Occupancy grid of world ``points`` (N, 3); see the module docstring for the method."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    res = cfg.grid_resolution
+    if isinstance(res, bool) or not isinstance(res, (int, float)) or not np.isfinite(res) or res <= 0:
+        raise InputError(f"mapping.grid_resolution must be a positive number of metres per cell (e.g. 0.05); "
+                         f"got {res!r}")
     if len(points) == 0:
         raise InputError("the fused cloud is empty, so no 2-D map can be made; check depth range (mapping.depth_max)")
     up, up_source = None, "camera"
@@ -188,7 +195,6 @@ def build_map2d(points: np.ndarray, trajectory: Trajectory, cfg: MappingConfig,
     floor = np.abs(h) < cfg.floor_band
     obst = (h >= cfg.obstacle_min_height) & (h <= cfg.obstacle_max_height)
     keep = floor | obst
-    res = cfg.grid_resolution
     xy = q[keep, :2]
     if len(trajectory):
         xy_all = np.vstack([xy, (trajectory.positions @ T[:3, :3].T + T[:3, 3])[:, :2]])
@@ -199,6 +205,12 @@ def build_map2d(points: np.ndarray, trajectory: Trajectory, cfg: MappingConfig,
     lo = np.floor(xy_all.min(axis=0) / res) * res - 2 * res
     hi = xy_all.max(axis=0) + 2 * res
     w, hgt = (np.ceil((hi - lo) / res).astype(int) + 1)
+    if w * hgt > MAX_CELLS:
+        raise InputError(
+            f"the 2-D map would have {w} x {hgt} cells at mapping.grid_resolution={res:g} m (at most {MAX_CELLS} "
+            f"allowed); raise mapping.grid_resolution (e.g. {res * np.sqrt(w * hgt / MAX_CELLS) * 1.01:.3g}) "
+            f"or set mapping.map2d=false"
+        )
     col = np.floor((q[:, 0] - lo[0]) / res).astype(int)
     row = hgt - 1 - np.floor((q[:, 1] - lo[1]) / res).astype(int)
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < hgt)

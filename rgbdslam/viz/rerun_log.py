@@ -25,6 +25,8 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
+import weakref
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -35,6 +37,7 @@ from rgbdslam.config import Config
 from rgbdslam.errors import InputError, RgbdslamError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
+from rgbdslam.io.atomic import atomic_path
 from rgbdslam.io.trajectory import Trajectory
 
 APPLICATION_ID = "rgbdslam"
@@ -82,19 +85,37 @@ class RerunLogger:
             spawn = False
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
         self.save_path = Path(save_path) if save_path is not None else None
+        # The recording goes to a temporary file beside ``save_path``; close() renames it over
+        # ``save_path``, so a run that fails (or abort()) never replaces an earlier good recording.
+        self.tmp_path: Path | None = None
+        self._cleanup = None
+        self._closed = False
         if self.save_path is not None:
+            if self.save_path.is_dir():
+                raise InputError(f"--rerun-save {self.save_path} is a folder; give a file name such as "
+                                 f"{self.save_path / 'run.rrd'}")
             self.save_path.parent.mkdir(parents=True, exist_ok=True)
-        if spawn:
-            try:
-                self.rec.spawn(connect=False)  # start the viewer; the sinks below stream to it (and the file)
-                sinks = [rr.GrpcSink()] + ([rr.FileSink(str(self.save_path))] if self.save_path else [])
-                self.rec.set_sinks(*sinks)
-            except Exception as e:  # noqa: BLE001 - any failure to start a GUI is the same to the user
-                raise RgbdslamError(
-                    f"cannot start the Rerun viewer ({e.__class__.__name__}); use --rerun-save FILE.rrd instead"
-                ) from None
-        else:
-            self.rec.save(str(self.save_path))
+            fd, tmp = tempfile.mkstemp(prefix=f".{self.save_path.name}.", suffix=".tmp", dir=self.save_path.parent)
+            os.close(fd)
+            self.tmp_path = Path(tmp)
+            # removes the temporary file if the logger is dropped (or the process exits) unclosed
+            self._cleanup = weakref.finalize(self, _remove_file, self.tmp_path)
+        try:
+            if spawn:
+                try:
+                    self.rec.spawn(connect=False)  # start the viewer; the sinks below stream to it (and the file)
+                    sinks = [rr.GrpcSink()] + ([rr.FileSink(str(self.tmp_path))] if self.tmp_path else [])
+                    self.rec.set_sinks(*sinks)
+                except Exception as e:  # noqa: BLE001 - any failure to start a GUI is the same to the user
+                    raise RgbdslamError(
+                        f"cannot start the Rerun viewer ({e.__class__.__name__}); use --rerun-save FILE.rrd instead"
+                    ) from None
+            else:
+                self.rec.save(str(self.tmp_path))
+        except BaseException:
+            if self._cleanup is not None:
+                self._cleanup()
+            raise
         width = max(16, int(cfg.output.rerun_image_width))
         self.scale = min(1.0, width / camera.width)
         self.img_size = (int(round(camera.width * self.scale)), int(round(camera.height * self.scale)))
@@ -246,8 +267,36 @@ class RerunLogger:
                                                    colors=np.asarray(colors, np.uint8), radii=0.004), static=True)
 
     def close(self) -> None:
+        """Finish the recording: the complete file replaces ``save_path`` (only now)."""
+        if self._closed:
+            return
+        self._closed = True
         self.rec.flush()
         self.rec.disconnect()
+        if self.tmp_path is not None:
+            umask = os.umask(0)  # mkstemp made the file owner-only; give it a plain open()'s permissions
+            os.umask(umask)
+            os.chmod(self.tmp_path, 0o666 & ~umask)
+            os.replace(self.tmp_path, self.save_path)
+            self._cleanup.detach()
+
+    def abort(self) -> None:
+        """Stop recording after a failure: the temporary file is removed, ``save_path`` is untouched."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.rec.disconnect()
+        finally:
+            if self._cleanup is not None:
+                self._cleanup()
+
+
+def _remove_file(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:  # pragma: no cover - best effort at shutdown
+        pass
 
 
 # ----------------------------------------------------------------------------- finished runs
@@ -260,7 +309,7 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
 
     from rgbdslam.datasets import open_sequence
     from rgbdslam.io.trajectory import read_tum
-    from rgbdslam.mapping.fusion import match_frames, read_run
+    from rgbdslam.mapping.fusion import check_run_frames, match_frames, read_run
     from rgbdslam.ui import console, frame_progress
 
     run_dir, out_rrd = Path(run_dir), Path(out_rrd)
@@ -270,19 +319,22 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
         seq = open_sequence(info["sequence"], cfg.dataset)
     except InputError as e:
         console.print(f"[yellow]warning:[/] no images in the recording: {e}")
+    if seq is not None:
+        check_run_frames(run_dir, info, len(seq))
     camera = seq.camera if seq is not None else Camera(525.0, 525.0, 319.5, 239.5)
     gt = seq.groundtruth() if seq is not None else None
-    tmp = out_rrd.with_name(f".{out_rrd.name}.tmp")  # written aside, renamed when complete
-    log = RerunLogger(cfg, camera, gt, spawn=False, save_path=tmp)
+    # written to a temporary file beside out_rrd, which it replaces only when complete (close());
+    # on any failure abort() removes it and an earlier out_rrd is left as it was
+    log = RerunLogger(cfg, camera, gt, spawn=False, save_path=out_rrd)
     try:
         if seq is not None:
-            keyframes = [int(i) for i in (info.get("keyframes") or [])]
+            keyframes = list(info.get("keyframes") or [])
             rows = match_frames(np.asarray(seq.timestamps), traj)
             if not keyframes:
                 keyframes = [int(i) for i in np.flatnonzero(rows >= 0)]
             with frame_progress(len(keyframes), "recording keyframes", enabled=progress) as advance:
                 for i in keyframes:
-                    if not 0 <= i < len(seq) or rows[i] < 0:
+                    if rows[i] < 0:  # a keyframe without a pose in trajectory.tum
                         continue
                     frame = seq.load(i)
                     log.log_frame(frame, SimpleNamespace(index=i, timestamp=frame.timestamp,
@@ -304,9 +356,10 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
         if cloud.is_file():
             pc = o3d.io.read_point_cloud(str(cloud))
             log.log_map(np.asarray(pc.points), (np.asarray(pc.colors) * 255 + 0.5).astype(np.uint8))
-    finally:
-        log.close()
-    os.replace(tmp, out_rrd)
+    except BaseException:
+        log.abort()
+        raise
+    log.close()
     return out_rrd
 
 
@@ -320,6 +373,8 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
     path = Path(path)
     if path.is_dir():
         rrd = Path(save) if save is not None else path / "recording.rrd"
+        if rrd.is_dir():
+            raise InputError(f"--save {rrd} is a folder; give a file name such as {rrd / 'recording.rrd'}")
         if save is not None or not rrd.exists():
             record_run(path, rrd, progress=progress)
     elif path.is_file():
@@ -327,7 +382,10 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
             raise InputError(f"{path} is not a Rerun recording (.rrd) or a run folder; give one of them")
         rrd = path
         if save is not None and Path(save).resolve() != path.resolve():
-            shutil.copyfile(path, save)
+            if Path(save).is_dir():
+                raise InputError(f"--save {save} is a folder; give a file name such as {Path(save) / path.name}")
+            with atomic_path(save) as tmp:  # a failed copy leaves an earlier SAVE as it was
+                shutil.copyfile(path, tmp)
             rrd = Path(save)
     else:
         raise InputError(f"{path} does not exist; give an .rrd file or the --out folder of `rgbdslam run`")
