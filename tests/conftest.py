@@ -34,3 +34,19 @@ def desk9() -> Path:
 @pytest.fixture
 def rpy200() -> Path:
     return need(TUM_RPY200)
+
+
+def cli(args):
+    """Run the ``rgbdslam`` command line in-process (click's CliRunner) with ``args`` as strings."""
+    from click.testing import CliRunner
+
+    from rgbdslam.cli import main
+
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def assert_cli_error(res, message):
+    """The CLI turned an InputError into exit code 2 and exactly ``error: message`` on stderr."""
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2, (res.exception, res.output)
+    assert res.stdout == ""
+    assert res.stderr == f"error: {message}\n"

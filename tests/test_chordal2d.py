@@ -201,3 +201,24 @@ def _gtsam_optimum(g, start):
     r = least_squares(f, np.asarray(start, float)[1:].ravel(), method="lm", jac="3-point",
                       xtol=1e-15, ftol=1e-15, gtol=1e-15)
     return np.vstack([np.zeros((1, 3)), r.x.reshape(-1, 3)])
+
+
+def test_rounded_singular_translation_information_does_not_crash_cholesky(tmp_path):
+    """A rank-1 translation block written with 6 digits ([[1, 1], [1, 0.999999]], eigenvalue -2.5e-7)
+    passes the readers' positive-semi-definite test (tolerance 1e-5 of the largest eigenvalue); its
+    Cholesky factor used to raise numpy's LinAlgError ("Matrix is not positive definite")."""
+    from click.testing import CliRunner
+
+    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.cli import main
+
+    src = tmp_path / "rounded.g2o"
+    src.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\nVERTEX_SE2 3 2 1 0\n"
+                   "EDGE_SE2 0 1 1 0 0 100 0 0 100 0 100\nEDGE_SE2 1 2 1 0 0 1 1 0 0.999999 0 100\n"
+                   "EDGE_SE2 2 3 0 1 0 100 0 0 100 0 100\nEDGE_SE2 0 3 2 1 0 100 0 0 100 0 100\n")
+    g = read_graph(src)
+    assert np.linalg.eigvalsh(g.info[1])[0] < 0
+    est = chordal_se2(g)
+    np.testing.assert_allclose(est, [[0, 0, 0], [1, 0, 0], [2, 0, 0], [2, 1, 0]], atol=1e-6)
+    res = CliRunner().invoke(main, ["posegraph", "init", str(src), "--method", "chordal", "-o", str(tmp_path / "o.g2o")])
+    assert res.exit_code == 0 and res.exception is None, res.output

@@ -242,3 +242,68 @@ def test_cli_optimize_init_file_needs_vertex_estimates(tmp_path):
     res = runner.invoke(main, ["posegraph", "optimize", str(src), "--init", "file", "-q"])
     assert res.exit_code == 0 and res.exception is None, res.output
     assert "init file: " in res.stdout and re.search(r"; \d+ iteration\(s\), converged; ", res.stdout), res.stdout
+
+
+# ----------------------------------------------------------------------- input validation (one line)
+
+
+from conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
+
+
+_TRIANGLE = ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\n"
+             "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\nEDGE_SE2 0 2 2.1 0 0 1 0 0 1 0 1\n")
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--max-iter", "-5"], "--max-iter must be a whole number of at least 1, not -5; give e.g. --max-iter 50"),
+    (["--max-iter", "0"], "--max-iter must be a whole number of at least 1, not 0; give e.g. --max-iter 50"),
+    (["--tol", "-1"], "--tol must be a finite number above 0, not -1.0; give e.g. --tol 1e-6"),
+    (["--tol", "nan"], "--tol must be a finite number above 0, not nan; give e.g. --tol 1e-6"),
+    (["--tol", "inf"], "--tol must be a finite number above 0, not inf; give e.g. --tol 1e-6"),
+    (["--tol", "0"], "--tol must be a finite number above 0, not 0.0; give e.g. --tol 1e-6"),
+])
+def test_cli_optimize_rejects_bad_iteration_options(tmp_path, args, message):
+    src = tmp_path / "t.g2o"
+    src.write_text(_TRIANGLE)
+    for opt in ("gtsam", "g2o"):
+        _assert_cli_error(_cli(["posegraph", "optimize", src, "-q", "--optimizer", opt, *args]), message)
+    with pytest.raises(InputError) as e:
+        optimize_file(src, progress=False, **{a.lstrip("-").replace("-", "_"): (int if a == "--max-iter" else float)(v)
+                                              for a, v in zip(args[::2], args[1::2])})
+    assert str(e.value) == message
+
+
+def test_library_gauss_newton_checks_iterations_but_allows_tol_zero():
+    g, gt = grid_walk(10)
+    for fn in (gauss_newton, gauss_newton_g2o):
+        with pytest.raises(InputError, match=r"^--max-iter must be a whole number of at least 1, not 0;"):
+            fn(g, gt, max_iter=0)
+        with pytest.raises(InputError, match=r"^--tol must be a finite number above 0, not nan;"):
+            fn(g, gt, tol=float("nan"))
+        r = fn(g, gt, max_iter=2, tol=0.0, criterion="absolute")  # tol 0: run exactly max_iter iterations
+        assert r.iterations == 2 and not r.converged
+
+
+def test_error_summary_is_one_line_and_never_empty():
+    from rgbdslam.backend.optimize import error_summary
+
+    gtsam_text = ("\nIndeterminate linear system detected while working near variable\n2 (Symbol: 2).\n\n"
+                  "Thrown when a linear system is ill-posed.  See\nhttps://github.com/borglab/gtsam/...\n")
+    assert error_summary(RuntimeError(gtsam_text)) == \
+        "Indeterminate linear system detected while working near variable 2 (Symbol: 2)."
+    assert error_summary(RuntimeError("")) == \
+        "the solver gave no details (the linear system is probably singular or not positive definite)"
+    assert error_summary(RuntimeError("x" * 500)) == "x" * 197 + "..."
+
+
+def test_gn_failure_message_is_one_useful_line(tmp_path):
+    """GTSAM's IndeterminantLinearSystem text starts with a newline: the failure used to read
+    "Gauss-Newton failed (RuntimeError: )".  Vertex 7 has only a translation-information edge, so
+    its heading is unconstrained (a valid, positive semi-definite file that GN cannot solve)."""
+    src = tmp_path / "free_heading.g2o"
+    src.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 5 1 0 0\nVERTEX_SE2 7 2 0 0\n"
+                   "EDGE_SE2 0 5 1 0 0 1 0 0 1 0 1\nEDGE_SE2 5 7 1 0 0 1 0 0 1 0 0\n")
+    _assert_cli_error(_cli(["posegraph", "optimize", src, "--init", "file", "-q"]),
+                      f"{src}: Gauss-Newton failed at iteration 1 (RuntimeError: Indeterminate linear system "
+                      "detected while working near vertex 7.); try another --init or --optimizer lm, and check "
+                      "that the information of that vertex's edges constrains all of its pose")

@@ -220,3 +220,141 @@ def test_a_repeated_vertex_line_does_not_hide_a_missing_vertex(tmp_path):
     assert any("1 repeated vertex line" in n for n in g.notes)
     full = read_graph(_write(tmp_path, "f.g2o", text + "VERTEX_SE2 2 2 0 0\n"))
     assert full.has_poses
+
+
+# ----------------------------------------------------------------------- input validation (one line)
+
+_V3 = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\n"
+_E01 = "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n"
+_E12 = "EDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\n"
+
+
+from conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
+
+
+def test_non_utf8_graph_file_is_one_line_error(tmp_path):
+    data = b"VERTEX_SE2 0 0 0 0\n# caf\xe9\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n"
+    p = tmp_path / "latin1.g2o"
+    p.write_bytes(data)
+    bad_byte = data.index(bytes([0xE9]))
+    msg = (f"pose-graph file {p} is not UTF-8 text (byte {bad_byte}); give the text file itself, "
+           f"not a binary or compressed copy")
+    for fmt in ("auto", "g2o"):
+        with pytest.raises(InputError) as e:
+            read_graph(p, fmt)
+        assert str(e.value) == msg
+    _assert_cli_error(_cli(["posegraph", "info", p]), msg)
+    _assert_cli_error(_cli(["posegraph", "optimize", p, "-q"]), msg)
+
+
+@pytest.mark.parametrize("name,text,line,message", [
+    ("neg_diag.g2o", _V3 + _E01 + "EDGE_SE2 1 2 1 0 0 -1 0 0 1 0 1\n", 5,
+     ("EDGE_SE2 information matrix has a negative diagonal entry (-1), so it is not positive semi-definite; "
+      "fix the line's information entries (an inverse covariance)")),
+    ("zero.g2o", _V3 + _E01 + "EDGE_SE2 1 2 1 0 0 0 0 0 0 0 0\n", 5,
+     ("EDGE_SE2 information matrix is all zero, so the edge constrains nothing; give its information "
+      "(inverse covariance) or remove the line")),
+    # TORO order xx xy yy thth xth yth
+    ("neg.graph", "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\nEDGE2 0 1 1 0 0 1 0 1 -2 0 0\n", 3,
+     ("EDGE2 information matrix has a negative diagonal entry (-2), so it is not positive semi-definite; "
+      "fix the line's information entries (an inverse covariance)")),
+    # iSAM gives the square root R; R^T R overflows
+    ("overflow.txt", "EDGE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE2 1 2 1 0 0 1e200 0 0 1 0 1\n", 2,
+     ("EDGE2 information matrix (R^T R of the square-root entries) is not finite (its entries overflow); "
+      "give finite information entries on the line")),
+    ("zero.txt", "EDGE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE2 1 2 1 0 0 0 0 0 0 0 0\n", 2,
+     ("EDGE2 information matrix (R^T R of the square-root entries) is all zero, so the edge constrains nothing; "
+      "give its information (inverse covariance) or remove the line")),
+])
+def test_bad_information_names_file_and_line(tmp_path, name, text, line, message):
+    p = _write(tmp_path, name, text)
+    with pytest.raises(InputError) as e:
+        read_graph(p)
+    assert str(e.value) == f"{p}:{line}: {message}"
+
+
+def test_bad_information_is_refused_by_init_and_optimize(tmp_path):
+    """Negative information used to give a ValueError traceback (init), "final chi2 -0.0046 ...
+    converged" (--optimizer g2o); all-zero information a "converged" chi2 of 0."""
+    for row, what in (("-1 0 0 1 0 1", ("has a negative diagonal entry (-1), so it is not positive semi-definite; "
+                                        "fix the line's information entries (an inverse covariance)")),
+                      ("0 0 0 0 0 0", ("is all zero, so the edge constrains nothing; give its information "
+                                       "(inverse covariance) or remove the line"))):
+        p = _write(tmp_path, "bad.g2o", _V3 + _E01 + f"EDGE_SE2 1 2 1 0 0 {row}\n")
+        msg = f"{p}:5: EDGE_SE2 information matrix {what}"
+        for method in ("masat", "weighted_masat", "odometry", "chordal", "lago"):
+            _assert_cli_error(_cli(["posegraph", "init", p, "--method", method, "-o", tmp_path / "o.g2o"]), msg)
+        for opt in ("gtsam", "g2o", "lm"):
+            _assert_cli_error(_cli(["posegraph", "optimize", p, "-q", "--optimizer", opt]), msg)
+    assert not (tmp_path / "o.g2o").exists()
+
+
+def test_valid_information_that_is_singular_or_rounded_is_accepted(tmp_path):
+    """PSD but singular (a zero heading information; a rank-1 translation block) is valid, and so is a
+    singular matrix written with 6 significant digits whose rounding leaves an eigenvalue of -1e-7."""
+    text = (_V3 + "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 0\n"  # no heading information
+            + "EDGE_SE2 1 2 1 0 0 1 1 0 1 0 1\n"  # translation block [[1, 1], [1, 1]]: rank 1
+            + "EDGE_SE2 0 2 2 0 0 1 1 0 0.999999 0 1\n")  # the same, rounded: eigenvalue -2.5e-7
+    g = read_graph(_write(tmp_path, "ok.g2o", text))
+    assert g.n_edges == 3 and np.linalg.eigvalsh(g.info[2])[0] < 0
+
+
+@pytest.mark.parametrize("name,text,line,tag", [
+    ("nan.g2o", "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 nan 0 0\n" + _E01, 2, "VERTEX_SE2"),
+    ("inf.g2o", "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1 inf 0 0 0 0 1\nEDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1"
+     + " 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1\n", 2, "VERTEX_SE3:QUAT"),
+    ("nanq.g2o", "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 nan\nEDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1"
+     + " 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1\n", 1, "VERTEX_SE3:QUAT"),
+    ("nan.graph", "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 -inf\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\n", 2, "VERTEX2"),
+])
+def test_non_finite_vertex_estimates_name_file_and_line(tmp_path, name, text, line, tag):
+    """They used to reach Gauss-Newton and end as "Gauss-Newton failed (RuntimeError: )"."""
+    p = _write(tmp_path, name, text)
+    msg = f"{p}:{line}: {tag} has a non-finite number (nan or inf); fix the line"
+    with pytest.raises(InputError) as e:
+        read_graph(p)
+    assert str(e.value) == msg
+    _assert_cli_error(_cli(["posegraph", "optimize", p, "--init", "file", "-q"]), msg)
+
+
+def test_huge_or_nan_vertex_id_is_an_error_without_numpy_warnings(tmp_path):
+    import warnings
+
+    ids = {"1e30": "vertex id must be a non-negative integer below 2^53",
+           "9007199254740993": "vertex id must be a non-negative integer below 2^53",  # 2^53 + 1: not a float
+           "nan": "has a non-finite number (nan or inf)"}
+    for ident, what in ids.items():
+        p = _write(tmp_path, "id.g2o", f"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 {ident} 1 0 0\n" + _E01)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # the int64 cast of 1e30 used to warn "invalid value encountered"
+            with pytest.raises(InputError) as e:
+                read_graph(p)
+        assert str(e.value) == f"{p}:2: VERTEX_SE2 {what}; fix the line"
+    p = _write(tmp_path, "eid.g2o", "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1e300 1 0 0 1 0 0 1 0 1\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=r"eid\.g2o:2: EDGE_SE2 vertex id must be a non-negative integer"):
+            read_graph(p)
+
+
+def test_indefinite_information_is_projected_and_noted(tmp_path):
+    """A finite, non-negative diagonal but indefinite matrix (real files have them: SE-Sync's
+    cubicle.g2o) is replaced by its nearest PSD matrix. Hand-worked: [[1, 2], [2, 1]] has
+    eigenvalues 3 (vector (1, 1)/sqrt 2) and -1, so the projection is 3 * vv^T = [[1.5, 1.5], [1.5, 1.5]]."""
+    p = _write(tmp_path, "indefinite.g2o", _V3 + _E01 + "EDGE_SE2 1 2 1 0 0 1 2 0 1 0 1\n")
+    g = read_graph(p)
+    np.testing.assert_allclose(g.info[1], [[1.5, 1.5, 0], [1.5, 1.5, 0], [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(g.info[0], np.eye(3))  # the valid edge is untouched
+    assert any(n.startswith("1 EDGE_SE2 information matrix(s) are indefinite (first at line 5: smallest "
+                            "eigenvalue -1, largest 3)") for n in g.notes)
+    se3 = _write(tmp_path, "se3.g2o", "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nEDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 "
+                 + "1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 3 0 1 0 1\n")
+    g3 = read_graph(se3)
+    assert np.linalg.eigvalsh(g3.info[0])[0] > -1e-9 and len(g3.notes) == 1
+
+
+def test_real_cubicle_is_read_with_its_indefinite_edges_projected():
+    g = read_graph(need(DATA / "posegraph" / "SE-Sync" / "cubicle.g2o"))
+    assert g.dim == 3 and g.n_edges == 16869
+    assert np.linalg.eigvalsh(g.info).min() > -1e-6 * np.abs(g.info).max()
+    assert any(n.startswith("5021 EDGE_SE3:QUAT information matrix(s) are indefinite") for n in g.notes)

@@ -393,3 +393,94 @@ def test_posegraph_edge_list3_feeds_masat_initialize_pose3():
     for w in (False, True):
         np.testing.assert_allclose(masat_initialize_pose3(n, g.edge_list3(), weighted=w), masat(g, weighted=w),
                                    atol=1e-12)
+
+
+# ----------------------------------------------------------------------- input validation (one line)
+
+
+from conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
+
+
+def test_weighted_masat_survives_variances_that_overflow():
+    """A 1e200 m measurement makes |t|^2 * var(heading) overflow: every weight of vertex 2 became 0
+    and the fused position 0/0 (ZeroDivisionError).  Capped variances keep the plain chained answer."""
+    gt = np.array([[0, 0, 0], [1, 0, 0.1], [1e200, 0, 0.2], [1e200, 1, 0.3]], float)
+    pairs = [(0, 1), (1, 2), (2, 3)]
+    ei, ej = np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+    z = se2_between(gt[ei], gt[ej])
+    for info in (np.eye(3), np.diag([1.0, 1.0, 1e-300])):  # ordinary and near-zero heading information
+        p = masat_se2(4, ei, ej, z, np.tile(info, (3, 1, 1)), weighted=True)
+        assert np.all(np.isfinite(p))
+        np.testing.assert_allclose(p, masat_se2(4, ei, ej, z), rtol=1e-12)
+    # SE(3): the same chain
+    T = [np.eye(4), _pose3([0, 0, 0.1], [1, 0, 0]), _pose3([0, 0, 0.2], [1e200, 0, 0]), _pose3([0, 0, 0.3], [1e200, 1, 0])]
+    edges = [(i, j, se3_inverse(T[i]) @ T[j], np.eye(6)) for i, j in pairs]
+    p3 = masat_initialize_pose3(4, edges, weighted=True)
+    assert np.all(np.isfinite(p3))
+    np.testing.assert_allclose(p3, masat_initialize_pose3(4, edges), rtol=1e-9)
+
+
+def test_weighted_masat_singular_information_means_an_unmeasured_direction():
+    """An edge without heading information says nothing about the heading: its heading variance is
+    infinite (capped), not the pseudo-inverse's 0 (which made it the most trusted prediction)."""
+    from rgbdslam.backend.masat import _MAX_VAR, _edge_variances
+
+    vt, vr = _edge_variances(np.array([np.diag([4.0, 4.0, 0.0]), np.diag([1.0, 1.0, 2.0])]), 2, slice(0, 2), slice(2, 3))
+    np.testing.assert_allclose(vt, [0.25, 1.0])
+    np.testing.assert_allclose(vr, [_MAX_VAR, 0.5])
+    # vertex 2 is predicted from 0 (heading measured, -0.2) and from 1 (no heading information, +0.4)
+    gt = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0]], float)
+    z = se2_between(gt[[0, 0, 1]], gt[[1, 2, 2]])
+    z[1, 2], z[2, 2] = -0.2, 0.4
+    info = np.array([np.eye(3), np.eye(3), np.diag([1.0, 1.0, 0.0])])
+    p = masat_se2(3, [0, 0, 1], [1, 2, 2], z, info, weighted=True)
+    assert p[2, 2] == pytest.approx(-0.2, abs=1e-9)
+
+
+_SE3_CHAIN = ("VERTEX_SE3:QUAT 3 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 5 1 0 0 0 0 0 1\nVERTEX_SE3:QUAT 8 2 0 0 0 0 0 1\n"
+              "EDGE_SE3:QUAT 3 5 1 0 0 0 0 0 1 10 0 0 0 0 0 10 0 0 0 0 10 0 0 0 {r} 0 0 {r} 0 {r}\n"
+              "EDGE_SE3:QUAT 5 8 1 0 0 0 0 0 1 10 0 0 0 0 0 10 0 0 0 0 10 0 0 0 {r} 0 0 {r} 0 {r}\n")
+
+
+def test_lago_on_a_3d_graph_is_an_error_not_a_relabelled_chordal_run(tmp_path):
+    src = tmp_path / "pg_3d.g2o"
+    src.write_text(_SE3_CHAIN.format(r=10))
+    msg = (f"{src} (g2o): LAGO is for 2-D (SE(2)) graphs only and this graph is 3-D (SE(3)); "
+           "use --method chordal (GTSAM's chordal initialiser) or masat")
+    out = tmp_path / "o.g2o"
+    _assert_cli_error(_cli(["posegraph", "init", src, "--method", "lago", "-o", out]), msg)
+    _assert_cli_error(_cli(["posegraph", "optimize", src, "--init", "lago", "-q"]), msg)
+    assert not out.exists()
+    # chordal works on it; on a tree (here a chain) GTSAM's InitializePose3 would throw, but the
+    # relaxation's optimum is the exact chain
+    res = _cli(["posegraph", "init", src, "--method", "chordal", "-o", out])
+    assert res.exit_code == 0 and "chordal initial guess" in res.stdout, res.output
+    from rgbdslam.backend.graph_io import read_graph
+
+    np.testing.assert_allclose(read_graph(out).poses[:, :3, 3], [[0, 0, 0], [1, 0, 0], [2, 0, 0]], atol=1e-12)
+
+
+def test_lago_needs_diagonal_information():
+    """GTSAM's LAGO raised ValueError("buildLinearOrientationGraph: invalid noise model ...")."""
+    gt = np.array([[0, 0, 0], [1, 0, 0.1], [2, 0, 0.2]])
+    g = _graph2(gt, [(0, 1), (1, 2), (0, 2)])
+    g.ids = np.array([3, 5, 9])
+    g.source = "h.g2o (g2o)"
+    g.info[1] = [[100, 10, 0], [10, 100, 0], [0, 0, 100]]
+    with pytest.raises(InputError) as e:
+        initialize(g, "lago")
+    assert str(e.value) == ("h.g2o (g2o): GTSAM's LAGO needs diagonal information matrices, and 1 edge(s) have "
+                            "off-diagonal terms (the first joins vertices 5 and 9); use --method chordal (our SE(2) "
+                            "chordal relaxation uses the full information) or masat")
+
+
+def test_gtsam_initialiser_failure_is_one_line(tmp_path):
+    """No rotation information: GTSAM's InitializePose3 throws its 12-line IndeterminantLinearSystem
+    text (with a URL); the error keeps its first sentence, names the file's vertex id, adds the fix."""
+    src = tmp_path / "pg_3d.g2o"
+    loop = "EDGE_SE3:QUAT 3 8 2 0 0 0 0 0 1 10 0 0 0 0 0 10 0 0 0 0 10 0 0 0 0 0 0 0 0 0\n"  # not a tree
+    src.write_text(_SE3_CHAIN.format(r=0) + loop)
+    _assert_cli_error(_cli(["posegraph", "init", src, "--method", "chordal", "-o", tmp_path / "o.g2o"]),
+                      f"{src} (g2o): GTSAM's chordal initialiser (InitializePose3) failed (Indeterminate linear "
+                      "system detected while working near vertex 3.); check that the information of that vertex's "
+                      "edges constrains its rotation, or use --method masat")

@@ -336,3 +336,85 @@ def test_cli_bench_without_dataset_is_a_usage_error(tmp_path):
     res = CliRunner().invoke(main, ["posegraph", "bench", "--dataset", "m999", "-q"])
     assert isinstance(res.exception, SystemExit) and res.exit_code == 2
     assert "Invalid value for '--dataset': 'm999' is not one of 'm3500', 'city10k', 'm10000'." in res.stderr
+
+
+# ----------------------------------------------------------------------- input validation (one line)
+
+
+from conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
+
+
+@pytest.mark.parametrize("text,message", [
+    ("nan", "--noise 'nan' needs three positive standard deviations sx,sy,stheta"),
+    ("0.1,nan,0.1", "--noise '0.1,nan,0.1' needs three positive standard deviations sx,sy,stheta"),
+    ("inf", "--noise 'inf' has an infinite standard deviation; give finite values like 0.2,0.2,0.2"),
+    ("0.1;0.1,0.1,1e400", ("--noise '0.1,0.1,1e400' has an infinite standard deviation; give finite values like "
+                           "0.2,0.2,0.2")),
+    ("1e-200", ("--noise '1e-200' has a standard deviation so small that its information 1/σ² is not a usable "
+                "number; give values like 0.2,0.2,0.2")),
+    ("1e200", ("--noise '1e200' has a standard deviation so large that its information 1/σ² is not a usable "
+               "number; give values like 0.2,0.2,0.2")),
+])
+def test_parse_noise_rejects_non_finite_and_unusable_levels(text, message):
+    with pytest.raises(InputError) as e:
+        parse_noise(text)
+    assert str(e.value) == message
+
+
+_METHODS = "odometry,spanning_tree,masat,weighted_masat,lago,chordal,ground_truth"
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--seed", "-1"], "--seed must be a whole number >= 0, not -1; give e.g. --seed 0"),
+    (["--methods", ","], f"--methods ',' names no initial guess; give a comma-separated list from {_METHODS}"),
+    (["--methods", " "], f"--methods ' ' names no initial guess; give a comma-separated list from {_METHODS}"),
+    (["--methods", "masat,magic"], f"--methods: unknown initial guess(es) magic; use {_METHODS}"),
+    (["--noise", "nan"], "--noise 'nan' needs three positive standard deviations sx,sy,stheta"),
+    (["--noise", "inf"], "--noise 'inf' has an infinite standard deviation; give finite values like 0.2,0.2,0.2"),
+    (["--instances", "0"], "--instances must be a whole number >= 1, not 0"),
+    (["--workers", "0"], "--workers must be a whole number >= 1, not 0"),
+    (["--first-instance", "-1"], "--first-instance must be a whole number >= 0, not -1"),
+    (["--max-iter", "0"], "--max-iter must be a whole number of at least 1, not 0; give e.g. --max-iter 50"),
+    (["--timing-only", "--seed", "-2"], "--seed must be a whole number >= 0, not -2; give e.g. --seed 0"),
+    (["--timing-only", "--methods", "ground_truth"],
+     "--timing-only times initial guesses and ground_truth is none; add a method to --methods"),
+])
+def test_cli_bench_rejects_bad_numbers_and_method_lists(tmp_path, args, message):
+    """Checked before any data is read (the data folder here does not exist) or anything is written."""
+    out = tmp_path / "o"
+    _assert_cli_error(_cli(["posegraph", "bench", "--dataset", "m3500", "-q", "--data", tmp_path / "nodata",
+                            "--out", out, *args]), message)
+    assert not out.exists()
+
+
+def test_run_benchmark_validates_its_arguments():
+    ref, gt = manhattan_like(30, seed=2)
+    kw = {"instances": 1, "progress": False, "reference": (ref, gt, "synthetic")}
+    for extra, message in (
+            ({"methods": ()}, "no initial guesses to compare; give --methods from " + _METHODS),
+            ({"methods": ("masat", "masat")}, "a benchmark method is listed twice in masat,masat; list each once"),
+            ({"seed": -1}, "--seed must be a whole number >= 0, not -1; give e.g. --seed 0"),
+            ({"tol": float("nan")}, "--tol must be a finite number above 0, not nan; give e.g. --tol 1e-6")):
+        with pytest.raises(InputError) as e:
+            run_benchmark("m3500", [(0.1, 0.1, 0.1)], **{"methods": ("masat",), **kw, **extra})
+        assert str(e.value) == message
+    with pytest.raises(InputError) as e:
+        run_benchmark("m3500", [(0.1, float("nan"), 0.1)], methods=("masat",), **kw)
+    assert str(e.value) == "noise level (0.1, nan, 0.1) needs three positive standard deviations sx,sy,stheta"
+    with pytest.raises(InputError) as e:
+        run_benchmark("m3500", [], methods=("masat",), **kw)
+    assert str(e.value) == "no noise levels given; give --noise, e.g. 0.2,0.2,0.2 or all"
+
+
+def test_cli_merge_runs_non_utf8_or_broken_csv_is_one_line(tmp_path):
+    bad = tmp_path / "runs.csv"
+    data = b"dataset,sigma_x\nm3500,0.1\xff\n"
+    bad.write_bytes(data)
+    _assert_cli_error(_cli(["posegraph", "bench", "--merge-runs", bad]),
+                      f"benchmark runs file {bad} is not UTF-8 text (byte {data.index(bytes([0xFF]))}); "
+                      "give the text file itself, not a binary or compressed copy")
+    other = tmp_path / "other.csv"
+    other.write_text("dataset,sigma_x\nm3500,0.1\n")
+    _assert_cli_error(_cli(["posegraph", "bench", "--merge-runs", other]),
+                      f"{other}:2: not a runs.csv row of rgbdslam posegraph bench; give the runs.csv of a bench "
+                      "--out folder")

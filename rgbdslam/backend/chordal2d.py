@@ -89,6 +89,15 @@ def refine_headings(graph: PoseGraph, theta: np.ndarray) -> np.ndarray:
     return _solve_anchored(A, b, graph.n_vertices, np.array([0]), graph.source or "pose graph")
 
 
+def _psd_cholesky(omega: np.ndarray) -> np.ndarray:
+    """Cholesky factors of a stack of symmetric 2x2 matrices after clipping negative eigenvalues
+    (plus a relative 1e-12 of the largest, so every factor exists)."""
+    w, V = np.linalg.eigh(omega)
+    top = np.maximum(np.abs(w).max(axis=1, keepdims=True), 1e-300)
+    w = np.maximum(w, 1e-12 * top)
+    return np.linalg.cholesky((V * w[:, None, :]) @ np.transpose(V, (0, 2, 1)))
+
+
 def positions_given_headings(graph: PoseGraph, theta: np.ndarray) -> np.ndarray:
     """Step 3: positions by weighted linear least squares with the headings fixed; returns (n, 3)."""
     n, m = graph.n_vertices, graph.n_edges
@@ -100,7 +109,12 @@ def positions_given_headings(graph: PoseGraph, theta: np.ndarray) -> np.ndarray:
     # translation information in the world frame, whitened by its Cholesky factor: L^T (t_j - t_i - b)
     omega = R @ graph.info[:, :2, :2] @ np.transpose(R, (0, 2, 1))
     omega = 0.5 * (omega + np.transpose(omega, (0, 2, 1))) + 1e-12 * np.eye(2)
-    L = np.linalg.cholesky(omega)  # omega = L L^T; residual weight L^T
+    try:
+        L = np.linalg.cholesky(omega)  # omega = L L^T; residual weight L^T
+    except np.linalg.LinAlgError:
+        # a singular block rounded slightly indefinite (the readers accept eigenvalues down to
+        # -1e-5 of the largest): clip its negative eigenvalues, then factor it
+        L = _psd_cholesky(omega)
     Lt = np.transpose(L, (0, 2, 1))
     # unknowns x_k at 2k, y_k at 2k+1; row (2e + a) = sum_b Lt[e, a, b] (t_j[b] − t_i[b])
     e = np.arange(m)

@@ -174,10 +174,11 @@ def gauss_newton_g2o(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, 
     Vertex ``root`` is held at ``initial[root]``.  Stops at the first iteration passing the
     convergence test; a singular system or a non-finite χ² ends the run as not converged.
     """
-    from rgbdslam.backend.optimize import CRITERIA, GNResult, iterate_until_converged
+    from rgbdslam.backend.optimize import CRITERIA, GNResult, check_iteration_options, iterate_until_converged
 
     if criterion not in CRITERIA:
         raise InputError(f"unknown convergence criterion {criterion!r}; use relative or absolute")
+    check_iteration_options(max_iter, tol, allow_zero_tol=True)
     ei, ej, z, om = _edge_arrays(graph)
     poses = np.array(initial, float, copy=True)
     n = graph.n_vertices

@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 from rgbdslam.backend.graph import PoseGraph, empty_poses, se3_from_tq, se3_to_tq, wrap_angle
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.text import read_text
 
 FORMATS = ("auto", "g2o", "toro", "isam")
 
@@ -44,18 +45,31 @@ _IGNORED = {"g2o": {"FIX"}, "toro": {"EQUIV"},
 _IU3 = np.triu_indices(3)
 _IU6 = np.triu_indices(6)
 
+# Vertex ids are parsed as floats: above 2**53 neighbouring integers collapse onto one float.
+_MAX_ID = 2.0**53
+# An information matrix counts as positive semi-definite when its smallest eigenvalue is above
+# -_PSD_RTOL x its largest |eigenvalue|.  Files written with 6 significant digits (g2o's default)
+# perturb the eigenvalues of a singular but valid 6x6 matrix by at most ~3e-6 of the largest one,
+# so this tolerance accepts rounded files and still rejects real sign errors (e.g. SE-Sync's
+# cubicle.g2o has edges at -0.47).
+_PSD_RTOL = 1e-5
 
-def detect_format(path: str | Path) -> str:
-    """Guess the format from the record tags in the first lines of the file."""
+
+def _lines(path: Path) -> list[str]:
+    return read_text(path, "pose-graph file").splitlines()
+
+
+def detect_format(path: str | Path, lines: list[str] | None = None) -> str:
+    """Guess the format from the record tags in the first lines of the file (``lines``: the
+    file's lines, if already read)."""
     path = Path(path)
+    if lines is None:
+        lines = _lines(path)
     tags = set()
-    with open(path) as f:
-        for k, line in enumerate(f):
-            if k > 5000:
-                break
-            p = line.split(maxsplit=1)
-            if p and not p[0].startswith("#"):
-                tags.add(p[0])
+    for line in lines[:5001]:
+        p = line.split(maxsplit=1)
+        if p and not p[0].startswith("#"):
+            tags.add(p[0])
     if tags & {"VERTEX_SE2", "EDGE_SE2", "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT"}:
         return "g2o"
     if tags & {"ODOMETRY", "EDGE3"} or (tags & _IGNORED["isam"]):
@@ -67,26 +81,25 @@ def detect_format(path: str | Path) -> str:
     raise InputError(f"{path}: no g2o, TORO or iSAM pose-graph records found; give a .g2o, TORO .graph or iSAM .txt file")
 
 
-def _scan(path: Path, spec: dict[str, int], ignored: set[str]):
+def _scan(path: Path, text_lines: list[str], spec: dict[str, int], ignored: set[str]):
     """Group numeric fields of each known tag; returns (rows by tag, line numbers by tag, notes)."""
     rows: dict[str, list[list[str]]] = defaultdict(list)
     lines: dict[str, list[int]] = defaultdict(list)
     skipped: dict[str, int] = defaultdict(int)
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            p = line.split()
-            if not p or p[0].startswith("#"):
-                continue
-            tag = p[0]
-            if tag in spec:
-                if len(p) - 1 != spec[tag]:
-                    raise InputError(f"{path}:{lineno}: {tag} needs {spec[tag]} numbers, found {len(p) - 1}; fix or remove the line")
-                rows[tag].append(p[1:])
-                lines[tag].append(lineno)
-            elif tag in ignored:
-                skipped[tag] += 1
-            else:
-                raise InputError(f"{path}:{lineno}: unsupported record {tag!r}; remove it or convert the file to g2o")
+    for lineno, line in enumerate(text_lines, 1):
+        p = line.split()
+        if not p or p[0].startswith("#"):
+            continue
+        tag = p[0]
+        if tag in spec:
+            if len(p) - 1 != spec[tag]:
+                raise InputError(f"{path}:{lineno}: {tag} needs {spec[tag]} numbers, found {len(p) - 1}; fix or remove the line")
+            rows[tag].append(p[1:])
+            lines[tag].append(lineno)
+        elif tag in ignored:
+            skipped[tag] += 1
+        else:
+            raise InputError(f"{path}:{lineno}: unsupported record {tag!r}; remove it or convert the file to g2o")
     notes = [f"ignored {c} {t} record(s)" for t, c in sorted(skipped.items())]
     return rows, lines, notes
 
@@ -106,17 +119,77 @@ def _numbers(path: Path, tag: str, rows, lines) -> np.ndarray:
 
 
 def _int_ids(path: Path, tag: str, a: np.ndarray, lines) -> np.ndarray:
-    ids = a.astype(np.int64)
-    bad = np.flatnonzero((ids != a) | (ids < 0))
+    # range first (NaN fails it too), so the cast below never sees a value int64 cannot hold
+    bad = np.flatnonzero(~((a >= 0) & (a < _MAX_ID)) | (a != np.floor(a)))
     if len(bad):
-        raise InputError(f"{path}:{lines[bad[0]]}: {tag} vertex id must be a non-negative integer; fix the line")
-    return ids
+        raise InputError(f"{path}:{lines[bad[0]]}: {tag} vertex id must be a non-negative integer below 2^53; "
+                         f"fix the line")
+    return a.astype(np.int64)
 
 
 def _check_finite(path: Path, tag: str, a: np.ndarray, lines):
+    if len(a) == 0:
+        return
     bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
     if len(bad):
-        raise InputError(f"{path}:{lines[bad[0]]}: {tag} has a non-finite number; fix the line")
+        raise InputError(f"{path}:{lines[bad[0]]}: {tag} has a non-finite number (nan or inf); fix the line")
+
+
+def _check_info(path: Path, tag: str, info: np.ndarray, lines, what: str = "information matrix"):
+    """Every edge's information must be finite, not all zero and without a negative diagonal
+    entry (else an InputError names the first bad edge by ``file:line``); an otherwise
+    indefinite matrix (beyond :data:`_PSD_RTOL`) is replaced by its nearest PSD matrix.
+    Returns ``(info, note or None)``.  Vectorised: only matrices
+    with off-diagonal entries need an eigen-decomposition (a diagonal one is PSD iff its diagonal
+    is >= 0), so City10k / M10000 cost a few milliseconds."""
+    n = len(info)
+    if n == 0:
+        return info, None
+    d = info.shape[1]
+    flat = info.reshape(n, d * d)
+    finite = np.isfinite(flat).all(axis=1) if not np.isfinite(flat).all() else np.ones(n, bool)
+    diag = flat[:, :: d + 1]
+    iu = np.triu_indices(d, 1)
+    has_off = (flat[:, iu[0] * d + iu[1]] != 0).any(axis=1)
+    with np.errstate(invalid="ignore"):  # rows with inf/nan are reported as non-finite below
+        zero = finite & ~has_off & ~(diag != 0).any(axis=1)
+        # a PSD matrix has no negative diagonal entry, and rounding cannot make one: no tolerance here
+        neg_diag = finite & (diag < 0).any(axis=1)
+    bad_eig = np.zeros(n, bool)
+    w_min = np.zeros(n)
+    w_max = np.zeros(n)
+    full = np.flatnonzero(finite & has_off & ~neg_diag)
+    if len(full):
+        w = np.linalg.eigvalsh(info[full])
+        w_min[full], w_max[full] = w[:, 0], np.abs(w).max(axis=1)
+        bad_eig[full] = w_min[full] < -_PSD_RTOL * w_max[full]
+    bad = ~finite | zero | neg_diag
+    if not bad.any():
+        if not bad_eig.any():
+            return info, None
+        # finite, a non-negative diagonal, but indefinite: real benchmark files have such edges
+        # (SE-Sync's cubicle.g2o: 5021 of 16869, z coupled to roll/pitch with ~1e5 off-diagonals).
+        # Keep the file usable: clip the negative eigenvalues (the nearest PSD matrix, Frobenius).
+        k = np.flatnonzero(bad_eig)
+        w, V = np.linalg.eigh(info[k])
+        info = info.copy()
+        info[k] = np.einsum("nij,nj,nkj->nik", V, np.maximum(w, 0.0), V)
+        first = int(k[0])
+        return info, (f"{len(k)} {tag} {what}(s) are indefinite (first at line {lines[first]}: smallest eigenvalue "
+                      f"{w_min[first]:.4g}, largest {w_max[first]:.4g}); each was replaced by the nearest positive "
+                      f"semi-definite matrix (negative eigenvalues set to 0)")
+    k = int(np.flatnonzero(bad)[0])
+    where = f"{path}:{lines[k]}: {tag}"
+    if not finite[k]:
+        raise InputError(f"{where} {what} is not finite (its entries overflow); give finite information entries "
+                         f"on the line")
+    if zero[k]:
+        raise InputError(f"{where} {what} is all zero, so the edge constrains nothing; give its information "
+                         f"(inverse covariance) or remove the line")
+    if neg_diag[k]:
+        raise InputError(f"{where} {what} has a negative diagonal entry ({diag[k].min():.4g}), so it is not positive "
+                         f"semi-definite; fix the line's information entries (an inverse covariance)")
+    raise AssertionError("unreachable")  # pragma: no cover
 
 
 def _assemble(path, dim, vid, vposes, ei_raw, ej_raw, meas, info, edge_lines, fmt, notes) -> PoseGraph:
@@ -148,8 +221,8 @@ def _sym_from_upper(vals: np.ndarray, d: int) -> np.ndarray:
     return M
 
 
-def _read_g2o(path: Path) -> PoseGraph:
-    rows, lines, notes = _scan(path, _G2O, _IGNORED["g2o"])
+def _read_g2o(path: Path, text_lines: list[str]) -> PoseGraph:
+    rows, lines, notes = _scan(path, text_lines, _G2O, _IGNORED["g2o"])
     has2 = "EDGE_SE2" in rows or "VERTEX_SE2" in rows
     has3 = "EDGE_SE3:QUAT" in rows or "VERTEX_SE3:QUAT" in rows
     if has2 and has3:
@@ -157,6 +230,7 @@ def _read_g2o(path: Path) -> PoseGraph:
     if has2:
         v = _numbers(path, "VERTEX_SE2", rows["VERTEX_SE2"], lines["VERTEX_SE2"])
         e = _numbers(path, "EDGE_SE2", rows["EDGE_SE2"], lines["EDGE_SE2"])
+        _check_finite(path, "VERTEX_SE2", v, lines["VERTEX_SE2"])
         _check_finite(path, "EDGE_SE2", e, lines["EDGE_SE2"])
         vid = _int_ids(path, "VERTEX_SE2", v[:, 0], lines["VERTEX_SE2"]) if len(v) else np.zeros(0, np.int64)
         vposes = v[:, 1:4] if len(v) else np.zeros((0, 3))
@@ -164,9 +238,12 @@ def _read_g2o(path: Path) -> PoseGraph:
         ej = _int_ids(path, "EDGE_SE2", e[:, 1], lines["EDGE_SE2"]) if len(e) else np.zeros(0, np.int64)
         meas = e[:, 2:5] if len(e) else np.zeros((0, 3))
         info = _sym_from_upper(e[:, 5:11], 3) if len(e) else np.zeros((0, 3, 3))
+        info, note = _check_info(path, "EDGE_SE2", info, lines["EDGE_SE2"])
+        notes = notes + [note] if note else notes
         return _assemble(path, 2, vid, vposes, ei, ej, meas, info, lines["EDGE_SE2"], "g2o", notes)
     v = _numbers(path, "VERTEX_SE3:QUAT", rows["VERTEX_SE3:QUAT"], lines["VERTEX_SE3:QUAT"])
     e = _numbers(path, "EDGE_SE3:QUAT", rows["EDGE_SE3:QUAT"], lines["EDGE_SE3:QUAT"])
+    _check_finite(path, "VERTEX_SE3:QUAT", v, lines["VERTEX_SE3:QUAT"])
     _check_finite(path, "EDGE_SE3:QUAT", e, lines["EDGE_SE3:QUAT"])
     for tag, a, q in (("VERTEX_SE3:QUAT", v, slice(4, 8)), ("EDGE_SE3:QUAT", e, slice(5, 9))):
         if len(a):
@@ -181,15 +258,18 @@ def _read_g2o(path: Path) -> PoseGraph:
     ej = _int_ids(path, "EDGE_SE3:QUAT", e[:, 1], lines["EDGE_SE3:QUAT"])
     meas = se3_from_tq(e[:, 2:5], e[:, 5:9])
     info = _sym_from_upper(e[:, 9:30], 6)
+    info, note = _check_info(path, "EDGE_SE3:QUAT", info, lines["EDGE_SE3:QUAT"])
+    notes = notes + [note] if note else notes
     return _assemble(path, 3, vid, vposes, ei, ej, meas, info, lines["EDGE_SE3:QUAT"], "g2o", notes)
 
 
-def _read_toro(path: Path) -> PoseGraph:
-    rows, lines, notes = _scan(path, _TORO, _IGNORED["toro"])
+def _read_toro(path: Path, text_lines: list[str]) -> PoseGraph:
+    rows, lines, notes = _scan(path, text_lines, _TORO, _IGNORED["toro"])
     v = _numbers(path, "VERTEX2", rows["VERTEX2"], lines["VERTEX2"])
     e = _numbers(path, "EDGE2", rows["EDGE2"], lines["EDGE2"])
     if len(e) == 0:
         raise InputError(f"{path}: the file has no pose-graph edges; give a graph with EDGE records")
+    _check_finite(path, "VERTEX2", v, lines["VERTEX2"])
     _check_finite(path, "EDGE2", e, lines["EDGE2"])
     vid = _int_ids(path, "VERTEX2", v[:, 0], lines["VERTEX2"]) if len(v) else np.zeros(0, np.int64)
     vposes = v[:, 1:4] if len(v) else np.zeros((0, 3))
@@ -197,11 +277,13 @@ def _read_toro(path: Path) -> PoseGraph:
     ej = _int_ids(path, "EDGE2", e[:, 1], lines["EDGE2"])
     xx, xy, yy, tt, xt, yt = e[:, 5:11].T
     info = np.stack([np.stack([xx, xy, xt], -1), np.stack([xy, yy, yt], -1), np.stack([xt, yt, tt], -1)], 1)
+    info, note = _check_info(path, "EDGE2", info, lines["EDGE2"])
+    notes = notes + [note] if note else notes
     return _assemble(path, 2, vid, vposes, ei, ej, e[:, 2:5], info, lines["EDGE2"], "TORO", notes)
 
 
-def _read_isam(path: Path) -> PoseGraph:
-    rows, lines, notes = _scan(path, _ISAM, _IGNORED["isam"])
+def _read_isam(path: Path, text_lines: list[str]) -> PoseGraph:
+    rows, lines, notes = _scan(path, text_lines, _ISAM, _IGNORED["isam"])
     two = rows["ODOMETRY"] + rows["EDGE2"]
     two_lines = lines["ODOMETRY"] + lines["EDGE2"]
     if two and rows["EDGE3"]:
@@ -216,7 +298,10 @@ def _read_isam(path: Path) -> PoseGraph:
         ej = _int_ids(path, "EDGE2", e[:, 1], el)
         R = np.zeros((len(e), 3, 3))
         R[:, _IU3[0], _IU3[1]] = e[:, 5:11]
-        info = np.einsum("nki,nkj->nij", R, R)
+        with np.errstate(over="ignore", invalid="ignore"):
+            info = np.einsum("nki,nkj->nij", R, R)
+        info, note = _check_info(path, "EDGE2", info, el, "information matrix (R^T R of the square-root entries)")
+        notes = notes + [note] if note else notes
         return _assemble(path, 2, np.zeros(0, np.int64), np.zeros((0, 3)), ei, ej, e[:, 2:5], info, el, "iSAM", notes)
     e = _numbers(path, "EDGE3", rows["EDGE3"], lines["EDGE3"])
     el = lines["EDGE3"]
@@ -230,7 +315,10 @@ def _read_isam(path: Path) -> PoseGraph:
     meas[:, :3, 3] = e[:, 2:5]
     R = np.zeros((len(e), 6, 6))
     R[:, _IU6[0], _IU6[1]] = e[:, 8:29]
-    info = np.einsum("nki,nkj->nij", R, R)  # (x, y, z, roll, pitch, yaw) = g2o (t, r) order
+    with np.errstate(over="ignore", invalid="ignore"):
+        info = np.einsum("nki,nkj->nij", R, R)  # (x, y, z, roll, pitch, yaw) = g2o (t, r) order
+    info, note = _check_info(path, "EDGE3", info, el, "information matrix (R^T R of the square-root entries)")
+    notes = notes + [note] if note else notes
     return _assemble(path, 3, np.zeros(0, np.int64), np.zeros((0, 4, 4)), ei, ej, meas, info, el, "iSAM", notes)
 
 
@@ -241,9 +329,10 @@ def read_graph(path: str | Path, fmt: str = "auto") -> PoseGraph:
         raise InputError(f"pose-graph file {path} does not exist; check the path")
     if fmt not in FORMATS:
         raise InputError(f"unknown pose-graph format {fmt!r}; use one of {', '.join(FORMATS)}")
+    text_lines = _lines(path)
     if fmt == "auto":
-        fmt = detect_format(path)
-    return {"g2o": _read_g2o, "toro": _read_toro, "isam": _read_isam}[fmt](path)
+        fmt = detect_format(path, text_lines)
+    return {"g2o": _read_g2o, "toro": _read_toro, "isam": _read_isam}[fmt](path, text_lines)
 
 
 def _upper(M: np.ndarray, d: int) -> np.ndarray:

@@ -8,9 +8,11 @@
 * ``lago`` (SE(2)) — GTSAM's LAGO (``gtsam.lago.initialize(graph, useOdometricPath=False)``: its
   2kπ angle unwrapping along a spanning tree instead of the odometry chain, which was better on
   M3500 at σθ = 0.05–0.2 — both fail often at the paper's noise levels, see docs/posegraph.md);
-  ``chordal`` — SE(3): GTSAM's chordal relaxation (``gtsam.InitializePose3.initialize``); SE(2):
+  ``chordal`` — SE(3): GTSAM's chordal relaxation (``gtsam.InitializePose3.initialize``; on a
+  tree, which it cannot solve, the exact chained poses that are the relaxation's optimum); SE(2):
   this project's chordal relaxation of the headings + linear positions
-  (:mod:`rgbdslam.backend.chordal2d`). ``lago`` on an SE(3) graph runs GTSAM's chordal one.
+  (:mod:`rgbdslam.backend.chordal2d`). ``lago`` is SE(2) only: on an SE(3) graph it is an
+  InputError that points to ``chordal``.
 
 All return poses with vertex 0 at the origin / identity: ``(n, 3)`` rows ``(x, y, theta)`` for
 SE(2), ``(n, 4, 4)`` matrices for SE(3).
@@ -150,24 +152,44 @@ def spanning_tree(graph: PoseGraph, tie_break="index") -> np.ndarray:
 
 
 def _gtsam_init(graph: PoseGraph) -> np.ndarray:
+    """GTSAM's LAGO (SE(2)) or chordal ``InitializePose3`` (SE(3)); a failure is one line."""
     import gtsam
 
-    from rgbdslam.backend.optimize import build_factor_graph, poses_from_values
+    from rgbdslam.backend.optimize import build_factor_graph, error_summary, name_vertices, poses_from_values
 
     bfs_order(graph.n_vertices, graph.edges_i, graph.edges_j)  # connectivity check, clear error
     fg = build_factor_graph(graph, root=0)
+    name = "LAGO" if graph.dim == 2 else "chordal initialiser (InitializePose3)"
     try:
         if graph.dim == 2:
             vals = gtsam.lago.initialize(fg, False)  # BFS spanning tree for the 2kπ unwrapping
         else:
             vals = gtsam.InitializePose3.initialize(fg)
-    except RuntimeError as e:
-        raise InputError(f"{graph.source or 'pose graph'}: GTSAM's initialiser failed ({e}); try --method masat") from None
+    except (RuntimeError, ValueError) as e:
+        why = name_vertices(error_summary(e), graph)
+        hint = "use --method masat"
+        if "Indeterminate" in why:
+            hint = "check that the information of that vertex's edges constrains its rotation, or " + hint
+        raise InputError(f"{graph.source or 'pose graph'}: GTSAM's {name} failed ({why}); {hint}") from None
     poses = poses_from_values(graph.dim, vals, graph.n_vertices)
+    if not np.all(np.isfinite(poses)):
+        raise InputError(f"{graph.source or 'pose graph'}: GTSAM's {name} returned non-finite poses; "
+                         f"use --method masat")
     return poses
 
 
 def lago(graph: PoseGraph) -> np.ndarray:
+    """GTSAM's LAGO; SE(2) only (an SE(3) graph is an InputError pointing to ``chordal``)."""
+    if graph.dim != 2:
+        raise InputError(f"{graph.source or 'pose graph'}: LAGO is for 2-D (SE(2)) graphs only and this graph is "
+                         f"3-D (SE(3)); use --method chordal (GTSAM's chordal initialiser) or masat")
+    full = np.flatnonzero(np.any(graph.info[:, [0, 0, 1, 1, 2, 2], [1, 2, 0, 2, 0, 1]] != 0, axis=1))
+    if len(full):
+        k = int(full[0])
+        raise InputError(f"{graph.source or 'pose graph'}: GTSAM's LAGO needs diagonal information matrices, and "
+                         f"{len(full)} edge(s) have off-diagonal terms (the first joins vertices "
+                         f"{graph.ids[graph.edges_i[k]]} and {graph.ids[graph.edges_j[k]]}); use --method chordal "
+                         f"(our SE(2) chordal relaxation uses the full information) or masat")
     return _gtsam_init(graph)
 
 
@@ -176,6 +198,12 @@ def chordal(graph: PoseGraph) -> np.ndarray:
         from rgbdslam.backend.chordal2d import chordal_se2
 
         return chordal_se2(graph)
+    bfs_order(graph.n_vertices, graph.edges_i, graph.edges_j)  # connected (a clear error otherwise)
+    if graph.n_edges == graph.n_vertices - 1:
+        # A tree: every constraint can be met exactly, so the chordal relaxation's optimum is the
+        # tree's chained poses (GTSAM 4.3's InitializePose3 throws IndeterminantLinearSystem on any
+        # graph without a loop).
+        return spanning_tree(graph)
     return _gtsam_init(graph)
 
 
@@ -192,7 +220,7 @@ def initialize(graph: PoseGraph, method: str) -> np.ndarray:
     if method == "chordal":
         return chordal(graph)
     if method == "lago":
-        return _gtsam_init(graph)
+        return lago(graph)
     raise InputError(f"unknown initialisation method {method!r}; use one of {', '.join(METHODS)}")
 
 

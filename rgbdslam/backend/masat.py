@@ -40,6 +40,10 @@ from rgbdslam.backend.graph import PoseGraph, se2_inverse, se3_inverse
 from rgbdslam.errors import InputError
 
 _EPS_VAR = 1e-12
+# Variances are capped here: a prediction through a huge measurement or a long chain of nearly
+# uninformative edges can overflow to inf (or inf * 0 = nan), which would zero every weight of a
+# vertex (0/0).  At the cap its weight is ~1e-300: it only counts when nothing better exists.
+_MAX_VAR = 1e300
 
 
 def bfs_order(n: int, ei: np.ndarray, ej: np.ndarray, root: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -93,13 +97,21 @@ def _incoming(n: int, ei: np.ndarray, ej: np.ndarray, order: np.ndarray):
 def _edge_variances(info: np.ndarray, dim: int, t_slice: slice, r_slice: slice) -> tuple[np.ndarray, np.ndarray]:
     """Mean marginal translation / rotation variance of each edge from its information matrix."""
     info = np.asarray(info, float)
-    try:
-        cov = np.linalg.inv(info)
-    except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(info)
-    d = np.diagonal(cov, axis1=-2, axis2=-1)
-    vt = np.maximum(d[:, t_slice].mean(axis=1), _EPS_VAR)
-    vr = np.maximum(d[:, r_slice].mean(axis=1), _EPS_VAR)
+    with np.errstate(all="ignore"):
+        try:
+            cov = np.linalg.inv(info)
+            d = np.diagonal(cov, axis1=-2, axis2=-1).copy()
+        except np.linalg.LinAlgError:
+            # a singular information leaves some directions unmeasured: a coordinate outside the
+            # range of the information has infinite marginal variance (not the pseudo-inverse's 0)
+            cov = np.linalg.pinv(info)
+            d = np.diagonal(cov, axis1=-2, axis2=-1).copy()
+            in_range = np.diagonal(info @ cov, axis1=-2, axis2=-1) > 1 - 1e-6  # projector onto the range
+            d[~in_range] = np.inf
+        vt = d[:, t_slice].mean(axis=1)
+        vr = d[:, r_slice].mean(axis=1)
+    vt = np.where(vt < _MAX_VAR, np.maximum(vt, _EPS_VAR), _MAX_VAR)  # nan -> the cap too
+    vr = np.where(vr < _MAX_VAR, np.maximum(vr, _EPS_VAR), _MAX_VAR)
     return vt, vr
 
 
@@ -148,7 +160,8 @@ def masat_se2(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int
             raise InputError("weighted MASAT needs each edge's information matrix; pass info")
         vt_e, vr_e = _edge_variances(np.asarray(info, float).reshape(-1, 3, 3)[perm], 2, slice(0, 2), slice(2, 3))
         vt_e, vr_e = vt_e.tolist(), vr_e.tolist()
-        d2 = (z[:, 0] ** 2 + z[:, 1] ** 2).tolist()
+        with np.errstate(over="ignore"):
+            d2 = (z[:, 0] ** 2 + z[:, 1] ** 2).tolist()
         VT = [0.0] * n
         VR = [0.0] * n
         for r in range(1, n):
@@ -160,6 +173,10 @@ def masat_se2(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int
                 c, si = C[s], S[s]
                 vt = VT[s] + vt_e[k] + d2[k] * VR[s]
                 vr = VR[s] + vr_e[k]
+                if not vt < _MAX_VAR:  # inf or nan (inf * 0)
+                    vt = _MAX_VAR
+                if not vr < _MAX_VAR:
+                    vr = _MAX_VAR
                 wt = 1.0 / vt
                 wr = 1.0 / vr
                 mvt = vt if vt < mvt else mvt
@@ -243,7 +260,8 @@ def masat_se3(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int
             raise InputError(f"info_order must be 'rot_trans' or 'trans_rot', not {info_order!r}")
         ts, rs = (slice(3, 6), slice(0, 3)) if info_order == "rot_trans" else (slice(0, 3), slice(3, 6))
         vt_e, vr_e = _edge_variances(np.asarray(info, float).reshape(-1, 6, 6)[perm], 3, ts, rs)
-        d2 = np.einsum("ki,ki->k", tz, tz)
+        with np.errstate(over="ignore"):
+            d2 = np.einsum("ki,ki->k", tz, tz)
         VT = np.zeros(n)
         VR = np.zeros(n)
     # Vertices whose predecessors are all placed can be placed together: batch by dependency
@@ -266,8 +284,11 @@ def masat_se3(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int
         Rp = Rs @ Rz[e]
         tp = t[s] + np.einsum("kij,kj->ki", Rs, tz[e])
         if weighted:
-            vt = VT[s] + vt_e[e] + d2[e] * VR[s]
-            vr = VR[s] + vr_e[e]
+            with np.errstate(over="ignore", invalid="ignore"):
+                vt = VT[s] + vt_e[e] + d2[e] * VR[s]
+                vr = VR[s] + vr_e[e]
+            vt = np.where(vt < _MAX_VAR, vt, _MAX_VAR)  # inf or nan (inf * 0): the cap
+            vr = np.where(vr < _MAX_VAR, vr, _MAX_VAR)
             wt = 1.0 / vt
             wr = 1.0 / vr
         else:

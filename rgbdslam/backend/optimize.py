@@ -18,6 +18,7 @@ on M3500 it reproduces the paper's iteration counts (MASAT 6–7 at σ = 0.1 vs 
 from __future__ import annotations
 
 import math
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -111,6 +112,45 @@ class GNResult:
     failure: str = ""
 
 
+def error_summary(e: BaseException, limit: int = 200) -> str:
+    """One line for a solver's exception text: its first paragraph with the line breaks joined
+    (GTSAM's messages start with a blank line and go on with advice and a URL).  An exception
+    without text gets a generic explanation instead of an empty string."""
+    text = str(e)
+    para: list[str] = []
+    for line in text.splitlines():
+        if line.strip():
+            para.append(line.strip())
+        elif para:
+            break
+    out = " ".join(para)
+    if not out:
+        return "the solver gave no details (the linear system is probably singular or not positive definite)"
+    return out if len(out) <= limit else out[:limit - 3].rstrip() + "..."
+
+
+def name_vertices(text: str, graph: PoseGraph) -> str:
+    """GTSAM names a variable by its key, our dense vertex index: say the file's vertex id instead."""
+    def sub(m):
+        k = int(m.group(1))
+        return f"vertex {graph.ids[k]}" if 0 <= k < graph.n_vertices else m.group(0)
+
+    return re.sub(r"variable (\d+) \(Symbol: \d+\)", sub, text)
+
+
+def check_iteration_options(max_iter, tol, allow_zero_tol: bool = False) -> None:
+    """``max_iter`` >= 1 and a finite ``tol`` > 0 (else an :class:`InputError` naming the option).
+    ``allow_zero_tol``: the library's ``tol=0`` (run exactly ``max_iter`` iterations) is accepted."""
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise InputError(f"--max-iter must be a whole number of at least 1, not {max_iter!r}; give e.g. --max-iter 50")
+    try:
+        t = float(tol)
+    except (TypeError, ValueError):
+        t = float("nan")
+    if not (math.isfinite(t) and (t > 0 or (allow_zero_tol and t == 0))):
+        raise InputError(f"--tol must be a finite number above 0, not {tol!r}; give e.g. --tol 1e-6")
+
+
 def has_converged(prev: float, cur: float, tol: float, criterion: str) -> bool:
     if not (math.isfinite(prev) and math.isfinite(cur)):
         return False
@@ -134,7 +174,7 @@ def iterate_until_converged(step: Callable[[], float], chi2_0: float, max_iter: 
         try:
             cur = step()
         except RuntimeError as e:
-            return hist, False, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", it
+            return hist, False, f"{type(e).__name__}: {error_summary(e)}", it
         hist.append(cur)
         if callback:
             callback(it, cur)
@@ -158,6 +198,7 @@ def gauss_newton(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, tol:
     """
     if criterion not in CRITERIA:
         raise InputError(f"unknown convergence criterion {criterion!r}; use relative or absolute")
+    check_iteration_options(max_iter, tol, allow_zero_tol=True)
     initial = np.asarray(initial, float)
     fg = build_factor_graph(graph, prior_pose=initial[0])
     params = gtsam.LevenbergMarquardtParams() if damped else gtsam.GaussNewtonParams()
@@ -173,6 +214,7 @@ def gauss_newton(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, tol:
         return 2.0 * opt.error()
 
     hist, converged, failure, it = iterate_until_converged(step, 2.0 * opt.error(), max_iter, tol, criterion, callback)
+    failure = name_vertices(failure, graph)
     seconds = time.perf_counter() - t0
     poses = poses_from_values(graph.dim, opt.values(), graph.n_vertices) if keep_poses and not failure else None
     return GNResult(converged, it, hist[0], hist[-1], hist, seconds, poses, failure)
@@ -202,7 +244,14 @@ def optimize_file(path, init: str = "masat", out=None, max_iter: int = 50, tol: 
     from rgbdslam.backend.graph_io import read_graph, write_g2o
     from rgbdslam.backend.initializers import initialize
 
+    check_iteration_options(max_iter, tol)
+    if criterion not in CRITERIA:
+        raise InputError(f"unknown convergence criterion {criterion!r}; use relative or absolute")
+    if optimizer not in OPTIMIZERS:
+        raise InputError(f"unknown optimizer {optimizer!r}; use {' or '.join(OPTIMIZERS)}")
     graph = read_graph(path, fmt)
+    if optimizer == "g2o" and graph.dim != 2:
+        raise InputError(f"{path} is an SE(3) graph and --optimizer g2o is SE(2) only; use --optimizer gtsam or lm")
     t0 = time.perf_counter()
     if init == "file":
         if not graph.has_poses:
@@ -221,7 +270,10 @@ def optimize_file(path, init: str = "masat", out=None, max_iter: int = 50, tol: 
 
         res = run_gauss_newton(graph, poses, optimizer, max_iter=max_iter, tol=tol, criterion=criterion, callback=cb)
     if res.poses is None:
-        raise InputError(f"{path}: Gauss-Newton failed ({res.failure}); try another --init")
+        hint = "try another --init" + ("" if optimizer == "lm" else " or --optimizer lm")
+        if "near vertex" in res.failure:
+            hint += ", and check that the information of that vertex's edges constrains all of its pose"
+        raise InputError(f"{path}: {label} failed at iteration {res.iterations} ({res.failure}); {hint}")
     if out is not None:
         write_g2o(out, graph, res.poses)
     dof = max(degrees_of_freedom(graph), 1)

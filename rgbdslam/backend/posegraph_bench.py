@@ -33,9 +33,11 @@ import numpy as np
 from rgbdslam.backend.graph import PoseGraph, se2_between, wrap_angle
 from rgbdslam.backend.graph_io import read_graph
 from rgbdslam.backend.initializers import initialize
-from rgbdslam.backend.optimize import OPTIMIZERS, degrees_of_freedom, gauss_newton, has_converged, run_gauss_newton
+from rgbdslam.backend.optimize import (OPTIMIZERS, check_iteration_options, degrees_of_freedom, gauss_newton,
+                                       has_converged, run_gauss_newton)
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.text import read_text
 
 DATASETS = ("m3500", "city10k", "m10000")
 DATASET_NAMES = {"m3500": "M3500", "city10k": "City10k", "m10000": "M10000"}
@@ -111,10 +113,52 @@ def parse_noise(text: str) -> list[tuple[float, float, float]]:
             raise InputError(f"--noise {text!r} is not 'all' or numbers like 0.2,0.2,0.2") from None
         if len(vals) == 1:
             vals = vals * 3
-        if len(vals) != 3 or min(vals) <= 0:
+        if len(vals) != 3 or not all(v > 0 for v in vals):  # "not v > 0" also catches nan
             raise InputError(f"--noise {part!r} needs three positive standard deviations sx,sy,stheta")
+        check_noise_level(vals, f"--noise {part!r}")
         levels.append(tuple(vals))
     return levels
+
+
+def check_noise_level(sigma, what: str = "noise level") -> None:
+    """Three finite standard deviations > 0 whose information 1/σ² is a usable (finite, non-zero)
+    number; an :class:`InputError` naming ``what`` otherwise."""
+    try:
+        vals = np.array([float(v) for v in sigma])
+    except (TypeError, ValueError):
+        raise InputError(f"{what} is not three numbers sx,sy,stheta; give e.g. 0.2,0.2,0.2") from None
+    if len(vals) != 3 or not np.all(vals > 0):  # "not v > 0" also catches nan
+        raise InputError(f"{what} needs three positive standard deviations sx,sy,stheta")
+    if not np.all(np.isfinite(vals)):
+        raise InputError(f"{what} has an infinite standard deviation; give finite values like 0.2,0.2,0.2")
+    with np.errstate(over="ignore", under="ignore", divide="ignore"):
+        info = 1.0 / np.square(vals)
+    if not np.all(np.isfinite(info) & (info > 0)):
+        raise InputError(f"{what} has a standard deviation so {'small' if np.any(~np.isfinite(info)) else 'large'} "
+                         f"that its information 1/σ² is not a usable number; give values like 0.2,0.2,0.2")
+
+
+def check_seed(seed) -> None:
+    """The noise seed: a whole number >= 0 (NumPy's generators refuse negative seeds)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"--seed must be a whole number >= 0, not {seed!r}; give e.g. --seed 0")
+
+
+def parse_methods(text: str, allowed=BENCH_METHODS) -> tuple[str, ...]:
+    """``"masat, odometry"`` -> ``("masat", "odometry")`` (repeats dropped); an empty list or an
+    unknown name is an :class:`InputError`."""
+    out: list[str] = []
+    for m in (text or "").split(","):
+        m = m.strip()
+        if m and m not in out:
+            out.append(m)
+    if not out:
+        raise InputError(f"--methods {text!r} names no initial guess; give a comma-separated list from "
+                         f"{','.join(allowed)}")
+    unknown = [m for m in out if m not in allowed]
+    if unknown:
+        raise InputError(f"--methods: unknown initial guess(es) {', '.join(unknown)}; use {','.join(allowed)}")
+    return tuple(out)
 
 
 # --------------------------------------------------------------------------- noise-free graphs
@@ -192,6 +236,7 @@ def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int
 
 def protocol_instance(ref: PoseGraph, dataset: str, sigma, level: int, instance: int, seed: int) -> PoseGraph:
     """Noisy instance ``instance`` of noise level ``level`` — the same graph every run of the protocol uses."""
+    check_seed(seed)
     rng = np.random.default_rng([seed, DATASETS.index(dataset) if dataset in DATASETS else 99, level, instance])
     return noisy_instance(ref, sigma, rng)
 
@@ -254,11 +299,25 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
     ``reference`` = ``(noise-free graph, ground-truth poses, note)`` replaces the dataset's files
     (tests, other graphs).  Returns ``{"records": [...], "report": markdown, "note": reference note}``.
     """
-    if instances < 1 or max_iter < 1 or workers < 1 or first_instance < 0:
-        raise InputError("--instances, --max-iter and --workers must be positive, --first-instance >= 0")
+    for name, v, low in (("--instances", instances, 1), ("--workers", workers, 1), ("--first-instance", first_instance, 0)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+            raise InputError(f"{name} must be a whole number >= {low}, not {v!r}")
+    check_iteration_options(max_iter, tol)
+    check_seed(seed)
+    methods = tuple(methods)
+    if not methods:
+        raise InputError(f"no initial guesses to compare; give --methods from {','.join(BENCH_METHODS)}")
     unknown = [m for m in methods if m not in BENCH_METHODS]
     if unknown:
         raise InputError(f"unknown benchmark method(s) {unknown}; use {', '.join(BENCH_METHODS)}")
+    if len(set(methods)) < len(methods):
+        raise InputError(f"a benchmark method is listed twice in {','.join(methods)}; list each once")
+    noise_levels = list(noise_levels)
+    if not noise_levels:
+        raise InputError("no noise levels given; give --noise, e.g. 0.2,0.2,0.2 or all")
+    for s in noise_levels:
+        check_noise_level(s, f"noise level {s!r}")
+    noise_levels = [tuple(float(v) for v in s) for s in noise_levels]
     if criterion not in ("absolute", "relative"):
         raise InputError(f"unknown convergence criterion {criterion!r}; use absolute or relative")
     if optimizer not in OPTIMIZERS:
@@ -607,10 +666,13 @@ def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int =
     if dataset is None:
         raise InputError("--dataset is required (m3500, city10k or m10000) unless --merge-runs is given")
     levels = parse_noise(noise)
-    mlist = tuple(m.strip() for m in methods.split(",") if m.strip())
+    mlist = parse_methods(methods)
+    check_seed(seed)
     if timing_only:
-        return time_initialisers(dataset, levels, seed=seed, data_dir=data_dir,
-                                 methods=tuple(m for m in mlist if m != "ground_truth"))
+        timed = tuple(m for m in mlist if m != "ground_truth")
+        if not timed:
+            raise InputError("--timing-only times initial guesses and ground_truth is none; add a method to --methods")
+        return time_initialisers(dataset, levels, seed=seed, data_dir=data_dir, methods=timed)
     res = run_benchmark(dataset, levels, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                         first_instance=first_instance, optimizer=optimizer,
                         out_dir=out_dir, data_dir=data_dir, methods=mlist, criterion=criterion, progress=progress)
@@ -623,6 +685,13 @@ def time_initialisers(dataset: str, noise_levels, repeats: int = 5, seed: int = 
 
     MASAT's cost depends only on the graph, so its row should be flat across noise levels.
     """
+    check_seed(seed)
+    if not methods:
+        raise InputError("no initial guesses to time; give --methods")
+    if isinstance(repeats, bool) or not isinstance(repeats, (int, np.integer)) or repeats < 1:
+        raise InputError(f"repeats must be a whole number >= 1, not {repeats!r}")
+    for s in noise_levels:
+        check_noise_level(s, f"noise level {s!r}")
     ref, _, note = reference_graph(dataset, data_dir)
     lines = [f"Initialisation time on {DATASET_NAMES.get(dataset, dataset)} ({ref.n_vertices} vertices, "
              f"{ref.n_edges} edges), best of {repeats}, ms:", "",
@@ -648,8 +717,9 @@ def load_runs(path: str | Path) -> list[RunRecord]:
         raise InputError(f"benchmark runs file {path} does not exist; give the runs.csv of a bench --out folder")
     types = {f.name: f.type for f in fields(RunRecord)}
     out = []
-    with open(path, newline="") as f:
-        for lineno, row in enumerate(csv.DictReader(f), 2):
+    text = read_text(path, "benchmark runs file")
+    try:
+        for lineno, row in enumerate(csv.DictReader(io.StringIO(text, newline="")), 2):
             try:
                 kw = {}
                 for k, v in row.items():
@@ -658,7 +728,10 @@ def load_runs(path: str | Path) -> list[RunRecord]:
                         float(v) if t in ("float", float) else v
                 out.append(RunRecord(**kw))
             except (KeyError, ValueError, TypeError):
-                raise InputError(f"{path}:{lineno}: not a runs.csv row of rgbdslam posegraph bench") from None
+                raise InputError(f"{path}:{lineno}: not a runs.csv row of rgbdslam posegraph bench; give the runs.csv "
+                                 f"of a bench --out folder") from None
+    except csv.Error as e:
+        raise InputError(f"{path}: not a readable CSV file ({e}); give the runs.csv of a bench --out folder") from None
     return out
 
 
