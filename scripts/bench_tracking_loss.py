@@ -6,7 +6,8 @@ Usage::
 
 Two sequences, each in a temporary copy (the data are never modified):
 
-* fr1/rpy head200 (``$RGBDSLAM_DATA/tum``) with colour frames 60-89 replaced by black images;
+* fr1/rpy head200 (``$RGBDSLAM_DATA/tum``) with colour frames 60-89 (and, by default, 20-49 and
+  130-164: ``--gaps``) replaced by black images;
 * a synthetic loop (``generate_sequence(motion='loop', noise=True, frames=120, seed=0)``) with
   frames 50-84 black, while the camera moves on and comes back to the start.
 
@@ -75,9 +76,9 @@ def run_case(name: str, seq: Path, first: int, stop: int, out: Path) -> list[dic
     for label, sets in (("default", []), ("loop.relocalize_confirm=1", ["loop.relocalize_confirm=1"]),
                         ("loop.enabled=false", ["loop.enabled=false"])):
         cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *sets])
-        s = run_sequence(seq, out / f"{name}_{label.replace('=', '_')}", cfg, progress=False)
+        s = run_sequence(seq, out / f"{name}_{first}-{stop}_{label.replace('=', '_')}", cfg, progress=False)
         older = [j for i, j in s["loops"] if s["restarts"] and i < s["restarts"][0] <= j]
-        all_, before, after = split_ate(seq / "groundtruth.txt", out / f"{name}_{label.replace('=', '_')}" /
+        all_, before, after = split_ate(seq / "groundtruth.txt", out / f"{name}_{first}-{stop}_{label.replace('=', '_')}" /
                                         "trajectory.tum", stamps[first], stamps[stop])
         rows.append({"sequence": name, "gap": f"{first}–{stop - 1}", "config": label, "frames": s["frames"],
                      "tracked": s["tracked"], "restarts": s["restarts"], "relocalized_at": min(older, default=None),
@@ -111,6 +112,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default=os.environ.get("RGBDSLAM_DATA", str(ROOT.parent / "shared" / "data")))
     ap.add_argument("--work", default=None, help="folder for the altered copies and the runs (default: temporary)")
+    ap.add_argument("--gaps", default="60-90,20-50,130-165",
+                    help="fr1/rpy frames to black out, FIRST-STOP (STOP excluded), comma-separated")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args(argv)
     command = "python scripts/bench_tracking_loss.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
@@ -119,7 +122,10 @@ def main(argv=None) -> int:
     rows = []
     rpy = Path(a.data) / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
     if rpy.is_dir():
-        rows += run_case("freiburg1_rpy_head200", blackout(rpy, work / "rpy_gap", 60, 90), 60, 90, work)
+        for gap in a.gaps.split(","):
+            first, stop = (int(x) for x in gap.split("-"))
+            rows += run_case("freiburg1_rpy_head200", blackout(rpy, work / f"rpy_gap_{first}-{stop}", first, stop),
+                             first, stop, work)
     else:
         print(f"skipping fr1/rpy: {rpy} not found (set --data or RGBDSLAM_DATA)")
     from rgbdslam.datasets.synthetic import generate_sequence
