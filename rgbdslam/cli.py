@@ -70,7 +70,8 @@ def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_s
     Several sequences run one after the other with the same config (camera "auto" is decided
     per sequence); a table of their results is printed and written to OUT/summary.md and .csv."""
     from rgbdslam.config import load_config
-    from rgbdslam.pipeline import format_batch_table, run_sequence, run_sequences
+    from rgbdslam.batch import format_batch_table, run_sequences
+    from rgbdslam.pipeline import run_sequence
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
