@@ -13,7 +13,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.config import MappingConfig
+from rgbdslam.config import Config, MappingConfig
 from rgbdslam.datasets import open_sequence
 from rgbdslam.geometry.se3 import make_pose
 from rgbdslam.io.trajectory import Trajectory, write_tum
@@ -420,3 +420,14 @@ def test_run_json_not_utf8_or_not_an_object(plane_run):
         f"compressed copy")
     (run / "run.json").write_text("[1, 2]")
     assert _one_line_error(_fuse_cli(run)) == f"error: {run / 'run.json'} must hold a JSON object (the run summary), not list; {FIX}"
+
+
+def test_a_run_folder_without_config_warns_that_defaults_are_used(plane_run, capsys):
+    from rgbdslam.mapping.fusion import read_run
+
+    _, run = plane_run
+    (run / "config.yaml").unlink(missing_ok=True)
+    info, cfg, traj = read_run(run)
+    err = capsys.readouterr().err
+    assert f"{run / 'config.yaml'} is missing; the default config is used" in " ".join(err.split())
+    assert cfg.to_dict() == Config().to_dict() and len(traj) == 3

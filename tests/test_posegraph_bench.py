@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import numpy as np
@@ -373,6 +374,8 @@ _METHODS = "odometry,spanning_tree,masat,weighted_masat,lago,chordal,ground_trut
     (["--noise", "inf"], "--noise 'inf' has an infinite standard deviation; give finite values like 0.2,0.2,0.2"),
     (["--instances", "0"], "--instances must be a whole number >= 1, not 0"),
     (["--workers", "0"], "--workers must be a whole number >= 1, not 0"),
+    (["--workers", "100000"], f"--workers 100000 is more than 4x this machine's {os.cpu_count()} CPUs; give at most "
+                              f"{4 * (os.cpu_count() or 1)} (each worker holds a copy of the graph)"),
     (["--first-instance", "-1"], "--first-instance must be a whole number >= 0, not -1"),
     (["--max-iter", "0"], "--max-iter must be a whole number of at least 1, not 0; give e.g. --max-iter 50"),
     (["--timing-only", "--seed", "-2"], "--seed must be a whole number >= 0, not -2; give e.g. --seed 0"),

@@ -302,6 +302,10 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
     for name, v, low in (("--instances", instances, 1), ("--workers", workers, 1), ("--first-instance", first_instance, 0)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
             raise InputError(f"{name} must be a whole number >= {low}, not {v!r}")
+    cap = 4 * (os.cpu_count() or 1)
+    if workers > cap:
+        raise InputError(f"--workers {workers} is more than 4x this machine's {os.cpu_count()} CPUs; give at most {cap} "
+                         f"(each worker holds a copy of the graph)")
     check_iteration_options(max_iter, tol)
     check_seed(seed)
     methods = tuple(methods)

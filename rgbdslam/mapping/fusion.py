@@ -571,7 +571,14 @@ def read_run(run_dir: str | Path) -> tuple[dict[str, Any], Config, Trajectory]:
         raise InputError(f"{info_path} is not valid JSON (line {e.lineno}); re-run `rgbdslam run` to rewrite it") from None
     info = _check_run_info(info, info_path)
     cfg_path = run_dir / "config.yaml"
-    cfg = load_config(cfg_path) if cfg_path.is_file() else Config()
+    if cfg_path.is_file():
+        cfg = load_config(cfg_path)
+    else:  # the camera, depth scale and frame selection of the run are unknown: say so
+        from rgbdslam.ui import console
+
+        console.print(f"[yellow]warning:[/] {cfg_path} is missing; the default config is used to re-read the sequence "
+                      f"(if the run used a preset or --set, copy its config.yaml back)")
+        cfg = Config()
     traj = read_tum(run_dir / "trajectory.tum")
     return info, cfg, traj
 
