@@ -324,6 +324,9 @@ def _summary(seq: Sequence, slam: SLAM, n_frames: int, wall: float, load_time: f
         "restarts": st.restarts,
         "relocalized": int(slam.loop.stats["n_relocalized"]) if slam.loop is not None else 0,
         "segments": tracking_segments([r.index for r in st.records], st.restarts, st.loops),
+        # the loop closer's counters: searches, candidates, verifications, accepted and rejected loops
+        "loop_closure": {k: (round(v, 3) if isinstance(v, float) else v) for k, v in slam.loop.stats.items()
+                         if k not in ("isam2_failed", "batch_failed")} if slam.loop is not None else {},
         "keyframes": st.keyframes,
         "timestamps_keyframes": [r.timestamp for r in st.records if r.index == r.keyframe],
         "loops": [list(x) for x in st.loops],

@@ -77,6 +77,10 @@ def test_rpy200_accuracy(rpy200, tmp_path):
     assert summary["evaluation"]["ate"]["rmse"] < 0.022
     assert summary["lost"] == 0 and summary["restarts"] == []
     assert len(summary["loops"]) >= 10
+    lc = summary["loop_closure"]  # the counters add up: every accepted loop was verified, ...
+    assert lc["n_accepted"] == len(summary["loops"]) and lc["n_sharp"] == summary["sharp_frames"]
+    assert lc["n_verified"] == lc["n_candidates"] >= lc["n_accepted"] + lc["n_rejected_geometry"]
+    assert lc["n_queries"] >= lc["n_sharp"]  # sharp frames, plus the query_gap floor
 
 
 class _InterruptingSequence:
