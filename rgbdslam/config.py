@@ -157,6 +157,7 @@ class LoopConfig:
     min_inliers: int = 40
     max_residual: float = 0.02
     max_loops_per_frame: int = 1
+    stop_at_first: bool = False  # verify candidates in vote order and stop at max_loops_per_frame loops
     # agreement with the current estimate: |T_loop - T_est| < bound + drift_ratio * travelled
     consistency_translation: float = 0.3  # metres
     consistency_rotation_deg: float = 15.0

@@ -140,7 +140,6 @@ def timed_runs(seq, out: Path, cfg: Config, repeat: int) -> dict:
 
 def run_table(data: Path, out: Path, rec: _Recorder, max_frames: int | None, repeat: int = 1) -> list[dict]:
     from rgbdslam.datasets import open_sequence
-    from rgbdslam.pipeline import run_sequence
 
     rows = []
     seqs = sorted(p for p in (data / "tum").glob("rgbd_dataset_*") if p.is_dir())
@@ -259,6 +258,8 @@ ABLATION = {
     "ISLAM+LC sharp frames only (loop.query_gap=0)": {"depth_filter.enabled": False, "loop.query_gap": 0},
     "ISLAM+LC frames read in the loop (dataset.prefetch=0)": {"depth_filter.enabled": False,
                                                                "dataset.prefetch": 0},
+    "ISLAM+LC stop at the first verified loop (loop.stop_at_first=true)": {"depth_filter.enabled": False,
+                                                                          "loop.stop_at_first": True},
     "ISLAM+LC init=odometry": {"depth_filter.enabled": False, "backend.init": "odometry"},
     "ISLAM+LC no robust kernel": {"depth_filter.enabled": False, "backend.robust_kernel": "none"},
     "ISLAM+LC Cauchy without chain scaling": {"depth_filter.enabled": False, "backend.kernel_chain_scaling": False},
@@ -281,6 +282,8 @@ def run_ablation(data: Path, out: Path, max_frames: int | None, repeat: int = 1)
         s = timed_runs(sp, out / "ablation" / f"{len(rows):02d}", cfg, repeat)
         rows.append({"config": name, "ate": ((s.get("evaluation") or {}).get("ate") or {}).get("rmse", float("nan")),
                      "loops": len(s["loops"]), "fps": s["fps"],
+                     "verified": s["loop_closure"].get("n_verified", 0),
+                     "lc_ms": s["loop_closure"].get("time_per_query_ms", 0.0),
                      "dif_ms": (s["timings"].get("depth_filter") or {}).get("median_ms")})
         print(f"  ablation {name:40s} ATE {rows[-1]['ate']:.4f} m", flush=True)
     return rows
@@ -332,10 +335,12 @@ def markdown(rows, synth, index_rows, command: str, ablation=(), repeat: int = 1
     if ablation:
         L += ["", "Ablation on freiburg1_rpy_head200 (base: ISLAM + LC + DIF with the defaults K=2, "
               "min_support=3, spatial_radius=1, MASAT init, chain-scaled Cauchy kernel):", "",
-              "| variant | ATE RMSE (m) | loops | frames/s | DIF ms |", "|---|---|---|---|---|"]
+              "| variant | ATE RMSE (m) | loops | loop verifications | LC ms/search | frames/s | DIF ms |",
+              "|---|---|---|---|---|---|---|"]
         for r in ablation:
             dif = f"{r['dif_ms']:.1f}" if r["dif_ms"] is not None else "-"
-            L.append(f"| {r['config']} | {r['ate']:.4f} | {r['loops']} | {r['fps']:.1f} | {dif} |")
+            L.append(f"| {r['config']} | {r['ate']:.4f} | {r['loops']} | {r['verified']} | {r['lc_ms']:.1f} | "
+                     f"{r['fps']:.1f} | {dif} |")
     if synth:
         L += ["", f"Synthetic loop (`generate_sequence(motion='loop', noise=True, frames={synth['frames']})`, "
               "best configuration):", "",

@@ -86,9 +86,9 @@ def markdown(rows: list[dict], variants: dict[str, list[str]], frames: int, comm
         med.append(f"{np.median(a):.4f}")
         ratio.append(f"{np.median(a / base):.2f}")
         better.append(f"{int(np.sum(a < 0.95 * base))} / {int(np.sum(a > 1.05 * base))}")
-    L += [f"| **median ATE** | " + " | ".join(med) + " |",
-          f"| **median ratio to default** | " + " | ".join(ratio) + " |",
-          f"| **better / worse by > 5 %** | " + " | ".join(better) + " |"]
+    L += ["| **median ATE** | " + " | ".join(med) + " |",
+          "| **median ratio to default** | " + " | ".join(ratio) + " |",
+          "| **better / worse by > 5 %** | " + " | ".join(better) + " |"]
     return "\n".join(L) + "\n"
 
 

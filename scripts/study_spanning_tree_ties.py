@@ -99,7 +99,7 @@ def main(argv=None) -> int:
     lines = [f"`{cmd}` — {pb.DATASET_NAMES[a.dataset]}, noise {a.noise}, instances {instances.start}-"
              f"{instances.stop - 1} of seed {a.seed}, optimizer {a.optimizer}; {a.workers} worker(s), "
              f"{os.cpu_count()} CPUs ({platform.machine()}), wall time {wall:.0f} s", "",
-             f"| spanning tree, ties by | converged [95 % interval] | converged to the optimum | the paper |",
+             "| spanning tree, ties by | converged [95 % interval] | converged to the optimum | the paper |",
              "|---|---|---|---|"]
     rates = []
     for m in custom:

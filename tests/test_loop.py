@@ -321,3 +321,22 @@ def test_real_revisit_accepted_and_other_room_rejected():
     # a frame of another room (fr1/desk) must not close a loop with it
     assert lc.detect(extract_features(desk.load(4), cfg), gt_pose(109)) == []
     assert lc.stats["n_accepted"] == 1
+
+
+def test_stop_at_first_verifies_fewer_candidates_but_not_while_relocalising(mapped):
+    """A frame that sees places 0 and 1 verifies against both keyframes; with stop_at_first the
+    first sound one (most votes) ends the search, except while relocalising (every match counts)."""
+    lc, places, poses, rng = mapped
+    lc.lc.skip_recent = 0
+    world = np.vstack([transform_points(poses[k], places[k][0]) for k in (0, 1)])
+    desc = np.vstack([places[0][1], places[1][1]])
+    pose = make_pose(np.eye(3), [0.25, 0.0, -1.5])  # backed off so that both places are in view
+    cur = view(100, world, desc, pose, rng)
+    assert len(lc.candidates(cur)) == 2
+    assert [(e.i, e.j) for e in lc.detect(cur, pose)] in ([(0, 100)], [(10, 100)])
+    assert lc.stats["n_verified"] == 2
+    lc.lc.stop_at_first = True
+    assert len(lc.detect(cur, pose)) == 1 and lc.stats["n_verified"] == 3
+    lc.new_segment()
+    lc.detect(cur, pose)
+    assert lc.stats["n_verified"] == 5  # relocalising: both verified again

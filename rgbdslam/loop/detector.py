@@ -293,6 +293,9 @@ class LoopCloser:
             e = self.verify(self.keyframes[k], features, pose, v)
             if e is not None:
                 edges.append(e)
+                # most votes first: stop once enough loops are found (relocalising needs every match)
+                if self.lc.stop_at_first and not self.relocalizing and len(edges) >= self.lc.max_loops_per_frame:
+                    break
         if self.relocalizing:
             edges = self._confirmed(edges, pose, int(features.index))
         edges.sort(key=lambda e: -e.n_inliers)
