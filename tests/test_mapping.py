@@ -13,7 +13,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.config import Config, MappingConfig
+from rgbdslam.config import Config, MappingConfig, save_config
 from rgbdslam.datasets import open_sequence
 from rgbdslam.geometry.se3 import make_pose
 from rgbdslam.io.trajectory import Trajectory, write_tum
@@ -71,6 +71,7 @@ def plane_run(tmp_path):
     run.mkdir()
     write_tum(Trajectory(stamps, np.array(POSES)), run / "trajectory.tum")
     (run / "run.json").write_text(json.dumps({"sequence": str(seq_dir), "keyframes": [0, 1, 2]}))
+    save_config(Config(), run / "config.yaml")  # as every run folder has (else fuse warns)
     return seq_dir, run
 
 

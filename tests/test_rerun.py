@@ -181,6 +181,9 @@ def _plane_run_with_recording(tmp_path, monkeypatch):
     run.mkdir()
     write_tum(Trajectory(stamps, np.array(POSES)), run / "trajectory.tum")
     (run / "run.json").write_text(json.dumps({"sequence": str(seq), "keyframes": [0, 2], "loops": [[0, 2]]}))
+    from rgbdslam.config import Config, save_config
+
+    save_config(Config(), run / "config.yaml")  # as every run folder has (else view warns)
     return seq, run
 
 
