@@ -411,13 +411,36 @@ def resolve_preset(name_or_path: str | Path) -> Path:
     raise ConfigError(f"config file {name_or_path} not found; give a YAML path or one of the presets: {presets}")
 
 
+class _DuplicateKey(Exception):
+    def __init__(self, key, line: int):
+        super().__init__(key, line)
+        self.key, self.line = key, line
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A YAML loader that refuses a key given twice in one mapping (PyYAML keeps the last one
+    silently, so a second ``registration:`` section would quietly replace the first)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise _DuplicateKey(key, key_node.start_mark.line + 1)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Defaults, then the YAML file (if any), then ``section.key=value`` overrides."""
     cfg = Config()
     if path is not None:
         p = resolve_preset(path)
         try:
-            data = yaml.safe_load(read_text(p, "config file"))
+            data = yaml.load(read_text(p, "config file"), Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
+        except _DuplicateKey as e:
+            raise ConfigError(f"{p}:{e.line}: '{e.key}' is given twice in one section; keep one (YAML would "
+                              f"silently use the last)") from None
         except yaml.YAMLError as e:
             raise ConfigError(f"config file {p} is not valid YAML ({e.__class__.__name__}); fix its syntax") from None
         merge(cfg, data, str(p))

@@ -139,3 +139,15 @@ def test_range_edges_and_yaml_quirks_are_accepted():
                              "matching.ratio=1"])
     assert cfg.loop.query_gap == 0 and cfg.features.n_levels == 1 and cfg.registration.beta == -2.0
     assert cfg.backend.relative_error_tol == 1e-8 and isinstance(cfg.backend.relative_error_tol, float)
+
+
+def test_a_key_given_twice_in_a_config_file_is_an_error(tmp_path):
+    """PyYAML keeps the last of two equal keys silently: a second registration: section would
+    quietly replace the first."""
+    p = tmp_path / "dup.yaml"
+    p.write_text("registration:\n  mp: 3\nloop:\n  min_votes: 9\nregistration:\n  mp: 6\n")
+    with pytest.raises(ConfigError, match=r"dup.yaml:5: 'registration' is given twice in one section; keep one"):
+        load_config(p)
+    p.write_text("loop:\n  min_votes: 9\n  min_votes: 10\n")
+    with pytest.raises(ConfigError, match=r"dup.yaml:3: 'min_votes' is given twice"):
+        load_config(p)
