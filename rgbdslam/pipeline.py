@@ -50,7 +50,10 @@ def keep_previous_run(out_dir: Path) -> bool:
         return False
     prev = out_dir / "previous"
     if prev.exists():
-        shutil.rmtree(prev) if prev.is_dir() else prev.unlink()
+        if not (prev.is_dir() and (prev / "run.json").is_file()):  # not ours: never delete it
+            raise InputError(f"{prev} exists and is not an earlier run of rgbdslam; move it away or choose "
+                             f"another --out (a new run keeps the last one there)")
+        shutil.rmtree(prev)
     prev.mkdir()
     for name in RUN_ARTEFACTS:
         if (out_dir / name).exists():

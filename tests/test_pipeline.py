@@ -15,6 +15,7 @@ from rgbdslam.cli import main
 from rgbdslam.config import load_config
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.base import Sequence
+from rgbdslam.errors import InputError
 from rgbdslam.evaluation.ate import ate
 from rgbdslam.io.trajectory import read_tum
 from rgbdslam.pipeline import run_sequence
@@ -454,3 +455,20 @@ def test_demo_with_too_few_frames_is_one_line_before_any_work(tmp_path):
     assert isinstance(res.exception, SystemExit) and res.exit_code == 2
     assert res.output.strip() == "error: --frames must be at least 2 for a trajectory (got 0)"
     assert not (tmp_path / "demo").exists()
+
+
+def test_a_foreign_previous_folder_is_never_deleted(desk9, tmp_path):
+    out = tmp_path / "run"
+    run_sequence(desk9, out, _fast_cfg(), progress=False)
+    (out / "previous").mkdir()
+    (out / "previous" / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="previous exists and is not an earlier run of rgbdslam"):
+        run_sequence(desk9, out, _fast_cfg(), progress=False)
+    assert (out / "previous" / "notes.txt").read_text() == "mine" and (out / "run.json").is_file()
+    # an earlier run there (ours) is replaced by the newer one
+    (out / "previous" / "notes.txt").unlink()
+    (out / "previous").rmdir()
+    run_sequence(desk9, out, _fast_cfg(), progress=False)
+    run_sequence(desk9, out, _fast_cfg(), progress=False)
+    assert sorted(p.name for p in (out / "previous").iterdir()) == sorted(
+        p.name for p in out.iterdir() if p.name != "previous")
