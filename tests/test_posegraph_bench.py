@@ -421,3 +421,22 @@ def test_cli_merge_runs_non_utf8_or_broken_csv_is_one_line(tmp_path):
     _assert_cli_error(_cli(["posegraph", "bench", "--merge-runs", other]),
                       f"{other}:2: not a runs.csv row of rgbdslam posegraph bench; give the runs.csv of a bench "
                       "--out folder")
+
+
+def test_noise_models_weigh_singular_and_projected_information_exactly():
+    """GTSAM's Gaussian.Information factors Omega by Cholesky; for a singular Omega (a valid
+    rank-deficient edge, or one the reader projected onto the PSD cone) the weights must still
+    be e^T Omega e, which SqrtInformation(diag(sqrt w) V^T) gives exactly."""
+    from rgbdslam.backend.optimize import _dense_models
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(6, 3))
+    singular = A @ A.T  # rank 3 of 6
+    B = rng.normal(size=(6, 6))
+    full = B @ B.T + np.eye(6)
+    axis = np.diag([0.0, 0, 0, 4, 0, 0])  # a diagonal R with zeros (GTSAM's "smart" path refuses it)
+    for omega in (singular, full, axis):
+        model = _dense_models(omega[None])[0]
+        for _ in range(5):
+            e = rng.normal(size=6)
+            assert np.sum(np.asarray(model.whiten(e)) ** 2) == pytest.approx(e @ omega @ e, rel=1e-9, abs=1e-12)

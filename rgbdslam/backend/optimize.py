@@ -57,6 +57,26 @@ def poses_from_values(dim: int, values: gtsam.Values, n: int) -> np.ndarray:
     return np.array([values.atPose3(k).matrix() for k in range(n)])
 
 
+def _dense_models(info: np.ndarray) -> list:
+    """GTSAM noise models for full information matrices (n, d, d).
+
+    ``Gaussian.Information`` factors Ω by Cholesky and silently returns a wrong square root when
+    Ω is singular or has a rounding-size negative eigenvalue (a valid, rank-deficient edge; the
+    reader's PSD projection of indefinite edges). Those get ``SqrtInformation(R)`` with
+    R = diag(√max(w, 0)) Vᵀ from Ω = V diag(w) Vᵀ, so that ‖R e‖² = eᵀΩe exactly; positive
+    definite ones keep ``Information``."""
+    w, V = np.linalg.eigh(info)
+    pd = w[:, 0] > 1e-9 * np.abs(w).max(axis=1)
+    out = []
+    for k in range(len(info)):
+        if pd[k]:
+            out.append(gtsam.noiseModel.Gaussian.Information(info[k]))
+        else:
+            R = np.sqrt(np.maximum(w[k], 0.0))[:, None] * V[k].T
+            out.append(gtsam.noiseModel.Gaussian.SqrtInformation(R, False))  # not "smart": a diagonal R may hold 0 or signs
+    return out
+
+
 def build_factor_graph(graph: PoseGraph, prior_pose=None, root: int = 0) -> gtsam.NonlinearFactorGraph:
     """Between factors for every edge (Gaussian with the edge's information) + a tight prior on ``root``.
 
@@ -68,20 +88,20 @@ def build_factor_graph(graph: PoseGraph, prior_pose=None, root: int = 0) -> gtsa
     if graph.dim == 2:
         info = graph.info
         diag = np.all(info[:, [0, 0, 1, 1, 2, 2], [1, 2, 0, 2, 0, 1]] == 0, axis=1)
+        dense = dict(zip(np.flatnonzero(~diag).tolist(), _dense_models(info[~diag]))) if (~diag).any() else {}
         for k in range(graph.n_edges):
             x, y, t = graph.meas[k]
             if diag[k]:
                 model = gtsam.noiseModel.Diagonal.Precisions(np.diagonal(info[k]).copy())
             else:
-                model = gtsam.noiseModel.Gaussian.Information(info[k])
+                model = dense[k]
             fg.add(gtsam.BetweenFactorPose2(ei[k], ej[k], gtsam.Pose2(float(x), float(y), float(t)), model))
         if root >= 0:
             p = (0.0, 0.0, 0.0) if prior_pose is None else tuple(float(v) for v in prior_pose)
             fg.add(gtsam.PriorFactorPose2(root, gtsam.Pose2(*p), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
     else:
         info = info6_g2o_to_gtsam(graph.info)
-        for k in range(graph.n_edges):
-            model = gtsam.noiseModel.Gaussian.Information(info[k])
+        for k, model in enumerate(_dense_models(info)):
             fg.add(gtsam.BetweenFactorPose3(ei[k], ej[k], gtsam.Pose3(graph.meas[k]), model))
         if root >= 0:
             p = np.eye(4) if prior_pose is None else np.asarray(prior_pose, float)
