@@ -40,13 +40,26 @@ RUN_ARTEFACTS = ("trajectory.tum", "odometry.tum", "posegraph.g2o", "config.yaml
                  "plots", "map", "keyframes", "recording.rrd")
 
 
+def _finished_run(run_json: Path) -> bool:
+    """True when ``run_json`` records a run that ran to its end (``status`` "finished"; older
+    run.json files without a status count as finished unless they say ``interrupted``)."""
+    try:
+        info = json.loads(run_json.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(info, dict):
+        return False
+    return info.get("status", "interrupted" if info.get("interrupted") else "finished") == "finished"
+
+
 def keep_previous_run(out_dir: Path) -> bool:
-    """Move an earlier run's files in ``out_dir`` to ``out_dir/previous`` (replacing an older
-    ``previous``), so that a new run that fails or is interrupted part-way never overwrites a
-    finished one. True when there was a run to move."""
+    """Move a finished earlier run's files in ``out_dir`` to ``out_dir/previous`` (replacing an
+    older ``previous``), so that a new run that fails or is interrupted part-way never overwrites
+    a finished one. A failed or interrupted run in ``out_dir`` is not moved: the new run replaces
+    it, and ``previous/`` keeps the last finished one. True when a run was moved."""
     import shutil
 
-    if not (out_dir / "run.json").is_file():
+    if not _finished_run(out_dir / "run.json"):
         return False
     prev = out_dir / "previous"
     if prev.exists():
@@ -340,6 +353,7 @@ def _summary(seq: Sequence, slam: SLAM, n_frames: int, wall: float, load_time: f
         "processing_fps": n_frames / proc,
         "timings": per_stage,
         "interrupted": interrupted,
+        "status": "interrupted" if interrupted else "finished",  # "failed" when nothing could be tracked
     }
 
 
@@ -418,6 +432,10 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     if not slam.state.records or (len(slam.state.records) == 1 and n_done > 1 and not interrupted):
         # nothing, or only the first frame (the origin; no frame after it registered): no trajectory
         summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
+        if not interrupted:
+            summary["status"] = "failed"
+            for name in ("trajectory.tum", "odometry.tum"):  # a 50-frame flush of this run: not a result
+                (out_dir / name).unlink(missing_ok=True)
         atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
         if observer is not None:  # nothing worth recording: an earlier .rrd at that path stays
             observer.abort()

@@ -15,7 +15,7 @@ from rgbdslam.cli import main
 from rgbdslam.config import load_config
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.base import Sequence
-from rgbdslam.errors import InputError
+from rgbdslam.errors import InputError, TrackingLost
 from rgbdslam.evaluation.ate import ate
 from rgbdslam.io.trajectory import read_tum
 from rgbdslam.pipeline import run_sequence
@@ -472,3 +472,24 @@ def test_a_foreign_previous_folder_is_never_deleted(desk9, tmp_path):
     run_sequence(desk9, out, _fast_cfg(), progress=False)
     assert sorted(p.name for p in (out / "previous").iterdir()) == sorted(
         p.name for p in out.iterdir() if p.name != "previous")
+
+
+def test_failed_runs_never_push_a_finished_run_out_of_previous(desk9, tmp_path):
+    """Finished run, then two failing re-runs into the same folder: previous/ still holds the
+    finished run (a failed run is replaced, not moved), and no failed run leaves a trajectory."""
+    out = tmp_path / "run"
+    run_sequence(desk9, out, _fast_cfg(), progress=False)
+    good = (out / "trajectory.tum").read_text()
+    bad = tmp_path / "bad"
+    shutil.copytree(desk9, bad)
+    for p in (bad / "depth").glob("*.png"):
+        cv2.imwrite(str(p), np.zeros((480, 640), np.uint16))
+    for _ in range(2):
+        with pytest.raises(TrackingLost):
+            run_sequence(bad, out, _fast_cfg(), progress=False)
+        assert (out / "previous" / "trajectory.tum").read_text() == good
+        assert json.loads((out / "run.json").read_text())["status"] == "failed"
+        assert not (out / "trajectory.tum").exists()
+    run_sequence(desk9, out, _fast_cfg(), progress=False)  # a finished run replaces the failed one
+    assert json.loads((out / "run.json").read_text())["status"] == "finished"
+    assert (out / "previous" / "trajectory.tum").read_text() == good
