@@ -340,3 +340,28 @@ def test_stop_at_first_verifies_fewer_candidates_but_not_while_relocalising(mapp
     lc.new_segment()
     lc.detect(cur, pose)
     assert lc.stats["n_verified"] == 5  # relocalising: both verified again
+
+
+def test_a_third_segment_needs_confirmation_too(mapped):
+    """After the current segment is linked to segment 0, a single sound match into segment 1
+    (never linked, so there is nothing to check it against) must wait for a second one."""
+    lc, places, poses, rng = mapped
+    P, d = places[3]
+    lc.new_segment()  # segment 1: one keyframe seeing place 3 (unrelated coordinates)
+    far = make_pose(np.eye(3), [7.0, 0, 0])
+    lc.add_keyframe(view(50, transform_points(poses[3], P), d, poses[3], rng), far @ poses[3])
+    lc.new_segment()  # segment 2 (current): relocalise to segment 0 with two agreeing frames
+    P0, d0 = places[0]
+    to_new = make_pose(np.eye(3), [0.0, 3.0, 0.0])
+    for j in (60, 61):
+        pose = revisit_pose(0.05 + 0.01 * (j - 60))
+        out = lc.detect(view(j, P0, d0, pose, rng), to_new @ pose)
+    assert [(e.i, e.j) for e in out] == [(0, 61)] and set(lc._links) == {0}
+    # the camera now sees place 3: keyframe 30 (segment 0, linked) and 50 (segment 1, not linked)
+    lc.lc.max_loops_per_frame = 2
+    pose = poses[3] @ revisit_pose()
+    edges = lc.detect(view(70, transform_points(poses[3], P), d, pose, rng), to_new @ pose)
+    assert [(e.i, e.j) for e in edges] == [(30, 70)] and 1 not in lc._links  # segment 1 waits
+    pose2 = poses[3] @ revisit_pose(0.07)
+    edges = lc.detect(view(71, transform_points(poses[3], P), d, pose2, rng), to_new @ pose2)
+    assert sorted((e.i, e.j) for e in edges) == [(30, 71), (50, 71)] and set(lc._links) == {0, 1}

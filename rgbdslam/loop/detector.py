@@ -233,15 +233,15 @@ class LoopCloser:
         self._pending = keep
 
     def _confirmed(self, edges: list[LoopEdge], pose: np.ndarray, index: int) -> list[LoopEdge]:
-        """While relocalising: the frame's matches into older segments that enough waiting
-        matches agree with (``loop.relocalize_*``); the others wait for confirmation.
+        """The frame's matches into older segments not linked to the current one (while
+        relocalising, and also later for a third segment) that enough waiting matches agree
+        with (``loop.relocalize_*``); the others wait for confirmation.
 
         Each match says where the current frame is in the older segment (keyframe pose · T_ij);
         a waiting match from an earlier frame says it through its map between the segments
         (to_old · current pose), which the new segment's odometry carries forward."""
         lc = self.lc
         by_index = {k.index: k for k in self.keyframes}
-        self._expire(index)
         pose = np.asarray(pose, dtype=np.float64)
         new = []
         for e in edges:
@@ -261,8 +261,6 @@ class LoopCloser:
                 agree += int(dt <= lc.relocalize_translation and dr <= lc.relocalize_rotation_deg)
             if agree >= lc.relocalize_confirm:
                 out.append(e)
-        if out:  # linked: the waiting matches have done their job (the agreeing ones are in the link)
-            self._pending = []
         return out
 
     def _link(self, edges: list[LoopEdge], pose: np.ndarray) -> None:
@@ -296,12 +294,20 @@ class LoopCloser:
                 # most votes first: stop once enough loops are found (relocalising needs every match)
                 if self.lc.stop_at_first and not self.relocalizing and len(edges) >= self.lc.max_loops_per_frame:
                     break
-        if self.relocalizing:
-            edges = self._confirmed(edges, pose, int(features.index))
+        # a match into an older segment that is not linked yet has only its geometry: it needs
+        # confirmation, whether this segment is still relocalising or already linked to another
+        self._expire(int(features.index))
+        seg = {k.index: k.segment for k in self.keyframes}
+        wait = [seg[e.i] != self.segment and seg[e.i] not in self._links for e in edges]
+        if any(wait):
+            unlinked = [e for e, w in zip(edges, wait) if w]
+            edges = [e for e, w in zip(edges, wait) if not w] + self._confirmed(unlinked, pose, int(features.index))
         edges.sort(key=lambda e: -e.n_inliers)
         edges = edges[: self.lc.max_loops_per_frame]
         self.stats["n_accepted"] += len(edges)
         self._link(edges, pose)
+        # matches waiting for a segment that is linked now have done their job
+        self._pending = [p for p in self._pending if p[1].segment not in self._links]
         t2 = time.perf_counter()
         self._index_time += t1 - t0
         self._total_time += t2 - t0
