@@ -17,13 +17,17 @@ from rgbdslam.pipeline import run_sequence
 
 
 def _run_dirs(sequences: list[Path], out_root: Path) -> list[Path]:
-    """One output folder per sequence, named after it; repeated names get _2, _3, ..."""
-    seen: dict[str, int] = {}
+    """One output folder per sequence, named after it; a name already taken (also one that only
+    differs in case, for case-insensitive file systems) gets _2, _3, ... until it is free."""
+    used: set[str] = set()
     out = []
     for s in sequences:
         name = Path(s).resolve().name or "sequence"
-        seen[name] = seen.get(name, 0) + 1
-        out.append(out_root / (name if seen[name] == 1 else f"{name}_{seen[name]}"))
+        cand, k = name, 2
+        while cand.lower() in used:
+            cand, k = f"{name}_{k}", k + 1
+        used.add(cand.lower())
+        out.append(out_root / cand)
     return out
 
 

@@ -493,3 +493,11 @@ def test_failed_runs_never_push_a_finished_run_out_of_previous(desk9, tmp_path):
     run_sequence(desk9, out, _fast_cfg(), progress=False)  # a finished run replaces the failed one
     assert json.loads((out / "run.json").read_text())["status"] == "finished"
     assert (out / "previous" / "trajectory.tum").read_text() == good
+
+
+def test_batch_folder_names_never_collide(tmp_path):
+    from rgbdslam.batch import _run_dirs
+
+    dirs = _run_dirs([tmp_path / "a" / "seq", tmp_path / "b" / "seq", tmp_path / "c" / "seq_2",
+                      tmp_path / "d" / "SEQ"], tmp_path / "out")
+    assert [d.name for d in dirs] == ["seq", "seq_2", "seq_2_2", "SEQ_3"]  # seq_2 is taken, case aside
