@@ -377,6 +377,10 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     """
     from rgbdslam.ui import console, frame_progress
 
+    if cfg.mapping.enabled:  # a mapping setting fusion would refuse: say so before the run, not after it
+        from rgbdslam.mapping.fusion import validate_mapping
+
+        validate_mapping(cfg.mapping)
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -460,11 +464,16 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     if cfg.mapping.enabled and not interrupted:
         from rgbdslam.mapping.fusion import fuse_run
 
-        fused = fuse_run(out_dir, cfg.mapping, progress=progress)
-        summary["map"] = fused.summary()
+        try:
+            fused = fuse_run(out_dir, cfg.mapping, progress=progress)
+        except RgbdslamError as e:  # like evaluation, the map never stops a finished run
+            console.print(f"[yellow]warning:[/] no map: {e}")
+            summary["map"] = {}
+        else:
+            summary["map"] = fused.summary()
+            if observer is not None and getattr(fused, "cloud_points", None) is not None:
+                observer.log_map(fused.cloud_points, fused.cloud_colors)
         atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
-        if observer is not None and getattr(fused, "cloud_points", None) is not None:
-            observer.log_map(fused.cloud_points, fused.cloud_colors)
     if observer is not None:
         observer.close()
     _print_summary(summary, out_dir, console)

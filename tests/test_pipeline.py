@@ -501,3 +501,16 @@ def test_batch_folder_names_never_collide(tmp_path):
     dirs = _run_dirs([tmp_path / "a" / "seq", tmp_path / "b" / "seq", tmp_path / "c" / "seq_2",
                       tmp_path / "d" / "SEQ"], tmp_path / "out")
     assert [d.name for d in dirs] == ["seq", "seq_2", "seq_2_2", "SEQ_3"]  # seq_2 is taken, case aside
+
+
+def test_mapping_problems_never_cost_the_run(desk9, tmp_path):
+    """A mapping setting fusion refuses is reported before tracking starts; a map that turns
+    out empty after a finished run is a warning, and the run's outputs stand."""
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "a"), "-q",
+                                    "--set", "mapping.voxel_size=0.0005"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2
+    assert "mapping.voxel_size must be at least 0.001" in res.output and not (tmp_path / "a").exists()
+    s = run_sequence(desk9, tmp_path / "b", load_config(None, ["output.plots=false", "mapping.depth_min=0.05",
+                                                               "mapping.depth_max=0.1"]), progress=False)
+    assert s["map"] == {} and s["tracked"] == 9 and len(read_tum(tmp_path / "b" / "trajectory.tum")) == 9
+    assert json.loads((tmp_path / "b" / "run.json").read_text())["status"] == "finished"

@@ -145,26 +145,29 @@ def test_logger_replaces_the_file_only_when_closed(tmp_path):
 
 
 def test_failed_run_keeps_earlier_rerun_save(tmp_path):
-    """`rgbdslam run SEQ --rerun-save good.rrd` that fails (here: the map would be empty) leaves the
-    good.rrd of an earlier run as it was (it used to be replaced by the failed run's recording)."""
+    """`rgbdslam run SEQ --rerun-save good.rrd` that fails (here: no depth, nothing can be tracked)
+    leaves the good.rrd of an earlier run as it was (it used to be replaced by the failed run's
+    recording)."""
     import gc
+    import shutil
+
+    import cv2
 
     from rgbdslam.datasets.synthetic import generate_sequence
 
     seq, good = tmp_path / "seq", tmp_path / "good.rrd"
     generate_sequence(seq, frames=4, motion="xyz", width=160, height=120)
     runner = CliRunner()
-    args = ["run", str(seq), "-o", str(tmp_path / "run"), "-q", "--rerun-save", str(good)]
-    res = runner.invoke(main, args)
+    res = runner.invoke(main, ["run", str(seq), "-o", str(tmp_path / "run"), "-q", "--rerun-save", str(good)])
     assert res.exit_code == 0, res.output
     before = good.read_bytes()
-    res = runner.invoke(main, args + ["--set", "mapping.depth_min=0.01", "--set", "mapping.depth_max=0.02"])
-    assert isinstance(res.exception, SystemExit) and res.exit_code == 2, res.output
-    n = len(json.loads((tmp_path / "run" / "run.json").read_text())["keyframes"])  # the frames fuse used
-    used = " (the run's filtered keyframe depth where present)" if (tmp_path / "run" / "keyframes").is_dir() else ""
-    assert res.stderr.strip().splitlines()[-1] == (
-        f"error: the map would be empty: no depth of the {n} frame{'s' if n != 1 else ''} to fuse{used} lies between "
-        f"mapping.depth_min=0.01 and mapping.depth_max=0.02 m; widen that range (defaults 0.3 and 3.0)")
+    shutil.copytree(seq, tmp_path / "nodepth")
+    for p in (tmp_path / "nodepth" / "depth").glob("*.png"):
+        cv2.imwrite(str(p), np.zeros((120, 160), np.uint16))
+    res = runner.invoke(main, ["run", str(tmp_path / "nodepth"), "-o", str(tmp_path / "run2"), "-q",
+                               "--rerun-save", str(good)])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 3, res.output
+    assert "could be tracked" in res.stderr.strip().splitlines()[-1]
     del res
     gc.collect()  # the failed run's logger is dropped unclosed: its temporary file goes with it
     assert good.read_bytes() == before and _hidden(tmp_path) == []
