@@ -412,9 +412,10 @@ def resolve_preset(name_or_path: str | Path) -> Path:
 
 
 class _DuplicateKey(Exception):
-    def __init__(self, key, line: int):
+    def __init__(self, key, line: int, problem: str = "is given twice in one section; keep one (YAML would "
+                                                      "silently use the last)"):
         super().__init__(key, line)
-        self.key, self.line = key, line
+        self.key, self.line, self.problem = key, line, problem
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -424,7 +425,12 @@ class _UniqueKeyLoader(yaml.SafeLoader):
     def construct_mapping(self, node, deep=False):
         seen = set()
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # "<<: *anchor": merged keys may be overridden
+                continue
             key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, (str, int, float, bool)) and key is not None:
+                raise _DuplicateKey(type(key).__name__, key_node.start_mark.line + 1,
+                                    "is not a plain key name; keys are names like mp or min_votes")
             if key in seen:
                 raise _DuplicateKey(key, key_node.start_mark.line + 1)
             seen.add(key)
@@ -439,8 +445,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         try:
             data = yaml.load(read_text(p, "config file"), Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
         except _DuplicateKey as e:
-            raise ConfigError(f"{p}:{e.line}: '{e.key}' is given twice in one section; keep one (YAML would "
-                              f"silently use the last)") from None
+            raise ConfigError(f"{p}:{e.line}: '{e.key}' {e.problem}") from None
         except yaml.YAMLError as e:
             raise ConfigError(f"config file {p} is not valid YAML ({e.__class__.__name__}); fix its syntax") from None
         merge(cfg, data, str(p))

@@ -151,3 +151,13 @@ def test_a_key_given_twice_in_a_config_file_is_an_error(tmp_path):
     p.write_text("loop:\n  min_votes: 9\n  min_votes: 10\n")
     with pytest.raises(ConfigError, match=r"dup.yaml:3: 'min_votes' is given twice"):
         load_config(p)
+
+
+def test_yaml_merge_keys_work_and_odd_keys_are_one_line(tmp_path):
+    p = tmp_path / "merge.yaml"
+    p.write_text("loop: {<<: {min_votes: 7, max_candidates: 2}, min_votes: 8}\n")
+    cfg = load_config(p)  # the explicit key overrides the merged one: not a duplicate
+    assert cfg.loop.min_votes == 8 and cfg.loop.max_candidates == 2
+    p.write_text("loop:\n  [a, b]: 1\n")
+    with pytest.raises(ConfigError, match=r"merge.yaml:2: 'list' is not a plain key name"):
+        load_config(p)
