@@ -391,3 +391,13 @@ def test_info_reports_depth_of_the_first_frame():
     assert "depth       frame 0:" in text and "warning" not in text
     wrong = describe_sequence(DESK, DatasetConfig(depth_scale=1.0))  # raw units taken as metres
     assert "warning" in wrong and "depth_scale=1000" in wrong
+
+
+def test_error_line_numbers_count_newlines_only(tmp_path):
+    """A form feed inside a comment is not a line break: the bad line is named as the editor shows it."""
+    from rgbdslam.io.trajectory import read_tum
+
+    p = tmp_path / "t.tum"
+    p.write_text("# exported\x0cby a tool\r\n1.0 0 0 0 0 0 0 1\r\nnot a pose\r\n")
+    with pytest.raises(InputError, match=r"t.tum:3: expected 8 numbers"):
+        read_tum(p)

@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from rgbdslam.backend.graph import PoseGraph, empty_poses, se3_from_tq, se3_to_tq, wrap_angle
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
-from rgbdslam.io.text import read_text
+from rgbdslam.io.text import read_lines
 
 FORMATS = ("auto", "g2o", "toro", "isam")
 
@@ -56,7 +56,7 @@ _PSD_RTOL = 1e-5
 
 
 def _lines(path: Path) -> list[str]:
-    return read_text(path, "pose-graph file").splitlines()
+    return read_lines(path, "pose-graph file")
 
 
 def detect_format(path: str | Path, lines: list[str] | None = None) -> str:

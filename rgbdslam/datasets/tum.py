@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 import yaml
 
-from rgbdslam.io.text import read_text
+from rgbdslam.io.text import read_lines, read_text
 from rgbdslam.datasets import register
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
@@ -143,7 +143,7 @@ class RgbdFileSequence(Sequence):
 def data_lines(path: Path):
     """Yield ``(line_number, fields)`` of the data lines of a text list ('#' comments and
     blank lines skipped; fields split on white space or commas)."""
-    for lineno, line in enumerate(read_text(path, "list file").splitlines(), 1):
+    for lineno, line in enumerate(read_lines(path, "list file"), 1):
         s = line.strip()
         if s and not s.startswith("#"):
             yield lineno, s.replace(",", " ").split()

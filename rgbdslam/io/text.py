@@ -8,6 +8,12 @@ from pathlib import Path
 from rgbdslam.errors import InputError
 
 
+def read_lines(path: str | Path, what: str = "text file") -> list[str]:
+    """The lines of ``path`` split at newlines only (``str.splitlines`` also breaks at form feeds
+    and Unicode separators, which would shift the line numbers that error messages name)."""
+    return read_text(path, what).replace("\r\n", "\n").split("\n")
+
+
 def read_text(path: str | Path, what: str = "text file") -> str:
     """The UTF-8 text of ``path``; an :class:`InputError` naming the file when it is not text."""
     path = Path(path)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.io.text import read_text
+from rgbdslam.io.text import read_lines
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text
@@ -43,7 +43,7 @@ def read_tum(path: str | Path) -> Trajectory:
     if not path.is_file():
         raise InputError(f"trajectory file {path} does not exist; check the path")
     stamps, rows = [], []
-    for lineno, line in enumerate(read_text(path, "trajectory file").splitlines(), 1):
+    for lineno, line in enumerate(read_lines(path, "trajectory file"), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue

@@ -35,7 +35,7 @@ import yaml
 from rgbdslam.config import MappingConfig
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_path, atomic_write_text
-from rgbdslam.io.text import read_text
+from rgbdslam.io.text import read_lines
 from rgbdslam.io.trajectory import Trajectory
 
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
@@ -65,7 +65,7 @@ class Map2D:
 def read_accelerometer(path: str | Path) -> np.ndarray:
     """TUM accelerometer.txt -> (N, 4) array ``timestamp ax ay az``."""
     rows = []
-    for lineno, line in enumerate(read_text(path, "accelerometer file").splitlines(), 1):
+    for lineno, line in enumerate(read_lines(path, "accelerometer file"), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
