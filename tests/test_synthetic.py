@@ -310,3 +310,28 @@ def test_regenerating_replaces_the_frames_and_keeps_other_files(tmp_path):
     new = tmp_path / "T"
     generate_sequence(new, frames=1, motion="static", width=32, height=24)
     assert new.stat().st_mode & 0o055  # a plain folder's permissions, not the temporary folder's 0700
+
+
+def test_ctrl_c_during_the_swap_finishes_it_and_leaves_no_copy(tmp_path, monkeypatch):
+    """SIGINT while the finished sequence is renamed into place: the renames complete, then the
+    interrupt is raised; no hidden copy of the earlier sequence is left beside it."""
+    import os
+    import signal
+
+    import rgbdslam.datasets.synthetic as syn
+
+    out = tmp_path / "seq"
+    generate_sequence(out, frames=3, width=64, height=48, seed=1)
+    real_replace, sent = os.replace, []
+
+    def replace(a, b):  # os is one module: only the swap's first rename into .replaced triggers it
+        if not sent and ".replaced" in str(b):
+            sent.append(1)
+            os.kill(os.getpid(), signal.SIGINT)  # delivered now, held back until the renames are done
+        return real_replace(a, b)
+
+    monkeypatch.setattr(syn.os, "replace", replace)
+    with pytest.raises(KeyboardInterrupt):
+        generate_sequence(out, frames=4, width=64, height=48, seed=2)
+    assert sent and len((out / "rgb.txt").read_text().split("rgb/")) - 1 == 4  # the new sequence, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]  # no .seq.partial-* left

@@ -14,12 +14,9 @@ Poses are camera-to-world with the camera's optical frame (x right, y down, z fo
 
 from __future__ import annotations
 
-import contextlib
 import os
 import shutil
-import signal
 import tempfile
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +28,7 @@ import yaml
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.geometry.se3 import make_pose
-from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred
 from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.ui import console, frame_progress
 
@@ -400,23 +397,6 @@ def _check_output(out: Path) -> None:
         raise InputError(f"{out} is not empty and is not a synthetic sequence; give a new or empty folder")
 
 
-@contextlib.contextmanager
-def _interrupt_deferred():
-    """Ctrl-C inside the block is raised at its end (main thread only), so the few renames that
-    swap a finished sequence into place are never cut in the middle."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    hit: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda *_: hit.append(1))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
-        if hit:
-            raise KeyboardInterrupt
-
-
 def _remove(path: Path) -> None:
     if path.is_dir() and not path.is_symlink():
         shutil.rmtree(path)
@@ -439,22 +419,25 @@ def _replace_folder(new: Path, out: Path) -> None:
     replaced = new / ".replaced"  # removed with ``new`` at the end
     replaced.mkdir()
     moved_out, moved_in = [], []
-    with _interrupt_deferred():
-        try:
-            for name in GENERATED:
-                if os.path.lexists(out / name):
-                    os.replace(out / name, replaced / name)
-                    moved_out.append(name)
-            for name in GENERATED:
-                os.replace(new / name, out / name)
-                moved_in.append(name)
-        except OSError:  # put the earlier sequence back as it was
-            for name in moved_in:
-                _remove(out / name)
-            for name in moved_out:
-                os.replace(replaced / name, out / name)
-            raise
-    shutil.rmtree(new, ignore_errors=True)
+    try:
+        with interrupts_deferred():
+            try:
+                for name in GENERATED:
+                    if os.path.lexists(out / name):
+                        os.replace(out / name, replaced / name)
+                        moved_out.append(name)
+                for name in GENERATED:
+                    os.replace(new / name, out / name)
+                    moved_in.append(name)
+            except OSError:  # put the earlier sequence back as it was
+                for name in moved_in:
+                    _remove(out / name)
+                for name in moved_out:
+                    os.replace(replaced / name, out / name)
+                raise
+    finally:  # swapped (also when a Ctrl-C held back during the renames is raised now): drop the old copy
+        if len(moved_in) == len(GENERATED):
+            shutil.rmtree(new, ignore_errors=True)
 
 
 def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, drift: float, rng) -> None:

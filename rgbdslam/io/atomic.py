@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import threading
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -37,3 +39,20 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+
+
+@contextlib.contextmanager
+def interrupts_deferred():
+    """Ctrl-C inside the block is raised at its end (main thread only), so the few renames that
+    swap finished outputs into place (a synthetic sequence, a map) are never cut in the middle."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    hit: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda *_: hit.append(1))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+        if hit:
+            raise KeyboardInterrupt

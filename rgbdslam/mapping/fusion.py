@@ -38,7 +38,7 @@ from rgbdslam.datasets.base import Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
-from rgbdslam.io.atomic import atomic_path
+from rgbdslam.io.atomic import atomic_path, interrupts_deferred
 from rgbdslam.io.text import read_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
 
@@ -338,11 +338,12 @@ def _commit(stage: Path, out_dir: Path) -> None:
     settings), so the folder never mixes two fusions. Nothing is computed here, so nothing
     can fail part-way: only renames, after every file was written completely."""
     made = [name for name in MAP_FILES if (stage / name).is_file()]
-    for name in made:
-        os.replace(stage / name, out_dir / name)
-    for name in MAP_FILES:
-        if name not in made and (out_dir / name).is_file():
-            (out_dir / name).unlink()
+    with interrupts_deferred():  # a Ctrl-C waits for the renames: never half an old, half a new map
+        for name in made:
+            os.replace(stage / name, out_dir / name)
+        for name in MAP_FILES:
+            if name not in made and (out_dir / name).is_file():
+                (out_dir / name).unlink()
 
 
 # ----------------------------------------------------------------------------- fusion
