@@ -393,7 +393,8 @@ def _check_output(out: Path) -> None:
     """``out`` may be new, an empty folder or an earlier synthetic sequence (which is replaced)."""
     if out.exists() and not out.is_dir():
         raise InputError(f"{out} exists and is not a folder; give a folder for the synthetic sequence")
-    if out.is_dir() and any(out.iterdir()) and not (out / "synthetic.yaml").is_file():
+    ours = f".{out.name}.partial-"  # a temporary folder a killed run of ours left behind
+    if out.is_dir() and any(not p.name.startswith(ours) for p in out.iterdir()) and not (out / "synthetic.yaml").is_file():
         raise InputError(f"{out} is not empty and is not a synthetic sequence; give a new or empty folder")
 
 
@@ -405,7 +406,8 @@ def _remove(path: Path) -> None:
 
 
 def _replace_folder(new: Path, out: Path) -> None:
-    """Put the finished sequence in ``new`` (a temporary sibling of ``out``) in the place of ``out``.
+    """Put the finished sequence in ``new`` (a temporary folder inside an existing ``out``, else
+    beside it) in the place of ``out``.
 
     A new ``out`` is the renamed ``new``. An existing ``out`` (an earlier synthetic sequence or an
     empty folder) keeps its folder and any file the generator does not write (notes, a demo marker);
@@ -492,7 +494,10 @@ def generate_sequence(
     target = out.resolve()
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        work = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=target.parent))
+        # inside an existing folder (it may be a mount point: renames must not cross devices),
+        # else beside it, renamed to it at the end
+        where = target if target.is_dir() else target.parent
+        work = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=where))
     except OSError as e:
         raise InputError(f"cannot create the sequence folder {out} ({e.strerror or e}); choose a writable "
                          f"place") from None
