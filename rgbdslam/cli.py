@@ -20,6 +20,12 @@ class _Group(click.Group):
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
+        except click.exceptions.NoArgsIsHelpError:
+            raise
+        except click.UsageError as e:  # a bad option or argument: one line, like every other error
+            where = e.ctx.command_path if e.ctx is not None else "rgbdslam"
+            click.secho(f"error: {e.format_message()} (see '{where} --help')", fg="red", err=True)
+            sys.exit(2)
         except RgbdslamError as e:
             click.secho(f"error: {e}", fg="red", err=True)
             sys.exit(e.exit_code)

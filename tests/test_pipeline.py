@@ -514,3 +514,14 @@ def test_mapping_problems_never_cost_the_run(desk9, tmp_path):
                                                                "mapping.depth_max=0.1"]), progress=False)
     assert s["map"] == {} and s["tracked"] == 9 and len(read_tum(tmp_path / "b" / "trajectory.tum")) == 9
     assert json.loads((tmp_path / "b" / "run.json").read_text())["status"] == "finished"
+
+
+def test_a_bad_option_is_one_line_too():
+    for args, text in ((["run", "--nosuch", "x"], "No such option '--nosuch'"),
+                       (["run"], "Missing argument 'SEQUENCE...'"),
+                       (["posegraph", "init", "f.g2o", "--method", "magic"], "Invalid value for '--method'")):
+        res = CliRunner().invoke(main, args)
+        assert isinstance(res.exception, SystemExit) and res.exit_code == 2
+        lines = [ln for ln in res.output.splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("error: ") and text in lines[0], res.output
+        assert lines[0].endswith("--help')")
