@@ -308,7 +308,8 @@ def _check_value(key: str, value: Any, hint: Any) -> Any:
 
 
 # Ranges: every number must be >= 0 unless listed in SIGNED; those in POSITIVE must be > 0
-# (integers: >= 1); BOUNDS gives closed intervals [lo, hi] and ORDERED pairs (a, b) need a < b.
+# (integers: >= 1); BOUNDS gives closed intervals [lo, hi] (hi None: at least lo) and ORDERED
+# pairs (a, b) of one section need a < b.
 SIGNED = {"registration.beta", "mapping.obstacle_min_height", "mapping.obstacle_max_height", "dataset.offset"}
 POSITIVE = {
     "dataset.max_difference", "dataset.depth_scale", "dataset.depth_correction", "dataset.max_frames",
@@ -341,32 +342,45 @@ BOUNDS = {
     "registration.min_agreement": (0.0, 1.0), "registration.min_points": (3, 10**9),
     "registration.predicted_min_inliers": (3, 10**9), "loop.lsh_bits": (1, 64), "loop.min_inliers": (3, 10**9),
     "mapping.floor_max_tilt_deg": (0.0, 90.0),
+    # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane (hi None: no upper bound)
+    "mapping.voxel_size": (1e-3, None), "mapping.tsdf_voxel": (1e-3, None), "mapping.grid_resolution": (1e-3, None),
 }
 ORDERED = [("matching.min_depth", "matching.max_depth"), ("depth_filter.min_depth", "depth_filter.max_depth"),
            ("mapping.depth_min", "mapping.depth_max"), ("mapping.obstacle_min_height", "mapping.obstacle_max_height")]
 
 
-def validate(cfg: Config) -> Config:
-    """Check every number's range (see POSITIVE, BOUNDS, ORDERED); ConfigError names the key."""
-    for section in dataclasses.fields(cfg):
-        obj = getattr(cfg, section.name)
-        for f in dataclasses.fields(obj):
-            key, v = f"{section.name}.{f.name}", getattr(obj, f.name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                continue
-            lo, hi = BOUNDS.get(key, (None, None))
-            if lo is not None and not lo <= v <= hi:
-                raise ConfigError(f"config key '{key}' must be between {lo:g} and {hi:g}; got {v!r}")
-            if key in POSITIVE and not v > 0:
-                raise ConfigError(f"config key '{key}' must be {'at least 1' if isinstance(v, int) else 'positive'}; "
-                                  f"got {v!r}")
-            if key not in SIGNED and v < 0:
-                raise ConfigError(f"config key '{key}' must not be negative; got {v!r}")
+def validate_section(section: str, obj: Any) -> Any:
+    """Check one section's values: types (as for YAML input, so a section built in Python is
+    held to the same rules) and ranges (POSITIVE, BOUNDS, ORDERED); ConfigError names the key."""
+    hints = get_type_hints(type(obj))
+    for f in dataclasses.fields(obj):
+        key = f"{section}.{f.name}"
+        v = _check_value(key, getattr(obj, f.name), hints[f.name])
+        setattr(obj, f.name, v)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        lo, hi = BOUNDS.get(key, (None, None))
+        if lo is not None and hi is None and not v >= lo:
+            raise ConfigError(f"config key '{key}' must be at least {lo:g}; got {v!r}")
+        if hi is not None and not lo <= v <= hi:
+            raise ConfigError(f"config key '{key}' must be between {lo:g} and {hi:g}; got {v!r}")
+        if key in POSITIVE and not v > 0:
+            raise ConfigError(f"config key '{key}' must be {'at least 1' if isinstance(v, int) else 'positive'}; "
+                              f"got {v!r}")
+        if key not in SIGNED and v < 0:
+            raise ConfigError(f"config key '{key}' must not be negative; got {v!r}")
     for a, b in ORDERED:
-        va = getattr(getattr(cfg, a.split(".")[0]), a.split(".")[1])
-        vb = getattr(getattr(cfg, b.split(".")[0]), b.split(".")[1])
-        if not va < vb:
-            raise ConfigError(f"config key '{a}' ({va!r}) must be smaller than '{b}' ({vb!r})")
+        if a.split(".")[0] == section:
+            va, vb = getattr(obj, a.split(".")[1]), getattr(obj, b.split(".")[1])
+            if not va < vb:
+                raise ConfigError(f"config key '{a}' ({va!r}) must be smaller than '{b}' ({vb!r})")
+    return obj
+
+
+def validate(cfg: Config) -> Config:
+    """Check every section (:func:`validate_section`)."""
+    for section in dataclasses.fields(cfg):
+        validate_section(section.name, getattr(cfg, section.name))
     return cfg
 
 

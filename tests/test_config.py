@@ -118,7 +118,7 @@ def test_invalid_yaml(tmp_path):
     ("features.scale_factor=0.5", "'features.scale_factor' must be between 1 and 4; got 0.5"),
     ("registration.max_iterations=0", "'registration.max_iterations' must be at least 1; got 0"),
     ("registration.mp=-1", "'registration.mp' must be at least 1; got -1"),
-    ("mapping.tsdf_voxel=0", "'mapping.tsdf_voxel' must be positive; got 0.0"),
+    ("mapping.tsdf_voxel=0", "'mapping.tsdf_voxel' must be at least 0.001; got 0.0"),
     ("mapping.cloud_pixel_stride=0", "'mapping.cloud_pixel_stride' must be at least 1; got 0"),
     ("matching.ratio=2", "'matching.ratio' must be between 0 and 1; got 2.0"),
     ("keyframes.max_gap=-1", "'keyframes.max_gap' must be at least 1; got -1"),

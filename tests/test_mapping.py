@@ -313,27 +313,26 @@ def test_fuse_empty_depth_range_names_the_settings_and_keeps_the_map(plane_run):
     assert _map_state(run) == before
 
 
-@pytest.mark.parametrize("key, value, message", [
-    ("grid_resolution", 0.0, "mapping.grid_resolution must be at least 0.001 (metres per cell, e.g. 0.05); got 0.0"),
-    ("cloud_pixel_stride", 0, "mapping.cloud_pixel_stride must be at least 1 (e.g. 2); got 0"),
-    ("outlier_std", 0.0, "mapping.outlier_std must be greater than 0 (e.g. 2.0); got 0.0"),
-    ("tsdf_voxel", 0.0, "mapping.tsdf_voxel must be at least 0.001 (metres, e.g. 0.01); got 0.0"),
-    ("voxel_size", -0.01, "mapping.voxel_size must be at least 0.001 (metres, e.g. 0.01); got -0.01"),
-    ("voxel_size", float("nan"), "mapping.voxel_size must be a finite number; got nan"),
-    ("mesh_min_frames", 1.5, "mapping.mesh_min_frames must be a whole number; got 1.5"),
-    ("depth_min", 3.0, "mapping.depth_min (3.0) must be smaller than mapping.depth_max (3.0); only depth between "
-                       "them is fused"),
-    ("gravity", "down", "mapping.gravity must be auto, accelerometer or camera; got 'down'"),
+@pytest.mark.parametrize("key, value, message", [  # the config's own rules (config.validate_section)
+    ("grid_resolution", 0.0, "config key 'mapping.grid_resolution' must be at least 0.001; got 0.0"),
+    ("cloud_pixel_stride", 0, "config key 'mapping.cloud_pixel_stride' must be at least 1; got 0"),
+    ("outlier_std", 0.0, "config key 'mapping.outlier_std' must be positive; got 0.0"),
+    ("tsdf_voxel", 0.0, "config key 'mapping.tsdf_voxel' must be at least 0.001; got 0.0"),
+    ("voxel_size", -0.01, "config key 'mapping.voxel_size' must be at least 0.001; got -0.01"),
+    ("voxel_size", float("nan"), "config key 'mapping.voxel_size' must be a finite number; got nan"),
+    ("mesh_min_frames", 1.5, "config key 'mapping.mesh_min_frames' expects int; got 1.5"),
+    ("depth_min", 3.0, "config key 'mapping.depth_min' (3.0) must be smaller than 'mapping.depth_max' (3.0)"),
+    ("gravity", "down", "config key 'mapping.gravity' must be one of auto, accelerometer, camera; got 'down'"),
 ])
 def test_bad_mapping_settings_are_rejected_before_anything_is_written(plane_run, key, value, message):
     """fuse/fuse_run check the settings first (a MappingConfig made in Python skips load_config's
     checks): grid_resolution=0 used to crash in the 2-D map after cloud.ply and mesh.ply were replaced."""
-    from rgbdslam.errors import InputError
+    from rgbdslam.errors import ConfigError
 
     seq_dir, run = plane_run
     fuse_run(run, _cfg(), progress=False)
     before = _map_state(run)
-    with pytest.raises(InputError) as e:
+    with pytest.raises(ConfigError) as e:
         fuse_run(run, _cfg(**{key: value, "map2d": True}), progress=False)
     assert str(e.value) == message
     assert _map_state(run) == before

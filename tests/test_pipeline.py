@@ -509,7 +509,7 @@ def test_mapping_problems_never_cost_the_run(desk9, tmp_path):
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "a"), "-q",
                                     "--set", "mapping.voxel_size=0.0005"])
     assert isinstance(res.exception, SystemExit) and res.exit_code == 2
-    assert "mapping.voxel_size must be at least 0.001" in res.output and not (tmp_path / "a").exists()
+    assert "'mapping.voxel_size' must be at least 0.001" in res.output and not (tmp_path / "a").exists()
     s = run_sequence(desk9, tmp_path / "b", load_config(None, ["output.plots=false", "mapping.depth_min=0.05",
                                                                "mapping.depth_max=0.1"]), progress=False)
     assert s["map"] == {} and s["tracked"] == 9 and len(read_tum(tmp_path / "b" / "trajectory.tum")) == 9

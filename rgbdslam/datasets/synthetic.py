@@ -28,7 +28,7 @@ import yaml
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.geometry.se3 import make_pose
-from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred
+from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred, plain_permissions
 from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.ui import console, frame_progress
 
@@ -413,9 +413,7 @@ def _replace_folder(new: Path, out: Path) -> None:
     empty folder) keeps its folder and any file the generator does not write (notes, a demo marker);
     only the generated entries (:data:`GENERATED`) are swapped, by renames that Ctrl-C cannot cut."""
     if not out.exists():
-        umask = os.umask(0)  # mkdtemp made the folder owner-only; give it a plain mkdir()'s permissions
-        os.umask(umask)
-        os.chmod(new, 0o777 & ~umask)
+        plain_permissions(new)
         os.replace(new, out)
         return
     replaced = new / ".replaced"  # removed with ``new`` at the end

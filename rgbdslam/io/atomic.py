@@ -11,6 +11,14 @@ from pathlib import Path
 from typing import Iterator
 
 
+def plain_permissions(path: str | Path) -> None:
+    """Give a file or folder made by ``tempfile`` (owner-only) the permissions a plain ``open()``
+    or ``mkdir()`` would give it under the current umask."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, (0o777 if Path(path).is_dir() else 0o666) & ~umask)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; rename it over ``path`` on success."""
@@ -21,10 +29,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        # mkstemp creates the file owner-only; give it the permissions a plain open() would.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp_path, 0o666 & ~umask)
+        plain_permissions(tmp_path)
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():

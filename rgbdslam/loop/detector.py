@@ -84,6 +84,7 @@ class LoopCloser:
         self.gate = SharpnessGate(lc.sharpness_factor, lc.sharpness_window, lc.sharpness_min_history)
         self.index = make_index(lc.index, lc.lsh_tables, lc.lsh_bits, lc.seed, cfg.matching.max_hamming)
         self.keyframes: list[_Keyframe] = []
+        self._by_index: dict[int, _Keyframe] = {}  # frame index -> keyframe (loop edges name frames)
         if register is None:
             from rgbdslam.frontend.odometry import register
         self._register = register
@@ -152,6 +153,7 @@ class LoopCloser:
             path, turn = 0.0, 0.0
         self.index.add(len(self.keyframes), features.desc)
         self.keyframes.append(_Keyframe(int(features.index), features, pose, path, turn, self.segment))
+        self._by_index[self.keyframes[-1].index] = self.keyframes[-1]
         self.stats["map_keyframes"] = len(self.keyframes)
         self.stats["map_entries"] = int(self.index.size)
 
@@ -241,18 +243,17 @@ class LoopCloser:
         a waiting match from an earlier frame says it through its map between the segments
         (to_old · current pose), which the new segment's odometry carries forward."""
         lc = self.lc
-        by_index = {k.index: k for k in self.keyframes}
         pose = np.asarray(pose, dtype=np.float64)
         new = []
         for e in edges:
-            kf = by_index[e.i]
+            kf = self._by_index[e.i]
             if kf.segment == self.segment:
                 continue
             new.append((index, kf, e, kf.pose @ e.T_ij @ inv(pose)))
         self._pending.extend(new)
         out = []
-        for _, kf, e, to_old in new:
-            here = to_old @ pose
+        for _, kf, e, _ in new:
+            here = kf.pose @ e.T_ij  # where this match puts the camera in the older segment
             agree = 0
             for _, kf2, _, to_old2 in self._pending:
                 if kf2.segment != kf.segment:
@@ -265,9 +266,8 @@ class LoopCloser:
 
     def _link(self, edges: list[LoopEdge], pose: np.ndarray) -> None:
         """Record the offset to every older segment a new loop reaches for the first time."""
-        by_index = {k.index: k for k in self.keyframes}
         for e in edges:
-            kf = by_index[e.i]
+            kf = self._by_index[e.i]
             if kf.segment == self.segment or kf.segment in self._links:
                 continue
             pose = np.asarray(pose, dtype=np.float64)
@@ -297,8 +297,8 @@ class LoopCloser:
         # a match into an older segment that is not linked yet has only its geometry: it needs
         # confirmation, whether this segment is still relocalising or already linked to another
         self._expire(int(features.index))
-        seg = {k.index: k.segment for k in self.keyframes}
-        wait = [seg[e.i] != self.segment and seg[e.i] not in self._links for e in edges]
+        seg = [self._by_index[e.i].segment for e in edges]
+        wait = [g != self.segment and g not in self._links for g in seg]
         if any(wait):
             unlinked = [e for e, w in zip(edges, wait) if w]
             edges = [e for e, w in zip(edges, wait) if not w] + self._confirmed(unlinked, pose, int(features.index))

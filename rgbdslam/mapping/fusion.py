@@ -18,7 +18,6 @@ the world-to-camera extrinsic, i.e. the inverse.
 from __future__ import annotations
 
 import json
-import math
 import os
 import resource
 import shutil
@@ -32,7 +31,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from rgbdslam.config import Config, MappingConfig, load_config
+from rgbdslam.config import Config, MappingConfig, load_config, validate_section
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.base import Sequence
 from rgbdslam.errors import InputError
@@ -46,7 +45,6 @@ DEPTH_PNG_SCALE = 5000.0  # keyframes/depth_*.png units per metre
 STAMP_TOLERANCE = 1e-3  # seconds: a trajectory line belongs to a frame when the stamps agree this well
 # the files a fusion writes into its folder: all of them come from one fusion (see _commit)
 MAP_FILES = ("cloud.ply", "mesh.ply", "map2d.png", "map2d.yaml", "map2d_preview.png")
-MIN_VOXEL = 1e-3  # metres: voxel_keys has 21 bits per axis (+-1 km at 1 mm); finer grids are not sane
 
 
 @dataclass
@@ -276,60 +274,10 @@ def _write_ply(path: Path, geom, mesh: bool) -> None:
 # ----------------------------------------------------------------------------- settings
 
 
-def _number(cfg: MappingConfig, key: str, integer: bool = False) -> float:
-    v = getattr(cfg, key)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or (integer and not float(v).is_integer()):
-        kind = "a whole number" if integer else "a number"
-        raise InputError(f"mapping.{key} must be {kind}; got {v!r}")
-    if not math.isfinite(v):
-        raise InputError(f"mapping.{key} must be a finite number; got {v!r}")
-    return v
-
-
 def validate_mapping(cfg: MappingConfig) -> None:
-    """Check the mapping settings fusion uses, before anything is read or written; an
-    InputError names the first bad ``mapping.<key>`` and what it must be."""
-    rules = [  # key, lower bound, strict, whole number, hint
-        ("depth_min", 0.0, False, False, "metres, e.g. 0.3"),
-        ("depth_max", 0.0, True, False, "metres, e.g. 3.0"),
-        ("voxel_size", MIN_VOXEL, False, False, "metres, e.g. 0.01"),
-        ("cloud_pixel_stride", 1, False, True, "e.g. 2"),
-        ("outlier_neighbors", 0, False, True, "0 turns outlier removal off"),
-        ("outlier_std", 0.0, True, False, "e.g. 2.0"),
-        ("tsdf_voxel", MIN_VOXEL, False, False, "metres, e.g. 0.01"),
-        ("sdf_trunc", 0.0, True, False, "metres, e.g. 0.04"),
-        ("mesh_min_frames", 1, False, True, "e.g. 2"),
-        ("tsdf_initial_blocks", 1, False, True, "e.g. 2000"),
-        ("select_translation", 0.0, False, False, "metres, e.g. 0.05"),
-        ("select_rotation_deg", 0.0, False, False, "degrees, e.g. 5"),
-        ("grid_resolution", MIN_VOXEL, False, False, "metres per cell, e.g. 0.05"),
-        ("floor_max_tilt_deg", 0.0, False, False, "degrees, e.g. 20"),
-        ("floor_distance", 0.0, True, False, "metres, e.g. 0.02"),
-        ("floor_ransac_iterations", 1, False, True, "e.g. 500"),
-        ("floor_band", 0.0, True, False, "metres, e.g. 0.05"),
-        ("obstacle_min_height", None, False, False, "metres, e.g. 0.10"),
-        ("obstacle_max_height", None, False, False, "metres, e.g. 1.80"),
-        ("obstacle_min_points", 1, False, True, "e.g. 3"),
-        ("seed", 0, False, True, "e.g. 0"),
-    ]
-    for key, lo, strict, integer, hint in rules:
-        v = _number(cfg, key, integer)
-        if lo is not None and (v <= lo if strict else v < lo):
-            bound = f"greater than {lo:g}" if strict else f"at least {lo:g}"
-            raise InputError(f"mapping.{key} must be {bound} ({hint}); got {v!r}")
-    if not cfg.depth_min < cfg.depth_max:
-        raise InputError(f"mapping.depth_min ({cfg.depth_min!r}) must be smaller than mapping.depth_max "
-                         f"({cfg.depth_max!r}); only depth between them is fused")
-    if cfg.floor_max_tilt_deg > 90:
-        raise InputError(f"mapping.floor_max_tilt_deg must be at most 90 degrees; got {cfg.floor_max_tilt_deg!r}")
-    if not cfg.obstacle_min_height < cfg.obstacle_max_height:
-        raise InputError(f"mapping.obstacle_min_height ({cfg.obstacle_min_height!r}) must be smaller than "
-                         f"mapping.obstacle_max_height ({cfg.obstacle_max_height!r})")
-    if cfg.gravity not in ("auto", "accelerometer", "camera"):
-        raise InputError(f"mapping.gravity must be auto, accelerometer or camera; got {cfg.gravity!r}")
-    for key in ("keyframes_only", "undistort", "mesh", "map2d"):
-        if not isinstance(getattr(cfg, key), bool):
-            raise InputError(f"mapping.{key} must be true or false; got {getattr(cfg, key)!r}")
+    """Check the mapping settings before anything is read or written, by the config's own rules
+    (a MappingConfig made in Python has not been through ``load_config``)."""
+    validate_section("mapping", cfg)
 
 
 def _commit(stage: Path, out_dir: Path) -> None:

@@ -37,7 +37,7 @@ from rgbdslam.config import Config
 from rgbdslam.errors import InputError, RgbdslamError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
-from rgbdslam.io.atomic import atomic_path
+from rgbdslam.io.atomic import atomic_path, plain_permissions
 from rgbdslam.io.trajectory import Trajectory
 
 APPLICATION_ID = "rgbdslam"
@@ -274,9 +274,7 @@ class RerunLogger:
         self.rec.flush()
         self.rec.disconnect()
         if self.tmp_path is not None:
-            umask = os.umask(0)  # mkstemp made the file owner-only; give it a plain open()'s permissions
-            os.umask(umask)
-            os.chmod(self.tmp_path, 0o666 & ~umask)
+            plain_permissions(self.tmp_path)
             os.replace(self.tmp_path, self.save_path)
             self._cleanup.detach()
 
