@@ -307,12 +307,17 @@ def _check_value(key: str, value: Any, hint: Any) -> Any:
     )
 
 
-# Ranges: every number must be >= 0 unless listed in SIGNED; those in POSITIVE must be > 0
-# (integers: >= 1); BOUNDS gives closed intervals [lo, hi] (hi None: at least lo) and ORDERED
-# pairs (a, b) of one section need a < b.
+# Ranges. Lower bounds: every number must be >= 0 unless listed in SIGNED; those in POSITIVE must
+# be > 0 (integers: >= 1); BOUNDS gives closed intervals [lo, hi]. Upper bounds: every numeric key
+# needs one, in BOUNDS or MAXIMA, that its consumer accepts (a C int for OpenCV/GTSAM/Open3D
+# arguments and seeds, a memory or time budget for sizes and iteration counts), so that an absurd
+# value stops before any work instead of failing in a library after the run. A key without an
+# upper bound fails tests/test_config.py (every key of Config is walked with boundary values);
+# meanwhile it gets DEFAULT_MAXIMA. ORDERED pairs (a, b) of one section need a < b.
+C_INT_MAX = 2**31 - 1
 SIGNED = {"registration.beta", "mapping.obstacle_min_height", "mapping.obstacle_max_height", "dataset.offset"}
 POSITIVE = {
-    "dataset.max_difference", "dataset.depth_scale", "dataset.depth_correction", "dataset.max_frames",
+    "dataset.max_difference", "dataset.max_frames",
     "dataset.stride",
     "features.n_features", "features.n_levels", "features.fast_threshold", "features.grid_rows",
     "features.grid_cols",
@@ -340,18 +345,97 @@ BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
     "features.edge_threshold": (1, 255), "matching.ratio": (0.0, 1.0), "matching.max_hamming": (0, 256),
     "registration.min_agreement": (0.0, 1.0), "registration.min_points": (3, 10**9),
-    "registration.predicted_min_inliers": (3, 10**9), "loop.lsh_bits": (1, 64), "loop.min_inliers": (3, 10**9),
+    "registration.predicted_min_inliers": (3, 10**9), "loop.min_inliers": (3, 10**9),
+    # LSH bucket keys hold the table id above lsh_bits key bits in an int64
+    "loop.lsh_bits": (1, 40),
     "mapping.floor_max_tilt_deg": (0.0, 90.0),
-    # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane (hi None: no upper bound)
-    "mapping.voxel_size": (1e-3, None), "mapping.tsdf_voxel": (1e-3, None), "mapping.grid_resolution": (1e-3, None),
+    # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane
+    "mapping.voxel_size": (1e-3, 10.0), "mapping.tsdf_voxel": (1e-3, 10.0), "mapping.grid_resolution": (1e-3, 100.0),
+    # raw depth units per metre: below 1e-3 a 16-bit depth image would reach past 65 km
+    "dataset.depth_scale": (1e-3, 1e6), "dataset.depth_correction": (0.1, 10.0),
+    "dataset.offset": (-2e9, 2e9),  # seconds: Unix time stamps are ~1.8e9 (2026)
+    "registration.beta": (-100.0, 100.0),
+    "mapping.obstacle_min_height": (-1e3, 1e3), "mapping.obstacle_max_height": (-1e3, 1e3),
 }
+# Upper bounds of the keys whose range is not in BOUNDS (closed: the value itself is accepted).
+MAXIMA = {
+    # dataset: frame counts and indices fit a C int; prefetched frames are held in memory
+    "dataset.max_difference": 1e4, "dataset.first_frame": 10**9, "dataset.max_frames": 10**9,
+    "dataset.stride": 10**6, "dataset.prefetch": 64,
+    # features: OpenCV's ORB takes C ints; n_features x n_features Hamming matrices (~1 GB at 10000)
+    "features.n_features": 10_000, "features.fast_threshold": 255, "features.grid_rows": 64,
+    "features.grid_cols": 64,
+    # matching: RANSAC hypotheses are drawn and scored at once (~3 kB each); cv2 gets 10x as maxIters
+    "matching.prefilter_threshold": 1e3, "matching.prefilter_iterations": 20_000,
+    "matching.min_depth": 1e3, "matching.max_depth": 1e3,
+    "registration.ransac_iterations": 20_000, "registration.ransac_threshold": 10.0,
+    "registration.max_iterations": 1000, "registration.e_start": 100.0, "registration.e_min": 100.0,
+    "registration.mp": 64, "registration.alpha": 100.0, "registration.min_error": 100.0,
+    "registration.reject_translation": 100.0, "registration.reject_rotation": 100.0,
+    "registration.pregate": 100.0, "registration.guided_gate": 100.0, "registration.predicted_gate": 100.0,
+    "registration.joint_gate": 100.0, "registration.threads": 256, "registration.max_lost": 10**6,
+    "registration.max_jump_translation": 1e3, "registration.max_jump_rotation_deg": 360.0,
+    "registration.seed": C_INT_MAX,  # cv2.setRNGSeed takes a C int
+    # depth filter: each of the window's frames is warped into the current one
+    "depth_filter.window": 32, "depth_filter.spatial_radius": 32, "depth_filter.tolerance_a": 10.0,
+    "depth_filter.tolerance_b": 10.0, "depth_filter.min_support": 10_000, "depth_filter.min_depth": 1e3,
+    "depth_filter.max_depth": 1e3,
+    "keyframes.min_translation": 1e4, "keyframes.min_rotation_deg": 360.0, "keyframes.max_gap": 10**6,
+    # loop closure: every LSH table indexes every keyframe descriptor (memory grows with lsh_tables)
+    "loop.sharpness_factor": 1e3, "loop.sharpness_window": 10**5, "loop.sharpness_min_history": 10**5,
+    "loop.query_gap": 10**6, "loop.lsh_tables": 64, "loop.min_votes": 10**6, "loop.skip_recent": 10**6,
+    "loop.max_candidates": 100, "loop.seed": C_INT_MAX, "loop.max_residual": 10.0,
+    "loop.max_loops_per_frame": 100, "loop.consistency_translation": 1e4, "loop.consistency_rotation_deg": 360.0,
+    "loop.drift_ratio_translation": 100.0, "loop.drift_ratio_rotation": 100.0, "loop.sigma_floor": 10.0,
+    "loop.relocalize_confirm": 100, "loop.relocalize_window": 10**5, "loop.relocalize_translation": 1e4,
+    "loop.relocalize_rotation_deg": 360.0,
+    # back end: GTSAM takes C ints for iteration counts
+    "backend.kernel_width": 1e6, "backend.isam2_extra_updates": 1000, "backend.max_iterations": 100_000,
+    "backend.relative_error_tol": 1.0, "backend.prior_sigma": 1e3,
+    # mapping: Open3D takes C ints; a TSDF block (8^3 voxels) holds ~10 kB before the hash map grows
+    "mapping.select_translation": 1e4, "mapping.select_rotation_deg": 360.0, "mapping.depth_min": 1e3,
+    "mapping.depth_max": 1e3, "mapping.cloud_pixel_stride": 1024, "mapping.outlier_neighbors": 1000,
+    "mapping.outlier_std": 1e3, "mapping.sdf_trunc": 100.0, "mapping.mesh_min_frames": 10**6,
+    "mapping.tsdf_initial_blocks": 50_000, "mapping.floor_distance": 100.0,
+    "mapping.floor_ransac_iterations": 100_000, "mapping.floor_band": 100.0, "mapping.obstacle_min_points": 10**6,
+    "mapping.seed": C_INT_MAX,  # Open3D's random seed is a C int
+    "output.rerun_image_width": 8192, "output.rerun_log_every": 10**6,
+}
+DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)
 ORDERED = [("matching.min_depth", "matching.max_depth"), ("depth_filter.min_depth", "depth_filter.max_depth"),
            ("mapping.depth_min", "mapping.depth_max"), ("mapping.obstacle_min_height", "mapping.obstacle_max_height")]
 
 
+def value_range(key: str, kind: type) -> tuple[float, bool, float]:
+    """``(lo, lo_open, hi)``: the values ``key`` (of type ``kind``, int or float) accepts are
+    ``lo < v`` (``lo_open``) or ``lo <= v``, and ``v <= hi``."""
+    lo, hi = BOUNDS.get(key, (None, None))
+    if lo is None:
+        lo = (1 if kind is int else 0.0) if key in POSITIVE else (-math.inf if key in SIGNED else 0)
+    if hi is None:
+        hi = MAXIMA.get(key, DEFAULT_MAXIMA[kind])
+    return lo, key in POSITIVE and kind is float and key not in BOUNDS, hi
+
+
+def check_range(key: str, v: int | float) -> None:
+    """ConfigError naming ``key`` when ``v`` is outside its range (:func:`value_range`)."""
+    lo, lo_open, hi = value_range(key, int if isinstance(v, int) else float)
+    if key in BOUNDS:
+        if not lo <= v <= hi:
+            raise ConfigError(f"config key '{key}' must be between {lo:g} and {hi:g}; got {v!r}")
+        return
+    if lo_open and not v > lo:
+        raise ConfigError(f"config key '{key}' must be positive; got {v!r}")
+    if not v >= lo:
+        raise ConfigError(f"config key '{key}' must " + (f"be at least {lo:g}" if lo else "not be negative")
+                          + f"; got {v!r}")
+    if not v <= hi:
+        raise ConfigError(f"config key '{key}' must be at most {hi:g}; got {v!r}")
+
+
 def validate_section(section: str, obj: Any) -> Any:
     """Check one section's values: types (as for YAML input, so a section built in Python is
-    held to the same rules) and ranges (POSITIVE, BOUNDS, ORDERED); ConfigError names the key."""
+    held to the same rules) and ranges (:func:`check_range`, ORDERED); ConfigError names the key."""
     hints = get_type_hints(type(obj))
     for f in dataclasses.fields(obj):
         key = f"{section}.{f.name}"
@@ -359,16 +443,7 @@ def validate_section(section: str, obj: Any) -> Any:
         setattr(obj, f.name, v)
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             continue
-        lo, hi = BOUNDS.get(key, (None, None))
-        if lo is not None and hi is None and not v >= lo:
-            raise ConfigError(f"config key '{key}' must be at least {lo:g}; got {v!r}")
-        if hi is not None and not lo <= v <= hi:
-            raise ConfigError(f"config key '{key}' must be between {lo:g} and {hi:g}; got {v!r}")
-        if key in POSITIVE and not v > 0:
-            raise ConfigError(f"config key '{key}' must be {'at least 1' if isinstance(v, int) else 'positive'}; "
-                              f"got {v!r}")
-        if key not in SIGNED and v < 0:
-            raise ConfigError(f"config key '{key}' must not be negative; got {v!r}")
+        check_range(key, v)
     for a, b in ORDERED:
         if a.split(".")[0] == section:
             va, vb = getattr(obj, a.split(".")[1]), getattr(obj, b.split(".")[1])

@@ -521,11 +521,11 @@ def _print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
 
 def run_demo(out_dir: str | Path, frames: int, cfg: Config) -> dict[str, Any]:
     """Generate the embedded synthetic sequence (once) and run SLAM on it."""
-    from rgbdslam.datasets.synthetic import generate_sequence
+    from rgbdslam.datasets.synthetic import MAX_FRAMES, generate_sequence
     from rgbdslam.ui import console
 
-    if frames < 2:
-        raise InputError(f"--frames must be at least 2 for a trajectory (got {frames})")
+    if not 2 <= frames <= MAX_FRAMES:
+        raise InputError(f"--frames must be a whole number from 2 (a trajectory) to {MAX_FRAMES} (got {frames})")
     out_dir = Path(out_dir)
     seq_dir = out_dir / "sequence"
     marker = seq_dir / "demo.json"

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import math
+
 import pytest
 import yaml
 
@@ -118,7 +120,7 @@ def test_invalid_yaml(tmp_path):
     ("features.scale_factor=0.5", "'features.scale_factor' must be between 1 and 4; got 0.5"),
     ("registration.max_iterations=0", "'registration.max_iterations' must be at least 1; got 0"),
     ("registration.mp=-1", "'registration.mp' must be at least 1; got -1"),
-    ("mapping.tsdf_voxel=0", "'mapping.tsdf_voxel' must be at least 0.001; got 0.0"),
+    ("mapping.tsdf_voxel=0", "'mapping.tsdf_voxel' must be between 0.001 and 10; got 0.0"),
     ("mapping.cloud_pixel_stride=0", "'mapping.cloud_pixel_stride' must be at least 1; got 0"),
     ("matching.ratio=2", "'matching.ratio' must be between 0 and 1; got 2.0"),
     ("keyframes.max_gap=-1", "'keyframes.max_gap' must be at least 1; got -1"),
@@ -161,3 +163,92 @@ def test_yaml_merge_keys_work_and_odd_keys_are_one_line(tmp_path):
     p.write_text("loop:\n  [a, b]: 1\n")
     with pytest.raises(ConfigError, match=r"merge.yaml:2: 'list' is not a plain key name"):
         load_config(p)
+
+
+# ------------------------------------------------------------------ every numeric key is bounded
+
+
+def numeric_keys() -> list[tuple[str, type]]:
+    """Every int/float key of the config (optional ones too), read from Config itself, so a key
+    added later is walked without touching this test."""
+    import dataclasses
+    import types
+    import typing
+
+    out = []
+    cfg = Config()
+    for section in dataclasses.fields(cfg):
+        obj = getattr(cfg, section.name)
+        hints = typing.get_type_hints(type(obj))
+        for f in dataclasses.fields(obj):
+            hint = hints[f.name]
+            args = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+            kinds = [a for a in args if a in (int, float)]
+            if kinds:
+                out.append((f"{section.name}.{f.name}", kinds[0]))
+    return out
+
+
+NUMERIC_KEYS = numeric_keys()
+
+
+def test_every_numeric_key_has_its_own_finite_range():
+    """A new key must come with an upper bound its consumer accepts (BOUNDS or MAXIMA): without
+    one it would only get the catch-all default, and this test names it."""
+    from rgbdslam.config import BOUNDS, MAXIMA, value_range
+
+    assert len(NUMERIC_KEYS) > 80
+    missing = [k for k, _ in NUMERIC_KEYS if k not in MAXIMA and (BOUNDS.get(k, (None, None))[1] is None)]
+    assert not missing, f"give these config keys an upper bound in rgbdslam/config.py (MAXIMA or BOUNDS): {missing}"
+    stale = sorted(set(MAXIMA) - {k for k, _ in NUMERIC_KEYS})
+    assert not stale, f"MAXIMA names keys the config does not have: {stale}"
+    for key, kind in NUMERIC_KEYS:
+        lo, lo_open, hi = value_range(key, kind)
+        assert math.isfinite(lo), f"{key} needs a lower bound (it is SIGNED: give it a BOUNDS entry)"
+        assert lo < hi < 2**31, key  # C int range; 2**31 and 1e12 are refused for every key
+
+
+@pytest.mark.parametrize("key, kind", NUMERIC_KEYS, ids=[k for k, _ in NUMERIC_KEYS])
+def test_every_numeric_key_refuses_boundary_values_before_any_work(key, kind, tmp_path):
+    """min-1, max+1, 2^31, 1e12, 1e300 and NaN for every key: exit 2 with one 'error:' line naming
+    the key, before the sequence is opened or the run folder made. The range's own ends pass."""
+    from click.testing import CliRunner
+
+    from rgbdslam.cli import main
+    from rgbdslam.config import check_range, value_range
+
+    lo, lo_open, hi = value_range(key, kind)
+    values = [lo - 1, hi + 1, 2**31, "1e12", "1e300", ".nan", "NaN"]
+    if lo_open:
+        values.append(lo)
+    out = tmp_path / "run"
+    for v in values:
+        shown = repr(v) if not isinstance(v, str) else v
+        res = CliRunner().invoke(main, ["run", str(tmp_path / "no-such-sequence"), "--out", str(out), "-q",
+                                        "--set", f"{key}={shown if not isinstance(v, float) else repr(v)}"])
+        assert isinstance(res.exception, SystemExit) and res.exit_code == 2, (key, v, res.output)
+        lines = res.output.splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: config key '{key}'"), (key, v, res.output)
+        assert not out.exists()
+    for v in (lo, hi) if not lo_open else (hi,):
+        check_range(key, kind(v))  # the ends of the range are accepted
+
+
+def test_upper_ends_are_accepted_by_their_consumers(desk9, tmp_path):
+    """The maxima of the keys handed to C code (seeds, iteration counts, LSH sizes, TSDF blocks,
+    OpenCV's RANSAC) are accepted by OpenCV, GTSAM and Open3D in a real run."""
+    from click.testing import CliRunner
+
+    from rgbdslam.cli import main
+    from rgbdslam.config import MAXIMA, value_range
+
+    keys = ["registration.seed", "loop.seed", "mapping.seed", "matching.prefilter_iterations", "loop.lsh_tables",
+            "loop.lsh_bits", "mapping.floor_ransac_iterations", "mapping.tsdf_initial_blocks",
+            "backend.max_iterations", "backend.isam2_extra_updates", "dataset.prefetch"]
+    sets = [f"{k}={value_range(k, int)[2]}" for k in keys]
+    assert MAXIMA["registration.seed"] == 2**31 - 1
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "r"), "-q", "--set", "dataset.max_frames=4",
+                                    "--set", "matching.prefilter=homography", "--set", "matching.prefilter_threshold=3",
+                                    "--set", "backend.enabled=true", *sum((["--set", s] for s in sets), [])])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "r" / "map" / "mesh.ply").is_file() and (tmp_path / "r" / "posegraph.g2o").is_file()

@@ -314,11 +314,11 @@ def test_fuse_empty_depth_range_names_the_settings_and_keeps_the_map(plane_run):
 
 
 @pytest.mark.parametrize("key, value, message", [  # the config's own rules (config.validate_section)
-    ("grid_resolution", 0.0, "config key 'mapping.grid_resolution' must be at least 0.001; got 0.0"),
+    ("grid_resolution", 0.0, "config key 'mapping.grid_resolution' must be between 0.001 and 100; got 0.0"),
     ("cloud_pixel_stride", 0, "config key 'mapping.cloud_pixel_stride' must be at least 1; got 0"),
     ("outlier_std", 0.0, "config key 'mapping.outlier_std' must be positive; got 0.0"),
-    ("tsdf_voxel", 0.0, "config key 'mapping.tsdf_voxel' must be at least 0.001; got 0.0"),
-    ("voxel_size", -0.01, "config key 'mapping.voxel_size' must be at least 0.001; got -0.01"),
+    ("tsdf_voxel", 0.0, "config key 'mapping.tsdf_voxel' must be between 0.001 and 10; got 0.0"),
+    ("voxel_size", -0.01, "config key 'mapping.voxel_size' must be between 0.001 and 10; got -0.01"),
     ("voxel_size", float("nan"), "config key 'mapping.voxel_size' must be a finite number; got nan"),
     ("mesh_min_frames", 1.5, "config key 'mapping.mesh_min_frames' expects int; got 1.5"),
     ("depth_min", 3.0, "config key 'mapping.depth_min' (3.0) must be smaller than 'mapping.depth_max' (3.0)"),

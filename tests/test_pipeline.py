@@ -450,10 +450,11 @@ def test_an_output_path_under_a_file_is_one_line(desk9, tmp_path):
     assert len(lines) == 1 and lines[0].startswith("error: ") and str(tmp_path / "afile") in lines[0]
 
 
-def test_demo_with_too_few_frames_is_one_line_before_any_work(tmp_path):
-    res = CliRunner().invoke(main, ["demo", "--out", str(tmp_path / "demo"), "--frames", "0"])
+@pytest.mark.parametrize("frames", ["0", "2147483648"])
+def test_demo_with_too_few_or_many_frames_is_one_line_before_any_work(tmp_path, frames):
+    res = CliRunner().invoke(main, ["demo", "--out", str(tmp_path / "demo"), "--frames", frames])
     assert isinstance(res.exception, SystemExit) and res.exit_code == 2
-    assert res.output.strip() == "error: --frames must be at least 2 for a trajectory (got 0)"
+    assert res.output.strip() == f"error: --frames must be a whole number from 2 (a trajectory) to 100000 (got {frames})"
     assert not (tmp_path / "demo").exists()
 
 
@@ -509,7 +510,7 @@ def test_mapping_problems_never_cost_the_run(desk9, tmp_path):
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "a"), "-q",
                                     "--set", "mapping.voxel_size=0.0005"])
     assert isinstance(res.exception, SystemExit) and res.exit_code == 2
-    assert "'mapping.voxel_size' must be at least 0.001" in res.output and not (tmp_path / "a").exists()
+    assert "'mapping.voxel_size' must be between 0.001 and 10" in res.output and not (tmp_path / "a").exists()
     s = run_sequence(desk9, tmp_path / "b", load_config(None, ["output.plots=false", "mapping.depth_min=0.05",
                                                                "mapping.depth_max=0.1"]), progress=False)
     assert s["map"] == {} and s["tracked"] == 9 and len(read_tum(tmp_path / "b" / "trajectory.tum")) == 9
