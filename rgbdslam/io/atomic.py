@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import shutil
 import signal
+import stat
 import threading
 import tempfile
 from pathlib import Path
@@ -19,18 +22,56 @@ def plain_permissions(path: str | Path) -> None:
     os.chmod(path, (0o777 if Path(path).is_dir() else 0o666) & ~umask)
 
 
+def write_target(path: str | Path) -> tuple[Path, bool]:
+    """Where a write to ``path`` must go and whether it can be atomic: ``(target, True)`` for a
+    regular file or a new name (symbolic links followed to their end, so the link stays a link
+    and the file it names is replaced), ``(path, False)`` for an existing file that is not
+    regular (a device such as /dev/null or /dev/stdout, a FIFO): such a target is written into
+    directly and never replaced by a plain file. A folder is an IsADirectoryError naming it."""
+    path = Path(path)
+    try:
+        st = os.stat(path)  # follows links; a loop is OSError(ELOOP) naming the path
+    except FileNotFoundError:
+        # a new name, or a link to a name that does not exist yet: create the link's target
+        return (Path(os.path.realpath(path)) if os.path.islink(path) else path), True
+    if stat.S_ISDIR(st.st_mode):
+        raise IsADirectoryError(errno.EISDIR, "is a folder, not a file", str(path))
+    if stat.S_ISREG(st.st_mode):
+        return Path(os.path.realpath(path)), True
+    return path, False
+
+
+def commit(tmp: str | Path, path: str | Path) -> None:
+    """Put the finished temporary file ``tmp`` in place of ``path`` (see :func:`write_target`):
+    renamed over a regular file, copied into a device or FIFO; ``tmp`` is gone afterwards."""
+    target, atomic = write_target(path)
+    if atomic:
+        plain_permissions(tmp)
+        os.replace(tmp, target)
+        return
+    try:
+        with open(tmp, "rb") as src, open(target, "wb") as dst:
+            shutil.copyfileobj(src, dst)
+    except OSError as e:
+        raise OSError(e.errno, e.strerror, str(path)) from None  # name the user's path, not a temporary
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path in the target's folder; rename it over ``path`` on success."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix or ".tmp", dir=path.parent)
+    """Yield a temporary path beside the target; on success it replaces ``path`` (a regular file,
+    also through symbolic links) or is copied into it (a device, a FIFO: never replaced)."""
+    target, atomic = write_target(path)
+    if atomic:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=Path(path).suffix or ".tmp",
+                               dir=target.parent if atomic else None)  # a device's folder: /tmp instead
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        plain_permissions(tmp_path)
-        os.replace(tmp_path, path)
+        commit(tmp_path, path)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

@@ -37,7 +37,7 @@ from rgbdslam.config import Config
 from rgbdslam.errors import InputError, RgbdslamError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
-from rgbdslam.io.atomic import atomic_path, plain_permissions
+from rgbdslam.io.atomic import atomic_path, commit, write_target
 from rgbdslam.io.trajectory import Trajectory
 
 APPLICATION_ID = "rgbdslam"
@@ -94,8 +94,10 @@ class RerunLogger:
             if self.save_path.is_dir():
                 raise InputError(f"--rerun-save {self.save_path} is a folder; give a file name such as "
                                  f"{self.save_path / 'run.rrd'}")
-            self.save_path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.save_path.name}.", suffix=".tmp", dir=self.save_path.parent)
+            target, atomic = write_target(self.save_path)  # a link's target; a device is written into at close()
+            if atomic:
+                target.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent if atomic else None)
             os.close(fd)
             self.tmp_path = Path(tmp)
             # removes the temporary file if the logger is dropped (or the process exits) unclosed
@@ -274,8 +276,7 @@ class RerunLogger:
         self.rec.flush()
         self.rec.disconnect()
         if self.tmp_path is not None:
-            plain_permissions(self.tmp_path)
-            os.replace(self.tmp_path, self.save_path)
+            commit(self.tmp_path, self.save_path)
             self._cleanup.detach()
 
     def abort(self) -> None:
