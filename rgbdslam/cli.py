@@ -7,6 +7,7 @@ Ctrl-C exits with 130 after the library has saved what it finished.
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 
 import click
@@ -19,7 +20,11 @@ class _Group(click.Group):
 
     def invoke(self, ctx):
         try:
-            return super().invoke(ctx)
+            with warnings.catch_warnings():
+                # a last guard: inputs are checked where they are read, but no library's
+                # RuntimeWarning (NumPy overflow, ...) is to reach the user between our lines
+                warnings.simplefilter("ignore", RuntimeWarning)
+                return super().invoke(ctx)
         except click.exceptions.NoArgsIsHelpError:
             raise
         except click.UsageError as e:  # a bad option or argument: one line, like every other error

@@ -196,9 +196,13 @@ def test_camera_choice(tmp_path):
     with pytest.raises(InputError, match="unknown camera 'nikon'"):
         choose_camera(d)
     for bad in ("fx: 0\nfy: 501\ncx: 1\ncy: 1\n", "fx: .nan\nfy: 501\ncx: 1\ncy: 1\n",
-                "fx: 500\nfy: -5\ncx: 1\ncy: 1\n", "fx: 500\nfy: 500\ncx: 1\ncy: 1\nwidth: 0\n"):
+                "fx: 500\nfy: -5\ncx: 1\ncy: 1\n", "fx: 500\nfy: 500\ncx: 1\ncy: 1\nwidth: 0\n",
+                # finite but absurd (issue 16, class 6)
+                "fx: 1.0e+300\nfy: 500\ncx: 1\ncy: 1\n", "fx: 500\nfy: 500\ncx: -1.0e+300\ncy: 1\n",
+                "fx: 500\nfy: 500\ncx: 1\ncy: 1\nwidth: 1.0e+300\n",
+                "fx: 500\nfy: 500\ncx: 1\ncy: 1\ndist: [1.0e+300, 0, 0, 0, 0]\n"):
         (d / "camera.yaml").write_text(bad)
-        with pytest.raises(InputError, match="fx and fy must be positive, width and height at least 1"):
+        with pytest.raises(InputError, match="fx and fy must be positive, width and height from 1 to 65535"):
             choose_camera(d)
 
 

@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 from rgbdslam.backend.graph import PoseGraph, empty_poses, se3_from_tq, se3_to_tq, wrap_angle
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.numbers import check_magnitude
 from rgbdslam.io.text import read_lines
 
 FORMATS = ("auto", "g2o", "toro", "isam")
@@ -127,12 +128,19 @@ def _int_ids(path: Path, tag: str, a: np.ndarray, lines) -> np.ndarray:
     return a.astype(np.int64)
 
 
+MAX_GRAPH_NUMBER = 1e16  # poses, measurements and information entries
+
+
 def _check_finite(path: Path, tag: str, a: np.ndarray, lines):
     if len(a) == 0:
         return
     bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
     if len(bad):
         raise InputError(f"{path}:{lines[bad[0]]}: {tag} has a non-finite number (nan or inf); fix the line")
+    # finite but absurd: squares and chi2 sums of larger numbers overflow (ids, the leading
+    # column(s), are checked on their own by _int_ids)
+    check_magnitude(a[:, 1 if tag.startswith("VERTEX") else 2:], MAX_GRAPH_NUMBER, path, lines, f"{tag} number",
+                    "fix the line")
 
 
 def _check_info(path: Path, tag: str, info: np.ndarray, lines, what: str = "information matrix"):

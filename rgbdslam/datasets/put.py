@@ -32,6 +32,7 @@ from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
+from rgbdslam.io.numbers import MAX_COORD, check_magnitude, check_stamps, unit_quaternions
 
 PUT_DEPTH_SCALE = 1000.0
 MATCHED = "matched"
@@ -48,6 +49,7 @@ def read_matched(path: Path) -> tuple[np.ndarray, np.ndarray]:
             vals = []
         if len(vals) != 2 or not np.isfinite(vals).all():
             raise InputError(f"{path}:{lineno}: expected 'rgb_timestamp depth_timestamp'; got {' '.join(parts)[:60]!r}")
+        check_stamps([vals], path, [lineno])
         rows.append(vals)
     if not rows:
         raise InputError(f"{path} lists no frames; it needs one 'rgb_timestamp depth_timestamp' line per frame")
@@ -61,9 +63,10 @@ def read_initial_position(path: Path) -> np.ndarray:
         vals = [float(x) for x in read_text(path, "initialPosition file").replace(",", " ").split()]
     except ValueError:
         vals = []
-    if len(vals) != 7 or not np.isfinite(vals).all() or np.linalg.norm(vals[3:]) < 1e-9:
+    if len(vals) != 7 or not np.isfinite(vals).all():
         raise InputError(f"{path} must hold 7 numbers 'x y z qx qy qz qw' (a unit quaternion); fix or delete it")
-    return pose_from_tum(np.array(vals[:3]), np.array(vals[3:]))[0]
+    check_magnitude([vals[:3]], MAX_COORD, path, [1], "position", "positions must be metres")
+    return pose_from_tum(np.array(vals[:3]), unit_quaternions([vals[3:]], path, [1])[0])[0]
 
 
 def _is_put(path: Path) -> bool:

@@ -28,6 +28,7 @@ from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.io.trajectory import Trajectory, read_tum
+from rgbdslam.io.numbers import MAX_STAMP, check_stamps
 
 TUM_DEPTH_SCALE = 5000.0
 CAMERA_FILE = "camera.yaml"
@@ -158,6 +159,8 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
         try:
             t = float(parts[0])
             ok = len(parts) == 2 and np.isfinite(t)
+            if ok:
+                check_stamps([t], path, [lineno])
         except ValueError:
             ok = False
         if not ok:
@@ -176,7 +179,7 @@ def _stamp(name: str) -> float | None:
         t = float(Path(name).stem)
     except ValueError:
         return None
-    return t if np.isfinite(t) else None
+    return t if np.isfinite(t) and abs(t) <= MAX_STAMP else None
 
 
 def list_from_folder(folder: Path) -> tuple[np.ndarray, list[str]]:
@@ -218,7 +221,9 @@ def read_associations(path: Path) -> tuple[np.ndarray, list[str], np.ndarray, li
     for lineno, parts in data_lines(path):
         try:
             a, b = float(parts[0]), float(parts[2])
-            ok = len(parts) == 4
+            ok = len(parts) == 4 and np.isfinite([a, b]).all()
+            if ok:
+                check_stamps([[a, b]], path, [lineno])
         except (ValueError, IndexError):
             ok = False
         if not ok:
@@ -233,6 +238,11 @@ def read_associations(path: Path) -> tuple[np.ndarray, list[str], np.ndarray, li
     if not ts_rgb:
         raise InputError(f"associations file {path} holds no pairs; it needs 'rgb_ts rgb_file depth_ts depth_file' lines")
     return np.array(ts_rgb), f_rgb, np.array(ts_d), f_d
+
+
+MAX_IMAGE_SIDE = 65535  # pixels (16-bit image sizes)
+MAX_PIXELS = 1e6  # focal lengths and principal point (pixels)
+MAX_DIST = 1e3  # distortion coefficients
 
 
 def camera_from_yaml(path: Path) -> Camera:
@@ -267,14 +277,15 @@ def camera_from_yaml(path: Path) -> Camera:
             float(base["fx"]), float(base["fy"]), float(base["cx"]), float(base["cy"]),
             int(base.get("width", 640)), int(base.get("height", 480)), dist, str(name or "custom"),
         )
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{path}: intrinsics must be numbers (dist a list of 5 numbers)") from None
     if len(dist) not in (4, 5, 8):
         raise InputError(f"{path}: dist must have 4, 5 or 8 coefficients (k1 k2 p1 p2 [k3 ...]); got {len(dist)}")
     if not (np.isfinite([cam.fx, cam.fy, cam.cx, cam.cy, *dist]).all() and cam.fx > 0 and cam.fy > 0
-            and cam.width > 0 and cam.height > 0):
-        raise InputError(f"{path}: fx and fy must be positive, width and height at least 1, and every value "
-                         f"finite; got fx {cam.fx}, fy {cam.fy}, cx {cam.cx}, cy {cam.cy}, "
+            and 0 < cam.width <= MAX_IMAGE_SIDE and 0 < cam.height <= MAX_IMAGE_SIDE
+            and max(cam.fx, cam.fy, abs(cam.cx), abs(cam.cy)) <= MAX_PIXELS and max(map(abs, dist)) <= MAX_DIST):
+        raise InputError(f"{path}: fx and fy must be positive, width and height from 1 to {MAX_IMAGE_SIDE}, fx fy cx "
+                         f"cy within ±{MAX_PIXELS:g} pixels, dist within ±{MAX_DIST:g}, every value finite; got fx {cam.fx}, fy {cam.fy}, cx {cam.cx}, cy {cam.cy}, "
                          f"{cam.width}x{cam.height}")
     return cam
 

@@ -147,10 +147,12 @@ def associate_trajectories(
     """The associated sub-trajectories (same length, sorted by time); InputError if none overlap,
     if the estimate has two poses at one time stamp (which one to use is ambiguous) or if
     ``max_difference`` / ``offset`` are not sane numbers."""
-    if not (math.isfinite(max_difference) and max_difference > 0):
-        raise InputError(f"--max-difference must be a positive number of seconds (e.g. 0.02); got {max_difference}")
-    if not math.isfinite(offset):
-        raise InputError(f"--offset must be a finite number of seconds; got {offset}")
+    if not (math.isfinite(max_difference) and 0 < max_difference <= 1e4):
+        raise InputError(f"--max-difference must be a positive number of seconds (e.g. 0.02) up to 1e4; "
+                         f"got {max_difference}")
+    if not (math.isfinite(offset) and abs(offset) <= 2e9):
+        raise InputError(f"--offset must be a finite number of seconds within ±2e9; got {offset}")
+    check_unique_stamps(gt, "the ground truth")
     check_unique_stamps(est, "the estimate")
     ia, ib = associate(gt.timestamps, est.timestamps, max_difference, offset)
     if len(ia) == 0:
@@ -165,13 +167,14 @@ def associate_trajectories(
 
 def check_unique_stamps(traj: Trajectory, name: str) -> None:
     """InputError when ``traj`` (sorted by time, as read_tum returns it) has repeated time stamps:
-    an estimate must have one pose per time; which of two would be evaluated is arbitrary."""
+    a trajectory (ground truth or estimate, one rule for both, as for image lists) must have one
+    pose per time; which of two would be evaluated is arbitrary."""
     ts = np.sort(traj.timestamps)
     dup = np.flatnonzero(np.diff(ts) == 0)
     if len(dup):
         more = f" (and {len(dup) - 1} more repeat{'s' if len(dup) > 2 else ''})" if len(dup) > 1 else ""
         raise PairingError(
-            f"{name} has more than one pose at time stamp {ts[dup[0]]:.6f}{more}; an estimate needs one pose per "
+            f"{name} has more than one pose at time stamp {ts[dup[0]]:.6f}{more}; a trajectory needs one pose per "
             f"time stamp: remove the duplicate lines"
         )
 

@@ -11,6 +11,7 @@ from rgbdslam.io.text import read_lines
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.numbers import MAX_COORD, check_magnitude, check_stamps, unit_quaternions
 
 
 @dataclass
@@ -42,7 +43,7 @@ def read_tum(path: str | Path) -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"trajectory file {path} does not exist; check the path")
-    stamps, rows = [], []
+    stamps, rows, linenos = [], [], []
     for lineno, line in enumerate(read_lines(path, "trajectory file"), 1):
         s = line.strip()
         if not s or s.startswith("#"):
@@ -58,15 +59,17 @@ def read_tum(path: str | Path) -> Trajectory:
             raise InputError(
                 f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw'; got {len(vals)}"
             )
-        q = np.array(vals[4:8])
-        n = np.linalg.norm(q)
-        if not np.isfinite(vals).all() or n < 1e-9:
-            raise InputError(f"{path}:{lineno}: non-finite value or zero quaternion; fix or delete the line")
+        if not np.isfinite(vals).all():
+            raise InputError(f"{path}:{lineno}: non-finite value; fix or delete the line")
         stamps.append(vals[0])
         rows.append(vals[1:8])
+        linenos.append(lineno)
     if not rows:
         raise InputError(f"trajectory file {path} holds no poses; it must have lines 'timestamp tx ty tz qx qy qz qw'")
     a = np.array(rows)
+    check_stamps(stamps, path, linenos)
+    check_magnitude(a[:, :3], MAX_COORD, path, linenos, "position", "positions must be metres")
+    a[:, 3:7] = unit_quaternions(a[:, 3:7], path, linenos)
     order = np.argsort(np.array(stamps), kind="stable")
     return Trajectory(np.array(stamps)[order], pose_from_tum(a[order, :3], a[order, 3:7]))
 

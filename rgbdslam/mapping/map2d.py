@@ -36,6 +36,7 @@ from rgbdslam.config import MappingConfig
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_path, atomic_write_text
 from rgbdslam.io.text import read_lines
+from rgbdslam.io.numbers import check_magnitude, check_stamps
 from rgbdslam.io.trajectory import Trajectory
 
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
@@ -77,6 +78,8 @@ def read_accelerometer(path: str | Path) -> np.ndarray:
             raise InputError(f"{path}:{lineno}: expected 4 numbers 'timestamp ax ay az'; got {len(vals)}")
         if not np.isfinite(vals).all():
             raise InputError(f"{path}:{lineno}: non-finite value; fix or delete the line")
+        check_stamps([vals[0]], path, [lineno])
+        check_magnitude([vals[1:]], 1e3, path, [lineno], "acceleration", "accelerations must be m/s^2")
         rows.append(vals)
     return np.array(rows).reshape(-1, 4)
 
