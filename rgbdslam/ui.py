@@ -9,7 +9,8 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn, TimeRemainingColumn
 from rich.text import Text
 
-console = Console(stderr=True)
+# soft_wrap: a warning is one line however long its path (rich would break it at 80 columns in a log)
+console = Console(stderr=True, soft_wrap=True)
 
 
 class _RateColumn(ProgressColumn):

@@ -31,6 +31,7 @@ from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.images import read_image
 from rgbdslam.io.trajectory import Trajectory, read_tum
 from rgbdslam.io.numbers import MAX_COORD, check_magnitude, check_stamps, unit_quaternions
 
@@ -160,7 +161,7 @@ def convert_tum_to_put(src: str | Path, dst: str | Path, max_frames: int | None 
         else:
             bgr = cv2.cvtColor(seq.load(k).rgb, cv2.COLOR_RGB2BGR)
             cv2.imwrite(str(dst / f"rgb_{k:05d}.png"), bgr)
-        raw = cv2.imread(str(depth_src), cv2.IMREAD_UNCHANGED)
+        raw, _ = read_image(depth_src)
         if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
             raise InputError(f"depth image {depth_src} is not a readable 16-bit single-channel PNG")
         mm = np.round(raw.astype(np.float64) * (PUT_DEPTH_SCALE / seq.depth_scale))

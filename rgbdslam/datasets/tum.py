@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 import yaml
 
+from rgbdslam.io.images import read_image
 from rgbdslam.io.text import read_lines, read_text
 from rgbdslam.datasets import register
 from rgbdslam.datasets.base import Frame, Sequence
@@ -57,9 +58,9 @@ def read_rgb(path: Path, camera: Camera) -> np.ndarray:
     """A colour image as (H, W, 3) uint8 RGB; InputError naming the file if it is unusable."""
     if not path.is_file():
         raise InputError(f"colour image {path} is missing; restore it or remove its line from the list")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img, why = read_image(path)
     if img is None:
-        raise InputError(f"colour image {path} cannot be decoded; replace it with a valid PNG/JPEG")
+        raise InputError(f"colour image {path} cannot be decoded ({why}); replace it with a valid PNG/JPEG")
     if img.dtype != np.uint8:
         raise InputError(f"colour image {path} is {img.dtype}, expected 8-bit; convert it to 8-bit RGB")
     if img.ndim != 3 or img.shape[2] not in (3, 4):
@@ -74,9 +75,9 @@ def read_depth(path: Path, camera: Camera, metres_per_unit: float) -> np.ndarray
     """A 16-bit depth image as (H, W) float32 metres (0 = no measurement)."""
     if not path.is_file():
         raise InputError(f"depth image {path} is missing; restore it or remove its line from the list")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img, why = read_image(path)
     if img is None:
-        raise InputError(f"depth image {path} cannot be decoded; replace it with a valid 16-bit PNG")
+        raise InputError(f"depth image {path} cannot be decoded ({why}); replace it with a valid 16-bit PNG")
     if img.ndim != 2:
         raise InputError(f"depth image {path} has {img.shape[2]} channels, expected one 16-bit channel")
     if img.dtype != np.uint16:

@@ -38,6 +38,7 @@ from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 from rgbdslam.io.atomic import atomic_path, interrupts_deferred
+from rgbdslam.io.images import read_image
 from rgbdslam.io.text import read_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
 
@@ -151,7 +152,7 @@ class _Undistorter:
 
 
 def read_depth_png(path: Path) -> np.ndarray:
-    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    d, _ = read_image(path)
     if d is None or d.ndim != 2:
         raise InputError(f"depth image {path} is unreadable or not a 16-bit single-channel PNG; delete it or re-run")
     return d.astype(np.float32) / DEPTH_PNG_SCALE
