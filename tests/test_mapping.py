@@ -431,3 +431,58 @@ def test_a_run_folder_without_config_warns_that_defaults_are_used(plane_run, cap
     err = capsys.readouterr().err
     assert f"{run / 'config.yaml'} is missing; the default config is used" in " ".join(err.split())
     assert cfg.to_dict() == Config().to_dict() and len(traj) == 3
+
+
+# ----------------------------------------------------------------------------- reproducibility
+
+
+def test_canonical_mesh_is_independent_of_vertex_order_and_copies():
+    """Marching cubes emits the vertices in a thread-dependent order, a shared vertex once per
+    block: any order and any copies give the same arrays, and every triangle keeps its winding."""
+    from rgbdslam.mapping.fusion import canonical_mesh
+
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(40, 3))
+    c = rng.uniform(size=(40, 3))
+    tri = np.array([rng.choice(40, 3, replace=False) for _ in range(60)])
+
+    def mesh(vv, cc, tt):
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vv), o3d.utility.Vector3iVector(tt))
+        m.vertex_colors = o3d.utility.Vector3dVector(cc)
+        return m
+
+    a = canonical_mesh(mesh(v, c, tri))
+    perm = rng.permutation(40)
+    inv = np.argsort(perm)
+    # permuted vertices, a copy of every vertex named by the odd triangles, triangles shuffled and rotated
+    v2 = np.concatenate([v[perm], v[perm]])
+    c2 = np.concatenate([c[perm], c[perm]])
+    t2 = inv[tri] + np.where(np.arange(60) % 2, 40, 0)[:, None]
+    t2 = np.roll(t2, 1, axis=1)[rng.permutation(60)]
+    b = canonical_mesh(mesh(v2, c2, t2))
+    for name in ("vertices", "vertex_colors", "triangles"):
+        assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))), name
+    # winding kept: the normal of each output triangle matches one of the input's
+    va, ta = np.asarray(a.vertices), np.asarray(a.triangles)
+    n_in = {tuple(np.round(np.cross(v[t[1]] - v[t[0]], v[t[2]] - v[t[0]]), 9)) for t in tri}
+    n_out = {tuple(np.round(np.cross(va[t[1]] - va[t[0]], va[t[2]] - va[t[0]]), 9)) for t in ta}
+    assert n_in == n_out
+
+
+def test_two_fusions_of_one_run_are_byte_identical(desk9, tmp_path):
+    """A real run's map fused again (twice): cloud, mesh and 2-D map are the same bytes."""
+    from click.testing import CliRunner
+
+    from rgbdslam.cli import main
+
+    run = tmp_path / "run"
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), "-q", "--set", "output.plots=false"])
+    assert res.exit_code == 0, res.output
+    first = {p.name: p.read_bytes() for p in (run / "map").iterdir()}
+    assert {"cloud.ply", "mesh.ply", "map2d.png"} <= set(first)
+    for _ in range(2):
+        res = CliRunner().invoke(main, ["fuse", str(run), "-q"])
+        assert res.exit_code == 0, res.output
+        again = {p.name: p.read_bytes() for p in (run / "map").iterdir()}
+        assert again.keys() == first.keys()
+        assert [n for n in first if first[n] != again[n]] == []

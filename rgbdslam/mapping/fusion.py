@@ -262,7 +262,29 @@ class _Tsdf:
         mesh = self.vol.extract_triangle_mesh(weight_threshold=min_frames - 0.5).to_legacy()
         if mesh.has_vertex_colors():
             mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
+        return canonical_mesh(mesh)
+
+
+def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
+    """The same mesh with its vertices in a fixed order (by x, y, z, then colour; copies of one
+    vertex welded) and its triangles (each rotated to start at its smallest vertex index, keeping its orientation) sorted:
+    the TSDF's hash map is walked by several threads, so marching cubes emits the same vertices
+    in a different order on every run, and mesh.ply would differ byte for byte."""
+    v = np.asarray(mesh.vertices)
+    if len(v) == 0:
         return mesh
+    c = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else np.zeros((len(v), 0))
+    # sorted unique rows (x first, then y, z, colours); marching cubes emits a vertex shared by
+    # neighbouring blocks once per block, and which copy a triangle names varies: weld them
+    uniq, rank = np.unique(np.concatenate([v, c], axis=1), axis=0, return_inverse=True)
+    tri = rank.reshape(-1)[np.asarray(mesh.triangles, dtype=np.int64)]
+    first = np.argmin(tri, axis=1)  # cyclic rotation: same triangle, same winding
+    tri = np.stack([tri[np.arange(len(tri)), (first + k) % 3] for k in range(3)], axis=1)
+    tri = tri[np.lexsort(tri.T[::-1])]
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(uniq[:, :3]), o3d.utility.Vector3iVector(tri))
+    if c.shape[1]:
+        out.vertex_colors = o3d.utility.Vector3dVector(uniq[:, 3:])
+    return out
 
 
 def _write_ply(path: Path, geom, mesh: bool) -> None:
