@@ -243,7 +243,8 @@ def posegraph_init(file, method, out, fmt):
 @click.option("--max-iter", default=50, show_default=True, help="Maximum iterations.")
 @click.option("--tol", default=1e-6, show_default=True, help="Convergence threshold on the chi2 change.")
 @click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="relative", show_default=True,
-              help="relative: |dchi2|/chi2 < tol (g2o's test); absolute: |dchi2| < tol.")
+              help="relative: |dchi2| <= tol * chi2 (g2o's test, scale-free), or chi2 down to the level "
+                   "floating-point rounding alone gives the graph (an exact fit); absolute: |dchi2| < tol.")
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="Input format.")
 @_optimizer_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")

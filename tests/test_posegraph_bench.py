@@ -50,11 +50,16 @@ def test_convergence_tests_on_hand_histories():
     assert not has_converged(1000.0, 1000.0 - 5e-4, 1e-6, "absolute")
     assert has_converged(1000.0, 1000.0 - 5e-7, 1e-6, "absolute")
     assert not has_converged(float("nan"), 1.0, 1e-6, "absolute")
-    # a graph that fits exactly: chi2 jitters around 1e-28, a 50 % relative change; below 1 the
-    # relative test measures against 1, so it passes (and a real change below 1 still fails it)
-    assert has_converged(2e-28, 1e-28, 1e-6, "relative")
-    assert not has_converged(0.5, 0.4, 1e-6, "relative")
-    assert not has_converged(2.0, 1.0, 1e-6, "relative")
+    # a graph that fits exactly: chi2 jitters around 1e-28, a 50 % relative change; at the rounding
+    # floor (chi2_floor) it passes, and a real change above the floor still fails it
+    assert has_converged(2e-28, 1e-28, 1e-6, "relative", floor=1e-20)
+    assert not has_converged(2e-28, 1e-28, 1e-6, "relative")  # no floor: g2o's purely relative test
+    assert not has_converged(0.5, 0.4, 1e-6, "relative", floor=1e-20)
+    assert not has_converged(2.0, 1.0, 1e-6, "relative", floor=1e-20)
+    # scale-free: the verdict does not change when chi2 (and its floor) are multiplied by 1e-8
+    for prev, cur, floor in ((1000.0, 1000.0 - 5e-4, 1e-20), (0.5, 0.4, 1e-20), (2e-28, 1e-28, 1e-20)):
+        assert has_converged(prev, cur, 1e-6, "relative", floor) == \
+            has_converged(prev * 1e-8, cur * 1e-8, 1e-6, "relative", floor * 1e-8)
 
 
 def test_noise_free_graph_from_ground_truth_converges_at_once():
@@ -440,3 +445,29 @@ def test_noise_models_weigh_singular_and_projected_information_exactly():
         for _ in range(5):
             e = rng.normal(size=6)
             assert np.sum(np.asarray(model.whiten(e)) ** 2) == pytest.approx(e @ omega @ e, rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize("optimizer", ["gtsam", "g2o"])
+def test_relative_criterion_is_scale_free(optimizer):
+    """Information scaled by 1e-8 (issue 16, class 11): the same iterations, the same optimum and
+    chi2 scaled by 1e-8; the old 'chi2 below 1 counts as 1' stopped such a graph after one step."""
+    from rgbdslam.backend.graph import PoseGraph
+    from rgbdslam.backend.initializers import initialize
+    from rgbdslam.backend.optimize import run_gauss_newton
+
+    rng = np.random.default_rng(7)
+    n = 40
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    poses = np.column_stack([5 * np.cos(ang), 5 * np.sin(ang), ang + np.pi / 2])
+    i = np.concatenate([np.arange(n - 1), [0, 5, 10]])
+    j = np.concatenate([np.arange(1, n), [n - 1, 25, 30]])
+    meas = se2_between(poses[i], poses[j]) + rng.normal(0, [0.05, 0.05, 0.03], (len(i), 3))
+    info = np.tile(np.diag([400.0, 400.0, 1000.0]), (len(i), 1, 1))
+    g = PoseGraph(dim=2, ids=np.arange(n), poses=poses, edges_i=i, edges_j=j, meas=meas, info=info)
+    small = PoseGraph(dim=2, ids=np.arange(n), poses=poses, edges_i=i, edges_j=j, meas=meas, info=info * 1e-8)
+    init = initialize(g, "odometry")
+    a = run_gauss_newton(g, init, optimizer, max_iter=50, tol=1e-6, criterion="relative")
+    b = run_gauss_newton(small, init, optimizer, max_iter=50, tol=1e-6, criterion="relative")
+    assert a.converged and b.converged and a.iterations == b.iterations > 2
+    np.testing.assert_allclose(b.chi2_final, a.chi2_final * 1e-8, rtol=1e-6)
+    np.testing.assert_allclose(b.poses, a.poses, atol=1e-8)

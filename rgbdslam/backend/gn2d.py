@@ -174,7 +174,8 @@ def gauss_newton_g2o(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, 
     Vertex ``root`` is held at ``initial[root]``.  Stops at the first iteration passing the
     convergence test; a singular system or a non-finite χ² ends the run as not converged.
     """
-    from rgbdslam.backend.optimize import CRITERIA, GNResult, check_iteration_options, iterate_until_converged
+    from rgbdslam.backend.optimize import (CRITERIA, GNResult, check_iteration_options, chi2_floor,
+                                           iterate_until_converged)
 
     if criterion not in CRITERIA:
         raise InputError(f"unknown convergence criterion {criterion!r}; use relative or absolute")
@@ -202,7 +203,8 @@ def gauss_newton_g2o(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, 
         return float(np.einsum("mi,mij,mj->", e, om, e))
 
     chi2_0 = float(np.einsum("mi,mij,mj->", state["e"], om, state["e"]))
-    hist, converged, failure, it = iterate_until_converged(step, chi2_0, max_iter, tol, criterion, callback)
+    hist, converged, failure, it = iterate_until_converged(step, chi2_0, max_iter, tol, criterion, callback,
+                                                           chi2_floor(graph, initial))
     seconds = time.perf_counter() - t0
     out = state["poses"] if keep_poses and not failure else None
     return GNResult(converged, it, hist[0], hist[-1], hist, seconds, out, failure)

@@ -34,7 +34,7 @@ from rgbdslam.backend.graph import PoseGraph, se2_between, wrap_angle
 from rgbdslam.backend.graph_io import read_graph
 from rgbdslam.backend.initializers import initialize
 from rgbdslam.backend.optimize import (OPTIMIZERS, check_iteration_options, degrees_of_freedom, gauss_newton,
-                                       has_converged, run_gauss_newton)
+                                       chi2_floor, has_converged, run_gauss_newton)
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.text import read_text
@@ -266,17 +266,19 @@ def run_starts(g: PoseGraph, gt: np.ndarray, dataset: str, sigma, instance: int,
         # run to the stricter absolute test; the relative verdict is read off the same χ² history
         r = run_gauss_newton(g, p, optimizer, max_iter=max_iter, tol=tol, criterion="absolute", keep_poses=False)
         ca, ia, xa = first_convergence(r.chi2_history, tol, "absolute")
-        cr, ir, xr = first_convergence(r.chi2_history, tol, "relative")
+        cr, ir, xr = first_convergence(r.chi2_history, tol, "relative", chi2_floor(g, p))
         out.append(RunRecord(dataset, *map(float, sigma), instance, m, r.chi2_initial, ca, ia, xa / dof, cr, ir,
                              xr / dof, t_init, r.seconds, r.failure))
     return out
 
 
-def first_convergence(history: list[float], tol: float, criterion: str) -> tuple[bool, int, float]:
+def first_convergence(history: list[float], tol: float, criterion: str,
+                      floor: float = 0.0) -> tuple[bool, int, float]:
     """(converged, iteration, χ² at that iteration) of the first iteration passing ``criterion``
-    in a χ² history (entry 0 = initial χ²); (False, last iteration, last χ²) if none does."""
+    (relative: with the rounding ``floor``, :func:`rgbdslam.backend.optimize.chi2_floor`) in a χ²
+    history (entry 0 = initial χ²); (False, last iteration, last χ²) if none does."""
     for k in range(1, len(history)):
-        if has_converged(history[k - 1], history[k], tol, criterion):
+        if has_converged(history[k - 1], history[k], tol, criterion, floor):
             return True, k, history[k]
     return False, len(history) - 1, history[-1]
 
