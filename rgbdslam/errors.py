@@ -3,13 +3,26 @@
 from __future__ import annotations
 
 
+def one_line(text: str) -> str:
+    """``text`` with every character that would break or hide a terminal line (newline, carriage
+    return, tab, NUL, Unicode line separators, other control characters) written as its Python
+    escape, so an error naming a path such as 'a\\nb' stays one line."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 class RgbdslamError(Exception):
     """An error caused by the user's input or environment.
 
-    The CLI prints ``str(error)`` on one line and exits with a non-zero code.
+    The CLI prints ``str(error)`` on one line and exits with a non-zero code; control characters
+    in the message (from a file name or a file's text) are escaped (:func:`one_line`).
     """
 
     exit_code = 2
+
+    def __str__(self) -> str:
+        return one_line(super().__str__())
 
 
 class InputError(RgbdslamError):
