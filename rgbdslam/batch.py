@@ -12,7 +12,7 @@ from typing import Any
 
 from rgbdslam.config import Config
 from rgbdslam.errors import RgbdslamError
-from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.pipeline import run_sequence
 
 
@@ -47,7 +47,7 @@ def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config
     from rgbdslam.ui import console
 
     out_root = Path(out_root)
-    out_root.mkdir(parents=True, exist_ok=True)
+    make_dirs(out_root)
     rows: list[dict[str, Any]] = []
     for k, (seq, out_dir) in enumerate(zip(sequences, _run_dirs([Path(s) for s in sequences], out_root))):
         console.rule(f"[bold]{k + 1}/{len(sequences)}[/] {seq}")

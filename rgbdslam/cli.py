@@ -12,7 +12,7 @@ from pathlib import Path
 
 import click
 
-from rgbdslam.errors import InputError, RgbdslamError, one_line
+from rgbdslam.errors import InputError, RgbdslamError, exit_interrupted, one_line, was_interrupted
 
 
 class _Group(click.Group):
@@ -40,8 +40,30 @@ class _Group(click.Group):
                                  f"(or readable file) and the disk is not full"), fg="red", err=True)
             sys.exit(2)
         except KeyboardInterrupt:
-            click.secho("interrupted: finished work was saved", fg="yellow", err=True)
-            sys.exit(130)
+            exit_interrupted()
+        except Exception:
+            if was_interrupted():  # a library's error because Ctrl-C cut its import or work short
+                exit_interrupted()
+            raise
+
+    def make_context(self, *args, **kwargs):
+        try:
+            return super().make_context(*args, **kwargs)
+        except KeyboardInterrupt:  # while the options are parsed (click would say "Aborted!", exit 1)
+            exit_interrupted()
+
+
+class _NonEmptyPath(click.Path):
+    """A path option or argument: '' is refused (``Path('')`` is the current folder, so ``--out ''``
+    would write a whole run there)."""
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            self.fail("must not be empty; give a file or folder name", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+PATH = _NonEmptyPath(path_type=Path)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
@@ -65,15 +87,15 @@ set_option = click.option(
 
 
 @main.command()
-@click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="SEQUENCE...")
+@click.argument("sequences", nargs=-1, required=True, type=PATH, metavar="SEQUENCE...")
 @config_option
 @set_option
-@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
+@click.option("--out", "-o", "out_dir", type=PATH, default=None,
               help="Output folder (default: runs/<sequence name>); with several sequences the folder "
                    "that holds one subfolder per sequence and summary.md/.csv (default: runs).")
 @click.option("--no-map", is_flag=True, help="Skip map fusion at the end of the run.")
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
-@click.option("--rerun-save", type=click.Path(path_type=Path), default=None, help="Record the run to an .rrd file.")
+@click.option("--rerun-save", type=PATH, default=None, help="Record the run to an .rrd file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet):
     """Run SLAM on SEQUENCE (a TUM or PUT folder) and write trajectory.tum into --out.
@@ -106,7 +128,7 @@ def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_s
 
 
 @main.command()
-@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=Path("runs/demo"),
+@click.option("--out", "-o", "out_dir", type=PATH, default=Path("runs/demo"),
               help="Output folder for the demo sequence and the run.")
 @click.option("--frames", default=100, show_default=True, help="Frames of the synthetic sequence.")
 @config_option
@@ -131,7 +153,7 @@ def show_config(config_path, overrides):
 
 
 @main.command("info")
-@click.argument("sequence", type=click.Path(path_type=Path))
+@click.argument("sequence", type=PATH)
 @config_option
 @set_option
 def info(sequence, config_path, overrides):
@@ -145,8 +167,8 @@ def info(sequence, config_path, overrides):
 # ------------------------------------------------------------------ commands added by stages
 
 @main.command()
-@click.argument("gt", type=click.Path(path_type=Path))
-@click.argument("est", type=click.Path(path_type=Path), nargs=-1, required=True)
+@click.argument("gt", type=PATH)
+@click.argument("est", type=PATH, nargs=-1, required=True)
 @click.option("--align", type=click.Choice(["se3", "sim3", "none"]), default="se3", show_default=True,
               help="Alignment of EST onto GT before ATE (sim3 also fits a scale).")
 @click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair distance.")
@@ -155,8 +177,8 @@ def info(sequence, config_path, overrides):
 @click.option("--max-difference", type=float, default=0.02, show_default=True,
               help="Max timestamp difference (s) for associating GT and EST poses.")
 @click.option("--offset", type=float, default=0.0, show_default=True, help="Time offset (s) added to EST stamps.")
-@click.option("--json", "json_path", type=click.Path(path_type=Path), default=None, help="Write the summary as JSON.")
-@click.option("--plot-dir", type=click.Path(path_type=Path), default=None,
+@click.option("--json", "json_path", type=PATH, default=None, help="Write the summary as JSON.")
+@click.option("--plot-dir", type=PATH, default=None,
               help="Folder for the PNG plots (default: EST's folder, files named <EST stem>_*.png).")
 @click.option("--no-plots", is_flag=True, help="Write no plots.")
 def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_path, plot_dir, no_plots):
@@ -175,7 +197,7 @@ def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_pat
 
 
 @main.command()
-@click.argument("out", type=click.Path(path_type=Path))
+@click.argument("out", type=PATH)
 @click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz).")
 @click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static"]), default="xyz",
               show_default=True, help="Camera motion; 'loop' returns to and revisits the start view.")
@@ -212,7 +234,7 @@ def posegraph() -> None:
 
 
 @posegraph.command("info")
-@click.argument("file", type=click.Path(path_type=Path))
+@click.argument("file", type=PATH)
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="File format.")
 def posegraph_info(file, fmt):
     """Describe the pose graph in FILE (kind, vertices, edges, duplicates)."""
@@ -222,11 +244,11 @@ def posegraph_info(file, fmt):
 
 
 @posegraph.command("init")
-@click.argument("file", type=click.Path(path_type=Path))
+@click.argument("file", type=PATH)
 @click.option("--method", type=click.Choice(_INIT_METHODS), default="masat", show_default=True,
               help="Initial guess (lago = GTSAM LAGO, SE(2); chordal = chordal relaxation: ours for SE(2), "
                    "GTSAM InitializePose3 for SE(3)).")
-@click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Output g2o file.")
+@click.option("--out", "-o", type=PATH, required=True, help="Output g2o file.")
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="Input format.")
 def posegraph_init(file, method, out, fmt):
     """Compute an initial guess for the pose graph in FILE and write it (with the edges) as g2o."""
@@ -236,10 +258,10 @@ def posegraph_init(file, method, out, fmt):
 
 
 @posegraph.command("optimize")
-@click.argument("file", type=click.Path(path_type=Path))
+@click.argument("file", type=PATH)
 @click.option("--init", "init", type=click.Choice(_INIT_METHODS + ["file"]), default="masat", show_default=True,
               help="Initial guess ('file' = the file's own vertex estimates).")
-@click.option("--out", "-o", type=click.Path(path_type=Path), default=None, help="Output g2o file.")
+@click.option("--out", "-o", type=PATH, default=None, help="Output g2o file.")
 @click.option("--max-iter", default=50, show_default=True, help="Maximum iterations.")
 @click.option("--tol", default=1e-6, show_default=True, help="Convergence threshold on the chi2 change.")
 @click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="relative", show_default=True,
@@ -271,13 +293,13 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--methods", default="odometry,spanning_tree,masat,weighted_masat,lago,chordal,ground_truth",
               show_default=True,
               help="Comma-separated initial guesses to compare.")
-@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
+@click.option("--out", "-o", "out_dir", type=PATH, default=None,
               help="Folder for runs.csv, table1.csv, table2.csv, report.md.")
-@click.option("--data", "data_dir", type=click.Path(path_type=Path), default=None,
+@click.option("--data", "data_dir", type=PATH, default=None,
               help="Data folder (default: $RGBDSLAM_DATA or <repo>/../shared/data).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--timing-only", is_flag=True, help="Only time the initial guesses (best of 5) at each noise level.")
-@click.option("--merge-runs", "merge", type=click.Path(path_type=Path), multiple=True,
+@click.option("--merge-runs", "merge", type=PATH, multiple=True,
               help="Instead of running: merge these runs.csv files (later rows replace earlier) into new tables.")
 @click.option("--first-instance", default=0, show_default=True,
               help="Index of the first noisy instance (to add instances to an earlier run; see --merge-runs).")
@@ -297,7 +319,7 @@ def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterio
 
 
 @main.command()
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=PATH)
 @set_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def fuse(run_dir, overrides, quiet):
@@ -310,8 +332,8 @@ def fuse(run_dir, overrides, quiet):
 
 
 @main.command()
-@click.argument("path", type=click.Path(path_type=Path))
-@click.option("--save", type=click.Path(path_type=Path), default=None,
+@click.argument("path", type=PATH)
+@click.option("--save", type=PATH, default=None,
               help="Write the recording here (default for a run folder: RUN_DIR/recording.rrd).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def view(path, save, quiet):

@@ -37,3 +37,32 @@ class TrackingLost(RgbdslamError):
     """The front end could not register enough frames to produce a trajectory."""
 
     exit_code = 3
+
+
+# ---------------------------------------------------------------------------- Ctrl-C
+
+_interrupted = False
+
+
+def on_sigint(signum, frame) -> None:
+    """SIGINT handler of the command line: remember the interruption, then raise as Python's own."""
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
+def was_interrupted() -> bool:
+    """True once the user pressed Ctrl-C (an exception after that is a consequence of it)."""
+    return _interrupted
+
+
+def exit_interrupted() -> None:
+    """One line on stderr and exit code 130 (what a shell reports for Ctrl-C)."""
+    import sys
+
+    try:
+        sys.stderr.write("interrupted: finished work was saved\n")
+        sys.stderr.flush()
+    except (OSError, ValueError, KeyboardInterrupt):
+        pass
+    sys.exit(130)

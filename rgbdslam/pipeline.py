@@ -27,53 +27,15 @@ from rgbdslam import __version__
 from rgbdslam.config import Config, save_config
 from rgbdslam.datasets import Frame, Sequence, open_sequence
 from rgbdslam.datasets.base import depth_warning
-from rgbdslam.errors import InputError, RgbdslamError, TrackingLost
+from rgbdslam.errors import InputError, RgbdslamError, TrackingLost, was_interrupted
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
-from rgbdslam.io.atomic import atomic_path, atomic_write_text
+from rgbdslam.io.atomic import atomic_path, atomic_write_text, interrupts_deferred, make_dirs
 from rgbdslam.io.trajectory import Trajectory, write_tum
+from rgbdslam.run_folder import RUN_ARTEFACTS, folder_lock, keep_previous_run  # noqa: F401 - re-exported
 
 FLUSH_EVERY = 50  # frames between intermediate trajectory writes
 MAX_FRAME_WARNINGS = 5  # per-frame warnings printed before the rest are only counted
-# what a run writes into its folder; a new run into the same folder first moves these to previous/
-RUN_ARTEFACTS = ("trajectory.tum", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
-                 "plots", "map", "keyframes", "recording.rrd")
-
-
-def _finished_run(run_json: Path) -> bool:
-    """True when ``run_json`` records a run that ran to its end (``status`` "finished"; older
-    run.json files without a status count as finished unless they say ``interrupted``)."""
-    try:
-        info = json.loads(run_json.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    if not isinstance(info, dict):
-        return False
-    return info.get("status", "interrupted" if info.get("interrupted") else "finished") == "finished"
-
-
-def keep_previous_run(out_dir: Path) -> bool:
-    """Move a finished earlier run's files in ``out_dir`` to ``out_dir/previous`` (replacing an
-    older ``previous``), so that a new run that fails or is interrupted part-way never overwrites
-    a finished one. A failed or interrupted run in ``out_dir`` is not moved: the new run replaces
-    it, and ``previous/`` keeps the last finished one. True when a run was moved."""
-    import shutil
-
-    if not _finished_run(out_dir / "run.json"):
-        return False
-    prev = out_dir / "previous"
-    if prev.exists():
-        if not (prev.is_dir() and (prev / "run.json").is_file()):  # not ours: never delete it
-            raise InputError(f"{prev} exists and is not an earlier run of rgbdslam; move it away or choose "
-                             f"another --out (a new run keeps the last one there)")
-        shutil.rmtree(prev)
-    prev.mkdir()
-    for name in RUN_ARTEFACTS:
-        if (out_dir / name).exists():
-            (out_dir / name).replace(prev / name)
-    return True
-
-
 @dataclass
 class FrameRecord:
     """What the orchestrator keeps of a tracked frame (small: no images)."""
@@ -264,7 +226,7 @@ class SLAM:
 def _write_depth_png(path: Path, depth: np.ndarray, scale: float = 5000.0) -> None:
     import cv2
 
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_dirs(path.parent)
     d = np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16)
     with atomic_path(path) as tmp:  # the temporary name keeps the .png suffix cv2 needs
         cv2.imwrite(str(tmp), d)
@@ -367,7 +329,42 @@ def _write_outputs(out_dir: Path, slam: SLAM, summary: dict, final: Trajectory |
         from rgbdslam.backend.graph_io import write_g2o
 
         write_g2o(out_dir / "posegraph.g2o", slam.graph.as_graph(slam.optimised))
-    atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
+
+
+class RunRecord:
+    """run.json as this run last wrote it: written while the run goes on with ``"status":
+    "running"`` (a process killed part-way leaves that, never a claim of success), "finished" only
+    at its very end; :meth:`close` turns it into "interrupted" or "failed" when the run stops on
+    Ctrl-C or an error at any moment after its folder was made."""
+
+    def __init__(self, out_dir: Path, sequence: str):
+        self.out_dir = out_dir
+        self.summary: dict[str, Any] = {"version": __version__, "sequence": sequence, "frames": 0, "tracked": 0,
+                                        "status": "running", "interrupted": False}
+        self.stage = "start-up"
+        self.owns = False  # True once an earlier finished run is out of the way (previous/)
+
+    def write(self, summary: dict[str, Any], final: bool = False) -> None:
+        self.summary = summary
+        self.owns = True
+        if not final and summary.get("status") == "finished":
+            summary = {**summary, "status": "running"}
+        atomic_write_text(self.out_dir / "run.json", json.dumps(summary, indent=2))
+
+    def close(self, status: str, error: str | None = None) -> None:
+        """Write run.json once more saying ``status`` (and where the run stopped); a second
+        failure here (a full disk) leaves the last run.json, which never says finished."""
+        s = dict(self.summary)
+        if not self.owns or s.get("status") == status:
+            return  # an earlier run's run.json is never touched; an interrupted run already says so
+        s.update(status=status, interrupted=status == "interrupted", stopped_during=self.stage)
+        if error:
+            s["error"] = error
+        try:
+            with interrupts_deferred():
+                atomic_write_text(self.out_dir / "run.json", json.dumps(s, indent=2))
+        except OSError:
+            pass
 
 
 def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Config,
@@ -375,20 +372,47 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     """Run SLAM over a sequence and write the run folder; returns the run summary.
 
     Ctrl-C stops the run after the current frame: everything tracked so far is written
-    (``run.json`` says ``interrupted``) and KeyboardInterrupt is raised again.
+    (``run.json`` says ``interrupted``) and KeyboardInterrupt is raised again. Ctrl-C at any
+    other moment after the folder was made (start-up, evaluation, map) and any error there (a
+    full disk) leave run.json saying ``interrupted`` or ``failed`` (:class:`RunRecord`). The
+    folder is locked while the run writes into it (:func:`rgbdslam.run_folder.folder_lock`).
     """
-    from rgbdslam.ui import console, frame_progress
-
     if cfg.mapping.enabled:  # a mapping setting fusion would refuse: say so before the run, not after it
         from rgbdslam.mapping.fusion import validate_mapping
 
         validate_mapping(cfg.mapping)
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(out_dir)
+    with folder_lock(out_dir, "run"):
+        record = RunRecord(out_dir, str(Path(seq.root).resolve()))
+        try:
+            return _run_locked(seq, out_dir, cfg, progress, record)
+        except KeyboardInterrupt:
+            record.close("interrupted")
+            raise
+        except TrackingLost:
+            raise  # run.json already says failed
+        except (RgbdslamError, OSError) as e:
+            record.close("failed", str(e) if isinstance(e, RgbdslamError) else
+                         f"{e.filename or ''}: {e.strerror or e}".lstrip(": "))
+            raise
+        except BaseException as e:  # a library's error; after Ctrl-C (an import cut short) an interruption
+            if isinstance(e, Exception) and was_interrupted():
+                record.close("interrupted")
+            else:
+                record.close("failed", f"{type(e).__name__}: {e}")
+            raise
+
+
+def _run_locked(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunRecord) -> dict[str, Any]:
+    from rgbdslam.ui import console, frame_progress
+
     if keep_previous_run(out_dir):
         console.print(f"note: the earlier run in {out_dir} was moved to {out_dir / 'previous'}")
+    record.owns = True
     save_config(cfg, out_dir / "config.yaml")
+    record.write(record.summary)  # from now on run.json exists and says running
     gt = seq.groundtruth()
     observer = _make_observer(cfg, seq.camera, gt)
     slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes")
@@ -403,6 +427,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
 
     # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
     frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg.features))
+    record.stage = "tracking"
     try:
         with frame_progress(n, f"SLAM {seq.name}", enabled=progress) as advance:
             for i, pending in frames:
@@ -434,6 +459,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
         frames.close()  # stops the reader thread
     wall = time.perf_counter() - t_start
     n_done = len(slam.state.records) + len(slam.state.lost) + len(slam.state.skipped)
+    record.stage = "writing the trajectory"
 
     if not slam.state.records or (len(slam.state.records) == 1 and n_done > 1 and not interrupted):
         # nothing, or only the first frame (the origin; no frame after it registered): no trajectory
@@ -442,7 +468,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
             summary["status"] = "failed"
             for name in ("trajectory.tum", "odometry.tum"):  # a 50-frame flush of this run: not a result
                 (out_dir / name).unlink(missing_ok=True)
-        atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
+        record.write(summary, final=True)
         if observer is not None:  # nothing worth recording: an earlier .rrd at that path stays
             observer.abort()
         if interrupted:
@@ -452,13 +478,17 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
             f"{what} of {seq.root} could be tracked; check that depth images are valid and the camera "
             f"preset matches (--config), e.g. tum_fr1 for freiburg1"
         )
+    record.stage = "pose graph"
     final = slam.finish()
     summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
+    record.stage = "writing the trajectory"
     _write_outputs(out_dir, slam, summary, final)
+    record.write(summary)
 
     if gt is not None and len(final) > 1:
+        record.stage = "evaluation"
         summary["evaluation"] = _evaluate(gt, final, out_dir, cfg, console)
-        atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
+        record.write(summary)
     if observer is not None:
         observer.log_trajectory("estimate", final)
         if gt is not None:
@@ -466,6 +496,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     if cfg.mapping.enabled and not interrupted:
         from rgbdslam.mapping.fusion import fuse_run
 
+        record.stage = "map"
         try:
             fused = fuse_run(out_dir, cfg.mapping, progress=progress)
         except RgbdslamError as e:  # like evaluation, the map never stops a finished run
@@ -475,9 +506,11 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
             summary["map"] = fused.summary()
             if observer is not None and getattr(fused, "cloud_points", None) is not None:
                 observer.log_map(fused.cloud_points, fused.cloud_colors)
-        atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
     if observer is not None:
+        record.stage = "recording"
         observer.close()
+    record.stage = "end"
+    record.write(summary, final=True)  # only now: "finished" (or "interrupted" from the tracking loop)
     _print_summary(summary, out_dir, console)
     if interrupted:
         raise KeyboardInterrupt

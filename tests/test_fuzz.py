@@ -259,4 +259,6 @@ def test_fuzz_set_values(key, value):
 
 def test_fuzz_settings_are_bounded_and_deterministic():
     """The CI cost stays fixed: a bounded number of examples, derandomized, no example database."""
-    assert FUZZ.max_examples <= 1000 and FUZZ.derandomize and FUZZ.database is None
+    assert FUZZ.derandomize and FUZZ.database is None
+    if "RGBDSLAM_FUZZ_EXAMPLES" not in os.environ:
+        assert FUZZ.max_examples == 150

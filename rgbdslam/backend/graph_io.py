@@ -31,7 +31,7 @@ from rgbdslam.backend.graph import PoseGraph, empty_poses, se3_from_tq, se3_to_t
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.numbers import check_magnitude
-from rgbdslam.io.text import read_lines
+from rgbdslam.io.text import read_lines, require_file
 
 FORMATS = ("auto", "g2o", "toro", "isam")
 
@@ -333,8 +333,7 @@ def _read_isam(path: Path, text_lines: list[str]) -> PoseGraph:
 def read_graph(path: str | Path, fmt: str = "auto") -> PoseGraph:
     """Read a pose graph (g2o, TORO or iSAM; ``fmt="auto"`` detects it from the records)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"pose-graph file {path} does not exist; check the path")
+    require_file(path, "pose-graph file")
     if fmt not in FORMATS:
         raise InputError(f"unknown pose-graph format {fmt!r}; use one of {', '.join(FORMATS)}")
     text_lines = _lines(path)

@@ -36,7 +36,7 @@ from rgbdslam.backend.initializers import initialize
 from rgbdslam.backend.optimize import (OPTIMIZERS, check_iteration_options, degrees_of_freedom, gauss_newton,
                                        chi2_floor, has_converged, run_gauss_newton)
 from rgbdslam.errors import InputError
-from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.io.text import read_text
 
 DATASETS = ("m3500", "city10k", "m10000")
@@ -653,7 +653,7 @@ def write_runs_csv(path: Path, records) -> None:
 
 
 def write_outputs(out_dir: Path, records, dataset, methods, report: str, criterion: str = "relative") -> None:
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(out_dir)
     write_runs_csv(out_dir / "runs.csv", records)
     t1, t2 = table_rows(records, dataset, methods, criterion)
     atomic_write_text(out_dir / "table1.csv", _csv_text(t1))

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdslam.io.text import read_text
+from rgbdslam.io.text import optional_file, read_text
 from rgbdslam.datasets import register
 from rgbdslam.datasets.tum import (
     CAMERA_FILE,
@@ -30,7 +30,7 @@ from rgbdslam.datasets.tum import (
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
-from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.io.images import read_image
 from rgbdslam.io.trajectory import Trajectory, read_tum
 from rgbdslam.io.numbers import MAX_COORD, check_magnitude, check_stamps, unit_quaternions
@@ -122,7 +122,7 @@ class PutSequence(RgbdFileSequence):
             if not p.is_file():
                 raise InputError(f"ground-truth file {p} does not exist; fix dataset.groundtruth or leave it null")
             return p
-        if (self.root / "groundtruth.txt").is_file():
+        if optional_file(self.root / "groundtruth.txt", "ground-truth file") is not None:
             return self.root / "groundtruth.txt"
         tums = sorted(self.root.glob("*.tum"))
         if len(tums) > 1:
@@ -152,7 +152,7 @@ def convert_tum_to_put(src: str | Path, dst: str | Path, max_frames: int | None 
     seq = TumSequence(src, DatasetConfig(max_frames=max_frames))
     if dst.exists() and any(dst.iterdir()):
         raise InputError(f"output folder {dst} is not empty; give a new or empty folder")
-    dst.mkdir(parents=True, exist_ok=True)
+    make_dirs(dst)
     lines = []
     for k in range(len(seq)):
         rgb_src, depth_src = seq.rgb_files[k], seq.depth_files[k]

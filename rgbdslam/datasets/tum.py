@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from rgbdslam.io.images import read_image
-from rgbdslam.io.text import read_lines, read_text
+from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
 from rgbdslam.datasets import register
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
@@ -162,7 +162,7 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
             ok = len(parts) == 2 and np.isfinite(t)
             if ok:
                 check_stamps([t], path, [lineno])
-        except ValueError:
+        except (ValueError, IndexError):  # IndexError: a line of commas only
             ok = False
         if not ok:
             raise InputError(
@@ -216,8 +216,7 @@ def _image_list(root: Path, kind: str) -> tuple[np.ndarray, list[str]]:
 
 def read_associations(path: Path) -> tuple[np.ndarray, list[str], np.ndarray, list[str]]:
     """Read 'rgb_ts rgb_file depth_ts depth_file' lines (the output of TUM associate.py)."""
-    if not path.is_file():
-        raise InputError(f"associations file {path} does not exist; fix dataset.associations or leave it null")
+    require_file(path, "associations file", "fix dataset.associations or leave it null")
     ts_rgb, f_rgb, ts_d, f_d = [], [], [], []
     for lineno, parts in data_lines(path):
         try:
@@ -359,5 +358,5 @@ class TumSequence(RgbdFileSequence):
         )
 
     def groundtruth(self) -> Trajectory | None:
-        p = self.root / "groundtruth.txt"
-        return read_tum(p) if p.is_file() else None
+        p = optional_file(self.root / "groundtruth.txt", "ground-truth file")
+        return read_tum(p) if p is not None else None

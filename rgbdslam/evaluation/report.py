@@ -288,8 +288,9 @@ def _write(path: str | Path, writer) -> None:
     try:
         writer(path)
     except OSError as e:
+        where = f"{e.filename}: " if e.filename and str(e.filename) != str(path) else ""
         raise RgbdslamError(
-            f"cannot write {path} ({e.strerror or e}); choose a writable folder (--plot-dir / --json) "
+            f"cannot write {path} ({where}{e.strerror or e}); choose a writable folder (--plot-dir / --json) "
             f"or pass --no-plots"
         ) from None
 

@@ -22,6 +22,19 @@ def plain_permissions(path: str | Path) -> None:
     os.chmod(path, (0o777 if Path(path).is_dir() else 0o666) & ~umask)
 
 
+def make_dirs(path: str | Path) -> Path:
+    """``mkdir -p path``, but an ancestor that exists and is not a folder is named as the problem
+    (NotADirectoryError on it: Python's own error says "File exists" about the path asked for)."""
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.is_dir():
+            break
+        if os.path.lexists(p):  # a file, a dangling link, a link loop: not a folder to write into
+            raise NotADirectoryError(errno.ENOTDIR, "is a file, not a folder", str(p))
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
 def write_target(path: str | Path) -> tuple[Path, bool]:
     """Where a write to ``path`` must go and whether it can be atomic: ``(target, True)`` for a
     regular file or a new name (symbolic links followed to their end, so the link stays a link
@@ -31,6 +44,9 @@ def write_target(path: str | Path) -> tuple[Path, bool]:
     path = Path(path)
     try:
         st = os.stat(path)  # follows links; a loop is OSError(ELOOP) naming the path
+    except NotADirectoryError:  # a file where a folder of the path should be: name that file
+        make_dirs(path.parent)
+        raise
     except FileNotFoundError:
         # a new name, or a link to a name that does not exist yet: create the link's target
         return (Path(os.path.realpath(path)) if os.path.islink(path) else path), True
@@ -64,7 +80,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     also through symbolic links) or is copied into it (a device, a FIFO: never replaced)."""
     target, atomic = write_target(path)
     if atomic:
-        target.parent.mkdir(parents=True, exist_ok=True)
+        make_dirs(target.parent)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=Path(path).suffix or ".tmp",
                                dir=target.parent if atomic else None)  # a device's folder: /tmp instead
     os.close(fd)
@@ -72,6 +88,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp_path
         commit(tmp_path, path)
+    except OSError as e:  # a full disk, a lost folder: name the user's file, not our temporary one
+        if e.filename is None or str(e.filename) == str(tmp_path):
+            raise OSError(e.errno, e.strerror or str(e), str(path)) from None
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

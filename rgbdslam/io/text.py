@@ -22,3 +22,28 @@ def read_text(path: str | Path, what: str = "text file") -> str:
     except UnicodeDecodeError as e:
         raise InputError(f"{what} {path} is not UTF-8 text (byte {e.start}); give the text file "
                          f"itself, not a binary or compressed copy") from None
+
+
+def require_file(path: str | Path, what: str, fix: str = "check the path") -> Path:
+    """``path`` if it is a readable regular file (links followed), else an InputError that says
+    what it is instead: missing, a folder, a broken or looping link, not a regular file."""
+    import os
+
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not os.path.lexists(path):
+        raise InputError(f"{what} {path} does not exist; {fix}")
+    if path.is_dir():
+        raise InputError(f"{path} is a folder, not a {what}; give the file itself")
+    if path.is_symlink():
+        raise InputError(f"{what} {path} is a broken or looping symbolic link; {fix}")
+    raise InputError(f"{what} {path} is not a regular file; give the file itself")
+
+
+def optional_file(path: str | Path, what: str) -> Path | None:
+    """None when nothing is at ``path``; otherwise :func:`require_file` (a folder or a broken link
+    where an optional file is looked for is an error, not silently 'no file')."""
+    import os
+
+    return require_file(path, what) if os.path.lexists(path) else None

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.io.text import read_lines
+from rgbdslam.io.text import read_lines, require_file
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text
@@ -41,8 +41,7 @@ class Trajectory:
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory; malformed lines are reported with file and line number."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"trajectory file {path} does not exist; check the path")
+    require_file(path, "trajectory file")
     stamps, rows, linenos = [], [], []
     for lineno, line in enumerate(read_lines(path, "trajectory file"), 1):
         s = line.strip()

@@ -29,7 +29,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from rgbdslam.config import Config, MappingConfig, load_config, validate_section
 from rgbdslam.datasets import open_sequence
@@ -37,10 +36,13 @@ from rgbdslam.datasets.base import Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
-from rgbdslam.io.atomic import atomic_path, interrupts_deferred
+from rgbdslam.io.atomic import atomic_path, interrupts_deferred, make_dirs
 from rgbdslam.io.images import read_image
 from rgbdslam.io.text import read_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
+
+with interrupts_deferred():  # Ctrl-C during Open3D's start-up leaves its C++ state half made (exit 1
+    import open3d as o3d  # and a page of memory statistics at exit): the interrupt waits for the import
 
 DEPTH_PNG_SCALE = 5000.0  # keyframes/depth_*.png units per metre
 STAMP_TOLERANCE = 1e-3  # seconds: a trajectory line belongs to a frame when the stamps agree this well
@@ -288,10 +290,16 @@ def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh
 
 
 def _write_ply(path: Path, geom, mesh: bool) -> None:
-    with atomic_path(path) as tmp:
-        ok = (o3d.io.write_triangle_mesh if mesh else o3d.io.write_point_cloud)(str(tmp), geom, write_ascii=False)
-        if not ok:
-            raise InputError(f"could not write {path}; check that the folder is writable and the disk not full")
+    """An Open3D cloud or mesh as binary PLY (rgbdslam.io.ply: one error naming the file when the
+    disk is full, where Open3D's writer prints a line per element and reports success)."""
+    from rgbdslam.io.ply import write_ply
+
+    pts = np.asarray(geom.vertices if mesh else geom.points)
+    colors = np.asarray(geom.vertex_colors if mesh else geom.colors) if (
+        geom.has_vertex_colors() if mesh else geom.has_colors()) else None
+    normals = np.asarray(geom.vertex_normals if mesh else geom.normals) if (
+        geom.has_vertex_normals() if mesh else geom.has_normals()) else None
+    write_ply(path, pts, colors, normals, np.asarray(geom.triangles) if mesh else None)
 
 
 # ----------------------------------------------------------------------------- settings
@@ -301,6 +309,29 @@ def validate_mapping(cfg: MappingConfig) -> None:
     """Check the mapping settings before anything is read or written, by the config's own rules
     (a MappingConfig made in Python has not been through ``load_config``)."""
     validate_section("mapping", cfg)
+
+
+STAGE_PREFIX = ".fusing-"  # + the fusing process's id: the temporary folder a map is made in
+
+
+def remove_stale_stages(out_dir: Path) -> None:
+    """Remove the temporary folders that fusions killed part-way left in ``out_dir`` (their
+    process is gone; a folder of a fusion still running is left alone)."""
+    for d in out_dir.glob(f"{STAGE_PREFIX}*"):
+        pid = d.name[len(STAGE_PREFIX):].split("-", 1)[0]
+        if pid.isdigit() and _alive(int(pid)):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
 
 
 def _commit(stage: Path, out_dir: Path) -> None:
@@ -358,15 +389,19 @@ def fuse(
             f"time stamps are the sequence's colour stamps"
         )
     created = not out_dir.exists()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".fusing-", dir=out_dir))
+    make_dirs(out_dir)
+    remove_stale_stages(out_dir)
+    stage = Path(tempfile.mkdtemp(prefix=f"{STAGE_PREFIX}{os.getpid()}-", dir=out_dir))
     try:
         res = _fuse_into(stage, sequence, trajectory, todo, cfg, depth_dir, progress, console, frame_progress)
         _commit(stage, out_dir)
-    except BaseException:
+    except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
         if created and not any(out_dir.iterdir()):
             out_dir.rmdir()  # a failed first fusion leaves no empty map folder
+        if isinstance(e, OSError) and e.filename and Path(e.filename).parent == stage:
+            # a full disk while writing: name the map file, not the temporary folder it was made in
+            raise OSError(e.errno, e.strerror, str(out_dir / Path(e.filename).name)) from None
         raise
     shutil.rmtree(stage, ignore_errors=True)
     res.out_dir = out_dir
@@ -603,10 +638,15 @@ def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (
     """``rgbdslam fuse``: the run's config with ``section.key=value`` overrides, fuse, print a summary."""
     from rgbdslam.ui import console
 
+    from rgbdslam.run_folder import folder_lock
+
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"
     cfg = load_config(cfg_path if cfg_path.is_file() else None, overrides)
-    res = fuse_run(run_dir, cfg.mapping, progress=progress)
+    if not run_dir.is_dir():
+        read_run(run_dir)  # the one-line error of a folder that is no run folder
+    with folder_lock(run_dir, "fusion"):  # never while a run (or another fusion) writes there
+        res = fuse_run(run_dir, cfg.mapping, progress=progress)
     console.print(
         f"fused {len(res.frames)} frames in {res.seconds:.1f} s (peak memory {res.peak_rss_mb:.0f} MB): "
         f"{res.n_points} cloud points, {res.n_triangles} mesh triangles -> {res.out_dir}",

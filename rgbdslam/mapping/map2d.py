@@ -29,15 +29,17 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import open3d as o3d
 import yaml
 
 from rgbdslam.config import MappingConfig
 from rgbdslam.errors import InputError
-from rgbdslam.io.atomic import atomic_path, atomic_write_text
+from rgbdslam.io.atomic import atomic_path, atomic_write_text, interrupts_deferred, make_dirs
 from rgbdslam.io.text import read_lines
 from rgbdslam.io.numbers import check_magnitude, check_stamps
 from rgbdslam.io.trajectory import Trajectory
+
+with interrupts_deferred():  # Ctrl-C during Open3D's start-up leaves its C++ state half made (exit 1
+    import open3d as o3d  # and a page of memory statistics at exit): the interrupt waits for the import
 
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
 MAX_CELLS = 25_000_000  # a 5000 x 5000 grid: 250 m x 250 m at 5 cm
@@ -255,7 +257,7 @@ def render_preview(grid: Map2D, trajectory: Trajectory | None, min_size: int = 6
 def write_map2d(grid: Map2D, out_dir: str | Path, trajectory: Trajectory | None = None) -> Path:
     """Write map2d.png, map2d.yaml and map2d_preview.png into ``out_dir``; returns the PNG's path."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(out_dir)
     png = out_dir / "map2d.png"
     _write_png(png, grid.image)
     meta = {

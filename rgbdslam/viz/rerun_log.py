@@ -37,7 +37,7 @@ from rgbdslam.config import Config
 from rgbdslam.errors import InputError, RgbdslamError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
-from rgbdslam.io.atomic import atomic_path, commit, write_target
+from rgbdslam.io.atomic import atomic_path, commit, make_dirs, write_target
 from rgbdslam.io.trajectory import Trajectory
 
 APPLICATION_ID = "rgbdslam"
@@ -96,7 +96,7 @@ class RerunLogger:
                                  f"{self.save_path / 'run.rrd'}")
             target, atomic = write_target(self.save_path)  # a link's target; a device is written into at close()
             if atomic:
-                target.parent.mkdir(parents=True, exist_ok=True)
+                make_dirs(target.parent)
             fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent if atomic else None)
             os.close(fd)
             self.tmp_path = Path(tmp)

@@ -1,0 +1,32 @@
+"""The ``rgbdslam`` console script. Ctrl-C at any moment after start-up is exit 130 with one
+line, never a traceback: our SIGINT handler is installed before anything heavy is imported, and
+it records that the user interrupted, so an exception a library raises because its import or
+its work was cut short (NumPy's "ImportError: initialization failed", ...) is reported as the
+interruption it is (:func:`rgbdslam.errors.was_interrupted`)."""
+
+from __future__ import annotations
+
+import signal
+import sys
+
+from rgbdslam import errors
+
+
+def main() -> None:
+    signal.signal(signal.SIGINT, errors.on_sigint)
+    try:
+        from rgbdslam.cli import main as cli_main
+
+        cli_main()
+    except KeyboardInterrupt:
+        errors.exit_interrupted()
+    except SystemExit:
+        raise
+    except BaseException:
+        if errors.was_interrupted():
+            errors.exit_interrupted()
+        raise
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

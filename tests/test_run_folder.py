@@ -1,0 +1,208 @@
+"""The run folder's promises (issue 16): Ctrl-C at any moment (exit 130, run.json says
+interrupted, no traceback), one run at a time (a lock), previous/ only ever holding and losing
+what rgbdslam wrote (a manifest), a full disk (one line naming the file, run.json never claiming
+success, earlier outputs intact) and the small path cases of the command line."""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from rgbdslam.cli import main
+
+QUICK = ["-q", "--set", "output.plots=false", "--set", "mapping.map2d=false"]
+
+
+def _status(run: Path) -> dict:
+    return json.loads((run / "run.json").read_text())
+
+
+def _sigint_self(*_, **__):
+    os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C, delivered to this process
+    time.sleep(1)
+
+
+# ----------------------------------------------------------------------------- class 3: Ctrl-C
+
+
+@pytest.mark.parametrize("target, stage", [
+    ("rgbdslam.pipeline.SLAM.__init__", "start-up"),
+    ("rgbdslam.pipeline._evaluate", "evaluation"),
+    ("rgbdslam.mapping.fusion.fuse_run", "map"),
+])
+def test_ctrl_c_at_any_stage_says_interrupted(desk9, tmp_path, monkeypatch, target, stage):
+    """Ctrl-C during start-up (the folder exists), evaluation or fusion: exit 130, one line,
+    run.json "interrupted" naming the stage; a finished run already there moved to previous/."""
+    run = tmp_path / "run"
+    assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
+    monkeypatch.setattr(target, _sigint_self)
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK])
+    assert res.exit_code == 130, res.output
+    assert res.stderr.splitlines()[-1] == "interrupted: finished work was saved" and "Traceback" not in res.output
+    s = _status(run)
+    assert s["status"] == "interrupted" and s["interrupted"] is True and s["stopped_during"] == stage
+    assert _status(run / "previous")["status"] == "finished"
+
+
+@pytest.mark.parametrize("delay", [0.3, 1.5, 3.0])
+def test_ctrl_c_in_a_real_process_is_never_a_traceback(desk9, tmp_path, delay):
+    """The console script under a real SIGINT at several moments (imports, start-up, tracking):
+    exit 130 with the one line, and run.json, when the folder exists, says interrupted."""
+    exe = Path(sys.executable).parent / "rgbdslam"
+    run = tmp_path / "run"
+    p = subprocess.Popen([str(exe), "run", str(desk9), "--out", str(run), *QUICK], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=120)
+    if p.returncode == 0:  # the machine was fast: the run had finished
+        assert _status(run)["status"] == "finished"
+        return
+    assert p.returncode == 130 and "Traceback" not in err, err
+    assert err.splitlines()[-1] == "interrupted: finished work was saved"
+    if (run / "run.json").exists():
+        assert _status(run)["status"] == "interrupted"
+
+
+# ----------------------------------------------------------------------------- class 4: lock
+
+_HOLD = """
+import sys, time
+from rgbdslam.run_folder import folder_lock
+with folder_lock(sys.argv[1], "run"):
+    print("locked", flush=True)
+    time.sleep(600)
+"""
+
+
+def test_a_second_run_into_a_busy_folder_is_one_line_and_a_killed_holder_frees_it(desk9, tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(run)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK])
+        assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.output
+        assert res.stderr.startswith(f"error: {run} is in use by another rgbdslam process (pid {holder.pid}, run)")
+        assert not (run / "run.json").exists()
+        res = CliRunner().invoke(main, ["fuse", str(run), "-q"])  # fuse writes into the folder too
+        assert res.exit_code == 2 and "is in use by another rgbdslam process" in res.stderr
+    finally:
+        holder.kill()  # SIGKILL: no clean-up; the kernel drops the lock
+        holder.wait()
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK])
+    assert res.exit_code == 0, res.output
+    assert _status(run)["status"] == "finished"
+
+
+# ----------------------------------------------------------------------------- class 5: previous/
+
+
+def test_previous_is_only_replaced_when_it_holds_nothing_but_ours(desk9, tmp_path):
+    run = tmp_path / "run"
+    for _ in range(2):
+        assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
+    manifest = json.loads((run / "previous" / ".rgbdslam-previous.json").read_text())
+    assert "trajectory.tum" in manifest["entries"] and "map/mesh.ply" in manifest["entries"]
+    # a user's file beside our run.json, and one inside our map/ folder: never deleted
+    for mine in (run / "previous" / "thesis.tex", run / "previous" / "map" / "notes.txt"):
+        mine.write_text("mine")
+        res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK])
+        assert res.exit_code == 2 and res.stderr.count("\n") == 1
+        assert f"holds {mine}, which rgbdslam did not write" in res.stderr
+        assert mine.read_text() == "mine" and _status(run)["status"] == "finished"
+        mine.unlink()
+    assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
+
+
+# ----------------------------------------------------------------------------- class 7: disk full
+
+_LIMITED = """
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
+limit = int(sys.argv[1])
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+sys.argv = ["rgbdslam"] + sys.argv[2:]
+from rgbdslam._entry import main
+main()
+"""
+
+
+def test_a_full_disk_is_one_line_naming_the_file_and_never_a_finished_run(desk9, tmp_path):
+    """Files may grow to 200 kB only (RLIMIT_FSIZE: a full disk for every file, without root):
+    the map's PLY files cannot be written. One error line naming map/mesh.ply, no library spam, run.json not
+    'finished', the trajectory written before it intact, and no map half made."""
+    run = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-c", _LIMITED, str(200_000), "run", str(desk9), "--out", str(run),
+                          *QUICK], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {run / 'map'}/"), res.stderr
+    assert ": File too large; " in lines[0] and ".fusing" not in lines[0]  # the map file, not our temporary one
+    s = _status(run)
+    assert s["status"] == "failed" and s["stopped_during"] == "map" and ".ply" in s["error"]
+    assert len((run / "trajectory.tum").read_text().splitlines()) == 10  # header + 9 poses
+    assert not (run / "map").exists() or not list((run / "map").iterdir())
+
+
+# ----------------------------------------------------------------------------- class 9: small ones
+
+
+def test_path_arguments_that_cannot_work_are_one_line(desk9, tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    gt = tmp_path / "gt.tum"
+    gt.write_text("1 0 0 0 0 0 0 1\n2 1 0 0 0 0 0 1\n3 2 0 0 0 0 0 1\n")
+    cases = [
+        (["run", str(desk9), "--out", ""], "must not be empty"),
+        (["run", str(desk9), "--out", str(afile / "sub")], f"{afile}: is a file, not a folder"),
+        (["evaluate", str(tmp_path), str(gt)], f"{tmp_path} is a folder, not a trajectory file"),
+        (["evaluate", str(gt), str(gt), "--no-plots", "--json", str(afile / "x.json")],
+         f"{afile}: is a file, not a folder"),
+        (["evaluate", str(gt), str(tmp_path / "new\nline.tum")], "new\\nline.tum"),
+        (["posegraph", "optimize", str(gt), "--out", str(tmp_path)], None),
+    ]
+    for args, message in cases:
+        res = CliRunner().invoke(main, args)
+        assert res.exit_code == 2, (args, res.output)
+        lines = res.stderr.splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: "), (args, res.stderr)
+        if message:
+            assert message in lines[0], (args, lines[0])
+        assert ".tmp" not in lines[0] and "/." not in lines[0], lines[0]  # never one of our temporary names
+
+
+def test_a_groundtruth_that_is_a_folder_or_a_link_loop_is_not_ignored(desk9, tmp_path):
+    seq = tmp_path / "rgbd_dataset_freiburg1_x"
+    seq.mkdir()
+    for name in ("rgb", "depth", "rgb.txt", "depth.txt"):
+        (seq / name).symlink_to(desk9 / name)
+    (seq / "groundtruth.txt").mkdir()
+    res = CliRunner().invoke(main, ["info", str(seq)])
+    assert res.exit_code == 2 and "groundtruth.txt is a folder" in res.stderr, res.output
+    (seq / "groundtruth.txt").rmdir()
+    (seq / "groundtruth.txt").symlink_to(seq / "loop.txt")
+    (seq / "loop.txt").symlink_to(seq / "groundtruth.txt")
+    res = CliRunner().invoke(main, ["info", str(seq)])
+    assert res.exit_code == 2 and "groundtruth.txt" in res.stderr and res.stderr.count("\n") == 1, res.output
+
+
+def test_a_killed_fusion_leaves_no_temporary_folder_behind(desk9, tmp_path):
+    run = tmp_path / "run"
+    assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = run / "map" / f".fusing-{dead.pid}-abc"
+    stale.mkdir()
+    (run / "map" / ".fusing-legacy").mkdir()
+    assert CliRunner().invoke(main, ["fuse", str(run), "-q"]).exit_code == 0
+    assert not [p for p in (run / "map").iterdir() if p.name.startswith(".fusing-")]
