@@ -385,7 +385,7 @@ MAXIMA = {
     "loop.query_gap": 10**6, "loop.lsh_tables": 64, "loop.min_votes": 10**6, "loop.skip_recent": 10**6,
     "loop.max_candidates": 100, "loop.seed": C_INT_MAX, "loop.max_residual": 10.0,
     "loop.max_loops_per_frame": 100, "loop.consistency_translation": 1e4, "loop.consistency_rotation_deg": 360.0,
-    "loop.drift_ratio_translation": 100.0, "loop.drift_ratio_rotation": 100.0, "loop.sigma_floor": 10.0,
+    "loop.drift_ratio_translation": 100.0, "loop.drift_ratio_rotation": 100.0,
     "loop.relocalize_confirm": 100, "loop.relocalize_window": 10**5, "loop.relocalize_translation": 1e4,
     "loop.relocalize_rotation_deg": 360.0,
     # back end: GTSAM takes C ints for iteration counts
