@@ -15,6 +15,8 @@ from rgbdslam import errors
 def main() -> None:
     signal.signal(signal.SIGINT, errors.on_sigint)
     try:
+        # a Ctrl-C that arrived while the interpreter started, with SIGINT blocked, is taken now
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         from rgbdslam.cli import main as cli_main
 
         cli_main()

@@ -464,7 +464,9 @@ def _run_locked(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     if not slam.state.records or (len(slam.state.records) == 1 and n_done > 1 and not interrupted):
         # nothing, or only the first frame (the origin; no frame after it registered): no trajectory
         summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
-        if not interrupted:
+        if interrupted:
+            summary["stopped_during"] = "tracking"
+        else:
             summary["status"] = "failed"
             for name in ("trajectory.tum", "odometry.tum"):  # a 50-frame flush of this run: not a result
                 (out_dir / name).unlink(missing_ok=True)
@@ -481,6 +483,8 @@ def _run_locked(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     record.stage = "pose graph"
     final = slam.finish()
     summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
+    if interrupted:
+        summary["stopped_during"] = "tracking"
     record.stage = "writing the trajectory"
     _write_outputs(out_dir, slam, summary, final)
     record.write(summary)

@@ -114,7 +114,10 @@ def test_view_run_folder_without_display_writes_recording(tmp_path, monkeypatch)
 
 
 def _hidden(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+    """Hidden (temporary) files; a run folder's lock file (rgbdslam.run_folder) is not one."""
+    from rgbdslam.run_folder import LOCK_NAME
+
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith(".") and p.name != LOCK_NAME)
 
 
 def test_logger_replaces_the_file_only_when_closed(tmp_path):

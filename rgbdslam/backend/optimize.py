@@ -308,6 +308,19 @@ def optimize_file(path, init: str = "masat", out=None, max_iter: int = 50, tol: 
             bar.update(job, completed=it, chi2=f"{c:.6g}")
 
         res = run_gauss_newton(graph, poses, optimizer, max_iter=max_iter, tol=tol, criterion=criterion, callback=cb)
+        note = ""
+        if res.poses is None and optimizer == "gtsam" and "Indeterminate" in res.failure:
+            # GTSAM's Cholesky gives up on valid but badly conditioned systems (a 20,000-vertex chain with
+            # information 1e6 loses the lever arms' translation information to rounding): the same
+            # Gauss-Newton with an LU solver (g2o's, SE(2)) or damped steps (LM, SE(3)) copes
+            fallback = "g2o" if graph.dim == 2 else "lm"
+            bar.update(job, completed=0, chi2="")
+            again = run_gauss_newton(graph, poses, fallback, max_iter=max_iter, tol=tol, criterion=criterion,
+                                     callback=cb)
+            if again.poses is not None:
+                note = (f"\nnote: GTSAM's Gauss-Newton found the linear system numerically indeterminate "
+                        f"({res.failure.split(': ', 1)[-1].rstrip('.')}); solved with --optimizer {fallback}")
+                res, optimizer = again, fallback
     if res.poses is None:
         hint = "try another --init" + ("" if optimizer == "lm" else " or --optimizer lm")
         if "near vertex" in res.failure:
@@ -320,5 +333,5 @@ def optimize_file(path, init: str = "masat", out=None, max_iter: int = 50, tol: 
     return (f"{graph.summary()}\ninit {init}: {t_init * 1e3:.1f} ms; optimizer {optimizer}\n"
             f"initial chi2 {res.chi2_initial:.6g} (reduced {res.chi2_initial / dof:.4g}); "
             f"final chi2 {res.chi2_final:.6g} (reduced {res.chi2_final / dof:.4g}); "
-            f"{res.iterations} iteration(s), {status}; {res.seconds:.2f} s"
+            f"{res.iterations} iteration(s), {status}; {res.seconds:.2f} s" + note
             + (f"\nwritten to {out}" if out is not None else ""))
