@@ -306,7 +306,7 @@ def test_tracking_loss_is_relocalised(tmp_path):
 
 
 def test_tracking_segments_hand_worked():
-    from rgbdslam.pipeline import tracking_segments
+    from rgbdslam.run_folder import tracking_segments
 
     frames = [*range(0, 10), *range(20, 30), *range(40, 45)]
     # a loop from segment 1 back to segment 0 joins them (20 frames); segment 2 (5 frames) is alone
