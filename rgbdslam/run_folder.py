@@ -150,7 +150,7 @@ def write_outputs(out_dir: Path, slam, summary: dict, final: Trajectory | None) 
     """Trajectories, the keyframe pose graph (posegraph.g2o) and run.json of a finished run."""
     write_trajectories(out_dir, slam.odometry(), final)
     if slam.graph is not None and slam.graph.order:
-        from rgbdslam.backend.graph_io import write_g2o
+        from rgbdslam.posegraph.graph_io import write_g2o
 
         write_g2o(out_dir / "posegraph.g2o", slam.graph.as_graph(slam.optimised))
     write_summary(out_dir, summary)

@@ -77,9 +77,9 @@ class SLAM:
             self.loop = build_loop_closer(cfg, register)
         self.graph = None
         if cfg.backend.enabled or cfg.loop.enabled:
-            from rgbdslam.backend.slam_graph import PoseGraph
+            from rgbdslam.backend.slam_graph import KeyframeGraph
 
-            self.graph = PoseGraph(cfg.backend)
+            self.graph = KeyframeGraph(cfg.backend)
         self.state = SlamState()
         self._last_kf: FrameRecord | None = None
         self._info_since_kf: list[np.ndarray] = []
