@@ -1,5 +1,5 @@
-"""A run folder's housekeeping: one writer at a time (a lock), the earlier run kept in
-``previous/`` with a manifest of what rgbdslam put there, and run.json's status.
+"""The run folder (docs/formats.md): what a run writes, its summary (run.json) and its printout,
+and its housekeeping.
 
 * :func:`folder_lock`: an exclusive ``flock`` on ``FOLDER/.rgbdslam.lock`` while a run (or a
   fusion) writes into the folder. A second process gets one error line instead of mixing its
@@ -9,6 +9,10 @@
   (``previous/.rgbdslam-previous.json``, every path moved there); an older ``previous/`` is only
   deleted when it holds nothing but what its manifest lists (a user's file beside it stops the
   run with one line instead).
+* :class:`RunRecord`: run.json says ``running`` until the run's very end, ``finished`` only then,
+  ``interrupted`` or ``failed`` (with the stage) when Ctrl-C or an error stops it at any moment.
+
+The trajectories, the keyframe pose graph and ``run.json`` are written atomically.
 """
 
 from __future__ import annotations
@@ -17,13 +21,19 @@ import contextlib
 import errno
 import fcntl
 import json
+import math
 import os
 import shutil
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
+
+import numpy as np
 
 from rgbdslam import __version__
+from rgbdslam.datasets import Sequence
 from rgbdslam.errors import InputError
+from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred
+from rgbdslam.io.trajectory import Trajectory, write_tum
 
 # what a run writes into its folder; a new run into the same folder first moves these to previous/
 RUN_ARTEFACTS = ("trajectory.tum", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
@@ -115,8 +125,6 @@ def keep_previous_run(out_dir: Path) -> bool:
                     f"{prev} exists and is not an earlier run of rgbdslam")
             raise InputError(f"{what}; move it away or choose another --out (a new run keeps the last finished one "
                              f"in {PREVIOUS}/ and replaces only what it wrote there)")
-    from rgbdslam.io.atomic import interrupts_deferred
-
     with interrupts_deferred():  # Ctrl-C waits: never half an old run here, half in previous/
         if os.path.lexists(prev):
             shutil.rmtree(prev)
@@ -128,3 +136,162 @@ def keep_previous_run(out_dir: Path) -> bool:
             if os.path.lexists(out_dir / name):
                 (out_dir / name).replace(prev / name)
     return True
+
+
+def tracking_segments(tracked: list[int], restarts: list[int], loops: list[tuple[int, int]]) -> list[dict[str, Any]]:
+    """The run's tracking segments and which of them share one map.
+
+    A segment runs from the first tracked frame (or a restart after a tracking loss) to the
+    frame before the next restart. Loops between two segments relate their coordinates; the
+    segments connected by loops to the one with the most tracked frames form the map
+    (``"map": true``). A segment outside it was never relocalised: its poses are right only up
+    to an unknown offset, so fusing it would put a ghost copy of its scene into the map.
+    Returns ``[{"first", "last", "frames", "map"}]`` in time order (empty without tracked frames).
+    """
+    tracked = sorted(int(i) for i in tracked)
+    if not tracked:
+        return []
+    starts = sorted({tracked[0], *(int(r) for r in restarts if r > tracked[0])})
+    seg_of = lambda i: int(np.searchsorted(starts, i, side="right")) - 1  # noqa: E731
+    parent = list(range(len(starts)))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for i, j in loops:
+        a, b = root(seg_of(i)), root(seg_of(j))
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    counts = np.bincount([seg_of(i) for i in tracked], minlength=len(starts))
+    size: dict[int, int] = {}
+    for k, c in enumerate(counts):
+        size[root(k)] = size.get(root(k), 0) + int(c)
+    main = max(size, key=lambda r: (size[r], -r))  # most frames; ties: the earliest
+    out = []
+    for k, first in enumerate(starts):
+        members = [i for i in tracked if seg_of(i) == k]
+        out.append({"first": first, "last": members[-1] if members else first, "frames": len(members),
+                    "map": root(k) == main})
+    return out
+
+
+def run_summary(seq: Sequence, slam, n_frames: int, wall: float, load_time: float,
+                interrupted: bool) -> dict[str, Any]:
+    """The contents of run.json (docs/formats.md) for a run of ``slam`` (:class:`rgbdslam.slam.SLAM`)."""
+    st = slam.state
+    tracked = len(st.records)
+    proc = max(wall - load_time, 1e-9)
+    per_stage = {k: {"median_ms": 1e3 * float(np.median(v)), "total_s": float(np.sum(v))}
+                 for k, v in st.timings.items() if v}
+    return {
+        "version": __version__,
+        "sequence": str(Path(seq.root).resolve()),
+        "dataset_kind": type(seq).__name__,
+        "camera": seq.camera.name,
+        "frames": n_frames,
+        "tracked": tracked,
+        "lost": len(st.lost),
+        "skipped": len(st.skipped),
+        "lost_frames": st.lost,
+        "skipped_frames": st.skipped,
+        "restarts": st.restarts,
+        "relocalized": int(slam.loop.stats["n_relocalized"]) if slam.loop is not None else 0,
+        "segments": tracking_segments([r.index for r in st.records], st.restarts, st.loops),
+        # the loop closer's counters: searches, candidates, verifications, accepted and rejected loops
+        "loop_closure": {k: (round(v, 3) if isinstance(v, float) else v) for k, v in slam.loop.stats.items()
+                         if k not in ("isam2_failed", "batch_failed")} if slam.loop is not None else {},
+        "keyframes": st.keyframes,
+        "timestamps_keyframes": [r.timestamp for r in st.records if r.index == r.keyframe],
+        "loops": [list(x) for x in st.loops],
+        "sharp_frames": st.sharp,
+        "wall_time_s": wall,
+        "load_time_s": load_time,
+        "fps": n_frames / wall if wall > 0 else math.nan,
+        "processing_fps": n_frames / proc,
+        "timings": per_stage,
+        "interrupted": interrupted,
+        "status": "interrupted" if interrupted else "finished",  # "failed" when nothing could be tracked
+    }
+
+
+def write_summary(out_dir: Path, summary: dict[str, Any]) -> None:
+    atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
+
+
+def write_trajectories(out_dir: Path, odometry: Trajectory, final: Trajectory | None = None) -> None:
+    """odometry.tum and trajectory.tum (the odometry until the pose graph is optimised)."""
+    write_tum(odometry, out_dir / "odometry.tum")
+    write_tum(final if final is not None else odometry, out_dir / "trajectory.tum")
+
+
+def write_outputs(out_dir: Path, slam, summary: dict, final: Trajectory | None) -> None:
+    """Trajectories and the keyframe pose graph (posegraph.g2o) of a run (run.json: :class:`RunRecord`)."""
+    write_trajectories(out_dir, slam.odometry(), final)
+    if slam.graph is not None and slam.graph.order:
+        from rgbdslam.posegraph.graph_io import write_g2o
+
+        write_g2o(out_dir / "posegraph.g2o", slam.graph.as_graph(slam.optimised))
+
+
+def print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
+    msg = (f"{s['frames']} frames, {s['tracked']} tracked, {s['lost']} lost"
+           + (f", {s['skipped']} unreadable" if s["skipped"] else "")
+           + f", {len(s['keyframes'])} keyframes, {len(s['loops'])} loops; "
+           f"{s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without waiting for images)")
+    console.print(msg)
+    if s.get("restarts"):
+        n, r = len(s["restarts"]), s.get("relocalized", 0)
+        frames = ", ".join(str(i) for i in s["restarts"])
+        console.print(f"[yellow]tracking restarted {n}× after a loss (frame {frames}); "
+                      + (f"{r} of {n} new segment(s) relocalised against the map[/]" if r else
+                         "not relocalised: those segments' poses are only known up to an offset[/]"))
+        off = [g for g in s.get("segments", []) if not g["map"]]
+        if off:
+            spans = ", ".join(f"{g['first']}–{g['last']}" for g in off)
+            console.print(f"[yellow]frames {spans} ({sum(g['frames'] for g in off)} tracked) are not linked to the "
+                          f"map by any loop: trajectory.tum keeps them (up to an unknown offset), the map leaves "
+                          f"them out[/]")
+    ev = s.get("evaluation") or {}
+    ate = (ev.get("ate") or {}).get("rmse")
+    if ate is not None:
+        console.print(f"ATE RMSE {ate:.4f} m over {ev['ate'].get('n_pairs', '?')} poses")
+    console.print(f"outputs in {out_dir}")
+
+
+class RunRecord:
+    """run.json as this run last wrote it: written while the run goes on with ``"status":
+    "running"`` (a process killed part-way leaves that, never a claim of success), "finished" only
+    at its very end; :meth:`close` turns it into "interrupted" or "failed" when the run stops on
+    Ctrl-C or an error at any moment after its folder was prepared. ``stage`` names where it is."""
+
+    def __init__(self, out_dir: Path, sequence: str):
+        self.out_dir = out_dir
+        self.summary: dict[str, Any] = {"version": __version__, "sequence": sequence, "frames": 0, "tracked": 0,
+                                        "status": "running", "interrupted": False}
+        self.stage = "start-up"
+        self.owns = False  # True once an earlier finished run is out of the way (previous/)
+
+    def write(self, summary: dict[str, Any], final: bool = False) -> None:
+        self.summary = summary
+        self.owns = True
+        if not final and summary.get("status") == "finished":
+            summary = {**summary, "status": "running"}
+        write_summary(self.out_dir, summary)
+
+    def close(self, status: str, error: str | None = None) -> None:
+        """Write run.json once more saying ``status`` (and where the run stopped); a second
+        failure here (a full disk) leaves the last run.json, which never says finished."""
+        s = dict(self.summary)
+        if not self.owns or s.get("status") == status:
+            return  # an earlier run's run.json is never touched; an interrupted run already says so
+        s.update(status=status, interrupted=status == "interrupted", stopped_during=self.stage)
+        if error:
+            s["error"] = error
+        try:
+            with interrupts_deferred():
+                write_summary(self.out_dir, s)
+        except OSError:
+            pass

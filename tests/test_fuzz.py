@@ -211,7 +211,7 @@ def test_fuzz_config_yaml(tmp_path_factory, data):
 @given(data=st.one_of(file_contents(G2O_SE2), file_contents(G2O_SE3)),
        fmt=st.sampled_from(["auto", "g2o"]))
 def test_fuzz_g2o_graphs(tmp_path_factory, data, fmt):
-    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.posegraph.graph_io import read_graph
 
     clean_parse_or_one_line_error(read_graph, _write(tmp_path_factory.mktemp("g"), "graph.g2o", data), fmt)
 
@@ -219,7 +219,7 @@ def test_fuzz_g2o_graphs(tmp_path_factory, data, fmt):
 @FUZZ
 @given(data=st.one_of(file_contents(TORO), file_contents(ISAM)), fmt=st.sampled_from(["auto", "toro", "isam"]))
 def test_fuzz_toro_and_isam_graphs(tmp_path_factory, data, fmt):
-    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.posegraph.graph_io import read_graph
 
     clean_parse_or_one_line_error(read_graph, _write(tmp_path_factory.mktemp("g"), "graph.txt", data), fmt)
 

@@ -67,7 +67,7 @@ def test_one_rule_for_repeated_time_stamps(tmp_path):
 
 
 def test_other_readers_refuse_absurd_numbers(tmp_path):
-    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.posegraph.graph_io import read_graph
     from rgbdslam.datasets.put import read_initial_position, read_matched
     from rgbdslam.datasets.tum import read_associations, read_file_list
     from rgbdslam.mapping.map2d import read_accelerometer

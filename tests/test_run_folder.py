@@ -36,7 +36,7 @@ def _sigint_self(*_, **__):
 
 @pytest.mark.parametrize("target, stage", [
     ("rgbdslam.pipeline.SLAM.__init__", "start-up"),
-    ("rgbdslam.pipeline._evaluate", "evaluation"),
+    ("rgbdslam.pipeline.evaluate", "evaluation"),
     ("rgbdslam.mapping.fusion.fuse_run", "map"),
 ])
 def test_ctrl_c_at_any_stage_says_interrupted(desk9, tmp_path, monkeypatch, target, stage):

@@ -24,7 +24,7 @@ import yaml
 
 from rgbdslam.io.images import read_image
 from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
@@ -315,7 +315,7 @@ def _is_tum(path: Path) -> bool:
     return listed("rgb") and listed("depth")
 
 
-@register("tum", _is_tum)
+@reader("tum", _is_tum)
 class TumSequence(RgbdFileSequence):
     """A TUM RGB-D folder; see the module docstring."""
 
