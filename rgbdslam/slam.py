@@ -26,7 +26,7 @@ from rgbdslam.frontend.odometry import TrackResult, build_frontend
 from rgbdslam.frontend.pairwise import build_pair_registration
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
-from rgbdslam.io.atomic import atomic_path
+from rgbdslam.io.atomic import atomic_path, make_dirs
 from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.viz.observer import NullObserver
 
@@ -222,7 +222,7 @@ class SLAM:
 def _write_depth_png(path: Path, depth: np.ndarray, scale: float = 5000.0) -> None:
     import cv2
 
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_dirs(path.parent)
     d = np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16)
     with atomic_path(path) as tmp:  # the temporary name keeps the .png suffix cv2 needs
         cv2.imwrite(str(tmp), d)
