@@ -48,8 +48,25 @@ def main() -> None:
 
 config_option = click.option(
     "--config", "-c", "config_path", default=None,
-    help="YAML config file or preset name from configs/ (e.g. tum_fr1).",
+    help="YAML config file or the name of a preset shipped with rgbdslam (default, tum_fr1, ...).",
 )
+camera_option = click.option(
+    "--camera", "camera_file", type=click.Path(path_type=Path), default=None, metavar="FILE",
+    help="Camera file (YAML: fx, fy, cx, cy, size, distortion, depth_scale; see README 'Your own data'). "
+         "Same as --set dataset.camera_file=FILE; wins over the camera a sequence or preset names.",
+)
+
+
+def load_cli_config(config_path, overrides, camera_file=None):
+    """The config of a command: preset/file, --set overrides, then --camera."""
+    from rgbdslam.config import load_config
+
+    cfg = load_config(config_path, overrides)
+    if camera_file is not None:
+        cfg.dataset.camera_file = str(camera_file)
+    return cfg
+
+
 set_option = click.option(
     "--set", "-s", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
     help="Override one config value; repeatable.",
@@ -63,6 +80,7 @@ set_option = click.option(
 @click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="SEQUENCE...")
 @config_option
 @set_option
+@camera_option
 @click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
               help="Output folder (default: runs/<sequence name>); with several sequences the folder "
                    "that holds one subfolder per sequence and summary.md/.csv (default: runs).")
@@ -70,8 +88,9 @@ set_option = click.option(
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
 @click.option("--rerun-save", type=click.Path(path_type=Path), default=None, help="Record the run to an .rrd file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet):
-    """Run SLAM on SEQUENCE (a TUM or PUT folder) and write trajectory.tum into --out.
+def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, quiet):
+    """Run SLAM on SEQUENCE (a TUM, ETH3D, ICL-NUIM, 7-Scenes or PUT folder, a ROS 1/2 bag or a
+    RealSense recording) and write trajectory.tum into --out.
 
     Several sequences run one after the other with the same config (camera "auto" is decided
     per sequence); a table of their results is printed and written to OUT/summary.md and .csv."""
@@ -81,7 +100,7 @@ def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_s
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
-    cfg = load_config(config_path, overrides)
+    cfg = load_cli_config(config_path, overrides, camera_file)
     if no_map:
         cfg.mapping.enabled = False
     if rerun_spawn:
@@ -129,12 +148,12 @@ def show_config(config_path, overrides):
 @click.argument("sequence", type=click.Path(path_type=Path))
 @config_option
 @set_option
-def info(sequence, config_path, overrides):
+@camera_option
+def info(sequence, config_path, overrides, camera_file):
     """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
-    from rgbdslam.config import load_config
     from rgbdslam.datasets import describe_sequence
 
-    click.echo(describe_sequence(sequence, load_config(config_path, overrides).dataset))
+    click.echo(describe_sequence(sequence, load_cli_config(config_path, overrides, camera_file).dataset))
 
 
 # ------------------------------------------------------------------ commands added by stages
@@ -268,7 +287,7 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
               help="Folder for runs.csv, table1.csv, table2.csv, report.md.")
 @click.option("--data", "data_dir", type=click.Path(path_type=Path), default=None,
-              help="Data folder (default: $RGBDSLAM_DATA or <repo>/../shared/data).")
+              help="Data folder holding posegraph/ (default: $RGBDSLAM_DATA).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--timing-only", is_flag=True, help="Only time the initial guesses (best of 5) at each noise level.")
 @click.option("--merge-runs", "merge", type=click.Path(path_type=Path), multiple=True,

@@ -271,6 +271,18 @@ def _write_depth_png(path: Path, depth: np.ndarray, scale: float = 5000.0) -> No
 # ----------------------------------------------------------------------------- a whole run
 
 
+def announce_camera(seq: Sequence, console) -> None:
+    """Say which camera the run uses and where it came from; warn when it is only a guess."""
+    setup = getattr(seq, "camera_setup", None)
+    if setup is None:
+        console.print(f"camera {seq.camera.name or 'custom'}: fx {seq.camera.fx:g} fy {seq.camera.fy:g} "
+                      f"cx {seq.camera.cx:g} cy {seq.camera.cy:g}", highlight=False)
+        return
+    console.print(setup.describe(), highlight=False)
+    if (warning := setup.fallback_warning()) is not None:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False)
+
+
 def _make_observer(cfg: Config, camera: Camera, gt: Trajectory | None):
     if not (cfg.output.rerun or cfg.output.rerun_save):
         return None
@@ -331,6 +343,7 @@ def _summary(seq: Sequence, slam: SLAM, n_frames: int, wall: float, load_time: f
         "sequence": str(Path(seq.root).resolve()),
         "dataset_kind": type(seq).__name__,
         "camera": seq.camera.name,
+        "camera_source": seq.camera_setup.source if getattr(seq, "camera_setup", None) is not None else "",
         "frames": n_frames,
         "tracked": tracked,
         "lost": len(st.lost),
@@ -382,6 +395,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
 
         validate_mapping(cfg.mapping)
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
+    announce_camera(seq, console)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if keep_previous_run(out_dir):

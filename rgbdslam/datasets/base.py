@@ -71,6 +71,7 @@ class Sequence(ABC):
     name: str
     root: Path
     camera: Camera
+    camera_setup: Any = None  # datasets.camera_file.CameraSetup: the camera, where it came from, depth registration
 
     @property
     @abstractmethod
