@@ -174,18 +174,37 @@ def info(sequence, config_path, overrides, camera_file):
               help="Folder for the PNG plots (default: EST's folder, files named <EST stem>_*.png).")
 @click.option("--no-plots", is_flag=True, help="Write no plots.")
 def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_path, plot_dir, no_plots):
-    """ATE and RPE of trajectory EST against ground truth GT (TUM format); prints a table.
+    """ATE and RPE of trajectory EST against ground truth GT (TUM format, or a sequence folder
+    with ground truth: TUM groundtruth.txt, 7-Scenes pose.txt files, ...); prints a table.
 
     Several ESTs are compared with the same settings: one table with a row each and
     comparison_topview.png (in --plot-dir, default the current folder) with all of them."""
+    import tempfile
+
     from rgbdslam.evaluation.report import compare_and_print, evaluate_and_print
 
     opts = dict(align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference, offset=offset,
                 json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
-    if len(est) == 1:
-        evaluate_and_print(gt, est[0], **opts)
-    else:
-        compare_and_print(gt, list(est), **opts)
+    with tempfile.TemporaryDirectory(prefix="rgbdslam-gt-") as tmp:
+        if gt.is_dir():  # a sequence folder: its own ground truth (7-Scenes pose.txt files, groundtruth.txt, ...)
+            gt = _groundtruth_file(gt, Path(tmp))
+        if len(est) == 1:
+            evaluate_and_print(gt, est[0], **opts)
+        else:
+            compare_and_print(gt, list(est), **opts)
+
+
+def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
+    """The ground truth of a sequence folder as a TUM file (its own file when it has one)."""
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.io.trajectory import write_tum
+
+    gt = open_sequence(sequence).groundtruth()
+    if gt is None:
+        raise InputError(f"{sequence} is a folder without ground truth; give a TUM trajectory file as GT")
+    path = tmp / f"{sequence.resolve().name}_groundtruth.tum"
+    write_tum(gt, path)
+    return path
 
 
 @main.command()

@@ -275,13 +275,13 @@ class RosbagSequence(Sequence):
             self.metres_per_unit = units
         self.metres_per_unit *= cfg.depth_correction
         # depth not registered to colour: the camera file's extrinsic, else the recording's own
-        if setup.depth_camera is None and depth_info in first_info and color_info in first_info:
+        if setup is own and depth_info in first_info and color_info in first_info:
             dcam = camera_from_info(first_info[depth_info], depth_info)
             ccam = setup.camera
             same = (dcam.fx, dcam.fy, dcam.cx, dcam.cy, dcam.width, dcam.height) == \
                 (ccam.fx, ccam.fy, ccam.cx, ccam.cy, ccam.width, ccam.height)
-            if not same:
-                T = self._realsense_extrinsic(reader, conns) if realsense else None
+            T = self._realsense_extrinsic(reader, conns) if realsense else None
+            if not same or (T is not None and not np.allclose(T, np.eye(4), atol=1e-9)):
                 if T is None:
                     raise InputError(
                         f"depth on {self.depth.topic} is not registered to colour (its CameraInfo {depth_info} differs "

@@ -26,8 +26,8 @@ class DepthRegistration:
         u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         ideal = depth_camera.undistort_points(np.stack([u.ravel(), v.ravel()], axis=1))
         # the ray (x, y, 1) of every depth pixel
-        self._rays = np.stack([(ideal[:, 0] - depth_camera.cx) / depth_camera.fx,
-                               (ideal[:, 1] - depth_camera.cy) / depth_camera.fy, np.ones(w * h)], axis=1)
+        self._rx = ((ideal[:, 0] - depth_camera.cx) / depth_camera.fx).astype(np.float32)
+        self._ry = ((ideal[:, 1] - depth_camera.cy) / depth_camera.fy).astype(np.float32)
 
     @property
     def is_identity(self) -> bool:
@@ -37,23 +37,29 @@ class DepthRegistration:
 
     def __call__(self, depth: np.ndarray) -> np.ndarray:
         """Depth (H_d, W_d) float metres in the depth camera -> (H_c, W_c) float32 metres in colour."""
-        z = np.asarray(depth, dtype=np.float64).reshape(-1)
-        ok = z > 0
-        P = self._rays[ok] * z[ok, None]
-        Q = P @ self.T[:3, :3].T + self.T[:3, 3]
-        front = Q[:, 2] > 1e-6
-        Q = Q[front]
+        z = np.asarray(depth, dtype=np.float32).reshape(-1)
+        ok = np.flatnonzero(z > 0)
+        z = z[ok]
+        x, y = self._rx[ok] * z, self._ry[ok] * z
+        R, t = self.T[:3, :3].astype(np.float32), self.T[:3, 3].astype(np.float32)
+        # component arithmetic on 1-D float32 arrays (no (N, 3) temporaries, no BLAS threads)
+        X = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+        Y = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+        Z = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        front = Z > 1e-6
+        X, Y, Z = X[front], Y[front], Z[front]
         c = self.color_camera
         if c.has_distortion:
+            Q = np.stack([X, Y, Z], axis=1).astype(np.float64)
             uv, _ = cv2.projectPoints(Q.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), c.K, np.array(c.dist))
-            uv = uv.reshape(-1, 2)
+            u, v = uv[:, 0, 0], uv[:, 0, 1]
         else:
-            uv = c.project(Q)
-        col = np.round(uv[:, 0]).astype(np.int64)
-        row = np.round(uv[:, 1]).astype(np.int64)
+            u, v = np.float32(c.fx) * X / Z + np.float32(c.cx), np.float32(c.fy) * Y / Z + np.float32(c.cy)
+        col = np.rint(u).astype(np.int32)
+        row = np.rint(v).astype(np.int32)
         inside = (col >= 0) & (col < c.width) & (row >= 0) & (row < c.height)
-        zc, flat = Q[inside, 2], row[inside] * c.width + col[inside]
-        out = np.zeros(c.width * c.height, dtype=np.float64)
-        order = np.argsort(-zc, kind="stable")  # far first: the nearest is written last and wins
+        zc, flat = Z[inside], row[inside] * c.width + col[inside]
+        out = np.zeros(c.width * c.height, dtype=np.float32)
+        order = np.argsort(-zc)  # far first: the nearest is written last and wins
         out[flat[order]] = zc[order]
-        return out.reshape(c.height, c.width).astype(np.float32)
+        return out.reshape(c.height, c.width)
