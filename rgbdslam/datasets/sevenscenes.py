@@ -106,7 +106,10 @@ class SevenScenesSequence(RgbdFileSequence):
         self.frame_numbers = numbers
 
     def groundtruth(self) -> Trajectory | None:
-        """Every frame's pose.txt (all frames of the folder, not only the selected ones)."""
+        """Every frame's pose.txt (all frames of the folder, not only the selected ones). The
+        poses are the depth camera's (KinectFusion tracked depth); when depth is re-projected
+        into the colour camera the run estimates the colour camera's poses, so the ground truth
+        is moved to it too: T_world_colour = T_world_depth @ inv(depth_to_color)."""
         stamps, poses = [], []
         for n, _ in _color_frames(self.root):
             p = self.root / f"frame-{n:06d}.pose.txt"
@@ -115,4 +118,10 @@ class SevenScenesSequence(RgbdFileSequence):
                 if np.isfinite(T).all() and abs(T[3, 3] - 1) < 1e-6:  # 7-Scenes marks lost poses with inf
                     stamps.append(n / RATE_HZ)
                     poses.append(T)
-        return Trajectory(np.array(stamps), np.array(poses).reshape(-1, 4, 4)) if stamps else None
+        if not stamps:
+            return None
+        poses = np.array(poses).reshape(-1, 4, 4)
+        T = self.camera_setup.depth_to_color
+        if T is not None:
+            poses = poses @ np.linalg.inv(T)
+        return Trajectory(np.array(stamps), poses)
