@@ -134,6 +134,56 @@ def demo(out_dir, frames, config_path, overrides):
     run_demo(out_dir, frames, cfg)
 
 
+@main.command()
+@config_option
+@set_option
+@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=Path("runs/live"), show_default=True,
+              help="Output folder of the run.")
+@click.option("--record", "record_dir", type=click.Path(path_type=Path), default=None,
+              help="Folder for the frames as they arrive, TUM layout (default: OUT/recording); "
+                   "`rgbdslam run` on it repeats the session.")
+@click.option("--playback", type=click.Path(path_type=Path), default=None,
+              help="Take the frames from a RealSense recording (.bag/.db3) through the SDK's playback "
+                   "instead of a camera.")
+@click.option("--size", type=(int, int), default=(640, 480), show_default=True, metavar="W H",
+              help="Stream size (colour and depth).")
+@click.option("--fps", type=int, default=30, show_default=True, help="Frame rate of the streams.")
+@click.option("--serial", default=None, help="Serial number of the camera to use (default: the first one).")
+@click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
+@click.option("--no-map", is_flag=True, help="Skip map fusion at the end of the run.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def live(config_path, overrides, out_dir, record_dir, playback, size, fps, serial, max_frames, no_map, quiet):
+    """Run SLAM on a live RealSense camera (colour + depth aligned to colour; needs the
+    [realsense] extra). Ctrl-C ends the session: the run then finishes and writes all its
+    outputs (a second Ctrl-C stops at once, keeping what was finished)."""
+    import signal
+
+    from rgbdslam.datasets.realsense import RealSenseSequence
+    from rgbdslam.pipeline import run_sequence
+    from rgbdslam.ui import console
+
+    cfg = load_cli_config(config_path, overrides)
+    if no_map:
+        cfg.mapping.enabled = False
+    if max_frames is not None and max_frames < 1:
+        raise click.UsageError("--max-frames must be at least 1")
+    record_dir = record_dir or out_dir / "recording"
+    seq = RealSenseSequence(record_dir, playback, size[0], size[1], fps, max_frames, serial)
+
+    def first_interrupt(signum, frame):  # the first Ctrl-C ends the stream; the run then finishes normally
+        console.print("[yellow]stopping: finishing the run (Ctrl-C again to stop at once)[/]")
+        seq.stop()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = signal.signal(signal.SIGINT, first_interrupt)
+    try:
+        run_sequence(seq, out_dir, cfg, progress=not quiet)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        seq.close()
+    console.print(f"frames recorded in {record_dir} (TUM layout): rgbdslam run {record_dir} repeats the session")
+
+
 @main.command("config")
 @config_option
 @set_option

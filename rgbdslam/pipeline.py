@@ -407,7 +407,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     observer = _make_observer(cfg, seq.camera, gt)
     slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes")
 
-    n = len(seq)
+    n = None if seq.streaming else len(seq)  # a live stream's length is known when it ends
     if n == 0:
         raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
     interrupted = False

@@ -135,9 +135,9 @@ def write_bag(src: Path, out: Path, kind: str = "ros1", color: str = "rgb8", dep
         Tr, V3, Q = (ts.types[f"geometry_msgs/msg/{n}"] for n in ("Transform", "Vector3", "Quaternion"))
         from scipy.spatial.transform import Rotation
 
+        # each stream's extrinsic from the reference stream (depth), as the SDK writes it
         for topic, T in (("/device_0/sensor_0/Depth_0/tf/0", np.eye(4)),
-                         ("/device_0/sensor_1/Color_0/tf/0",
-                          np.linalg.inv(depth_to_color) if depth_to_color is not None else np.eye(4))):
+                         ("/device_0/sensor_1/Color_0/tf/0", depth_to_color if depth_to_color is not None else np.eye(4))):
             q = Rotation.from_matrix(T[:3, :3]).as_quat()
             msgs.append((topic, "geometry_msgs/msg/Transform", first,
                          Tr(translation=V3(x=T[0, 3], y=T[1, 3], z=T[2, 3]), rotation=Q(x=q[0], y=q[1], z=q[2], w=q[3]))))
@@ -150,4 +150,59 @@ def write_bag(src: Path, out: Path, kind: str = "ros1", color: str = "rgb8", dep
         for topic, msgtype, t, msg in msgs:
             data = ts.serialize_ros1(msg, msgtype) if ros1 else ts.serialize_cdr(msg, msgtype)
             writer.write(conns[topic], int(round(t * 1e9)), data)
+    return out
+
+
+def write_realsense_recording(src: Path, out: Path, frames: int | None = None) -> Path:
+    """Record the first ``frames`` colour/depth pairs of the TUM folder ``src`` with the RealSense
+    SDK's own recorder (``pyrealsense2``: a software device fed with the TUM images, the colour
+    and depth streams registered, depth units 1/5000 m). SDK 2.57+ writes a lone ROS 2 ``.db3``."""
+    import time
+
+    import pyrealsense2 as rs
+
+    cam = TumSequence(src).camera
+    dev = rs.software_device()
+    sensors, profiles = [], []
+    for name, stream, fmt, bpp, uid in (("Depth", rs.stream.depth, rs.format.z16, 2, 0),
+                                        ("Color", rs.stream.color, rs.format.rgb8, 3, 1)):
+        intr = rs.intrinsics()
+        intr.width, intr.height, intr.fx, intr.fy, intr.ppx, intr.ppy = cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy
+        intr.model, intr.coeffs = rs.distortion.brown_conrady, list(cam.dist)
+        vs = rs.video_stream()
+        vs.type, vs.index, vs.uid, vs.width, vs.height, vs.fps, vs.bpp, vs.fmt, vs.intrinsics = (
+            stream, 0, uid, cam.width, cam.height, 30, bpp, fmt, intr)
+        s = dev.add_sensor(name)
+        profiles.append(s.add_video_stream(vs))
+        sensors.append(s)
+    sensors[0].add_read_only_option(rs.option.depth_units, 1.0 / TUM_SCALE)
+    same = rs.extrinsics()
+    same.rotation, same.translation = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0], [0.0, 0.0, 0.0]
+    profiles[0].register_extrinsics_to(profiles[1], same)
+    profiles[1].register_extrinsics_to(profiles[0], same)
+    rec = rs.recorder(str(out), dev)
+    rec_sensors = rec.query_sensors()
+    got = []
+    for s, p in zip(rec_sensors, profiles):
+        s.open(p)
+        s.start(lambda f: got.append(1))
+    keep = []
+    pairs = _pairs(src, frames)
+    for k, (t_rgb, f_rgb, t_d, f_d) in enumerate(pairs):
+        rgb = cv2.cvtColor(cv2.imread(str(f_rgb), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        raw = cv2.imread(str(f_d), cv2.IMREAD_UNCHANGED)
+        for s, p, img, bpp, t in ((sensors[0], profiles[0], raw, 2, t_d), (sensors[1], profiles[1], rgb, 3, t_rgb)):
+            f = rs.software_video_frame()
+            buf = np.ascontiguousarray(img)
+            keep.append(buf)
+            f.pixels, f.bpp, f.stride, f.timestamp = buf, bpp, cam.width * bpp, t * 1000.0
+            f.domain, f.frame_number, f.profile = rs.timestamp_domain.system_time, k, p.as_video_stream_profile()
+            s.on_video_frame(f)
+        deadline = time.monotonic() + 10
+        while len(got) < 2 * (k + 1) and time.monotonic() < deadline:  # let the recorder take them in order
+            time.sleep(0.005)
+    for s in rec_sensors:
+        s.stop()
+        s.close()
+    del rec_sensors, rec
     return out

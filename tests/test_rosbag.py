@@ -159,3 +159,23 @@ def test_bad_bags_are_one_error_line_each(tmp_path):
     _one_error(_cli("info", lone), "metadata.yaml")
     (ros2 / "r2.mcap").write_bytes(b"garbage")
     _one_error(_cli("info", ros2), "cannot be read as a ROS bag")
+
+
+@pytest.mark.slow
+def test_realsense_sdk_recording_equals_folder_run(tmp_path, folder_run):
+    """A recording made by the RealSense SDK's own recorder (pyrealsense2 2.59: a lone ROS 2
+    .db3 with compressed images, text options and frame times in image/metadata), read by the
+    bag reader: the folder run's trajectory (the SDK stores the intrinsics as float32, hence
+    the tolerance)."""
+    from bagmaker import write_realsense_recording
+
+    rec = write_realsense_recording(TUM_RPY200, tmp_path / "rs.db3", frames=FRAMES + 2)
+    seq = open_sequence(rec, _cfg().dataset)
+    assert len(seq) == FRAMES and seq.color.topic.endswith("Color_0/image/data/compressed")
+    tum = TumSequence(TUM_RPY200)
+    a, b = seq.load(5), tum.load(5)
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth) and abs(a.timestamp - b.timestamp) < 1e-6
+    run_sequence(rec, tmp_path / "run", _cfg(), progress=False)
+    est = read_tum(tmp_path / "run" / "trajectory.tum")
+    np.testing.assert_allclose(est.timestamps, folder_run.timestamps, atol=1e-6)
+    np.testing.assert_allclose(est.poses, folder_run.poses, atol=1e-6)

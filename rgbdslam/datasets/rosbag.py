@@ -1,6 +1,7 @@
 """ROS bag reader: ROS 1 ``.bag``, ROS 2 bag folders (``metadata.yaml`` with ``.db3`` or
-``.mcap``) and RealSense SDK recordings (ROS 1 bags with topics ``/device_0/sensor_N/...``),
-through the ``rosbags`` library (pure Python, no ROS installation).
+``.mcap``) and RealSense SDK recordings (topics ``/device_0/sensor_N/...``: ROS 1 ``.bag`` from
+SDK versions before 2.57, a lone ROS 2 ``.db3`` from 2.57 on), through the ``rosbags`` library
+(pure Python, no ROS installation).
 
 Messages: colour and depth as ``sensor_msgs/Image`` (colour ``rgb8 bgr8 rgba8 bgra8 mono8``;
 depth ``16UC1``/``mono16`` in millimetres, or the RealSense recording's ``Depth Units``, and
@@ -46,7 +47,8 @@ MM_PER_M = 1000.0
 
 
 def bag_path(path: Path) -> Path | None:
-    """The path ``rosbags`` opens for ``path`` (a ROS 1 file or a ROS 2 folder), or None."""
+    """The path to open for ``path`` (a ROS 1 file, a ROS 2 folder, or the lone ``.db3`` file
+    that RealSense SDK 2.57+ records), or None."""
     path = Path(path)
     if path.is_file() and path.suffix == ".bag":
         return path
@@ -54,11 +56,53 @@ def bag_path(path: Path) -> Path | None:
         return path
     if path.is_file() and path.suffix in (".db3", ".mcap") and (path.parent / "metadata.yaml").is_file():
         return path.parent
+    if path.is_file() and path.suffix == ".db3":
+        return path  # read with _SqliteBag
     return None
 
 
 def _is_bag(path: Path) -> bool:
-    return bag_path(path) is not None or (Path(path).is_file() and Path(path).suffix in (".db3", ".mcap"))
+    return bag_path(path) is not None or (Path(path).is_file() and Path(path).suffix == ".mcap")
+
+
+class _Conn:
+    def __init__(self, cid: int, topic: str, msgtype: str):
+        self.id, self.topic, self.msgtype = cid, topic, msgtype
+
+
+class _SqliteBag:
+    """A ROS 2 sqlite3 bag without metadata.yaml (what RealSense SDK 2.57+ records: one .db3
+    file), read through the same calls as ``rosbags``' AnyReader; CDR messages are decoded with
+    rosbags' ROS 2 Humble types."""
+
+    def __init__(self, path: Path):
+        import sqlite3
+
+        from rosbags.typesys import Stores, get_typestore
+
+        self.typestore = get_typestore(Stores.ROS2_HUMBLE)
+        try:
+            self.db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, check_same_thread=False)
+            rows = self.db.execute("SELECT id, name, type FROM topics").fetchall()
+        except sqlite3.DatabaseError as e:
+            raise InputError(f"{path} cannot be read as a ROS 2 bag ({e}); check that the recording is complete") from None
+        unknown = sorted({t for _, _, t in rows if t not in self.typestore.fielddefs})
+        self.connections = [_Conn(i, n, t) for i, n, t in rows if t not in unknown]
+
+    def messages(self, connections):
+        by_id = {c.id: c for c in connections}
+        if not by_id:
+            return
+        q = (f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN "
+             f"({','.join(str(i) for i in by_id)}) ORDER BY timestamp, id")
+        for tid, t, data in self.db.execute(q):
+            yield by_id[tid], t, data
+
+    def deserialize(self, raw, msgtype):
+        return self.typestore.deserialize_cdr(raw, msgtype)
+
+    def close(self):
+        self.db.close()
 
 
 def _open_reader(path: Path):
@@ -66,9 +110,11 @@ def _open_reader(path: Path):
     from rosbags.typesys import Stores, get_typestore
 
     where = bag_path(path)
-    if where is None:  # a lone .db3/.mcap
+    if where is None:  # a lone .mcap
         raise InputError(f"{path}: a ROS 2 bag is read from its folder with metadata.yaml; give the folder that "
                          f"holds {path.name} and metadata.yaml")
+    if where.is_file() and where.suffix == ".db3":
+        return _SqliteBag(where)
     try:
         reader = AnyReader([where], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
@@ -259,6 +305,9 @@ class RosbagSequence(Sequence):
         for conn, _, raw in reader.messages(connections=wanted):
             first_info.setdefault(conn.topic, reader.deserialize(raw, conn.msgtype))
         realsense = self.depth.topic.startswith("/device_0/")
+        if realsense:
+            for stream in (self.color, self.depth):
+                self._realsense_stamps(reader, conns, stream)
         own = None
         if color_info in first_info:
             own = CameraSetup(camera_from_info(first_info[color_info], color_info), f"CameraInfo on {color_info}")
@@ -356,27 +405,60 @@ class RosbagSequence(Sequence):
         return winners[0]
 
     def _realsense_units(self, reader, conns) -> float | None:
-        topics = [c for c in conns if c.topic.startswith("/device_0/") and c.topic.endswith("Depth Units/value")]
+        """The 'Depth Units' option (metres per unit): Float32 (ROS 1 layout) or text (SDK 2.57+)."""
+        topics = [c for c in conns if c.topic.startswith("/device_0/")
+                  and c.topic.endswith(("Depth Units/value", "Depth_Units/value"))]
         for conn, _, raw in reader.messages(connections=topics):
-            v = float(reader.deserialize(raw, conn.msgtype).data)
+            try:
+                v = float(reader.deserialize(raw, conn.msgtype).data)
+            except (TypeError, ValueError):
+                continue
             if v > 0:
                 return v
         return None
 
     def _realsense_extrinsic(self, reader, conns) -> np.ndarray | None:
-        """Depth-to-colour pose of a RealSense recording: each stream's ``tf/0`` is its pose in
-        the device's reference frame, so depth-to-colour = inv(T_colour) @ T_depth."""
+        """Depth-to-colour extrinsic of a RealSense recording. Each stream's ``tf/...`` topic holds
+        the extrinsic from the device's reference stream to that stream (SDK 2.57+: text
+        'rotation=<9, column-major>;translation=<3>'; the ROS 1 layout: geometry_msgs/Transform),
+        so depth-to-colour = T_ref_colour @ inv(T_ref_depth)."""
         def stream_tf(image_topic: str):
-            base = image_topic.rsplit("/image/", 1)[0]
-            cs = [c for c in conns if c.topic == f"{base}/tf/0"]
+            base = image_topic.rsplit("/image/", 1)[0] + "/tf/"
+            cs = [c for c in conns if c.topic.startswith(base)]
             for conn, _, raw in reader.messages(connections=cs):
-                return _transform(reader.deserialize(raw, conn.msgtype))
+                msg = reader.deserialize(raw, conn.msgtype)
+                if hasattr(msg, "rotation"):
+                    return _transform(msg)
+                fields = dict(kv.split("=", 1) for kv in str(msg.data).split(";") if "=" in kv)
+                try:
+                    rot = np.array([float(x) for x in fields["rotation"].split(",")]).reshape(3, 3).T
+                    T = np.eye(4)
+                    T[:3, :3], T[:3, 3] = rot, [float(x) for x in fields["translation"].split(",")]
+                except (KeyError, ValueError):
+                    return None
+                return T
             return None
 
         Tc, Td = stream_tf(self.color.topic), stream_tf(self.depth.topic)
-        if Tc is None or Td is None:
+        if Tc is None or Td is None or abs(np.linalg.det(Tc[:3, :3]) - 1) > 1e-3 or abs(np.linalg.det(Td[:3, :3]) - 1) > 1e-3:
             return None
-        return np.linalg.inv(Tc) @ Td
+        return Tc @ np.linalg.inv(Td)
+
+    def _realsense_stamps(self, reader, conns, stream: _Stream) -> None:
+        """SDK 2.57+ recordings stamp messages with the time since the recording started; the
+        frame's own time stamp (ms) is in the stream's image/metadata text: use it."""
+        base = stream.topic.rsplit("/image/", 1)[0] + "/image/metadata"
+        cs = [c for c in conns if c.topic == base]
+        stamps = []
+        for conn, _, raw in reader.messages(connections=cs):
+            fields = dict(kv.split("=", 1) for kv in str(reader.deserialize(raw, conn.msgtype).data).split(";")
+                          if "=" in kv)
+            try:
+                stamps.append(float(fields["timestamp"]) / 1000.0)
+            except (KeyError, ValueError):
+                return
+        if len(stamps) == len(stream.stamps):
+            stream.stamps = np.asarray(stamps, dtype=np.float64)
 
     # ------------------------------------------------------------------ frames
 
