@@ -155,7 +155,9 @@ def read_camera_file(path: str | Path, source: str | None = None) -> CameraSetup
         dc = data.get("depth_camera")
         if dc is not None and not isinstance(dc, dict):
             raise InputError(f"{path}: depth_camera must be a mapping of fx, fy, cx, cy, size")
-        depth_cam = _camera(dc or {}, f"{path} (depth_camera)", cam, "depth")
+        # its own intrinsics (size defaults to the colour images', distortion to none), else the colour camera's
+        depth_cam = cam if dc is None else _camera({"width": cam.width, "height": cam.height, **dc},
+                                                   f"{path} (depth_camera)", None, "depth")
         T = _extrinsic(data.get("depth_to_color", [0.0, 0.0, 0.0]), str(path))
     return CameraSetup(cam, source or str(path), scale, depth_cam, T)
 

@@ -144,6 +144,16 @@ class RgbdFileSequence(Sequence):
         self.depth_scale = float(depth_scale)
         self.depth_correction = float(depth_correction)
         self.invalid_depth = invalid_depth
+        self._check_first_image()
+
+    def _check_first_image(self) -> None:
+        """Intrinsics for another image size are a mistake of the whole run, not of one frame:
+        say so before it starts (a first image that cannot be read is left to the frame loop)."""
+        if not self.rgb_files or not self.rgb_files[0].is_file():
+            return
+        img = cv2.imread(str(self.rgb_files[0]), cv2.IMREAD_UNCHANGED)
+        if img is not None:
+            _check_size(self.rgb_files[0], img, self.camera)
 
     @property
     def timestamps(self) -> np.ndarray:
