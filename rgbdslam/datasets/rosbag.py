@@ -215,7 +215,9 @@ def camera_from_info(msg, name: str) -> Camera:
     if model not in ("plumb_bob", "rational_polynomial", "brown_conrady", "inverse_brown_conrady", "none", ""):
         raise InputError(f"{name}: distortion model {msg.distortion_model!r} is not supported (plumb_bob, "
                          f"rational_polynomial); pass --camera FILE with undistorted intrinsics")
-    if not any(D) or len(D) not in (4, 5, 8):
+    # RealSense's "inverse" Brown-Conrady maps the other way than OpenCV's model; its coefficients
+    # are small on the SDK's rectified colour stream, so it is read as no distortion (like `live`)
+    if not any(D) or len(D) not in (4, 5, 8) or model == "inverse_brown_conrady":
         D = [0.0] * 5
     if K.size != 9 or not (K[0] > 0 and K[4] > 0):
         raise InputError(f"{name}: CameraInfo has no valid camera matrix K; pass --camera FILE")
