@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.backend.slam_graph import PoseGraph
+from rgbdslam.backend.slam_graph import KeyframeGraph
 from rgbdslam.config import BackendConfig
 from rgbdslam.frontend.keyframes import KeyframePolicy
 from rgbdslam.config import KeyframeConfig
@@ -38,8 +38,8 @@ def ate(est: dict[int, np.ndarray], gt: np.ndarray) -> float:
     return float(np.sqrt(np.mean([np.sum((est[k][:3, 3] - gt[k][:3, 3]) ** 2) for k in est])))
 
 
-def build(cfg: BackendConfig, gt: np.ndarray, loops=((39, 0),), false_loops=()) -> tuple[PoseGraph, dict]:
-    g = PoseGraph(cfg)
+def build(cfg: BackendConfig, gt: np.ndarray, loops=((39, 0),), false_loops=()) -> tuple[KeyframeGraph, dict]:
+    g = KeyframeGraph(cfg)
     odo = {0: gt[0].copy()}
     for k in range(len(gt)):
         if k > 0:
@@ -126,7 +126,7 @@ def test_isam2_failure_is_survived_and_the_batch_still_solves(monkeypatch):
             raise RuntimeError("Indeterminate linear system detected while working near variable x7")
 
     monkeypatch.setattr(sg.gtsam, "ISAM2", FailingISAM2)
-    g = PoseGraph(BackendConfig())
+    g = KeyframeGraph(BackendConfig())
     g.add_node(0, np.eye(4))
     g.add_node(1, make_pose(np.eye(3), [0.1, 0, 0]))
     g.add_odometry(0, 1, make_pose(np.eye(3), [0.1, 0, 0]), np.eye(6) * 1e4)
@@ -153,7 +153,7 @@ def test_failed_batch_keeps_the_initial_guess(monkeypatch):
     monkeypatch.setattr(sg.gtsam, "LevenbergMarquardtOptimizer", FailingLM)
     cfg = BackendConfig()
     cfg.isam2 = False
-    g = PoseGraph(cfg)
+    g = KeyframeGraph(cfg)
     g.add_node(0, np.eye(4))
     g.add_node(1, make_pose(np.eye(3), [0.1, 0, 0]))
     g.add_odometry(0, 1, make_pose(np.eye(3), [0.12, 0, 0]), np.eye(6) * 1e4)
