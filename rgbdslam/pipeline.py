@@ -50,8 +50,8 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
 
     check_settings(cfg)
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
-    announce_camera(seq, console)
     out_dir = prepare_run_folder(Path(out_dir), cfg, console)
+    announce_camera(seq, console)  # after the folder: a path that cannot be written stays one error line
     gt = seq.groundtruth()
     observer = make_observer(cfg, seq.camera, gt)
     slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes")
