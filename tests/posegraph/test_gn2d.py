@@ -202,7 +202,6 @@ def test_matches_real_g2o_chi2_history():
     g2o (g2o-python 0.0.12) by ``scripts/masat/g2o_parity.py --record`` on a synthetic grid world, for a
     mild, a heading-noise and a large-noise case (odometry start, angle errors past ±π)."""
     import json
-    from pathlib import Path
 
     ref = json.loads((REPO / "tests" / "data" / "g2o_reference.json").read_text())
     assert len(ref["cases"]) == 3
