@@ -29,7 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CameraSetup, resolve_camera
 from rgbdslam.datasets.tum import select_frames
@@ -526,4 +526,4 @@ class RosbagSequence(Sequence):
         return read_tum(Path(p)) if p else None
 
 
-register("rosbag", _is_bag)(RosbagSequence)
+reader("rosbag", _is_bag)(RosbagSequence)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.camera_file import CameraSetup, resolve_camera
 from rgbdslam.datasets.tum import RgbdFileSequence, data_lines, pick_depth_scale, select_frames
 from rgbdslam.errors import InputError
@@ -72,7 +72,7 @@ def read_pose(path: Path) -> np.ndarray:
     return T
 
 
-@register("7scenes", _is_7scenes)
+@reader("7scenes", _is_7scenes)
 class SevenScenesSequence(RgbdFileSequence):
     """A 7-Scenes sequence folder; see the module docstring."""
 

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from rgbdslam.io.text import read_lines, read_text
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CAMERA_FILE, CameraSetup, read_camera_file, resolve_camera
 from rgbdslam.errors import InputError
@@ -344,7 +344,7 @@ def _is_tum(path: Path) -> bool:
     return listed("rgb") and listed("depth")
 
 
-@register("tum", _is_tum)
+@reader("tum", _is_tum)
 class TumSequence(RgbdFileSequence):
     """A TUM RGB-D folder; see the module docstring."""
 
