@@ -25,7 +25,7 @@ import numpy as np
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))  # the bag writers of the tests
+sys.path.insert(0, str(ROOT))  # the bag writers of the tests (tests/datasets/bagmaker.py)
 
 from rgbdslam.config import load_config  # noqa: E402
 from rgbdslam.io.trajectory import read_tum  # noqa: E402
@@ -64,7 +64,7 @@ def seven_scenes(data: Path, work: Path) -> list[str]:
 
 
 def parity(data: Path, work: Path) -> list[str]:
-    from bagmaker import write_bag, write_realsense_recording
+    from tests.datasets.bagmaker import write_bag, write_realsense_recording
 
     src = data / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
     runs = [("TUM folder", src, [])]

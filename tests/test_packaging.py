@@ -22,8 +22,11 @@ from pathlib import Path
 
 import pytest
 
-from bagmaker import write_bag
-from conftest import TUM_DESK9, need
+from tests.datasets.bagmaker import write_bag
+from tests.conftest import TUM_DESK9, need
+
+pytestmark = pytest.mark.data  # runs a TUM folder from the installed wheel
+
 
 REPO = Path(__file__).resolve().parent.parent
 

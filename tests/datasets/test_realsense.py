@@ -16,12 +16,15 @@ import cv2
 import numpy as np
 import pytest
 
-from bagmaker import write_realsense_recording
-from conftest import TUM_RPY200, cli, need
+from tests.datasets.bagmaker import write_realsense_recording
+from tests.conftest import TUM_RPY200, cli, need
 from rgbdslam.config import load_config
 from rgbdslam.evaluation.report import evaluate_trajectories
 from rgbdslam.io.trajectory import read_tum
 from rgbdslam.pipeline import run_sequence
+
+pytestmark = pytest.mark.data  # real TUM frames recorded by the SDK
+
 
 FRAMES = 30
 

@@ -6,14 +6,17 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import DATA, cli, need
+from tests.conftest import DATA, REPO, cli, need
 from rgbdslam.config import DatasetConfig, load_config
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.sevenscenes import SevenScenesSequence
 from rgbdslam.pipeline import run_sequence
 
+pytestmark = pytest.mark.data  # the 7-Scenes frames
+
+
 SEVEN = DATA / "7scenes" / "frames_0000_0299"
-REPO_CAMERA = __import__("pathlib").Path(__file__).resolve().parent.parent / "configs" / "7scenes_camera.yaml"
+REPO_CAMERA = REPO / "configs" / "7scenes_camera.yaml"
 
 
 def test_reader_on_the_real_files():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import TUM_DESK9, cli, need
+from tests.conftest import TUM_DESK9, cli, need
 from rgbdslam.config import DatasetConfig
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.camera_file import read_camera_file
@@ -43,6 +43,7 @@ def test_camera_file_keys(tmp_path):
             read_camera_file(_write(tmp_path / "bad.yaml", bad))
 
 
+@pytest.mark.data
 def test_camera_order_and_what_run_says(tmp_path):
     """A copy of a freiburg1 folder under another name: ros_default with a warning naming the
     fix; --camera wins over everything; run prints the camera and where it came from."""
@@ -76,6 +77,7 @@ def test_camera_order_and_what_run_says(tmp_path):
     assert np.array_equal(open_sequence(copy, DatasetConfig(depth_scale=5000)).load(0).depth, d_tum)
 
 
+@pytest.mark.data
 def test_eth3d_and_icl_nuim_layouts(tmp_path):
     eth = tmp_path / "eth3d_sofa"
     shutil.copytree(need(TUM_DESK9), eth)

@@ -4,14 +4,13 @@ trajectory must equal the run on the TUM folder itself."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from bagmaker import write_bag
-from conftest import TUM_DESK9, TUM_RPY200, cli, need
+from tests.datasets.bagmaker import write_bag
+from tests.conftest import TUM_DESK9, TUM_RPY200, cli, need
 from rgbdslam.config import load_config
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.rosbag import RosbagSequence, decode_depth
@@ -20,8 +19,10 @@ from rgbdslam.geometry.depth_registration import DepthRegistration
 from rgbdslam.io.trajectory import read_tum
 from rgbdslam.pipeline import run_sequence
 
+pytestmark = pytest.mark.data  # real TUM frames written into bags
+
 FRAMES = 30
-REPO = Path(__file__).resolve().parent.parent
+
 
 
 def _cfg(*extra):
@@ -106,27 +107,6 @@ def test_realsense_depth_is_registered_with_the_recordings_extrinsic(tmp_path):
     assert np.array_equal(seq.load(1).depth, want)
 
 
-def test_depth_registration_hand_worked():
-    """A wall 2 m away, depth camera 0.1 m to the right of the colour camera (same intrinsics,
-    f = 500): the wall appears f * t / z = 25 pixels further right in colour."""
-    from rgbdslam.geometry.camera import Camera
-
-    cam = Camera(500.0, 500.0, 99.5, 79.5, 200, 160)
-    T = np.eye(4)
-    T[0, 3] = 0.1
-    depth = np.zeros((160, 200), np.float32)
-    depth[40:120, 50:150] = 2.0  # a square patch of wall
-    out = DepthRegistration(cam, cam, T)(depth)
-    assert np.array_equal(out > 0, np.roll(depth > 0, 25, axis=1))
-    assert np.all(out[out > 0] == np.float32(2.0))
-    # the nearer of two surfaces landing on one pixel wins (z-buffer)
-    depth2 = np.zeros((160, 200), np.float32)
-    depth2[:, 100] = 4.0  # 4 m: shifts 12.5 -> 12 or 13 pixels
-    depth2[:, 113] = 2.0  # 2 m: shifts 25 pixels -> 138; a 4 m point at 100 + 12.5 does not reach it
-    out2 = DepthRegistration(cam, cam, T)(depth2)
-    assert np.all(out2[:, 138] == np.float32(2.0))
-
-
 def _cli(*args):
     return cli(args)
 
@@ -167,7 +147,7 @@ def test_realsense_sdk_recording_equals_folder_run(tmp_path, folder_run):
     .db3 with compressed images, text options and frame times in image/metadata), read by the
     bag reader: the folder run's trajectory (the SDK stores the intrinsics as float32, hence
     the tolerance)."""
-    from bagmaker import write_realsense_recording
+    from tests.datasets.bagmaker import write_realsense_recording
 
     rec = write_realsense_recording(TUM_RPY200, tmp_path / "rs.db3", frames=FRAMES + 2)
     seq = open_sequence(rec, _cfg().dataset)
