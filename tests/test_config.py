@@ -5,7 +5,7 @@ import math
 import pytest
 import yaml
 
-from rgbdslam.config import PRESET_DIR, Config, load_config, save_config
+from rgbdslam.config import Config, preset_files, load_config, save_config
 from rgbdslam.errors import ConfigError
 
 
@@ -51,12 +51,12 @@ def test_non_default_roundtrip(tmp_path):
 
 
 def _presets():
-    return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
+    return sorted(preset_files())
 
 
 @pytest.mark.parametrize("preset", _presets())
 def test_every_preset_loads(preset):
-    data = yaml.safe_load((PRESET_DIR / f"{preset}.yaml").read_text())
+    data = yaml.safe_load(preset_files()[preset].read_text(encoding="utf-8"))
     assert isinstance(data, dict) and data, f"{preset}.yaml sets no keys"
     cfg = load_config(preset)
     # expected: the dataclass defaults with exactly the preset's keys replaced
@@ -72,7 +72,7 @@ def test_every_preset_loads(preset):
 
 
 def test_required_presets_exist():
-    names = {p.stem for p in PRESET_DIR.glob("*.yaml")}
+    names = set(preset_files())
     assert {"default", "tum_fr1", "tum_fr2", "tum_fr3", "put_kinect1"} <= names
 
 
@@ -234,6 +234,7 @@ def test_every_numeric_key_refuses_boundary_values_before_any_work(key, kind, tm
         check_range(key, kind(v))  # the ends of the range are accepted
 
 
+@pytest.mark.data
 def test_upper_ends_are_accepted_by_their_consumers(desk9, tmp_path):
     """The maxima of the keys handed to C code (seeds, iteration counts, LSH sizes, TSDF blocks,
     OpenCV's RANSAC) are accepted by OpenCV, GTSAM and Open3D in a real run."""

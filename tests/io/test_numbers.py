@@ -93,6 +93,7 @@ def test_other_readers_refuse_absurd_numbers(tmp_path):
         assert message in str(e.value), (name, str(e.value))
 
 
+@pytest.mark.data
 def test_depth_scale_1e_300_is_bad_input_not_lost_tracking(desk9, tmp_path):
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "r"), "-q",
                                     "--set", "dataset.depth_scale=1e-300"])

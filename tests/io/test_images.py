@@ -10,6 +10,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from rgbdslam.io.images import read_image
 
@@ -41,6 +42,7 @@ def test_damaged_images_are_refused_silently(tmp_path, capfd):
     assert err == "", err  # the file descriptor 2 itself: libpng writes there, not to sys.stderr
 
 
+@pytest.mark.data
 def test_a_run_over_damaged_images_prints_only_our_warnings(desk9, tmp_path):
     """A real run in a child process (libpng writes to fd 2, which only a subprocess captures):
     a colour image with a bad CRC and a truncated depth image are skipped with our warning."""
