@@ -134,7 +134,7 @@ def info(sequence, config_path, overrides):
     from rgbdslam.config import load_config
     from rgbdslam.datasets import describe_sequence
 
-    click.echo(describe_sequence(sequence, load_config(config_path, overrides).dataset))
+    click.echo(describe_sequence(sequence, load_config(config_path, overrides)))
 
 
 # ------------------------------------------------------------------ commands added by stages

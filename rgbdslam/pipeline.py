@@ -381,7 +381,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
         from rgbdslam.mapping.fusion import validate_mapping
 
         validate_mapping(cfg.mapping)
-    seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
+    seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if keep_previous_run(out_dir):

@@ -2,7 +2,8 @@
 
 Each source lives in its own module and registers itself with :func:`register`:
 ``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes) and ``put`` (POZNAN/PUT
-Kinect layout).
+Kinect layout); stereo: ``kitti`` (KITTI odometry), ``euroc`` (EuRoC/ASL) and ``stereo`` (a
+plain left/right folder), which compute depth from the pair (``datasets.stereo_base``).
 """
 
 from __future__ import annotations
@@ -34,15 +35,19 @@ def available() -> list[str]:
 
 def _load_builtin() -> None:
     # Importing the modules registers them.
-    from rgbdslam.datasets import put, tum  # noqa: F401
+    from rgbdslam.datasets import euroc, kitti, put, stereo_folder, tum  # noqa: F401
 
 
-def open_sequence(path: str | Path, cfg=None) -> Sequence:
-    """Open the sequence in ``path`` with the reader named by ``cfg.kind`` (or detected)."""
-    from rgbdslam.config import DatasetConfig
+def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequence:
+    """Open the sequence in ``path`` with the reader named by ``cfg.kind`` (or detected).
+
+    ``cfg`` is the dataset section, or the whole config: stereo readers then also take their
+    depth method from it (``stereo.depth``; ``stereo.map_depth`` with ``purpose="map"``)."""
+    from rgbdslam.config import Config, DatasetConfig
 
     _load_builtin()
-    cfg = cfg or DatasetConfig()
+    full = cfg if isinstance(cfg, Config) else None
+    cfg = full.dataset if full is not None else (cfg or DatasetConfig())
     path = Path(path)
     if not path.exists():
         raise InputError(f"sequence folder {path} does not exist; check the path (TUM data sets live under ../shared/data/tum)")
@@ -54,11 +59,15 @@ def open_sequence(path: str | Path, cfg=None) -> Sequence:
         if kind is None:
             raise InputError(
                 f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
-                f"with time-stamp-named PNGs (TUM), or a 'matched' file (PUT)"
+                f"with time-stamp-named PNGs (TUM), a 'matched' file (PUT), calib.txt with image_0/ and "
+                f"image_1/ (KITTI), mav0/cam0 and mav0/cam1 (EuRoC), or left/, right/ and a camera file (stereo)"
             )
     if kind not in _REGISTRY:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
-    return _REGISTRY[kind][1](path, cfg)
+    seq = _REGISTRY[kind][1](path, cfg)
+    if full is not None and hasattr(seq, "configure"):
+        seq.configure(full, purpose)
+    return seq
 
 
 def describe_sequence(path: str | Path, cfg=None) -> str:

@@ -161,8 +161,11 @@ def detect(rgb: np.ndarray, fc: FeaturesConfig) -> Detections:
 
 
 def with_detections(frame: Frame, cfg: Config) -> Frame:
-    """``frame`` with its :class:`Detections` attached (``Sequence.prefetched(then=...)``)."""
-    frame.detections = detect(frame.rgb, cfg.features)
+    """``frame`` with its :class:`Detections` attached (``Sequence.prefetched(then=...)``); kept
+    when the reader already made them in this image with this config (sparse stereo does)."""
+    det = frame.detections
+    if not (isinstance(det, Detections) and det.image is frame.rgb and det.config == cfg.features):
+        frame.detections = detect(frame.rgb, cfg.features)
     return frame
 
 

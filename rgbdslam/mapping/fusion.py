@@ -33,7 +33,7 @@ import open3d as o3d
 
 from rgbdslam.config import Config, MappingConfig, load_config, validate_section
 from rgbdslam.datasets import open_sequence
-from rgbdslam.datasets.base import Sequence
+from rgbdslam.datasets.base import Sequence, as_rgb
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
@@ -373,7 +373,7 @@ def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: li
             depth = frame.depth
             if depth_dir is not None and (depth_dir / f"depth_{i:06d}.png").is_file():
                 depth = read_depth_png(depth_dir / f"depth_{i:06d}.png")
-            rgb, depth = undistort(frame.rgb, depth.astype(np.float32, copy=False))
+            rgb, depth = undistort(as_rgb(frame.rgb), depth.astype(np.float32, copy=False))  # grey cameras: grey cloud
             depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0).astype(np.float32)
             n_depth += int(np.count_nonzero(depth))
             pose = trajectory.poses[r]
@@ -555,7 +555,7 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     info, run_cfg, traj = read_run(run_dir)
     cfg = cfg or run_cfg.mapping
     validate_mapping(cfg)
-    seq = open_sequence(info["sequence"], run_cfg.dataset)
+    seq = open_sequence(info["sequence"], run_cfg, purpose="map")
     check_run_frames(run_dir, info, len(seq))
     rows = match_frames(np.asarray(seq.timestamps), traj)
     tracked = np.flatnonzero(rows >= 0)

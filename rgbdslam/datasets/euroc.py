@@ -1,0 +1,1 @@
+from rgbdslam.datasets import register  # noqa
