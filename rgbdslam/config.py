@@ -99,6 +99,11 @@ class RegistrationConfig:
     joint_refit: bool = False  # after fusion: one weighted SVD fit on the inliers of all kept references
     joint_gate: float = 0.02  # metres, pairs further from the fused pose are left out of the joint refit
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
+    # after fusion (frames with a depth noise model, i.e. stereo): Gauss-Newton refit on the kept inlier
+    # pairs weighted by their covariances (geometry.mahalanobis; docs/stereo.md)
+    noise_refit: bool = True
+    noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
+    noise_refit_huber: float = 3.0  # Huber threshold of the refit (Mahalanobis distance, sigmas)
     threads: int = 1
     constant_velocity: bool = True
     max_lost: int = 15  # consecutive lost frames before tracking restarts from the last pose (0 = never)
@@ -233,13 +238,14 @@ class StereoConfig:
     depth: Literal["sparse", "sgbm"] = "sparse"  # tracking: row-matched ORB key points, or OpenCV SGBM
     map_depth: Literal["same", "sparse", "sgbm"] = "sgbm"  # what `fuse` re-reads for the map ("same" = depth)
     # disparity noise (pixels) each method implies: depth sigma = z^2 * sigma / (fx * baseline)
-    sigma_disparity_sparse: float = 0.3
+    sigma_disparity_sparse: float = 0.5
     sigma_disparity_sgbm: float = 0.5
     max_disparity: int = 128  # search range (pixels); SGBM rounds it up to a multiple of 16
     min_disparity: float = 0.5  # smaller disparities (farther than fx * B / this) give no depth
     row_tolerance: float = 2.0  # sparse: |v_left - v_right| allowed for a match (pixels)
     max_hamming: int = 50  # sparse: descriptor distance cap
     ratio: float = 0.9  # sparse: best / second-best Hamming distance along the row band
+    right_features: int = 2  # sparse: ORB budget of the right image, times features.n_features (no grid)
     patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
     search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
     sgbm_block_size: int = 5
@@ -343,7 +349,7 @@ POSITIVE = {
     "registration.e_start", "registration.e_min", "registration.mp", "registration.alpha",
     "registration.reject_translation", "registration.reject_rotation", "registration.pregate",
     "registration.guided_gate", "registration.predicted_gate", "registration.joint_gate",
-    "registration.threads", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
+    "registration.threads", "registration.noise_refit_huber", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
     "depth_filter.max_depth",
     "keyframes.max_gap",
     "loop.sharpness_factor", "loop.sharpness_window", "loop.lsh_tables", "loop.lsh_bits", "loop.min_votes",
@@ -358,7 +364,7 @@ POSITIVE = {
     "mapping.floor_ransac_iterations", "mapping.floor_band", "mapping.obstacle_min_points",
     "output.rerun_image_width", "output.rerun_log_every",
     "stereo.sigma_disparity_sparse", "stereo.sigma_disparity_sgbm", "stereo.max_disparity", "stereo.min_disparity",
-    "stereo.row_tolerance", "stereo.patch_radius", "stereo.search_radius", "stereo.sgbm_block_size",
+    "stereo.row_tolerance", "stereo.right_features", "stereo.patch_radius", "stereo.search_radius", "stereo.sgbm_block_size",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),

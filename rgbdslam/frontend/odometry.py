@@ -54,6 +54,7 @@ class RegistrationResult:
     pairs: np.ndarray  # (n_inliers, 2) int: (index into ref features, index into cur features)
     information: np.ndarray  # 6x6 information of inv(T) (rotation, translation), right perturbation
     timings: dict[str, float] = field(default_factory=dict)
+    matches: np.ndarray | None = None  # (n_matches, 2) every descriptor match, before any geometric filter
 
 
 @dataclass
@@ -122,6 +123,7 @@ def register(
     n_matches = len(ia)
     if n_matches < need:
         return None
+    all_matches = np.stack([ia, ib], axis=1)
     if not guided and not (rc.method == "ransac" and cfg.matching.prefilter == "rigid3d"):
         m = prefilter(ref, cur, ia, ib, cfg, T0)
         ia, ib = ia[m], ib[m]
@@ -159,6 +161,7 @@ def register(
         pairs=np.stack([ia[keep], ib[keep]], axis=1),
         information=point_information(D[keep], sigma),
         timings={"matching": t1 - t0, "registration": t2 - t1},
+        matches=all_matches,
     )
 
 
@@ -260,6 +263,8 @@ class Frontend:
         kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
         if rc.joint_refit and len(kept) > 1:
             pose = self._joint_refit(pose, kept_pairs, feats)
+        if rc.noise_refit and feats.depth_noise is not None:
+            pose = self._noise_refit(pose, kept_pairs, feats)
         info = sum(res.information for res in kept)
         last = self.refs[-1]
         relative = inv(last.pose) @ pose
@@ -343,6 +348,33 @@ class Frontend:
         if ok.sum() < max(3, rc.min_points):
             return pose
         return fit_rigid(C[ok], W[ok], w[ok])
+
+    def _noise_refit(self, pose: np.ndarray, pairs: list, feats: FrameFeatures) -> np.ndarray:
+        """Gauss-Newton refit of the current pose on the inlier pairs of all kept references,
+        each pair weighted by the inverse of its two points' covariances from the depth noise
+        model (stereo: long along the viewing ray, ``DepthNoise.covariance``), robust (Huber).
+        The fused pose is kept when the refit moves it further than the candidate gates."""
+        from rgbdslam.geometry.mahalanobis import refine_pose_mahalanobis
+
+        rc = self.cfg.registration
+        W, C, SW, SC = [], [], [], []
+        for r, res in pairs:
+            m = res.matches if rc.noise_refit_all and res.matches is not None else res.pairs
+            P = r.features.pts[m[:, 0]]
+            R = r.pose[:3, :3]
+            W.append(transform_points(r.pose, P))
+            SW.append(R @ r.features.depth_noise.covariance(P) @ R.T)
+            c = feats.pts[m[:, 1]]
+            C.append(c)
+            SC.append(feats.depth_noise.covariance(c))
+        W, C, SW, SC = (np.concatenate(x) for x in (W, C, SW, SC))
+        if len(W) < max(3, rc.min_points):
+            return pose
+        refined, _, _ = refine_pose_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
+        d = inv(pose) @ refined
+        if np.linalg.norm(d[:3, 3]) > rc.reject_translation or rotation_angle(d[:3, :3]) > rc.reject_rotation:
+            return pose
+        return refined
 
     def _map(self, jobs: list[tuple]) -> list:
         if self._executor is not None and len(jobs) > 1:
