@@ -31,12 +31,13 @@ from rgbdslam.errors import InputError, RgbdslamError, TrackingLost
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
 from rgbdslam.io.atomic import atomic_path, atomic_write_text
+from rgbdslam.io.kitti import write_kitti_poses
 from rgbdslam.io.trajectory import Trajectory, write_tum
 
 FLUSH_EVERY = 50  # frames between intermediate trajectory writes
 MAX_FRAME_WARNINGS = 5  # per-frame warnings printed before the rest are only counted
 # what a run writes into its folder; a new run into the same folder first moves these to previous/
-RUN_ARTEFACTS = ("trajectory.tum", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
+RUN_ARTEFACTS = ("trajectory.tum", "poses.txt", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
                  "plots", "map", "keyframes", "recording.rrd")
 
 
@@ -361,6 +362,7 @@ def _write_outputs(out_dir: Path, slam: SLAM, summary: dict, final: Trajectory |
     odo = slam.odometry()
     write_tum(odo, out_dir / "odometry.tum")
     write_tum(final if final is not None else odo, out_dir / "trajectory.tum")
+    write_kitti_poses(final if final is not None else odo, out_dir / "poses.txt")  # KITTI format, same poses
     if slam.graph is not None and slam.graph.order:
         from rgbdslam.backend.graph_io import write_g2o
 
@@ -438,7 +440,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
         summary = _summary(seq, slam, n_done, wall, load_time, interrupted)
         if not interrupted:
             summary["status"] = "failed"
-            for name in ("trajectory.tum", "odometry.tum"):  # a 50-frame flush of this run: not a result
+            for name in ("trajectory.tum", "odometry.tum", "poses.txt"):  # a 50-frame flush of this run: not a result
                 (out_dir / name).unlink(missing_ok=True)
         atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
         if observer is not None:  # nothing worth recording: an earlier .rrd at that path stays
