@@ -250,7 +250,7 @@ def rectification_warning(left: np.ndarray, right: np.ndarray, fc: FeaturesConfi
     med = float(np.median(np.abs(dv)))
     if med <= threshold:
         return None
-    where = f"the stereo pair{f' {name}' if name else ''}"
+    where = f"the stereo pair{f' of {name}' if name else ''}"
     return (f"{where} does not look rectified: {len(dv)} matched features differ by a median of {med:.1f} "
             f"pixels in row (offset {float(np.median(dv)):+.1f}); stereo depth assumes rectified images "
             f"(give the calibration's distortion and extrinsics to rectify, or rectify the images first)")
