@@ -226,7 +226,8 @@ def row_offsets(left: np.ndarray, right: np.ndarray, fc: FeaturesConfig, max_ham
     without any row constraint (mutual nearest neighbours, ratio 0.8, Hamming cap): in a
     rectified pair they cluster at 0."""
     from rgbdslam.frontend.features import detect
-    from rgbdslam.frontend.matching import descriptor_words, hamming_matrix
+    from rgbdslam.frontend.features import descriptor_words
+    from rgbdslam.frontend.matching import hamming_matrix
 
     a, b = detect(to_gray(left), fc), detect(to_gray(right), fc)
     if len(a.desc) < 2 or len(b.desc) < 2:
