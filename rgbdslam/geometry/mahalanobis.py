@@ -59,7 +59,7 @@ def refine_pose_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarray, W: 
         dX[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
         dX[:3, 3] = xi[3:]
         X = dX @ X
-        if np.linalg.norm(xi) < 1e-9:
+        if np.linalg.norm(xi) < 1e-7:  # 0.1 micro-rad / 0.1 micro-m: converged
             break
     R, t = X[:3, :3], X[:3, 3]
     r = C @ R.T + t - W
