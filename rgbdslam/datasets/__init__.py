@@ -90,8 +90,14 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
 
         first = seq.load(0)
         valid = first.depth[first.depth > 0]
-        lines.append(f"depth       frame 0: {valid.size / first.depth.size:.0%} valid, median "
-                     f"{float(np.median(valid)) if valid.size else 0:.2f} m")
+        if getattr(seq, "rig", None) is not None:  # stereo: the pair's geometry and the depth method
+            lines.append(f"stereo      baseline {seq.rig.baseline:.4f} m, depth from the pair: {seq.method} "
+                         f"(sigma {first.depth_noise.sigma(10.0):.3f} m at 10 m)")
+            lines.append(f"depth       frame 0: {valid.size} pixels, median "
+                         f"{float(np.median(valid)) if valid.size else 0:.2f} m")
+        else:
+            lines.append(f"depth       frame 0: {valid.size / first.depth.size:.0%} valid, median "
+                         f"{float(np.median(valid)) if valid.size else 0:.2f} m")
         warning = depth_warning(first)
         if warning:
             lines.append(f"warning     {warning}")
