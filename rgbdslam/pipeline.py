@@ -16,7 +16,7 @@ from typing import Any
 
 from rgbdslam.config import Config, save_config
 from rgbdslam.datasets import Sequence, open_sequence
-from rgbdslam.datasets.base import depth_warning
+from rgbdslam.stereo.depth import frame_warning
 from rgbdslam.errors import InputError, RgbdslamError, TrackingLost
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.trajectory import Trajectory
@@ -109,7 +109,7 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
                     advance()
                     continue
                 load_time += time.perf_counter() - t0
-                if not st.records and not st.lost and (warning := depth_warning(frame)):
+                if not st.records and not st.lost and (warning := frame_warning(frame)):
                     console.print(f"[yellow]warning:[/] {warning}")  # once, on the first readable frame
                 slam.track(frame)
                 advance(f"{len(st.loops)} loops, {len(st.lost)} lost" + (f", {len(st.restarts)} restarts"

@@ -1,6 +1,7 @@
-"""Sequence readers behind one interface, and a registry that picks the reader for a folder.
+"""Sequence readers behind one interface (``base.Sequence``), one module per source, and
+:func:`open_sequence`, which picks the reader for a folder.
 
-Each source lives in its own module and registers itself with :func:`register`:
+Each source's module declares its reader with :func:`rgbdslam.datasets.registry.reader`:
 ``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes) and ``put`` (POZNAN/PUT
 Kinect layout); stereo: ``kitti`` (KITTI odometry), ``euroc`` (EuRoC/ASL) and ``stereo`` (a
 plain left/right folder), which compute depth from the pair (``datasets.stereo_base``).
@@ -9,33 +10,24 @@ plain left/right folder), which compute depth from the pair (``datasets.stereo_b
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from rgbdslam.datasets.base import Frame, Sequence
+from rgbdslam.datasets.registry import READERS
 from rgbdslam.errors import InputError
-
-# name -> (detector(path) -> bool, factory(path, dataset_config) -> Sequence)
-_REGISTRY: dict[str, tuple[Callable[[Path], bool], Callable[..., Sequence]]] = {}
-
-
-def register(name: str, detect: Callable[[Path], bool]):
-    def deco(factory: Callable[..., Sequence]):
-        _REGISTRY[name] = (detect, factory)
-        return factory
-
-    return deco
 
 
 def available() -> list[str]:
     _load_builtin()
-    return sorted(_REGISTRY)
+    return sorted(READERS)
 
 
 def _load_builtin() -> None:
-    # Importing the modules registers them.
-    from rgbdslam.datasets import euroc, kitti, put, stereo_folder, tum  # noqa: F401
+    # Importing the modules declares their readers (tum first: it is tried first).
+    from rgbdslam.datasets import tum  # noqa: F401
+    from rgbdslam.datasets import put  # noqa: F401
+    from rgbdslam.datasets import euroc, kitti, stereo_folder  # noqa: F401  (stereo readers)
 
 
 def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequence:
@@ -55,16 +47,16 @@ def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequenc
         raise InputError(f"{path} is not a folder; give the sequence's folder (the one with rgb.txt or matched)")
     kind = cfg.kind
     if kind in ("auto", "synthetic"):
-        kind = next((n for n, (detect, _) in _REGISTRY.items() if detect(path)), None)
+        kind = next((n for n, (detect, _) in READERS.items() if detect(path)), None)
         if kind is None:
             raise InputError(
                 f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
                 f"with time-stamp-named PNGs (TUM), a 'matched' file (PUT), calib.txt with image_0/ and "
                 f"image_1/ (KITTI), mav0/cam0 and mav0/cam1 (EuRoC), or left/, right/ and a camera file (stereo)"
             )
-    if kind not in _REGISTRY:
+    if kind not in READERS:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
-    seq = _REGISTRY[kind][1](path, cfg)
+    seq = READERS[kind][1](path, cfg)
     if full is not None and hasattr(seq, "configure"):
         seq.configure(full, purpose)
     return seq
@@ -86,7 +78,7 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
         f"groundtruth {f'{len(gt)} poses' if gt is not None else 'none'}",
     ]
     if len(seq):
-        from rgbdslam.datasets.base import depth_warning
+        from rgbdslam.stereo.depth import frame_warning
 
         first = seq.load(0)
         valid = first.depth[first.depth > 0]
@@ -98,10 +90,10 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
         else:
             lines.append(f"depth       frame 0: {valid.size / first.depth.size:.0%} valid, median "
                          f"{float(np.median(valid)) if valid.size else 0:.2f} m")
-        warning = depth_warning(first)
+        warning = frame_warning(first)
         if warning:
             lines.append(f"warning     {warning}")
     return "\n".join(lines)
 
 
-__all__ = ["Frame", "Sequence", "open_sequence", "register", "available", "describe_sequence"]
+__all__ = ["Frame", "Sequence", "open_sequence", "available", "describe_sequence"]

@@ -47,10 +47,6 @@ def depth_warning(frame: Frame) -> str | None:
     0.3-8 m, so a median of the valid pixels above 8 m or below 0.25 m is suspect. A heuristic:
     it catches a scale off by 5 (TUM's 5000 per metre read as millimetres, or back) in most
     indoor scenes, not every wrong scale."""
-    if frame.right is not None:  # stereo: depth ranges are the rig's, the pair must be rectified
-        from rgbdslam.stereo.depth import stereo_warning
-
-        return stereo_warning(frame)
     d = np.asarray(frame.depth)
     valid = d[d > 0]
     where = f"the depth of frame {frame.index}" + (f" ({frame.name})" if frame.name else "")

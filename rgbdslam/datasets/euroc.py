@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import yaml
 
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
@@ -122,7 +122,7 @@ def read_groundtruth_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.array(stamps), pose_from_tum(a[:, :3], a[:, [4, 5, 6, 3]])
 
 
-@register("euroc", _is_euroc)
+@reader("euroc", _is_euroc)
 class EurocSequence(StereoSequence):
     def __init__(self, root: str | Path, cfg=None) -> None:
         from rgbdslam.config import DatasetConfig

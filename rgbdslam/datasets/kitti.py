@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
@@ -52,7 +52,7 @@ def _images(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXT)
 
 
-@register("kitti", _is_kitti)
+@reader("kitti", _is_kitti)
 class KittiSequence(StereoSequence):
     def __init__(self, root: str | Path, cfg=None) -> None:
         from rgbdslam.config import DatasetConfig

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import yaml
 
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
@@ -70,7 +70,7 @@ def read_stereo_yaml(path: Path) -> dict:
     return out
 
 
-@register("stereo", _is_stereo_folder)
+@reader("stereo", _is_stereo_folder)
 class StereoFolderSequence(StereoSequence):
     def __init__(self, root: str | Path, cfg=None) -> None:
         from rgbdslam.config import DatasetConfig

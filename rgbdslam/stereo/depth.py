@@ -271,3 +271,12 @@ def stereo_warning(frame) -> str | None:
         return (f"the stereo pair of {where} gave depth at only {n} pixels; check that left and right are not "
                 f"swapped (depth needs the right image to see points further left) and the stereo.* settings")
     return None
+
+
+def frame_warning(frame) -> str | None:
+    """The first frame's sanity check for any source: :func:`stereo_warning` for a stereo frame
+    (its depth ranges are the rig's, the pair must be rectified), else the RGB-D depth check
+    ``datasets.base.depth_warning``."""
+    from rgbdslam.datasets.base import depth_warning
+
+    return stereo_warning(frame) if frame.right is not None else depth_warning(frame)
