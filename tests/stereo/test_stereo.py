@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import DATA, assert_cli_error, cli, need
+from tests.conftest import DATA, assert_cli_error, cli, need
 from rgbdslam.config import load_config
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.stereo import DepthNoise, StereoRig, midpoint_triangulate
