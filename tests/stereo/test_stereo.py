@@ -129,6 +129,7 @@ def test_match_rows_respects_rows_and_disparity():
 # ------------------------------------------------------------------ readers and synth
 
 
+@pytest.mark.data
 def test_kitti_reader_on_real_data():
     from rgbdslam.datasets import open_sequence
 
@@ -223,6 +224,7 @@ def _kitti_copy(tmp_path: Path, frames: int = 3) -> Path:
     return dst
 
 
+@pytest.mark.data
 def test_bad_stereo_input_one_error_line(tmp_path):
     seq = _kitti_copy(tmp_path)
     (seq / "image_1" / "000002.png").unlink()
@@ -251,6 +253,7 @@ def test_bad_stereo_input_one_error_line(tmp_path):
                                             f"<metres>' (the distance between the two camera centres)")
 
 
+@pytest.mark.data
 def test_unrectified_pair_is_warned(tmp_path):
     seq = _kitti_copy(tmp_path)
     for k in range(3):  # move the right image 6 rows down: no longer rectified
@@ -271,6 +274,7 @@ def test_unrectified_pair_is_warned(tmp_path):
 # ------------------------------------------------------------------ end to end
 
 
+@pytest.mark.data
 def test_kitti06_end_to_end_accuracy(tmp_path):
     """Real KITTI 06 frames 0-50 with the kitti preset (sparse depth): ATE <= 0.07 m (ORB-SLAM3
     stereo reaches 0.06-0.07 m on these pairs); poses.txt and the KITTI metric are written."""
