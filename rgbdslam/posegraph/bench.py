@@ -94,10 +94,11 @@ class RunRecord:
 
 
 def default_data_dir() -> Path:
+    """``$RGBDSLAM_DATA`` (the development data folder); an installed package has no other default."""
     env = os.environ.get("RGBDSLAM_DATA")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data"
+    raise InputError("no data folder: pass --data FOLDER (the one holding posegraph/) or set RGBDSLAM_DATA")
 
 
 def parse_noise(text: str) -> list[tuple[float, float, float]]:
