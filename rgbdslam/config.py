@@ -195,6 +195,7 @@ class MappingConfig:
     enabled: bool = True
     # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
     keyframes_only: bool = True
+    live: bool = True  # fuse keyframes while tracking (keyframes_only); false: fuse after the run
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0
     undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing

@@ -53,12 +53,18 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     out_dir = prepare_run_folder(Path(out_dir), cfg, console)
     gt = seq.groundtruth()
     observer = make_observer(cfg, seq.camera, gt)
-    slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes")
     if len(seq) == 0:
         raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
-    run = track_all(seq, slam, cfg, out_dir, progress, console)
-    if not slam.state.records or (len(slam.state.records) == 1 and run.frames > 1 and not run.interrupted):
-        fail(seq, slam, run, out_dir)  # raises
+    mapper = start_live_map(cfg, seq, out_dir)
+    slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes", mapper=mapper)
+    try:
+        run = track_all(seq, slam, cfg, out_dir, progress, console)
+        if not slam.state.records or (len(slam.state.records) == 1 and run.frames > 1 and not run.interrupted):
+            fail(seq, slam, run, out_dir)  # raises
+    except BaseException:
+        if mapper is not None:
+            mapper.abort()
+        raise
     final = slam.finish()
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
     write_outputs(out_dir, slam, summary, final)
@@ -72,9 +78,29 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
 def check_settings(cfg: Config) -> None:
     """Settings a later stage would refuse: say so before the run, not after it."""
     if cfg.mapping.enabled:
-        from rgbdslam.mapping.fusion import validate_mapping
+        from rgbdslam.config import validate_section
 
-        validate_mapping(cfg.mapping)
+        validate_section("mapping", cfg.mapping)
+
+
+def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
+    """The map fused while tracking (:mod:`rgbdslam.mapping.live`) when the map is made of the
+    keyframes and ``mapping.live``; None otherwise (the map is fused after the run)."""
+    m = cfg.mapping
+    if not (m.enabled and m.live and m.keyframes_only):
+        return None
+    from rgbdslam.mapping.live import LiveMap
+
+    depth_dir = out_dir / "keyframes"
+
+    def load(i: int):
+        from rgbdslam.mapping.fusion import read_depth_png
+
+        frame = seq.load(i)
+        png = depth_dir / f"depth_{i:06d}.png"
+        return frame.rgb, (read_depth_png(png) if png.is_file() else frame.depth)
+
+    return LiveMap(m, seq.camera, load)
 
 
 def prepare_run_folder(out_dir: Path, cfg: Config, console) -> Path:
@@ -158,6 +184,16 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
     """Evaluation against the ground truth, the trajectories for the observer, the map; each
     adds to run.json and none of them fails a finished run."""
     observer = slam.observer
+    live = None
+    if slam.mapper is not None:
+        if cfg.mapping.enabled and not interrupted and slam.state.keyframes:
+            import concurrent.futures
+
+            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="map")
+            live = pool.submit(finish_live_map, slam, summary, final, out_dir, cfg)  # overlaps the evaluation
+            pool.shutdown(wait=False)
+        else:
+            slam.mapper.abort()
     if gt is not None and len(final) > 1:
         summary["evaluation"] = evaluate(gt, final, out_dir, cfg, console)
         write_summary(out_dir, summary)
@@ -165,7 +201,10 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
     if gt is not None:
         observer.log_trajectory("groundtruth", gt)
     if cfg.mapping.enabled and not interrupted:
-        summary["map"] = fuse_map(out_dir, cfg, observer, progress, console)
+        if live is not None:
+            summary["map"] = _map_summary(live, observer, console)
+        else:
+            summary["map"] = fuse_map(out_dir, cfg, observer, progress, console)
         write_summary(out_dir, summary)
     observer.close()
 
@@ -193,6 +232,45 @@ def fuse_map(out_dir: Path, cfg: Config, observer, progress: bool, console) -> d
     if getattr(fused, "cloud_points", None) is not None:
         observer.log_map(fused.cloud_points, fused.cloud_colors)
     return fused.summary()
+
+
+def finish_live_map(slam: SLAM, summary: dict[str, Any], final: Trajectory, out_dir: Path, cfg: Config):
+    """The live map brought to the final keyframe poses (keyframes of tracking segments that no
+    loop linked to the map left out, as ``rgbdslam fuse`` does) and written to ``out_dir/map``."""
+    from rgbdslam.mapping.fusion import _peak_rss_mb, staged, write_map
+    from rgbdslam.ui import console
+
+    t0 = time.perf_counter()
+    st = slam.state
+    kf_rows = {r.index: k for k, r in enumerate(st.records) if r.index == r.keyframe}
+    poses = {i: final.poses[k] for i, k in kf_rows.items()}
+    off = [g for g in summary.get("segments") or [] if not g.get("map", True)]
+    keep = {i for i in poses if not any(g["first"] <= i <= g["last"] for g in off)}
+    mapper = slam.mapper
+    tsdf, cloud, fused, n_depth = mapper.finish(poses, keep)
+    if not fused:
+        raise InputError("no keyframe of the run is in a tracking segment that belongs to the map; "
+                         "re-run with loop closure on (loop.enabled=true)")
+    seq_like = type("S", (), {"root": summary["sequence"]})()
+    res = staged(out_dir / "map", lambda stage: write_map(stage, cloud, tsdf, fused, n_depth, cfg.mapping, final,
+                                                         seq_like, {}, console, slam.depth_filter is not None))
+    res.seconds = time.perf_counter() - t0
+    res.peak_rss_mb = _peak_rss_mb()
+    res.timings.update({k: round(v, 3) if isinstance(v, float) else v for k, v in mapper.stats.items()})
+    return res
+
+
+def _map_summary(job, observer, console) -> dict[str, Any]:
+    try:
+        fused = job.result()
+    except RgbdslamError as e:  # like evaluation, the map never stops a finished run
+        console.print(f"[yellow]warning:[/] no map: {e}")
+        return {}
+    if getattr(fused, "cloud_points", None) is not None:
+        observer.log_map(fused.cloud_points, fused.cloud_colors)
+    out = fused.summary()
+    out["live"] = True
+    return out
 
 
 def run_demo(out_dir: str | Path, frames: int, cfg: Config) -> dict[str, Any]:
