@@ -1,19 +1,22 @@
 """Fusion while tracking: keyframes go into the map in a background thread as they are made.
 
-The map is kept as *submaps* of ``SUBMAP_SIZE`` consecutive keyframes, each with its own TSDF
-volume and voxel cloud in world coordinates, integrated at the keyframe's pose when it was made
-(the pose graph's current estimate). When the poses change — after a loop closure (iSAM2) and
-at the end (the final batch optimisation, tracking segments left out of the map) — only the
-submaps with a keyframe whose pose moved more than ``TOL_M`` / ``TOL_DEG`` (or whose set of
-keyframes changed) are integrated again, from the keyframe images on disk. At the end the
-submaps are merged: the voxel cloud holds sums, so its merge is exact; a TSDF voxel is a
-weighted mean of the frames' signed distances, so merging submaps by their weights gives the
-volume one would get integrating every keyframe into one volume (up to float rounding). The
-map therefore equals fusing the final poses, up to the pose tolerance (docs/mapping.md gives
-the measured difference).
+One TSDF volume and one voxel cloud hold the map, each keyframe integrated at the pose the pose
+graph gave it when it was made. Both are sums over frames — the cloud per voxel the sum of
+positions, colours and the point count; a TSDF voxel the weighted mean of the frames' signed
+distances with the number of frames as weight — so a frame can be taken out again exactly:
+when poses change (after a loop closure, iSAM2; at the end, the final batch optimisation and
+the tracking segments left out of the map), the keyframes that moved more than a quarter of a
+voxel are *de-integrated* (their images integrated into a scratch volume at the old pose and
+subtracted) and integrated at the new pose. When more than half of the keyframes moved, the map
+is rebuilt instead (one integration per keyframe instead of two). So the map at the end is the
+one fusing the final poses gives, up to the quarter-voxel tolerance and float rounding
+(docs/mapping.md, "Fusion while tracking", has the measured difference), and memory is that of
+one map, not of one volume per keyframe.
 
-All work happens in one worker thread; the tracking thread only enqueues (a keyframe's images
-are held until that thread integrated them). An error in the thread is raised by :meth:`finish`.
+All the work happens in one worker thread; the tracking thread only enqueues. Pose updates are
+coalesced: when several are waiting, only the newest is applied. A keyframe's images are held
+until they are integrated; re-integration reads them again (``load``). An error in the thread
+is raised by :meth:`LiveMap.finish`.
 """
 
 from __future__ import annotations
@@ -21,7 +24,6 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -30,43 +32,36 @@ from rgbdslam.config import MappingConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 
-SUBMAP_SIZE = 8  # keyframes per submap
-TOL_M = 1e-3  # a keyframe that moved less than this (and TOL_DEG) is not integrated again
-TOL_DEG = 0.05
+REBUILD_FRACTION = 0.5  # more keyframes than this moved: rebuild the map instead of de-/re-integrating
 
 
-def moved(a: np.ndarray, b: np.ndarray, tol_m: float = TOL_M, tol_deg: float = TOL_DEG) -> bool:
+def moved(a: np.ndarray, b: np.ndarray, tol_m: float, tol_rad: float) -> bool:
     rel = inv(a) @ b
-    return bool(np.linalg.norm(rel[:3, 3]) > tol_m or np.degrees(rotation_angle(rel[:3, :3])) > tol_deg)
-
-
-@dataclass
-class Submap:
-    members: list[int] = field(default_factory=list)  # keyframe indices, in order
-    used: dict[int, np.ndarray] = field(default_factory=dict)  # pose each member was integrated at
-    tsdf: object = None
-    cloud: object = None
-    n_depth: int = 0
+    return bool(np.linalg.norm(rel[:3, 3]) > tol_m or rotation_angle(rel[:3, :3]) > tol_rad)
 
 
 class LiveMap:
     """Keyframes fused while tracking (see the module doc).
 
-    ``load(index) -> (rgb, depth)`` gives a keyframe's images again (for re-integration): the
-    colour of the sequence and the depth the map uses (the run's filtered keyframe depth)."""
+    ``load(index) -> (rgb, depth)`` gives a keyframe's images again: the colour of the sequence
+    and the depth the map uses (the run's filtered keyframe depth)."""
 
-    def __init__(self, cfg: MappingConfig, camera: Camera, load: Callable[[int], tuple[np.ndarray, np.ndarray]],
-                 submap_size: int = SUBMAP_SIZE):
+    def __init__(self, cfg: MappingConfig, camera: Camera, load: Callable[[int], tuple[np.ndarray, np.ndarray]]):
         from rgbdslam.mapping.fusion import _Undistorter
 
         self.cfg = cfg
         self.camera = camera
         self.load = load
-        self.submap_size = submap_size
         self.undistort = _Undistorter(camera, cfg.undistort)
-        self.submaps: list[Submap] = []
-        self.where: dict[int, int] = {}  # keyframe -> submap
-        self.stats = {"integrated": 0, "reintegrated": 0, "submaps_rebuilt": 0, "thread_s": 0.0}
+        # a quarter voxel: the translation, and the rotation that moves a point at depth_max that far
+        self.tol_m = min(cfg.voxel_size, cfg.tsdf_voxel) / 4
+        self.tol_rad = self.tol_m / max(cfg.depth_max, 1e-3)
+        self.tsdf = None
+        self.cloud = None
+        self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
+        self.n_depth: dict[int, int] = {}
+        self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
+                      "pose_updates_skipped": 0, "thread_s": 0.0}
         self._queue: queue.Queue = queue.Queue()
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._work, name="live-map", daemon=True)
@@ -78,18 +73,19 @@ class LiveMap:
         self._queue.put(("add", int(index), rgb, depth, np.array(pose, dtype=np.float64)))
 
     def update_poses(self, poses: dict[int, np.ndarray]) -> None:
-        """The keyframes' current poses (after a loop closure): moved submaps are integrated again."""
-        self._queue.put(("poses", {int(k): np.array(v) for k, v in poses.items()}))
+        """The keyframes' current poses (after a loop closure): moved keyframes are re-integrated."""
+        self._queue.put(("poses", {int(k): np.array(v) for k, v in poses.items()}, None))
 
     def finish(self, poses: dict[int, np.ndarray], keep: set[int] | None = None):
-        """Bring every submap to the final ``poses`` (only the keyframes in ``keep``, if given),
-        merge them and return ``(tsdf or None, VoxelCloud, fused keyframes, depth pixel count)``."""
-        self._queue.put(("poses", ({int(k): np.array(v) for k, v in poses.items()}, keep)))
+        """Bring the map to the final ``poses`` (only the keyframes in ``keep``, if given) and
+        return ``(tsdf or None, VoxelCloud, fused keyframes, depth pixel count)``."""
+        self._queue.put(("poses", {int(k): np.array(v) for k, v in poses.items()}, keep))
         self._queue.put(None)
         self._thread.join()
         if self._error is not None:
             raise self._error
-        return self._merge(poses, keep)
+        fused = sorted(self.used)
+        return self.tsdf, self.cloud, fused, sum(self.n_depth[i] for i in fused)
 
     def abort(self) -> None:
         """Stop the thread without finishing (a failed or interrupted run)."""
@@ -97,86 +93,107 @@ class LiveMap:
 
     # ------------------------------------------------------------ worker thread
     def _work(self) -> None:
-        while True:
+        stop = False
+        while not stop:
             job = self._queue.get()
             if job is None:
                 return
-            if self._error is not None:
-                continue  # drain: finish() reports the first error
             t0 = time.perf_counter()
             try:
                 if job[0] == "add":
                     self._add(*job[1:])
-                else:
-                    poses, keep = job[1] if isinstance(job[1], tuple) else (job[1], None)
-                    self._refresh(poses, keep)
+                else:  # coalesce: take what is queued already, apply only the newest poses
+                    while True:
+                        try:
+                            nxt = self._queue.get_nowait()
+                        except queue.Empty:
+                            break
+                        if nxt is None:
+                            stop = True
+                            break
+                        if nxt[0] == "add":
+                            self._add(*nxt[1:])
+                        else:
+                            self.stats["pose_updates_skipped"] += 1
+                            job = nxt
+                    self._refresh(job[1], job[2])
             except BaseException as e:  # noqa: BLE001 - handed to finish()
                 self._error = e
-            self.stats["thread_s"] += time.perf_counter() - t0
+                return
+            finally:
+                self.stats["thread_s"] += time.perf_counter() - t0
 
-    def _new_volume(self):
+    def _volume(self):
         from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf
 
         return (_Tsdf(self.cfg, self.camera) if self.cfg.mesh else None), VoxelCloud(self.cfg.voxel_size)
 
-    def _integrate(self, sub: Submap, index: int, rgb, depth, pose) -> None:
+    def _integrate(self, tsdf, cloud, index: int, rgb, depth, pose) -> None:
         from rgbdslam.mapping.fusion import integrate_frame, prepare_frame
 
         rgb, depth = prepare_frame(rgb, depth, self.undistort, self.cfg)
-        sub.n_depth += int(np.count_nonzero(depth))
-        integrate_frame(sub.tsdf, sub.cloud, rgb, depth, pose, self.camera, self.cfg)
-        sub.used[index] = pose
+        self.n_depth[index] = int(np.count_nonzero(depth))
+        integrate_frame(tsdf, cloud, rgb, depth, pose, self.camera, self.cfg)
 
     def _add(self, index: int, rgb, depth, pose) -> None:
-        if not self.submaps or len(self.submaps[-1].members) >= self.submap_size:
-            self.submaps.append(Submap())
-        sub = self.submaps[-1]
-        if sub.tsdf is None and sub.cloud is None:
-            sub.tsdf, sub.cloud = self._new_volume()
-        sub.members.append(index)
-        self.where[index] = len(self.submaps) - 1
-        self._integrate(sub, index, rgb, depth, pose)
+        if self.cloud is None:
+            self.tsdf, self.cloud = self._volume()
+        self._integrate(self.tsdf, self.cloud, index, rgb, depth, pose)
+        self.used[index] = pose
         self.stats["integrated"] += 1
 
     def _refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None) -> None:
-        for sub in self.submaps:
-            want = [i for i in sub.members if i in poses and (keep is None or i in keep)]
-            stale = set(want) != set(sub.used) or any(moved(sub.used[i], poses[i]) for i in want)
-            if not stale:
-                continue
-            sub.tsdf, sub.cloud = self._new_volume()
-            sub.used, sub.n_depth = {}, 0
-            for i in want:
+        want = {i: poses[i] for i in self.used if i in poses and (keep is None or i in keep)}
+        drop = [i for i in self.used if i not in want]
+        move = [i for i in want if moved(self.used[i], want[i], self.tol_m, self.tol_rad)]
+        if not drop and not move:
+            return
+        self.stats["refreshes"] += 1
+        if len(drop) + len(move) > REBUILD_FRACTION * len(self.used):
+            self.tsdf, self.cloud = self._volume()
+            for i, pose in want.items():
                 rgb, depth = self.load(i)
-                self._integrate(sub, i, rgb, depth, poses[i])
-                self.stats["reintegrated"] += 1
-            self.stats["submaps_rebuilt"] += 1
+                self._integrate(self.tsdf, self.cloud, i, rgb, depth, pose)
+            self.used = dict(want)
+            self.stats["rebuilds"] += 1
+            self.stats["reintegrated"] += len(want)
+            return
+        old_t, old_c = self._volume()
+        new_t, new_c = self._volume()
+        for i in drop + move:
+            rgb, depth = self.load(i)
+            self._integrate(old_t, old_c, i, rgb, depth, self.used[i])
+            if i in want:
+                self._integrate(new_t, new_c, i, rgb, depth, want[i])
+        if self.tsdf is not None:
+            merge_tsdf(self.tsdf.vol, old_t.vol, sign=-1)
+            merge_tsdf(self.tsdf.vol, new_t.vol, sign=+1)
+        add_cloud(self.cloud, old_c, sign=-1)
+        add_cloud(self.cloud, new_c, sign=+1)
+        for i in drop:
+            del self.used[i]
+        for i in move:
+            self.used[i] = want[i]
+        self.stats["deintegrated"] += len(drop) + len(move)
+        self.stats["reintegrated"] += len(move)
 
-    # ------------------------------------------------------------ the end
-    def _merge(self, poses, keep):
-        from rgbdslam.mapping.fusion import VoxelCloud
 
-        subs = [s for s in self.submaps if s.used]
-        cloud = VoxelCloud(self.cfg.voxel_size)
-        for s in subs:
-            s.cloud._merge()
-            cloud.pending.append((s.cloud.keys, s.cloud.sums, s.cloud.counts))
-        cloud._merge()
-        tsdf = None
-        if self.cfg.mesh and subs:
-            tsdf = subs[0].tsdf
-            for s in subs[1:]:
-                merge_tsdf(tsdf.vol, s.tsdf.vol)
-        fused = sorted(i for s in subs for i in s.used)
-        n_depth = sum(s.n_depth for s in subs)
-        self.submaps = []
-        return tsdf, cloud, fused, n_depth
+def add_cloud(dst, src, sign: int) -> None:
+    """Add (``sign`` +1) or take out (-1) the voxel cloud ``src`` from ``dst``; voxels left
+    without points disappear."""
+    src._merge()
+    dst._merge()
+    dst.pending.append((src.keys, sign * src.sums, sign * src.counts))
+    dst._merge()
+    keep = dst.counts > 0.5
+    if not keep.all():
+        dst.keys, dst.sums, dst.counts = dst.keys[keep], dst.sums[keep], dst.counts[keep]
 
 
-def merge_tsdf(dst, src) -> None:
-    """Add the Open3D VoxelBlockGrid ``src`` into ``dst`` (same voxel size and attributes):
-    per voxel the weight-averaged TSDF value and colour, weights added — what integrating
-    ``src``'s frames into ``dst`` would have given."""
+def merge_tsdf(dst, src, sign: int = 1) -> None:
+    """Add (``sign`` +1) or take out (-1) the Open3D VoxelBlockGrid ``src`` to/from ``dst`` (same
+    voxel size and attributes): per voxel the weight-averaged TSDF value and colour, the weights
+    added or subtracted — what integrating (or never having integrated) ``src``'s frames gives."""
     import open3d.core as o3c
 
     hs = src.hashmap()
@@ -186,7 +203,7 @@ def merge_tsdf(dst, src) -> None:
     keys = hs.key_tensor()[idx]
     idx = idx.numpy()
     s_t = src.attribute("tsdf").numpy()[idx]
-    s_w = src.attribute("weight").numpy()[idx].astype(np.float32)
+    s_w = src.attribute("weight").numpy()[idx].astype(np.float32) * sign
     s_c = src.attribute("color").numpy()[idx].astype(np.float32)
     hd = dst.hashmap()
     _, existed = hd.find(keys)
@@ -195,13 +212,16 @@ def merge_tsdf(dst, src) -> None:
     buf, _ = hd.find(keys)
     buf = buf.to(o3c.int64).numpy()
     T, W, C = dst.attribute("tsdf").numpy(), dst.attribute("weight").numpy(), dst.attribute("color").numpy()
-    new_blocks = ~existed  # activated now: their memory is not cleared
+    new = ~existed  # blocks activated now: their memory is not cleared
     d_w = W[buf].astype(np.float32)
-    d_w[new_blocks] = 0
-    d_t = np.where(new_blocks[:, None, None, None, None], 0, T[buf])
-    d_c = np.where(new_blocks[:, None, None, None, None], 0, C[buf]).astype(np.float32)
+    d_w[new] = 0
+    d_t = T[buf]
+    d_t[new] = 0
+    d_c = C[buf].astype(np.float32)
+    d_c[new] = 0
     tw = d_w + s_w
-    safe = np.where(tw > 0, tw, 1)
-    T[buf] = np.where(tw > 0, (d_t * d_w + s_t * s_w) / safe, d_t)
-    C[buf] = np.clip(np.round(np.where(tw > 0, (d_c * d_w + s_c * s_w) / safe, d_c)), 0, 65535).astype(np.uint16)
-    W[buf] = np.clip(tw, 0, 65535).astype(np.uint16)
+    ok = tw > 0.5
+    safe = np.where(ok, tw, 1)
+    T[buf] = np.where(ok, (d_t * d_w + s_t * s_w) / safe, 0)
+    C[buf] = np.where(ok, np.clip(np.round((d_c * d_w + s_c * s_w) / safe), 0, 65535), 0).astype(np.uint16)
+    W[buf] = np.where(ok, np.clip(np.round(tw), 0, 65535), 0).astype(np.uint16)
