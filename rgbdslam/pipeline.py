@@ -91,16 +91,7 @@ def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
         return None
     from rgbdslam.mapping.live import LiveMap
 
-    depth_dir = out_dir / "keyframes"
-
-    def load(i: int):
-        from rgbdslam.mapping.fusion import read_depth_png
-
-        frame = seq.load(i)
-        png = depth_dir / f"depth_{i:06d}.png"
-        return frame.rgb, (read_depth_png(png) if png.is_file() else frame.depth)
-
-    return LiveMap(m, seq.camera, load)
+    return LiveMap(m, seq.camera, str(seq.root), cfg.dataset, str(out_dir / "keyframes"))
 
 
 def prepare_run_folder(out_dir: Path, cfg: Config, console) -> Path:
@@ -237,26 +228,13 @@ def fuse_map(out_dir: Path, cfg: Config, observer, progress: bool, console) -> d
 def finish_live_map(slam: SLAM, summary: dict[str, Any], final: Trajectory, out_dir: Path, cfg: Config):
     """The live map brought to the final keyframe poses (keyframes of tracking segments that no
     loop linked to the map left out, as ``rgbdslam fuse`` does) and written to ``out_dir/map``."""
-    from rgbdslam.mapping.fusion import _peak_rss_mb, staged, write_map
-    from rgbdslam.ui import console
-
     t0 = time.perf_counter()
     st = slam.state
-    kf_rows = {r.index: k for k, r in enumerate(st.records) if r.index == r.keyframe}
-    poses = {i: final.poses[k] for i, k in kf_rows.items()}
+    poses = {r.index: final.poses[k] for k, r in enumerate(st.records) if r.index == r.keyframe}
     off = [g for g in summary.get("segments") or [] if not g.get("map", True)]
     keep = {i for i in poses if not any(g["first"] <= i <= g["last"] for g in off)}
-    mapper = slam.mapper
-    tsdf, cloud, fused, n_depth = mapper.finish(poses, keep)
-    if not fused:
-        raise InputError("no keyframe of the run is in a tracking segment that belongs to the map; "
-                         "re-run with loop closure on (loop.enabled=true)")
-    seq_like = type("S", (), {"root": summary["sequence"]})()
-    res = staged(out_dir / "map", lambda stage: write_map(stage, cloud, tsdf, fused, n_depth, cfg.mapping, final,
-                                                         seq_like, {}, console, slam.depth_filter is not None))
+    res = slam.mapper.finish(poses, keep, out_dir / "map", final, summary["sequence"], slam.depth_filter is not None)
     res.seconds = time.perf_counter() - t0
-    res.peak_rss_mb = _peak_rss_mb()
-    res.timings.update({k: round(v, 3) if isinstance(v, float) else v for k, v in mapper.stats.items()})
     return res
 
 

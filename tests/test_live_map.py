@@ -10,7 +10,7 @@ import pytest
 from rgbdslam.config import MappingConfig
 from rgbdslam.datasets import open_sequence
 from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf, _Undistorter, integrate_frame, prepare_frame
-from rgbdslam.mapping.live import LiveMap, merge_tsdf
+from rgbdslam.mapping.live import MapState, merge_tsdf
 
 from conftest import cli
 
@@ -79,7 +79,7 @@ def test_moved_and_dropped_keyframes_are_reintegrated_to_the_final_poses(synth):
     cfg = MappingConfig()
     gt = synth.groundtruth()
     load = lambda i: (synth.load(i).rgb, synth.load(i).depth)  # noqa: E731
-    live = LiveMap(cfg, synth.camera, load)
+    live = MapState(cfg, synth.camera, load)
     kfs = [0, 2, 4, 6, 8, 10]
     drift = np.eye(4)
     drift[:3, 3] = [0.03, -0.02, 0.01]  # a loop closure moves the later keyframes by ~4 cm
@@ -89,7 +89,8 @@ def test_moved_and_dropped_keyframes_are_reintegrated_to_the_final_poses(synth):
     final = {i: gt.poses[i] for i in kfs}
     final[2] = final[2].copy()
     final[2][:3, 3] += 1e-4  # below the quarter-voxel tolerance: stays where it is
-    tsdf, cloud, fused, _ = live.finish(final, keep=set(kfs) - {10})  # 10: in a segment left out of the map
+    live.refresh(final, keep=set(kfs) - {10})  # 10: in a segment left out of the map
+    tsdf, cloud, fused, _ = live.result()
     assert fused == [0, 2, 4, 6, 8]
     assert live.stats["deintegrated"] == 3 and live.stats["reintegrated"] == 2 and live.stats["rebuilds"] == 0
     expect = {i: final[i] for i in fused}
@@ -100,15 +101,17 @@ def test_moved_and_dropped_keyframes_are_reintegrated_to_the_final_poses(synth):
 def test_most_keyframes_moved_rebuilds_and_still_matches(synth):
     cfg = MappingConfig()
     gt = synth.groundtruth()
-    live = LiveMap(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+    live = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
     shift = np.eye(4)
     shift[0, 3] = 0.05
     for i in (0, 3, 6):
         f = synth.load(i)
         live.add(i, f.rgb, f.depth, gt.poses[i] @ shift)
-    live.update_poses({i: gt.poses[i] for i in (0, 3)})  # during tracking, after a loop
-    tsdf, cloud, fused, _ = live.finish({i: gt.poses[i] for i in (0, 3, 6)})
-    assert live.stats["rebuilds"] >= 1
+    live.refresh({i: gt.poses[i] for i in (0, 3)})  # during tracking, after a loop: 6 stays
+    assert live.stats["rebuilds"] == 1 and live.used[6] is not None
+    live.refresh({i: gt.poses[i] for i in (0, 3, 6)})  # the end
+    tsdf, cloud, fused, _ = live.result()
+    assert live.stats["rebuilds"] == 1 and live.stats["deintegrated"] == 1  # 1 of 3 moved at the end
     _same_map(_fresh(synth, cfg, {i: gt.poses[i] for i in (0, 3, 6)}), (tsdf, cloud), synth, cfg)
 
 

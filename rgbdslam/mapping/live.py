@@ -22,7 +22,6 @@ is raised by :meth:`LiveMap.finish`.
 from __future__ import annotations
 
 import queue
-import threading
 import time
 from typing import Callable
 
@@ -40,8 +39,9 @@ def moved(a: np.ndarray, b: np.ndarray, tol_m: float, tol_rad: float) -> bool:
     return bool(np.linalg.norm(rel[:3, 3]) > tol_m or rotation_angle(rel[:3, :3]) > tol_rad)
 
 
-class LiveMap:
-    """Keyframes fused while tracking (see the module doc).
+class MapState:
+    """The map as keyframes are added and moved (see the module doc); synchronous — it runs in
+    the map process (:class:`LiveMap`) or wherever it is called.
 
     ``load(index) -> (rgb, depth)`` gives a keyframe's images again: the colour of the sequence
     and the depth the map uses (the run's filtered keyframe depth)."""
@@ -61,67 +61,12 @@ class LiveMap:
         self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
         self.n_depth: dict[int, int] = {}
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
-                      "pose_updates_skipped": 0, "thread_s": 0.0}
-        self._queue: queue.Queue = queue.Queue()
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._work, name="live-map", daemon=True)
-        self._thread.start()
+                      "pose_updates_skipped": 0, "final_moved": 0, "final_s": 0.0, "busy_s": 0.0}
 
-    # ------------------------------------------------------------ tracking thread
-    def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
-        """A new keyframe (its depth as the map will use it) at its current world pose."""
-        self._queue.put(("add", int(index), rgb, depth, np.array(pose, dtype=np.float64)))
-
-    def update_poses(self, poses: dict[int, np.ndarray]) -> None:
-        """The keyframes' current poses (after a loop closure): moved keyframes are re-integrated."""
-        self._queue.put(("poses", {int(k): np.array(v) for k, v in poses.items()}, None))
-
-    def finish(self, poses: dict[int, np.ndarray], keep: set[int] | None = None):
-        """Bring the map to the final ``poses`` (only the keyframes in ``keep``, if given) and
-        return ``(tsdf or None, VoxelCloud, fused keyframes, depth pixel count)``."""
-        self._queue.put(("poses", {int(k): np.array(v) for k, v in poses.items()}, keep))
-        self._queue.put(None)
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
+    def result(self):
+        """``(tsdf or None, VoxelCloud, fused keyframes, depth pixel count)``."""
         fused = sorted(self.used)
         return self.tsdf, self.cloud, fused, sum(self.n_depth[i] for i in fused)
-
-    def abort(self) -> None:
-        """Stop the thread without finishing (a failed or interrupted run)."""
-        self._queue.put(None)
-
-    # ------------------------------------------------------------ worker thread
-    def _work(self) -> None:
-        stop = False
-        while not stop:
-            job = self._queue.get()
-            if job is None:
-                return
-            t0 = time.perf_counter()
-            try:
-                if job[0] == "add":
-                    self._add(*job[1:])
-                else:  # coalesce: take what is queued already, apply only the newest poses
-                    while True:
-                        try:
-                            nxt = self._queue.get_nowait()
-                        except queue.Empty:
-                            break
-                        if nxt is None:
-                            stop = True
-                            break
-                        if nxt[0] == "add":
-                            self._add(*nxt[1:])
-                        else:
-                            self.stats["pose_updates_skipped"] += 1
-                            job = nxt
-                    self._refresh(job[1], job[2])
-            except BaseException as e:  # noqa: BLE001 - handed to finish()
-                self._error = e
-                return
-            finally:
-                self.stats["thread_s"] += time.perf_counter() - t0
 
     def _volume(self):
         from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf
@@ -135,19 +80,21 @@ class LiveMap:
         self.n_depth[index] = int(np.count_nonzero(depth))
         integrate_frame(tsdf, cloud, rgb, depth, pose, self.camera, self.cfg)
 
-    def _add(self, index: int, rgb, depth, pose) -> None:
+    def add(self, index: int, rgb, depth, pose) -> None:
         if self.cloud is None:
             self.tsdf, self.cloud = self._volume()
         self._integrate(self.tsdf, self.cloud, index, rgb, depth, pose)
         self.used[index] = pose
         self.stats["integrated"] += 1
 
-    def _refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None) -> None:
-        want = {i: poses[i] for i in self.used if i in poses and (keep is None or i in keep)}
+    def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None) -> int:
+        """Bring the map to ``poses`` (keyframes without one stay where they are; only the keyframes
+        in ``keep``, if given); returns how many keyframes moved or left."""
+        want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
         move = [i for i in want if moved(self.used[i], want[i], self.tol_m, self.tol_rad)]
         if not drop and not move:
-            return
+            return 0
         self.stats["refreshes"] += 1
         if len(drop) + len(move) > REBUILD_FRACTION * len(self.used):
             self.tsdf, self.cloud = self._volume()
@@ -157,7 +104,7 @@ class LiveMap:
             self.used = dict(want)
             self.stats["rebuilds"] += 1
             self.stats["reintegrated"] += len(want)
-            return
+            return len(drop) + len(move)
         old_t, old_c = self._volume()
         new_t, new_c = self._volume()
         for i in drop + move:
@@ -176,6 +123,152 @@ class LiveMap:
             self.used[i] = want[i]
         self.stats["deintegrated"] += len(drop) + len(move)
         self.stats["reintegrated"] += len(move)
+        return len(drop) + len(move)
+
+
+class _SequenceImages:
+    """``load(index)`` for the map process: the sequence re-opened there, the filtered keyframe
+    depth from ``depth_dir`` where the run wrote it."""
+
+    def __init__(self, root: str, dataset_cfg, depth_dir: str | None):
+        self.root, self.dataset_cfg, self.depth_dir = root, dataset_cfg, depth_dir
+        self._seq = None
+
+    def __call__(self, i: int):
+        from pathlib import Path
+
+        from rgbdslam.datasets import open_sequence
+        from rgbdslam.mapping.fusion import read_depth_png
+
+        if self._seq is None:
+            self._seq = open_sequence(self.root, self.dataset_cfg)
+        frame = self._seq.load(i)
+        png = Path(self.depth_dir) / f"depth_{i:06d}.png" if self.depth_dir else None
+        return frame.rgb, (read_depth_png(png) if png is not None and png.is_file() else frame.depth)
+
+
+def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results) -> None:
+    """The map process: keyframes and pose updates from ``jobs``; at ``finish`` the map is
+    brought to the final poses, written, and its :class:`FuseResult` put on ``results``."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
+    state = MapState(cfg, camera, load)
+    try:
+        while True:
+            job = jobs.get()
+            if job is None:
+                return
+            t0 = time.perf_counter()
+            if job[0] == "poses":  # coalesce: add what is queued already, apply only the newest poses
+                while True:
+                    try:
+                        nxt = jobs.get_nowait()
+                    except queue.Empty:
+                        break
+                    if nxt is None:
+                        return
+                    if nxt[0] == "add":
+                        state.add(*nxt[1:])
+                        continue
+                    state.stats["pose_updates_skipped"] += 1
+                    job = nxt
+                    if job[0] == "finish":
+                        break
+            if job[0] == "add":
+                state.add(*job[1:])
+            elif job[0] == "poses":
+                state.refresh(job[1])
+            state.stats["busy_s"] += time.perf_counter() - t0
+            if job[0] == "finish":
+                results.put(("ok", _finish(state, *job[1:])))
+                return
+    except BaseException as e:  # noqa: BLE001 - the driver reports it
+        from rgbdslam.errors import RgbdslamError
+
+        results.put(("error", e if isinstance(e, RgbdslamError) else RuntimeError(f"{type(e).__name__}: {e}")))
+
+
+def _finish(state: MapState, poses, keep, out_dir: str, trajectory, root: str, filtered_depth: bool):
+    from pathlib import Path
+
+    from rgbdslam.errors import InputError
+    from rgbdslam.mapping.fusion import staged, write_map
+    from rgbdslam.ui import console
+
+    t0 = time.perf_counter()
+    state.stats["final_moved"] = state.refresh(poses, keep)
+    state.stats["final_s"] = time.perf_counter() - t0
+    tsdf, cloud, fused, n_depth = state.result()
+    if not fused:
+        raise InputError("no keyframe of the run is in a tracking segment that belongs to the map; "
+                         "re-run with loop closure on (loop.enabled=true)")
+    seq = type("Root", (), {"root": root})()  # write_map only looks for the sequence's accelerometer.txt
+    res = staged(Path(out_dir), lambda stage: write_map(stage, cloud, tsdf, fused, n_depth, state.cfg, trajectory,
+                                                        seq, {}, console, filtered_depth))
+    res.timings.update({k: round(v, 3) if isinstance(v, float) else v for k, v in state.stats.items()})
+    from rgbdslam.mapping.fusion import _peak_rss_mb
+
+    res.peak_rss_mb = _peak_rss_mb()
+    return res
+
+
+class LiveMap:
+    """The map process, seen from the run: keyframes and pose updates are sent to it as they are
+    made (:meth:`add`, :meth:`update_poses`), :meth:`finish` waits for the written map.
+
+    It is a process, not a thread: integrating a keyframe is long C++ calls (Open3D, NumPy) that
+    would hold the interpreter lock and stall tracking; another process runs beside it on its own
+    core. It is started with ``spawn`` (a fresh interpreter) and imports Open3D while the first
+    frames are tracked."""
+
+    def __init__(self, cfg: MappingConfig, camera: Camera, root: str, dataset_cfg, depth_dir: str | None):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self._jobs = ctx.Queue()
+        self._results = ctx.Queue()
+        self._proc = ctx.Process(target=_serve, name="rgbdslam-map", daemon=True,
+                                 args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
+                                       self._results))
+        self._proc.start()
+
+    def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
+        """A new keyframe (its depth as the map will use it) at its current world pose."""
+        self._jobs.put(("add", int(index), rgb, depth, np.array(pose, dtype=np.float64)))
+
+    def update_poses(self, poses: dict[int, np.ndarray]) -> None:
+        """The keyframes' current poses (after a loop closure): moved keyframes are re-integrated."""
+        self._jobs.put(("poses", {int(k): np.array(v) for k, v in poses.items()}))
+
+    def finish(self, poses: dict[int, np.ndarray], keep: set[int] | None, out_dir, trajectory, root: str,
+               filtered_depth: bool):
+        """Bring the map to the final ``poses`` (only the keyframes in ``keep``), write it into
+        ``out_dir`` (atomically, as ``rgbdslam fuse`` does) and return the :class:`FuseResult`."""
+        from rgbdslam.errors import RgbdslamError
+
+        self._jobs.put(("finish", {int(k): np.array(v) for k, v in poses.items()}, keep, str(out_dir), trajectory,
+                        root, filtered_depth))
+        while True:
+            try:
+                status, value = self._results.get(timeout=1.0)
+                break
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    raise RgbdslamError(f"the map process ended unexpectedly (exit code {self._proc.exitcode})") from None
+        self._proc.join(timeout=30)
+        if status == "error":
+            raise value
+        return value
+
+    def abort(self) -> None:
+        """Stop the map process without a map (a failed or interrupted run)."""
+        if self._proc.is_alive():
+            self._jobs.put(None)
+            self._proc.join(timeout=5)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join()
 
 
 def add_cloud(dst, src, sign: int) -> None:
