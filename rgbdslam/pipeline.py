@@ -37,6 +37,7 @@ class Tracking:
     wall: float  # seconds
     load_time: float  # seconds spent waiting for frames
     interrupted: bool  # Ctrl-C
+    first_frame_s: float | None = None  # from the start of the process to the first frame tracked
 
 
 def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Config,
@@ -67,6 +68,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
         raise
     final = slam.finish()
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
+    summary["first_frame_s"] = run.first_frame_s
     write_outputs(out_dir, slam, summary, final)
     post_process(summary, slam, final, gt, out_dir, cfg, run.interrupted, progress, console)
     print_summary(summary, out_dir, console)
@@ -112,6 +114,7 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     st = slam.state
     interrupted = False
     load_time = 0.0
+    first_frame_s = None
     t_start = time.perf_counter()
     # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
     frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg.features))
@@ -129,6 +132,8 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
                 if not st.records and not st.lost and (warning := depth_warning(frame)):
                     console.print(f"[yellow]warning:[/] {warning}")  # once, on the first readable frame
                 slam.track(frame)
+                if first_frame_s is None:
+                    first_frame_s = seconds_since_process_start()
                 advance(f"{len(st.loops)} loops, {len(st.lost)} lost" + (f", {len(st.restarts)} restarts"
                                                                       if st.restarts else ""))
                 if (i + 1) % FLUSH_EVERY == 0 and st.records:
@@ -138,7 +143,22 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     finally:
         frames.close()  # stops the reader thread
     return Tracking(len(st.records) + len(st.lost) + len(st.skipped), time.perf_counter() - t_start, load_time,
-                    interrupted)
+                    interrupted, first_frame_s)
+
+
+def seconds_since_process_start() -> float | None:
+    """Wall time since this process started (Linux /proc; None elsewhere): what a user waits
+    from pressing Enter, imports included."""
+    try:
+        with open("/proc/self/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # start time, clock ticks after boot
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    import os
+
+    return uptime - ticks / os.sysconf("SC_CLK_TCK")
 
 
 def _skip(st, index: int, error: InputError, console) -> None:
