@@ -15,6 +15,25 @@ results to the driver, so the numbers are the ones of a local run. A worker proc
 job itself is not retried, it comes back to the driver.
 """
 
-from rgbdslam.engine.base import ENGINES, Engine, EngineError, build_engine
+from rgbdslam.engine.base import DEFAULT_RETRIES, ENGINES, Engine, EngineError, check_workers
+from rgbdslam.errors import InputError
 
 __all__ = ["ENGINES", "Engine", "EngineError", "build_engine"]
+
+
+def build_engine(name: str = "local", workers: int = 1, address: str | None = None,
+                 retries: int = DEFAULT_RETRIES) -> Engine:
+    """The engine called ``name`` (``local`` or ``ray``); ``address`` only for ``ray`` (a running
+    cluster, e.g. ``ray://head:10001`` or ``auto``; without it a local cluster of ``workers`` CPUs)."""
+    workers = check_workers(workers)
+    if name == "local":
+        if address is not None:
+            raise InputError("--address is the address of a Ray cluster; give it with --engine ray")
+        from rgbdslam.engine.local import LocalEngine
+
+        return LocalEngine(workers, retries=retries)
+    if name == "ray":
+        from rgbdslam.engine.ray_engine import RayEngine
+
+        return RayEngine(workers, address=address, retries=retries)
+    raise InputError(f"unknown engine {name!r}; use {' or '.join(ENGINES)}")

@@ -45,21 +45,3 @@ def check_workers(workers) -> int:
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise InputError(f"--workers must be a whole number >= 1, not {workers!r}")
     return workers
-
-
-def build_engine(name: str = "local", workers: int = 1, address: str | None = None,
-                 retries: int = DEFAULT_RETRIES) -> Engine:
-    """The engine called ``name`` (``local`` or ``ray``); ``address`` only for ``ray`` (a running
-    cluster, e.g. ``ray://head:10001`` or ``auto``; without it a local cluster of ``workers`` CPUs)."""
-    workers = check_workers(workers)
-    if name == "local":
-        if address is not None:
-            raise InputError("--address is the address of a Ray cluster; give it with --engine ray")
-        from rgbdslam.engine.local import LocalEngine
-
-        return LocalEngine(workers, retries=retries)
-    if name == "ray":
-        from rgbdslam.engine.ray_engine import RayEngine
-
-        return RayEngine(workers, address=address, retries=retries)
-    raise InputError(f"unknown engine {name!r}; use {' or '.join(ENGINES)}")
