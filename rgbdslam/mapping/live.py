@@ -53,15 +53,27 @@ class MapState:
         self.camera = camera
         self.load = load
         self.undistort = _Undistorter(camera, cfg.undistort)
-        # a quarter voxel: the translation, and the rotation that moves a point at depth_max that far
-        self.tol_m = min(cfg.voxel_size, cfg.tsdf_voxel) / 4
+        # live_tolerance voxels (a quarter by default): the translation, and the rotation that moves a
+        # point at depth_max that far
+        self.tol_m = min(cfg.voxel_size, cfg.tsdf_voxel) * cfg.live_tolerance
         self.tol_rad = self.tol_m / max(cfg.depth_max, 1e-3)
         self.tsdf = None
         self.cloud = None
         self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
         self.n_depth: dict[int, int] = {}
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
-                      "pose_updates_skipped": 0, "final_moved": 0, "final_s": 0.0, "busy_s": 0.0}
+                      "pose_updates_skipped": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
+                      "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0}
+
+    def shift_mm(self, poses: dict[int, np.ndarray]) -> np.ndarray:
+        """How far each keyframe in the map would move to ``poses``: translation plus the rotation
+        angle times depth_max (an upper bound on how far its points move), in mm."""
+        out = []
+        for i, p in self.used.items():
+            if i in poses:
+                rel = inv(p) @ poses[i]
+                out.append(np.linalg.norm(rel[:3, 3]) + rotation_angle(rel[:3, :3]) * self.cfg.depth_max)
+        return 1e3 * np.array(out)
 
     def result(self):
         """``(tsdf or None, VoxelCloud, fused keyframes, depth pixel count)``."""
@@ -197,6 +209,10 @@ def _finish(state: MapState, poses, keep, out_dir: str, trajectory, root: str, f
     from rgbdslam.ui import console
 
     t0 = time.perf_counter()
+    shift = state.shift_mm(poses)
+    if len(shift):
+        state.stats["final_shift_median_mm"] = float(np.median(shift))
+        state.stats["final_shift_max_mm"] = float(shift.max())
     state.stats["final_moved"] = state.refresh(poses, keep)
     state.stats["final_s"] = time.perf_counter() - t0
     tsdf, cloud, fused, n_depth = state.result()
