@@ -264,6 +264,10 @@ def _map_summary(job, observer, console) -> dict[str, Any]:
     except RgbdslamError as e:  # like evaluation, the map never stops a finished run
         console.print(f"[yellow]warning:[/] no map: {e}")
         return {}
+    except Exception as e:  # noqa: BLE001 - the map process failed unexpectedly: the run's outputs stand
+        console.print(f"[yellow]warning:[/] no map: the map process failed ({e}); "
+                      f"`rgbdslam fuse RUN_DIR` fuses it again")
+        return {}
     if getattr(fused, "cloud_points", None) is not None:
         observer.log_map(fused.cloud_points, fused.cloud_colors)
     out = fused.summary()

@@ -223,6 +223,8 @@ def part_memory(work: Path, frames: int) -> list[str]:
     proc = subprocess.Popen([str(BIN), "run", str(seq), "--out", str(out), "-q"], stdout=subprocess.DEVNULL)
     samples = []  # (frames tracked, main MB, map process MB)
     t0 = time.perf_counter()
+    log = open(work / "long_samples.csv", "w")  # as it goes: a long run stopped part-way still tells
+    log.write("seconds,frames,run_mb,map_mb\n")
     while proc.poll() is None:
         try:
             n = sum(1 for _ in open(out / "odometry.tum")) - 1
@@ -230,6 +232,8 @@ def part_memory(work: Path, frames: int) -> list[str]:
             n = 0
         kids = _children(proc.pid)
         samples.append((n, _rss_mb(proc.pid), sum(_rss_mb(c) for c in kids)))
+        log.write(f"{time.perf_counter() - t0:.1f},{n},{samples[-1][1]:.0f},{samples[-1][2]:.0f}\n")
+        log.flush()
         time.sleep(0.5)
     wall = time.perf_counter() - t0
     if proc.returncode:

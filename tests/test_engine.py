@@ -53,3 +53,11 @@ def test_unknown_engine_and_stray_address_are_input_errors():
         build_engine("local", 1, address="auto")
     with pytest.raises(InputError, match="--workers must be a whole number >= 1"):
         build_engine("local", 0)
+
+
+def test_engine_options_need_several_sequences(tmp_path, desk9):
+    from conftest import cli
+
+    res = cli(["run", desk9, "--workers", "2", "--out", tmp_path / "r"])
+    assert res.exit_code == 2 and "give more than one SEQUENCE" in res.stderr
+    assert not (tmp_path / "r").exists()
