@@ -52,9 +52,10 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     check_settings(cfg)
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
     out_dir = prepare_run_folder(Path(out_dir), cfg, console)
+    announce_camera(seq, console)  # after the folder: a path that cannot be written stays one error line
     gt = seq.groundtruth()
     observer = make_observer(cfg, seq.camera, gt)
-    if len(seq) == 0:
+    if not seq.streaming and len(seq) == 0:  # a live stream's length is known when it ends
         raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
     mapper = start_live_map(cfg, seq, out_dir)
     slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes", mapper=mapper)
@@ -77,6 +78,18 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     return summary
 
 
+def announce_camera(seq: Sequence, console) -> None:
+    """Say which camera the run uses and where it came from; warn when it is only a guess."""
+    setup = getattr(seq, "camera_setup", None)
+    if setup is None:
+        console.print(f"camera {seq.camera.name or 'custom'}: fx {seq.camera.fx:g} fy {seq.camera.fy:g} "
+                      f"cx {seq.camera.cx:g} cy {seq.camera.cy:g}", highlight=False)
+        return
+    console.print(setup.describe(), highlight=False)
+    if (warning := setup.fallback_warning()) is not None:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False)
+
+
 def check_settings(cfg: Config) -> None:
     """Settings a later stage would refuse: say so before the run, not after it."""
     if cfg.mapping.enabled:
@@ -89,8 +102,8 @@ def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
     """The map fused while tracking (:mod:`rgbdslam.mapping.live`) when the map is made of the
     keyframes and ``mapping.live``; None otherwise (the map is fused after the run)."""
     m = cfg.mapping
-    if not (m.enabled and m.live and m.keyframes_only):
-        return None
+    if not (m.enabled and m.live and m.keyframes_only) or getattr(seq, "streaming", False):
+        return None  # a stream's frames cannot be read again for re-integration
     from rgbdslam.mapping.live import LiveMap
 
     return LiveMap(m, seq.camera, str(seq.root), cfg.dataset, str(out_dir / "keyframes"))
@@ -119,7 +132,7 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
     frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg.features))
     try:
-        with frame_progress(len(seq), f"SLAM {seq.name}", enabled=progress) as advance:
+        with frame_progress(None if seq.streaming else len(seq), f"SLAM {seq.name}", enabled=progress) as advance:
             for i, pending in frames:
                 t0 = time.perf_counter()
                 try:

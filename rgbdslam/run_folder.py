@@ -110,6 +110,7 @@ def run_summary(seq: Sequence, slam, n_frames: int, wall: float, load_time: floa
         "sequence": str(Path(seq.root).resolve()),
         "dataset_kind": type(seq).__name__,
         "camera": seq.camera.name,
+        "camera_source": seq.camera_setup.source if getattr(seq, "camera_setup", None) is not None else "",
         "frames": n_frames,
         "tracked": tracked,
         "lost": len(st.lost),
