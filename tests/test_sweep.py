@@ -10,7 +10,7 @@ import pytest
 from rgbdslam.errors import ConfigError
 from rgbdslam.sweep import TIMING_COLUMNS, parse_grid, run_sweep
 
-from conftest import assert_cli_error, cli
+from tests.conftest import assert_cli_error, cli
 
 
 def test_parse_grid_and_its_errors():
@@ -29,6 +29,7 @@ def _table(out):
     return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in rows]
 
 
+@pytest.mark.data
 def test_sweep_runs_every_cell_once_and_resumes(tmp_path, desk9):
     out = tmp_path / "sw"
     res = run_sweep([desk9], ["loop.enabled=true,false", "depth_filter.enabled=true,false"], out,
@@ -57,6 +58,7 @@ def test_sweep_runs_every_cell_once_and_resumes(tmp_path, desk9):
     assert info["row"]["status"] == "ok" and "config" in info["settings"]
 
 
+@pytest.mark.data
 def test_sweep_cli_prints_the_table_and_refuses_bad_grids(tmp_path, desk9):
     res = cli(["sweep", desk9, "--grid", "loop.enabled=true,false", "-c", "tum_fr1", "--out", tmp_path / "c", "-q"])
     assert res.exit_code == 0, res.output

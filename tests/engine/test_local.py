@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-import engine_jobs as jobs
+import tests.engine.jobs as jobs
 from rgbdslam.engine import EngineError, build_engine
 from rgbdslam.errors import InputError
 
@@ -55,8 +55,9 @@ def test_unknown_engine_and_stray_address_are_input_errors():
         build_engine("local", 0)
 
 
+@pytest.mark.data
 def test_engine_options_need_several_sequences(tmp_path, desk9):
-    from conftest import cli
+    from tests.conftest import cli
 
     res = cli(["run", desk9, "--workers", "2", "--out", tmp_path / "r"])
     assert res.exit_code == 2 and "give more than one SEQUENCE" in res.stderr

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-import engine_jobs as jobs
+import tests.engine.jobs as jobs
 from rgbdslam.engine import build_engine
 from rgbdslam.errors import InputError
 
-TESTS = Path(__file__).resolve().parent
+REPO = Path(__file__).resolve().parents[2]  # workers import tests.engine.jobs from here
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +21,7 @@ def cluster():
     import ray
 
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR",
-             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}})
+             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}})
     yield ray
     ray.shutdown()
 
@@ -54,6 +54,7 @@ def _without_timing(path):
     return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in csv.DictReader(open(path))]
 
 
+@pytest.mark.data
 def test_sweep_on_ray_gives_the_local_table(cluster, tmp_path, desk9):
     from rgbdslam.sweep import run_sweep
 
@@ -66,6 +67,7 @@ def test_sweep_on_ray_gives_the_local_table(cluster, tmp_path, desk9):
     assert (tmp_path / "ray" / "cells" / desk9.name / "loop.enabled=true" / "trajectory.tum").is_file()
 
 
+@pytest.mark.data
 def test_several_sequences_on_ray_match_the_local_batch(cluster, tmp_path, desk9):
     from rgbdslam.batch import run_sequences
     from rgbdslam.config import load_config

@@ -12,7 +12,7 @@ from rgbdslam.datasets import open_sequence
 from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf, _Undistorter, integrate_frame, prepare_frame
 from rgbdslam.mapping.live import MapState, merge_tsdf
 
-from conftest import cli
+from tests.conftest import cli
 
 
 @pytest.fixture(scope="module")
@@ -115,6 +115,7 @@ def test_most_keyframes_moved_rebuilds_and_still_matches(synth):
     _same_map(_fresh(synth, cfg, {i: gt.poses[i] for i in (0, 3, 6)}), (tsdf, cloud), synth, cfg)
 
 
+@pytest.mark.data
 def test_run_writes_the_live_map_and_it_matches_fusing_afterwards(tmp_path, desk9):
     out = tmp_path / "run"
     res = cli(["run", desk9, "-c", "tum_fr1", "--out", out, "-q", "--set", "keyframes.min_translation=0.02"])
