@@ -214,6 +214,10 @@ class MappingConfig:
     enabled: bool = True
     # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
     keyframes_only: bool = True
+    live: bool = True  # fuse keyframes while tracking (keyframes_only); false: fuse after the run
+    # a keyframe whose pose changed by less than this many voxels (at depth_max for a rotation)
+    # stays where the live map integrated it; larger: less re-integration, a map further from the final poses
+    live_tolerance: float = 0.25
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0
     undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing
@@ -384,7 +388,7 @@ BOUNDS = {
     "features.edge_threshold": (1, 255), "matching.ratio": (0.0, 1.0), "matching.max_hamming": (0, 256),
     "registration.min_agreement": (0.0, 1.0), "registration.min_points": (3, 10**9),
     "registration.predicted_min_inliers": (3, 10**9), "loop.lsh_bits": (1, 64), "loop.min_inliers": (3, 10**9),
-    "mapping.floor_max_tilt_deg": (0.0, 90.0),
+    "mapping.floor_max_tilt_deg": (0.0, 90.0), "mapping.live_tolerance": (0.0, 10.0),
     "stereo.ratio": (0.0, 1.0), "stereo.max_hamming": (0, 256), "stereo.sgbm_scale": (0.1, 1.0),
     "stereo.max_disparity": (1, 1024), "stereo.sgbm_block_size": (1, 31),
     # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane (hi None: no upper bound)
