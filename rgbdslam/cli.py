@@ -100,6 +100,24 @@ set_option = click.option(
 )
 
 
+engine_options_list = [
+    click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+                 help="Where the jobs run: local (this process, or a process pool with --workers) or a Ray "
+                      "cluster (pip install 'rgbdslam[distributed]').",),
+    click.option("--workers", "-j", type=click.IntRange(min=1), default=1, show_default=True,
+                 help="Parallel jobs: local worker processes, or the CPUs of a new local Ray cluster."),
+    click.option("--address", default=None, metavar="ADDRESS",
+                 help="With --engine ray: a running cluster (auto, HOST:6379 or ray://HOST:10001); inputs and "
+                      "--out must be on storage every node sees at the same path."),
+]
+
+
+def engine_options(f):
+    for opt in reversed(engine_options_list):
+        f = opt(f)
+    return f
+
+
 # ----------------------------------------------------------------------------- run / demo
 
 
@@ -115,7 +133,9 @@ set_option = click.option(
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
 @click.option("--rerun-save", type=PATH, default=None, help="Record the run to an .rrd file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, quiet):
+@engine_options
+def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, quiet, engine, workers,
+        address):
     """Run SLAM on SEQUENCE (a TUM, ETH3D, ICL-NUIM, 7-Scenes or PUT folder, a ROS 1/2 bag or a
     RealSense recording) and write trajectory.tum into --out.
 
@@ -135,15 +155,51 @@ def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_s
     if rerun_save is not None:
         cfg.output.rerun_save = str(rerun_save)
     if len(sequences) == 1:
+        if engine != "local" or workers != 1 or address is not None:
+            raise click.UsageError("--engine/--workers/--address spread several sequences; give more than one SEQUENCE")
         run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet)
         return
     out_root = out_dir or Path("runs")
-    rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet)
+    rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet, engine=engine, workers=workers,
+                         address=address)
     click.echo(format_batch_table(rows))
     failed = [r for r in rows if r["status"] != "ok"]
     if failed:
         raise InputError(f"{len(failed)} of {len(rows)} sequences failed (first: {Path(failed[0]['sequence']).name}); "
                          f"see {out_root / 'summary.md'}")
+
+
+@main.command()
+@click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="SEQUENCE...")
+@click.option("--grid", "-g", "grid", multiple=True, metavar="SECTION.KEY=V1,V2,...",
+              help="Values to sweep over; repeatable (every combination runs on every sequence).")
+@config_option
+@set_option
+@click.option("--out", "-o", "out_dir", type=PATH, required=True,
+              help="Folder for the cells' runs (cells/) and results.md/.csv/.png; a re-run keeps finished cells.")
+@click.option("--map", "with_map", is_flag=True, help="Also fuse each cell's map (off: a sweep compares trajectories).")
+@click.option("--quiet", "-q", is_flag=True, help="Only the table at the end.")
+@engine_options
+def sweep(sequences, grid, config_path, overrides, out_dir, with_map, quiet, engine, workers, address):
+    """Run every combination of the --grid values on every SEQUENCE; one table of ATE, RPE and rate per cell.
+
+    Example: rgbdslam sweep SEQ1 SEQ2 --grid registration.mp=2,4 --grid loop.enabled=true,false --out sweeps/a"""
+    from rgbdslam.sweep import format_table, run_sweep
+    from rgbdslam.ui import console
+
+    quiet_before = console.quiet
+    console.quiet = quiet or quiet_before
+    try:
+        res = run_sweep(list(sequences), list(grid), out_dir, config_path, tuple(overrides), engine=engine,
+                        workers=workers, address=address, mapping=with_map)
+    finally:
+        console.quiet = quiet_before
+    click.echo(format_table(res["rows"], res["columns"]))
+    click.echo(f"{res['ran']} cell(s) run, {res['kept']} kept, {res['wall_s']:.1f} s ({res['engine']}); "
+               f"{out_dir / 'results.md'}, results.csv, results.png")
+    failed = [r for r in res["rows"] if r.get("status") != "ok"]
+    if failed:
+        raise InputError(f"{len(failed)} of {len(res['rows'])} cells failed (first: {failed[0]['status']})")
 
 
 @main.command()
@@ -230,7 +286,7 @@ def info(sequence, config_path, overrides, camera_file):
     """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
     from rgbdslam.datasets import describe_sequence
 
-    click.echo(describe_sequence(sequence, load_cli_config(config_path, overrides, camera_file).dataset))
+    click.echo(describe_sequence(sequence, load_cli_config(config_path, overrides, camera_file)))
 
 
 # ------------------------------------------------------------------ commands added by stages
@@ -297,8 +353,23 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
 @click.option("--camera", type=click.Choice(["ros_default", "fr1", "fr2", "fr3", "kinect1"]), default="ros_default",
               show_default=True, help="Camera model (its distortion is rendered).")
 @click.option("--size", type=(int, int), default=(640, 480), show_default=True, metavar="W H", help="Image size.")
-def synth(out, frames, motion, noise, dropout, drift, seed, camera, size):
-    """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout)."""
+@click.option("--stereo", "baseline", type=float, default=None, metavar="BASELINE",
+              help="Render a grey stereo pair per frame instead, the right camera BASELINE metres to the right "
+                   "(same scene and trajectory as the RGB-D sequence of the same options).")
+@click.option("--layout", type=click.Choice(["kitti", "euroc"]), default="kitti", show_default=True,
+              help="With --stereo: KITTI odometry or EuRoC/ASL folder layout.")
+def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, baseline, layout):
+    """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout), or with
+    --stereo a stereo sequence (KITTI or EuRoC layout)."""
+    if baseline is not None:
+        from rgbdslam.datasets.synthetic_stereo import synth_stereo_command
+
+        if dropout or drift:
+            raise InputError("--dropout and --drift simulate an RGB-D depth sensor; a --stereo sequence has no depth "
+                             "images (leave them out)")
+        synth_stereo_command(out, baseline=baseline, layout=layout, frames=frames, motion=motion, noise=noise,
+                             seed=seed, camera=camera, width=size[0], height=size[1])
+        return
     from rgbdslam.datasets.synthetic import synth_command
 
     synth_command(out, frames=frames, motion=motion, noise=noise, dropout=dropout, drift=drift, seed=seed,
@@ -373,7 +444,12 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
               help="sx,sy,stheta (several separated by ';'), or 'all' for the MASAT paper's 8 levels.")
 @click.option("--instances", default=50, show_default=True, help="Noisy instances per noise level.")
 @click.option("--max-iter", default=50, show_default=True, help="Maximum iterations.")
-@click.option("--workers", default=1, show_default=True, help="Parallel worker processes.")
+@click.option("--workers", default=1, show_default=True,
+              help="Parallel workers: local processes, or the CPUs of a new local Ray cluster.")
+@click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+              help="Where the instances run: local processes or a Ray cluster (pip install 'rgbdslam[distributed]').")
+@click.option("--address", default=None, metavar="ADDRESS",
+              help="With --engine ray: a running cluster (auto, HOST:6379 or ray://HOST:10001).")
 @click.option("--seed", default=0, show_default=True, help="Seed of the noise.")
 @click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="relative", show_default=True,
               help="Convergence test of Tables 1/2: |dchi2|/chi2 < 1e-6 (relative, g2o's) or |dchi2| < 1e-6 "
@@ -392,15 +468,15 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--first-instance", default=0, show_default=True,
               help="Index of the first noisy instance (to add instances to an earlier run; see --merge-runs).")
 @_optimizer_option
-def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet,
-                    timing_only, merge, first_instance, optimizer):
+def posegraph_bench(dataset, noise, instances, max_iter, workers, engine, address, seed, criterion, methods, out_dir,
+                    data_dir, quiet, timing_only, merge, first_instance, optimizer):
     """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
     from rgbdslam.posegraph.bench import bench_command
 
     click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                              criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,
                              progress=not quiet, timing_only=timing_only, merge=merge,
-                             first_instance=first_instance, optimizer=optimizer))
+                             first_instance=first_instance, optimizer=optimizer, engine=engine, address=address))
 
 
 # ------------------------------------------------------------------------------- maps / viewer

@@ -32,7 +32,7 @@ def preset_files() -> dict[str, Any]:
 
 @dataclass
 class DatasetConfig:
-    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag"] = "auto"
+    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag", "kitti", "euroc", "stereo"] = "auto"
     # TUM association (semantics of TUM's associate.py)
     max_difference: float = 0.02
     offset: float = 0.0
@@ -113,6 +113,11 @@ class RegistrationConfig:
     joint_refit: bool = False  # after fusion: one weighted SVD fit on the inliers of all kept references
     joint_gate: float = 0.02  # metres, pairs further from the fused pose are left out of the joint refit
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
+    # after fusion (frames with a depth noise model, i.e. stereo): Gauss-Newton refit on the kept inlier
+    # pairs weighted by their covariances (geometry.mahalanobis; docs/stereo.md)
+    noise_refit: bool = True
+    noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
+    noise_refit_huber: float = 3.0  # Huber threshold of the refit (Mahalanobis distance, sigmas)
     threads: int = 1
     constant_velocity: bool = True
     max_lost: int = 15  # consecutive lost frames before tracking restarts from the last pose (0 = never)
@@ -209,6 +214,10 @@ class MappingConfig:
     enabled: bool = True
     # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
     keyframes_only: bool = True
+    live: bool = True  # fuse keyframes while tracking (keyframes_only); false: fuse after the run
+    # a keyframe whose pose changed by less than this many voxels (at depth_max for a rotation)
+    # stays where the live map integrated it; larger: less re-integration, a map further from the final poses
+    live_tolerance: float = 0.25
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0
     undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing
@@ -240,6 +249,28 @@ class MappingConfig:
 
 
 @dataclass
+class StereoConfig:
+    """Depth from a rectified stereo pair (KITTI, EuRoC, stereo folders; docs/stereo.md)."""
+
+    depth: Literal["sparse", "sgbm"] = "sparse"  # tracking: row-matched ORB key points, or OpenCV SGBM
+    map_depth: Literal["same", "sparse", "sgbm"] = "sgbm"  # what `fuse` re-reads for the map ("same" = depth)
+    # disparity noise (pixels) each method implies: depth sigma = z^2 * sigma / (fx * baseline)
+    sigma_disparity_sparse: float = 0.5
+    sigma_disparity_sgbm: float = 0.5
+    max_disparity: int = 128  # search range (pixels); SGBM rounds it up to a multiple of 16
+    min_disparity: float = 0.5  # smaller disparities (farther than fx * B / this) give no depth
+    row_tolerance: float = 2.0  # sparse: |v_left - v_right| allowed for a match (pixels)
+    max_hamming: int = 50  # sparse: descriptor distance cap
+    ratio: float = 0.9  # sparse: best / second-best Hamming distance along the row band
+    right_features: int = 2  # sparse: ORB budget of the right image, times features.n_features (no grid)
+    patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
+    search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
+    sgbm_block_size: int = 5
+    sgbm_uniqueness: int = 10
+    sgbm_scale: float = 1.0  # SGBM on an image resized by this factor (0.5: ~4x faster, coarser)
+
+
+@dataclass
 class OutputConfig:
     rerun: bool = False  # stream to a spawned Rerun viewer (needs a display)
     rerun_save: str | None = None  # record to this .rrd file
@@ -259,6 +290,7 @@ class Config:
     loop: LoopConfig = field(default_factory=LoopConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict[str, Any]:
@@ -339,7 +371,7 @@ POSITIVE = {
     "registration.e_start", "registration.e_min", "registration.mp", "registration.alpha",
     "registration.reject_translation", "registration.reject_rotation", "registration.pregate",
     "registration.guided_gate", "registration.predicted_gate", "registration.joint_gate",
-    "registration.threads", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
+    "registration.threads", "registration.noise_refit_huber", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
     "depth_filter.max_depth",
     "keyframes.max_gap",
     "loop.sharpness_factor", "loop.sharpness_window", "loop.lsh_tables", "loop.lsh_bits", "loop.min_votes",
@@ -353,6 +385,8 @@ POSITIVE = {
     "mapping.grid_resolution", "mapping.floor_max_tilt_deg", "mapping.floor_distance",
     "mapping.floor_ransac_iterations", "mapping.floor_band", "mapping.obstacle_min_points",
     "output.rerun_image_width", "output.rerun_log_every",
+    "stereo.sigma_disparity_sparse", "stereo.sigma_disparity_sgbm", "stereo.max_disparity", "stereo.min_disparity",
+    "stereo.row_tolerance", "stereo.right_features", "stereo.patch_radius", "stereo.search_radius", "stereo.sgbm_block_size",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -361,7 +395,9 @@ BOUNDS = {
     "registration.predicted_min_inliers": (3, 10**9), "loop.min_inliers": (3, 10**9),
     # LSH bucket keys hold the table id above lsh_bits key bits in an int64
     "loop.lsh_bits": (1, 40),
-    "mapping.floor_max_tilt_deg": (0.0, 90.0),
+    "mapping.floor_max_tilt_deg": (0.0, 90.0), "mapping.live_tolerance": (0.0, 10.0),
+    "stereo.ratio": (0.0, 1.0), "stereo.max_hamming": (0, 256), "stereo.sgbm_scale": (0.1, 1.0),
+    "stereo.max_disparity": (1, 1024), "stereo.sgbm_block_size": (1, 31),
     # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane
     "mapping.voxel_size": (1e-3, 10.0), "mapping.tsdf_voxel": (1e-3, 10.0), "mapping.grid_resolution": (1e-3, 100.0),
     # raw depth units per metre: below 1e-3 a 16-bit depth image would reach past 65 km
@@ -413,6 +449,12 @@ MAXIMA = {
     "mapping.floor_ransac_iterations": 100_000, "mapping.floor_band": 100.0, "mapping.obstacle_min_points": 10**6,
     "mapping.seed": C_INT_MAX,  # Open3D's random seed is a C int
     "output.rerun_image_width": 8192, "output.rerun_log_every": 10**6,
+    # stereo: disparities and noise in pixels, ORB budgets of the right image as a multiple of the left's
+    "registration.noise_refit_huber": 100.0,
+    "stereo.sigma_disparity_sparse": 100.0, "stereo.sigma_disparity_sgbm": 100.0,
+    "stereo.min_disparity": 1000.0, "stereo.row_tolerance": 100.0,
+    "stereo.right_features": 4, "stereo.patch_radius": 64, "stereo.search_radius": 64,
+    "stereo.sgbm_uniqueness": 100,
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)
 ORDERED = [("matching.min_depth", "matching.max_depth"), ("depth_filter.min_depth", "depth_filter.max_depth"),

@@ -25,6 +25,7 @@ NON_DEFAULT = {
     "backend.init": "odometry",
     "mapping.gravity": "camera",
     "mapping.mesh": False,
+    "stereo.depth": "sgbm",
     "output.rerun_save": "rec.rrd",
 }
 

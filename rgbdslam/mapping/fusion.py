@@ -32,7 +32,7 @@ import numpy as np
 
 from rgbdslam.config import Config, MappingConfig, load_config, validate_section
 from rgbdslam.datasets import open_sequence
-from rgbdslam.datasets.base import Sequence
+from rgbdslam.datasets.base import Sequence, as_rgb
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
@@ -234,6 +234,7 @@ class _Tsdf:
     wheel returned empty meshes for every input tried here, so it is not offered."""
 
     def __init__(self, cfg: MappingConfig, camera: Camera):
+        import open3d as o3d
         import open3d.core as o3c
 
         self.cfg = cfg
@@ -250,6 +251,8 @@ class _Tsdf:
         self.intr = o3c.Tensor(camera.K, o3c.float64)
 
     def integrate(self, rgb: np.ndarray, depth: np.ndarray, pose_c2w: np.ndarray) -> None:
+        import open3d as o3d
+
         o3c = self.o3c
         units = np.round(depth * DEPTH_PNG_SCALE).astype(np.uint16)  # the uint16/uint8 kernel is the lean one
         d = o3d.t.geometry.Image(o3c.Tensor(units))
@@ -259,7 +262,9 @@ class _Tsdf:
         self.vol.integrate(blocks, d, c, self.intr, ext, DEPTH_PNG_SCALE, self.cfg.depth_max,
                            self.cfg.sdf_trunc / self.cfg.tsdf_voxel)
 
-    def mesh(self, min_frames: int) -> o3d.geometry.TriangleMesh:
+    def mesh(self, min_frames: int):
+        import open3d as o3d
+
         # the weight counts the frames that saw a voxel; Open3D keeps voxels with weight > threshold
         mesh = self.vol.extract_triangle_mesh(weight_threshold=min_frames - 0.5).to_legacy()
         if mesh.has_vertex_colors():
@@ -272,6 +277,8 @@ def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh
     vertex welded) and its triangles (each rotated to start at its smallest vertex index, keeping its orientation) sorted:
     the TSDF's hash map is walked by several threads, so marching cubes emits the same vertices
     in a different order on every run, and mesh.ply would differ byte for byte."""
+    import open3d as o3d
+
     v = np.asarray(mesh.vertices)
     if len(v) == 0:
         return mesh
@@ -388,12 +395,23 @@ def fuse(
             f"no frame of {sequence.root} to fuse has a pose in the trajectory; check that the trajectory's "
             f"time stamps are the sequence's colour stamps"
         )
+    res = staged(out_dir, lambda stage: _fuse_into(stage, sequence, trajectory, todo, cfg, depth_dir, progress,
+                                                   console, frame_progress))
+    res.seconds = time.perf_counter() - t_start
+    res.peak_rss_mb = _peak_rss_mb()
+    res.rss_growth_mb = max(_peak_rss_mb() - rss0, 0.0)
+    return res
+
+
+def staged(out_dir: Path, work) -> FuseResult:
+    """Run ``work(stage)`` writing into a temporary folder inside ``out_dir``, then move its files
+    into place (:func:`_commit`); a failure or Ctrl-C part-way leaves the earlier map as it was."""
     created = not out_dir.exists()
     make_dirs(out_dir)
     remove_stale_stages(out_dir)
     stage = Path(tempfile.mkdtemp(prefix=f"{STAGE_PREFIX}{os.getpid()}-", dir=out_dir))
     try:
-        res = _fuse_into(stage, sequence, trajectory, todo, cfg, depth_dir, progress, console, frame_progress)
+        res = work(stage)
         _commit(stage, out_dir)
     except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
@@ -408,10 +426,30 @@ def fuse(
     for attr in ("cloud_path", "mesh_path", "map2d_path"):
         if getattr(res, attr) is not None:
             setattr(res, attr, out_dir / getattr(res, attr).name)
-    res.seconds = time.perf_counter() - t_start
-    res.peak_rss_mb = _peak_rss_mb()
-    res.rss_growth_mb = max(_peak_rss_mb() - rss0, 0.0)
     return res
+
+
+def prepare_frame(rgb: np.ndarray, depth: np.ndarray, undistort, cfg: MappingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Colour and depth as fused: undistorted (a grey camera's image as grey colour), depth outside
+    [depth_min, depth_max] set to 0."""
+    rgb, depth = undistort(as_rgb(rgb), depth.astype(np.float32, copy=False))
+    depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0).astype(np.float32)
+    return rgb, depth
+
+
+def integrate_frame(tsdf, acc: VoxelCloud, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray, camera: Camera,
+                    cfg: MappingConfig, timings: dict[str, float] | None = None) -> None:
+    """One prepared frame into the TSDF (if any) and the voxel cloud, at camera-to-world ``pose``."""
+    t1 = time.perf_counter()
+    if tsdf is not None and depth.any():  # Open3D aborts on a frame that touches no block
+        tsdf.integrate(rgb, depth, pose)
+    t2 = time.perf_counter()
+    pts, flat = backproject_image(depth, camera, cfg.cloud_pixel_stride)
+    pts_w = pts @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
+    acc.add(pts_w, rgb.reshape(-1, 3)[flat])
+    if timings is not None:
+        timings["tsdf"] = timings.get("tsdf", 0.0) + t2 - t1
+        timings["cloud"] = timings.get("cloud", 0.0) + time.perf_counter() - t2
 
 
 def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: list[tuple[int, int]],
@@ -431,24 +469,24 @@ def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: li
             depth = frame.depth
             if depth_dir is not None and (depth_dir / f"depth_{i:06d}.png").is_file():
                 depth = read_depth_png(depth_dir / f"depth_{i:06d}.png")
-            rgb, depth = undistort(frame.rgb, depth.astype(np.float32, copy=False))
-            depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0).astype(np.float32)
+            rgb, depth = prepare_frame(frame.rgb, depth, undistort, cfg)
             n_depth += int(np.count_nonzero(depth))
-            pose = trajectory.poses[r]
-            t1 = time.perf_counter()
-            timings["load"] += t1 - t0
-            if tsdf is not None and depth.any():  # Open3D aborts on a frame that touches no block
-                tsdf.integrate(rgb, depth, pose)
-            t2 = time.perf_counter()
-            timings["tsdf"] += t2 - t1
-            pts, flat = backproject_image(depth, camera, cfg.cloud_pixel_stride)
-            pts_w = pts @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
-            acc.add(pts_w, rgb.reshape(-1, 3)[flat])
-            timings["cloud"] += time.perf_counter() - t2
+            timings["load"] += time.perf_counter() - t0
+            integrate_frame(tsdf, acc, rgb, depth, trajectory.poses[r], camera, cfg, timings)
             fused.append(i)
             advance()
+    return write_map(stage, acc, tsdf, fused, n_depth, cfg, trajectory, sequence, timings, console,
+                     depth_dir is not None)
+
+
+def write_map(stage: Path, acc: VoxelCloud, tsdf, fused: list[int], n_depth: int, cfg: MappingConfig,
+              trajectory: Trajectory, sequence: Sequence, timings: dict[str, float], console,
+              filtered_depth: bool) -> FuseResult:
+    """The fused cloud (outliers removed) and mesh as PLY, and the 2-D map, into ``stage``."""
+    import open3d as o3d
+
     if n_depth == 0:
-        used = " (the run's filtered keyframe depth where present)" if depth_dir is not None else ""
+        used = " (the run's filtered keyframe depth where present)" if filtered_depth else ""
         raise InputError(
             f"the map would be empty: no depth of the {len(fused)} frame{'s' if len(fused) != 1 else ''} to fuse{used} lies between "
             f"mapping.depth_min={cfg.depth_min:g} and mapping.depth_max={cfg.depth_max:g} m; widen that range "
@@ -477,7 +515,7 @@ def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: li
         points, colors = points[keep], colors[keep]
     cloud_path = stage / "cloud.ply"
     _write_ply(cloud_path, cloud, mesh=False)
-    timings["cloud"] += time.perf_counter() - t0
+    timings["cloud"] = timings.get("cloud", 0.0) + time.perf_counter() - t0
 
     mesh_path, n_vert, n_tri = None, 0, 0
     if tsdf is not None:
@@ -613,7 +651,7 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     info, run_cfg, traj = read_run(run_dir)
     cfg = cfg or run_cfg.mapping
     validate_mapping(cfg)
-    seq = open_sequence(info["sequence"], run_cfg.dataset)
+    seq = open_sequence(info["sequence"], run_cfg, purpose="map")
     check_run_frames(run_dir, info, len(seq))
     rows = match_frames(np.asarray(seq.timestamps), traj)
     tracked = np.flatnonzero(rows >= 0)
