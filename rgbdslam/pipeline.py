@@ -322,6 +322,8 @@ def _map_summary(job, observer, console) -> dict[str, Any]:
     except RgbdslamError as e:  # like evaluation, the map never stops a finished run
         console.print(f"[yellow]warning:[/] no map: {e}")
         return {}
+    except OSError:
+        raise  # a full disk or a folder that cannot be written: an error naming the file (run.json: failed)
     except Exception as e:  # noqa: BLE001 - the map process failed unexpectedly: the run's outputs stand
         console.print(f"[yellow]warning:[/] no map: the map process failed ({e}); "
                       f"`rgbdslam fuse RUN_DIR` fuses it again")

@@ -36,18 +36,19 @@ def _sigint_self(*_, **__):
 # ----------------------------------------------------------------------------- class 3: Ctrl-C
 
 
-@pytest.mark.parametrize("target, stage", [
-    ("rgbdslam.pipeline.SLAM.__init__", "start-up"),
-    ("rgbdslam.pipeline.evaluate", "evaluation"),
-    ("rgbdslam.mapping.fusion.fuse_run", "map"),
+@pytest.mark.parametrize("target, stage, extra", [
+    ("rgbdslam.pipeline.SLAM.__init__", "start-up", []),
+    ("rgbdslam.pipeline.evaluate", "evaluation", []),
+    ("rgbdslam.pipeline._map_summary", "map", []),  # waiting for the map fused while tracking
+    ("rgbdslam.mapping.fusion.fuse_run", "map", ["--set", "mapping.live=false"]),  # fused after the run
 ])
-def test_ctrl_c_at_any_stage_says_interrupted(desk9, tmp_path, monkeypatch, target, stage):
+def test_ctrl_c_at_any_stage_says_interrupted(desk9, tmp_path, monkeypatch, target, stage, extra):
     """Ctrl-C during start-up (the folder exists), evaluation or fusion: exit 130, one line,
     run.json "interrupted" naming the stage; a finished run already there moved to previous/."""
     run = tmp_path / "run"
-    assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
+    assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK, *extra]).exit_code == 0
     monkeypatch.setattr(target, _sigint_self)
-    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK])
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK, *extra])
     assert res.exit_code == 130, res.output
     assert res.stderr.splitlines()[-1] == "interrupted: finished work was saved" and "Traceback" not in res.output
     s = _status(run)

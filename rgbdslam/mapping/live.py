@@ -195,10 +195,10 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results) -> None:
             if job[0] == "finish":
                 results.put(("ok", _finish(state, *job[1:])))
                 return
-    except BaseException as e:  # noqa: BLE001 - the driver reports it
+    except BaseException as e:  # noqa: BLE001 - the driver reports it (OSError as itself: a full disk names its file)
         from rgbdslam.errors import RgbdslamError
 
-        results.put(("error", e if isinstance(e, RgbdslamError) else RuntimeError(f"{type(e).__name__}: {e}")))
+        results.put(("error", e if isinstance(e, (RgbdslamError, OSError)) else RuntimeError(f"{type(e).__name__}: {e}")))
 
 
 def _finish(state: MapState, poses, keep, out_dir: str, trajectory, root: str, filtered_depth: bool):
