@@ -141,9 +141,11 @@ def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
     m = cfg.mapping
     if not (m.enabled and m.live and m.keyframes_only) or getattr(seq, "streaming", False):
         return None  # a stream's frames cannot be read again for re-integration
+    if getattr(seq, "rig", None) is not None and cfg.stereo.map_depth not in ("same", cfg.stereo.depth):
+        return None  # stereo: the map wants other depth than tracking (stereo.map_depth): fused after the run
     from rgbdslam.mapping.live import LiveMap
 
-    return LiveMap(m, seq.camera, str(seq.root), cfg.dataset, str(out_dir / "keyframes"))
+    return LiveMap(m, seq.camera, str(seq.root), cfg, str(out_dir / "keyframes"))
 
 
 def prepare_run_folder(out_dir: Path, cfg: Config, console, record: RunRecord) -> Path:

@@ -153,7 +153,8 @@ class _SequenceImages:
         from rgbdslam.mapping.fusion import read_depth_png
 
         if self._seq is None:
-            self._seq = open_sequence(self.root, self.dataset_cfg)
+            # the whole config: a stereo sequence then computes its map depth (stereo.map_depth, e.g. SGBM)
+            self._seq = open_sequence(self.root, self.dataset_cfg, purpose="map")
         frame = self._seq.load(i)
         png = Path(self.depth_dir) / f"depth_{i:06d}.png" if self.depth_dir else None
         return frame.rgb, (read_depth_png(png) if png is not None and png.is_file() else frame.depth)

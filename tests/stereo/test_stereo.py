@@ -300,3 +300,16 @@ def test_synthetic_stereo_close_to_rgbd(tmp_path, stereo_kitti_layout):
     a = run_sequence(tmp_path / "rgbd", tmp_path / "ra", cfg, progress=False)["evaluation"]["ate"]["rmse"]
     b = run_sequence(stereo_kitti_layout, tmp_path / "rb", cfg, progress=False)["evaluation"]["ate"]["rmse"]
     assert b <= 1.5 * a, (a, b)
+
+
+def test_stereo_map_uses_dense_map_depth(tmp_path, stereo_kitti_layout):
+    """Tracking on sparse depth, the map on SGBM depth (stereo.map_depth): the map is dense — the
+    live map (fed with the tracking frames' sparse depth) is left out for such a run and the map is
+    fused after it from the re-read SGBM depth."""
+    from rgbdslam.pipeline import run_sequence
+
+    cfg = load_config(None, ["output.plots=false", "dataset.max_frames=12", "mapping.mesh=false",
+                             "mapping.map2d=false"])
+    s = run_sequence(stereo_kitti_layout, tmp_path / "run", cfg, progress=False)
+    sparse_points_per_frame = 1000
+    assert s["map"]["cloud_points"] > 20 * sparse_points_per_frame, s["map"]
