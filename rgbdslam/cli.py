@@ -70,7 +70,12 @@ set_option = click.option(
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
 @click.option("--rerun-save", type=click.Path(path_type=Path), default=None, help="Record the run to an .rrd file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet):
+@click.option("--map", "map_dir", type=click.Path(path_type=Path), default=None,
+              help="A finished run's folder: relocalise in its map (map.npz), then extend it (saved in --out).")
+@click.option("--localize", is_flag=True,
+              help="With --map: only localise in the map (kept fixed); frames before the first "
+                   "relocalisation are left out of trajectory.tum.")
+def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet, map_dir, localize):
     """Run SLAM on SEQUENCE (a TUM or PUT folder) and write trajectory.tum into --out.
 
     Several sequences run one after the other with the same config (camera "auto" is decided
@@ -88,8 +93,11 @@ def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_s
         cfg.output.rerun = True
     if rerun_save is not None:
         cfg.output.rerun_save = str(rerun_save)
+    if (map_dir is not None or localize) and len(sequences) > 1:
+        raise click.UsageError("--map/--localize take a single SEQUENCE")
     if len(sequences) == 1:
-        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet)
+        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet,
+                     map_dir=map_dir, localize=localize)
         return
     out_root = out_dir or Path("runs")
     rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet)
@@ -182,12 +190,16 @@ def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_pat
 @click.option("--camera", type=click.Choice(["ros_default", "fr1", "fr2", "fr3", "kinect1"]), default="ros_default",
               show_default=True, help="Camera model (its distortion is rendered).")
 @click.option("--size", type=(int, int), default=(640, 480), show_default=True, metavar="W H", help="Image size.")
-def synth(out, frames, motion, noise, dropout, drift, seed, camera, size):
+@click.option("--phase", type=float, default=0.0, show_default=True,
+              help="Start further along the motion's path by this fraction (loop: 0.5 = the other side of the room).")
+@click.option("--time-offset", type=float, default=0.0, show_default=True,
+              help="Seconds added to every time stamp (a second session of the same scene).")
+def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase, time_offset):
     """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout)."""
     from rgbdslam.datasets.synthetic import synth_command
 
     synth_command(out, frames=frames, motion=motion, noise=noise, dropout=dropout, drift=drift, seed=seed,
-                  camera=camera, width=size[0], height=size[1])
+                  camera=camera, width=size[0], height=size[1], phase=phase, time_offset=time_offset)
 
 
 # ------------------------------------------------------------------------------- posegraph

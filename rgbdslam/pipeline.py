@@ -40,8 +40,11 @@ class Tracking:
 
 
 def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Config,
-                 progress: bool = True) -> dict[str, Any]:
-    """Run SLAM over a sequence and write the run folder; returns the run summary.
+                 progress: bool = True, map_dir: str | Path | None = None, localize: bool = False) -> dict[str, Any]:
+    """Run SLAM over a sequence and write the run folder (with its map, ``map.npz``); returns the run summary.
+
+    ``map_dir``: a finished run's folder whose map the camera relocalises in and then extends, or
+    only localises in with ``localize`` (:mod:`rgbdslam.session`); checked before anything is written.
 
     Ctrl-C stops the run after the current frame: everything tracked so far is written
     (``run.json`` says ``interrupted``) and KeyboardInterrupt is raised again.
@@ -50,10 +53,19 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
 
     check_settings(cfg)
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
+    session = None
+    if map_dir is not None:
+        from rgbdslam.session.sessions import open_map
+
+        session = open_map(map_dir, seq.camera, Path(out_dir), localize)
+    elif localize:
+        raise InputError("--localize needs --map RUN_DIR (the run whose map to localise in)")
     out_dir = prepare_run_folder(Path(out_dir), cfg, console)
     gt = seq.groundtruth()
     observer = make_observer(cfg, seq.camera, gt)
     slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes")
+    if session is not None:
+        session.attach(slam)
     if len(seq) == 0:
         raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
     run = track_all(seq, slam, cfg, out_dir, progress, console)
@@ -61,6 +73,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
         fail(seq, slam, run, out_dir)  # raises
     final = slam.finish()
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
+    final = save_map_of_run(out_dir, slam, seq, cfg, session, summary, final, console)
     write_outputs(out_dir, slam, summary, final)
     post_process(summary, slam, final, gt, out_dir, cfg, run.interrupted, progress, console)
     print_summary(summary, out_dir, console)
@@ -84,6 +97,22 @@ def prepare_run_folder(out_dir: Path, cfg: Config, console) -> Path:
         console.print(f"note: the earlier run in {out_dir} was moved to {out_dir / 'previous'}")
     save_config(cfg, out_dir / "config.yaml")
     return out_dir
+
+
+def save_map_of_run(out_dir: Path, slam: SLAM, seq: Sequence, cfg: Config, session, summary: dict[str, Any],
+                    final: Trajectory, console) -> Trajectory:
+    """map.npz of the run (a failure to write it is a warning: the trajectories still stand);
+    with ``--map``, run.json's session entry and, when localising, the localised frames only."""
+    from rgbdslam.session.sessions import save_run_map
+
+    if session is not None:
+        final = session.finish(slam, summary, final)
+    try:
+        save_run_map(out_dir, slam, seq, cfg, session, summary)
+    except (OSError, RgbdslamError) as e:
+        console.print(f"[yellow]warning:[/] no map file: {e}")
+        summary["map_file"] = None
+    return final
 
 
 def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: bool, console) -> Tracking:

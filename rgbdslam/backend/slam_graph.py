@@ -61,6 +61,7 @@ class KeyframeGraph:
         # summed odometry covariance from the first keyframe along the keyframe chain
         self._chain_cov: dict[int, np.ndarray] = {}
         self.loop_kernel_widths: list[float] = []
+        self.new_chain = False  # the next node starts a covariance chain (a session added to a loaded map)
 
     # ------------------------------------------------------------------ building
     def _noise(self, info: np.ndarray, robust: bool, width_scale: float = 1.0):
@@ -93,8 +94,9 @@ class KeyframeGraph:
         init = self.correction() @ pose_guess
         self.order.append(index)
         self.guess[index] = pose_guess
-        if len(self.order) == 1:
+        if len(self.order) == 1 or self.new_chain:
             self._chain_cov[index] = np.zeros((6, 6))
+            self.new_chain = False
         self._pending_values.insert(key(index), _pose3(init))
         if len(self.order) == 1:
             s = self.cfg.prior_sigma

@@ -83,6 +83,7 @@ class LoopCloser:
         # from current-segment to the keyframe's segment's coordinates)
         self._pending: list[tuple[int, _Keyframe, LoopEdge, np.ndarray]] = []
         self._last_query = 0  # frame index of the last search (see due)
+        self.searchable: int | None = None  # only the first this many keyframes are candidates (a fixed map)
         self.stats: dict[str, Any] = {
             "n_observed": 0, "n_sharp": 0, "n_queries": 0, "n_candidates": 0, "n_verified": 0,
             "n_accepted": 0, "n_rejected_geometry": 0, "n_rejected_consistency": 0, "n_segments": 1,
@@ -173,6 +174,8 @@ class LoopCloser:
         n = len(self.keyframes)
         first = self._segment_start  # position of the current segment's first keyframe
         n_old = first if self.relocalizing else max(first, n - self.lc.skip_recent)
+        if self.searchable is not None:
+            n_old = min(n_old, self.searchable)
         if n_old <= 0 or len(features.desc) == 0:
             return []
         votes = self.index.votes(features.desc)[:n_old]
