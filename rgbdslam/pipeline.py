@@ -107,6 +107,10 @@ def save_map_of_run(out_dir: Path, slam: SLAM, seq: Sequence, cfg: Config, sessi
 
     if session is not None:
         final = session.finish(slam, summary, final)
+        if not summary["session"]["relocalized"]:
+            console.print(f"[yellow]warning:[/] the camera never relocalised in the map {session.path}: " + (
+                "no frame is localised, trajectory.tum is empty (odometry.tum has the session in its own coordinates)"
+                if session.localize else "this session is a separate segment of the saved map (its own coordinates)"))
     try:
         save_run_map(out_dir, slam, seq, cfg, session, summary)
     except (OSError, RgbdslamError) as e:

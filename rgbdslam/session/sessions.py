@@ -100,15 +100,17 @@ class MapSession:
 
         from rgbdslam.backend.slam_graph import _pose3, key
 
-        graph.new_chain = True  # this session's first keyframe (chain-aware loop kernels, slam_graph.kernel_scale)
-        for (i, j), info in zip(a["odo_ij"], a["odo_info"]):  # the map's chains, as in the run that made it
-            if MAP_ID_BASE + int(i) in graph._chain_cov:
-                graph._chain_cov[MAP_ID_BASE + int(j)] = graph._chain_cov[MAP_ID_BASE + int(i)] + np.linalg.inv(info)
-        if self.localize:  # a fixed map: every keyframe held where the map has it
+        if self.localize:  # a fixed map: every keyframe held where the map has it; loops keep the plain kernel
             noise = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_SIGMA)
-            for k in range(1, n):
+            for k in range(n):
                 graph._add_factor(gtsam.PriorFactorPose3(key(MAP_ID_BASE + k), _pose3(a["kf_pose"][k]), noise))
             return
+        # extending: loops between old and new keyframes get chain-aware kernels (slam_graph.kernel_scale),
+        # the map's covariance chains as in the run that made it, this session's from its first keyframe
+        graph.new_chain = True
+        for (i, j), info in zip(a["odo_ij"], a["odo_info"]):
+            if MAP_ID_BASE + int(i) in graph._chain_cov:
+                graph._chain_cov[MAP_ID_BASE + int(j)] = graph._chain_cov[MAP_ID_BASE + int(i)] + np.linalg.inv(info)
         chains = dict(graph._chain_cov)
         for (i, j), T, info in zip(a["odo_ij"], a["odo_T"], a["odo_info"]):
             graph.add_odometry(MAP_ID_BASE + int(i), MAP_ID_BASE + int(j), T, info)
@@ -337,5 +339,7 @@ def save_run_map(out_dir: Path, slam, seq, cfg, session: MapSession | None, summ
     save_map(out_dir / MAP_NAME, data)
     summary["map_file"] = {"path": MAP_NAME, "keyframes": data.n_keyframes, "sessions": len(data.sessions),
                            "bytes": (out_dir / MAP_NAME).stat().st_size}
-    if session is not None:  # a joined map: every session's trajectory in its frame
+    if session is not None:  # a joined map: every session's trajectory in its frame (Rerun: one colour each)
         summary["map_file"]["session_trajectories"] = write_session_trajectories(out_dir, data)
+        for s in range(len(data.sessions)):
+            slam.observer.log_trajectory(f"session_{s}", Trajectory(*data.session_poses(s)))
