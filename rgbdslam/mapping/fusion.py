@@ -558,9 +558,12 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     cfg = cfg or run_cfg.mapping
     validate_mapping(cfg)
     if len((info.get("map_file") or {}).get("session_trajectories") or []) > 1:  # a map joined over sessions
-        from rgbdslam.session.fusion import fuse_sessions
+        from rgbdslam.session.fusion import joined_source
 
-        return fuse_sessions(run_dir, cfg, progress=progress)
+        seq, traj, frames, per_session = joined_source(run_dir, cfg.keyframes_only)
+        res = fuse(seq, traj, frames, cfg, run_dir / "map", None, progress)  # raw depth: keyframes/ is per run
+        res.sessions = per_session
+        return res
     seq = open_sequence(info["sequence"], run_cfg.dataset)
     check_run_frames(run_dir, info, len(seq))
     rows = match_frames(np.asarray(seq.timestamps), traj)

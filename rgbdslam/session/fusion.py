@@ -3,8 +3,8 @@
 A joined map (``map.npz`` with more than one session) holds every session's frames relative to
 its keyframes (:meth:`MapData.session_poses`): :class:`SessionsSequence` puts the sessions'
 sequences one after the other behind the one ``Sequence`` interface fusion reads, the frames are
-posed in the map's frame, and :func:`rgbdslam.mapping.fusion.fuse` does the rest. The fused
-frames per session are listed in the result (``FuseResult.sessions``). Keyframes of a map
+posed in the map's frame (:func:`joined_source`), and :func:`rgbdslam.mapping.fusion.fuse` does
+the rest. The fused frames per session are listed in the result (``FuseResult.sessions``). Keyframes of a map
 component not connected to the main one (a session that never relocalised) are left out, as
 unlinked segments are in a single run. Raw depth is fused (the runs' filtered keyframe depth is
 per run folder).
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.config import DatasetConfig, MappingConfig
+from rgbdslam.config import DatasetConfig
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
@@ -58,10 +58,11 @@ def open_sessions(data: MapData) -> SessionsSequence:
     return SessionsSequence(seqs)
 
 
-def fuse_sessions(run_dir: str | Path, cfg: MappingConfig, data: MapData | None = None, progress: bool = True):
-    """Fuse every session of ``run_dir``'s joined map into ``run_dir``/map (see module doc)."""
-    from rgbdslam.mapping.fusion import fuse
-
+def joined_source(run_dir: str | Path, keyframes_only: bool, data: MapData | None = None
+                  ) -> tuple[SessionsSequence, Trajectory, list[int], dict[int, int]]:
+    """What :func:`rgbdslam.mapping.fusion.fuse` needs to fuse every session of ``run_dir``'s
+    joined map: the sessions as one sequence, every frame's map pose, the frames to fuse
+    (keyframes when ``keyframes_only``) and how many of them each session gives."""
     run_dir = Path(run_dir)
     data = data or load_map(run_dir / "map.npz")
     seq = open_sessions(data)
@@ -75,7 +76,7 @@ def fuse_sessions(run_dir: str | Path, cfg: MappingConfig, data: MapData | None 
         ts, P = data.session_poses(s)
         stamps.append(ts[keep])
         poses.append(P[keep])
-        chosen = a["kf_frame"][(a["kf_session"] == s) & main] if cfg.keyframes_only else a["frame_index"][sel][keep]
+        chosen = a["kf_frame"][(a["kf_session"] == s) & main] if keyframes_only else a["frame_index"][sel][keep]
         chosen = [int(i) for i in chosen if 0 <= i < len(part)]
         per_session[s] = len(chosen)
         frames += [int(seq.offsets[s]) + i for i in chosen]
@@ -83,6 +84,4 @@ def fuse_sessions(run_dir: str | Path, cfg: MappingConfig, data: MapData | None 
         raise InputError(f"{run_dir / 'map.npz'}: no frame of the map's main part to fuse")
     t, P = np.concatenate(stamps), np.concatenate(poses).reshape(-1, 4, 4)
     order = np.argsort(t, kind="stable")
-    res = fuse(seq, Trajectory(t[order], P[order]), frames, cfg, run_dir / "map", None, progress)
-    res.sessions = per_session
-    return res
+    return seq, Trajectory(t[order], P[order]), frames, per_session
