@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import TUM_RPY200, assert_cli_error, cli, need
+from test_rerun import entity_paths
 from rgbdslam.config import load_config
 from rgbdslam.evaluation.ate import ate
 from rgbdslam.geometry.camera import CAMERAS
@@ -141,6 +142,8 @@ def test_second_session_lands_in_the_map(session1, tmp_path, localize):
     out = tmp_path / ("loc" if localize else "ext")
     cfg = _cfg("dataset.first_frame=50", "dataset.max_frames=40")
     cfg.mapping.enabled = not localize  # extending: the joined map is fused, both sessions' frames
+    if not localize:
+        cfg.output.rerun_save = str(tmp_path / "rec.rrd")
     s = run_sequence(TUM_RPY200, out, cfg, progress=False, map_dir=session1, localize=localize)
     assert _digest(session1) == before  # the old run is untouched
     ss = s["session"]
@@ -163,6 +166,8 @@ def test_second_session_lands_in_the_map(session1, tmp_path, localize):
     fused = s["map"]["frames_fused_per_session"]
     assert fused == {0: int(np.sum(m.arrays["kf_session"] == 0)), 1: len(s["keyframes"])}
     assert (out / "map" / "cloud.ply").stat().st_size > 0 and (out / "map" / "map2d.png").is_file()
+    # Rerun: each session's trajectory apart (its own entity and colour)
+    assert {"/world/trajectory/session_0", "/world/trajectory/session_1"} <= entity_paths(tmp_path / "rec.rrd")
 
 
 def test_a_session_elsewhere_stays_apart(session1, tmp_path):
