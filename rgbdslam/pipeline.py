@@ -107,7 +107,13 @@ def save_map_of_run(out_dir: Path, slam: SLAM, seq: Sequence, cfg: Config, sessi
 
     if session is not None:
         final = session.finish(slam, summary, final)
-        if not summary["session"]["relocalized"]:
+        ss = summary["session"]
+        if ss["relocalized"]:
+            gaps = sum(b - a + 1 for a, b in ss["not_localized"])
+            console.print(f"session {ss['session']}: relocalised in the map at frame {ss['first_localized_frame']}, "
+                          f"{len(summary['map_loops'])} loops into it; {gaps} frames not localised"
+                          + (" (left out of trajectory.tum)" if session.localize and gaps else ""))
+        else:
             console.print(f"[yellow]warning:[/] the camera never relocalised in the map {session.path}: " + (
                 "no frame is localised, trajectory.tum is empty (odometry.tum has the session in its own coordinates)"
                 if session.localize else "this session is a separate segment of the saved map (its own coordinates)"))
