@@ -113,8 +113,18 @@ class KeyframeGraph:
             self._chain_cov[int(j)] = self._chain_cov[int(i)] + np.linalg.inv(info)
         self._add_factor(gtsam.BetweenFactorPose3(key(i), key(j), _pose3(T_ij), self._noise(info, False)))
 
-    def add_loop(self, edge) -> None:
-        """A loop edge (robust kernel); triggers an iSAM2 update when ``cfg.isam2``."""
+    def add_prior(self, index: int, pose: np.ndarray, sigma: float) -> None:
+        """Hold a node at ``pose`` (isotropic ``sigma``; a loaded map kept fixed)."""
+        self._require(index)
+        self._add_factor(gtsam.PriorFactorPose3(key(index), _pose3(pose), gtsam.noiseModel.Isotropic.Sigma(6, sigma)))
+
+    def set_chain_covariance(self, index: int, cov: np.ndarray) -> None:
+        """The summed odometry covariance along the keyframe chain up to ``index`` (see :meth:`kernel_scale`;
+        a loaded map's chains, which :meth:`add_odometry` follows only for the newest node)."""
+        self._chain_cov[int(index)] = np.asarray(cov, dtype=np.float64)
+
+    def add_loop(self, edge, update: bool = True) -> None:
+        """A loop edge (robust kernel); triggers an iSAM2 update when ``cfg.isam2`` and ``update``."""
         self._require(edge.i, edge.j)
         info = _check_information(edge.information, f"loop edge {edge.i}->{edge.j}")
         self.loops.append(edge)
@@ -122,7 +132,7 @@ class KeyframeGraph:
         self.loop_kernel_widths.append(self.cfg.kernel_width * scale)
         self._add_factor(gtsam.BetweenFactorPose3(key(edge.i), key(edge.j), _pose3(edge.T_ij),
                                                   self._noise(info, True, scale)))
-        if self.cfg.isam2:
+        if self.cfg.isam2 and update:
             self.update()
 
     def kernel_scale(self, i: int, j: int, info: np.ndarray) -> float:

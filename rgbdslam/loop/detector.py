@@ -142,6 +142,27 @@ class LoopCloser:
         self.stats["map_keyframes"] = len(self.keyframes)
         self.stats["map_entries"] = int(self.index.size)
 
+    def add_map_keyframe(self, features, pose: np.ndarray, path: float, turn: float, segment: int) -> None:
+        """A keyframe of a loaded map (:mod:`rgbdslam.session`), with its travel and segment as saved."""
+        self.index.add(len(self.keyframes), features.desc)
+        kf = _Keyframe(int(features.index), features, np.array(pose, dtype=np.float64), float(path), float(turn),
+                       int(segment))
+        self.keyframes.append(kf)
+        self._by_index[kf.index] = kf
+
+    def begin_session(self, map_only: bool) -> None:
+        """The keyframes so far are a loaded map, its segments older ones: the new session is a new
+        segment that relocalises against them (as after a tracking loss). ``map_only``: they stay
+        the only loop candidates (a fixed map: localisation)."""
+        n = len(self.keyframes)
+        if n:
+            self.segment = max(kf.segment for kf in self.keyframes) + 1
+            self._segment_start = n
+            self.relocalizing = True
+            self.stats.update(n_segments=self.segment + 1, map_keyframes=n, map_entries=int(self.index.size))
+        if map_only:
+            self.searchable = n
+
     def _travel(self, pose: np.ndarray) -> tuple[float, float]:
         """(metres, degrees) travelled in the current segment up to ``pose``."""
         last = self.keyframes[-1]

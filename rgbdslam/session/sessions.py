@@ -62,67 +62,47 @@ class MapSession:
     def attach(self, slam) -> None:
         """Put the map's keyframes into ``slam``'s loop closer and pose graph (see module doc)."""
         from rgbdslam.frontend.features import FrameFeatures
-        from rgbdslam.loop.detector import _Keyframe
+        from rgbdslam.loop.detector import LoopEdge
 
         if slam.loop is None:
             raise InputError("--map needs loop closure (loop.enabled: true): relocalising in a map is loop closure "
                              "against its keyframes")
-        a = self.data.arrays
+        a, n = self.data.arrays, self.data.n_keyframes
         lc, graph = slam.loop, slam.graph
-        for k in range(self.data.n_keyframes):
+        for k in range(n):
             f = self.data.features(k)
             kid = MAP_ID_BASE + k
             feats = FrameFeatures(index=kid, timestamp=float(a["kf_timestamp"][k]), uv=f["uv"].astype(np.float64),
                                   desc=np.ascontiguousarray(f["desc"]), pts=f["pts"].astype(np.float64),
                                   valid=f["valid"].copy(), n_detected=int(a["kf_n_detected"][k]),
                                   uv_raw=f["uv_raw"].astype(np.float64), response=f["response"].copy())
-            pose = a["kf_pose"][k].copy()
-            lc.index.add(len(lc.keyframes), feats.desc)
-            kf = _Keyframe(kid, feats, pose, float(a["kf_path"][k]), float(a["kf_turn"][k]), int(a["kf_segment"][k]))
-            lc.keyframes.append(kf)
-            lc._by_index[kid] = kf
-            slam.map_poses[kid] = pose
+            lc.add_map_keyframe(feats, a["kf_pose"][k], a["kf_path"][k], a["kf_turn"][k], a["kf_segment"][k])
+            slam.map_poses[kid] = a["kf_pose"][k].copy()
             if graph is not None:
-                graph.add_node(kid, pose)
-        n = self.data.n_keyframes
-        if n:
-            lc.segment = int(a["kf_segment"].max()) + 1
-            lc._segment_start = n
-            lc.relocalizing = True
-            lc.stats["n_segments"] = lc.segment + 1
-            lc.stats["map_keyframes"] = n
-            lc.stats["map_entries"] = int(lc.index.size)
-        if self.localize:
-            lc.searchable = n  # only the map's keyframes are loop candidates
+                graph.add_node(kid, a["kf_pose"][k])
+        lc.begin_session(map_only=self.localize)  # localising: only the map's keyframes are loop candidates
         if graph is None or not n:
             return
-        import gtsam
-
-        from rgbdslam.backend.slam_graph import _pose3, key
-
         if self.localize:  # a fixed map: every keyframe held where the map has it; loops keep the plain kernel
-            noise = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_SIGMA)
             for k in range(n):
-                graph._add_factor(gtsam.PriorFactorPose3(key(MAP_ID_BASE + k), _pose3(a["kf_pose"][k]), noise))
+                graph.add_prior(MAP_ID_BASE + k, a["kf_pose"][k], FIXED_SIGMA)
             return
-        # extending: loops between old and new keyframes get chain-aware kernels (slam_graph.kernel_scale),
-        # the map's covariance chains as in the run that made it, this session's from its first keyframe
-        graph.new_chain = True
-        for (i, j), info in zip(a["odo_ij"], a["odo_info"]):
-            if MAP_ID_BASE + int(i) in graph._chain_cov:
-                graph._chain_cov[MAP_ID_BASE + int(j)] = graph._chain_cov[MAP_ID_BASE + int(i)] + np.linalg.inv(info)
-        chains = dict(graph._chain_cov)
+        # extending: the map's edges; loops get chain-aware kernels (slam_graph.kernel_scale) from the map's
+        # covariance chains (each starts at a keyframe without an incoming odometry edge), this session's
+        # from its first keyframe
+        starts = set(range(n)) - {int(j) for _, j in a["odo_ij"]}
+        chains = {MAP_ID_BASE + k: np.zeros((6, 6)) for k in starts}
         for (i, j), T, info in zip(a["odo_ij"], a["odo_T"], a["odo_info"]):
             graph.add_odometry(MAP_ID_BASE + int(i), MAP_ID_BASE + int(j), T, info)
-        graph._chain_cov = chains  # add_odometry follows only the newest node's chain
-        from rgbdslam.loop.detector import LoopEdge
-
+            if MAP_ID_BASE + int(i) in chains:
+                chains[MAP_ID_BASE + int(j)] = chains[MAP_ID_BASE + int(i)] + np.linalg.inv(info)
+        for kid, cov in chains.items():
+            graph.set_chain_covariance(kid, cov)
         for (i, j), T, info, nin, res in zip(a["loop_ij"], a["loop_T"], a["loop_info"], a["loop_inliers"],
                                              a["loop_residual"]):
-            e = LoopEdge(MAP_ID_BASE + int(i), MAP_ID_BASE + int(j), T, info, int(nin), float(res))
-            graph.loops.append(e)  # like add_loop, without an iSAM2 update per edge
-            graph.loop_kernel_widths.append(graph.cfg.kernel_width)
-            graph._add_factor(gtsam.BetweenFactorPose3(key(e.i), key(e.j), _pose3(T), graph._noise(info, True)))
+            graph.add_loop(LoopEdge(MAP_ID_BASE + int(i), MAP_ID_BASE + int(j), T, info, int(nin), float(res)),
+                           update=False)
+        graph.new_chain = True
 
     # ------------------------------------------------------------------ after the run
     def localized(self, slam) -> tuple[dict[int, int], list[int]]:
