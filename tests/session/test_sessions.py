@@ -12,20 +12,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import TUM_RPY200, assert_cli_error, cli, need
-from test_rerun import entity_paths
 from rgbdslam.config import load_config
 from rgbdslam.evaluation.ate import ate
 from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.io.trajectory import Trajectory, read_tum
 from rgbdslam.pipeline import run_sequence
 from rgbdslam.session.mapfile import VERSION, MapFileError, load_map, read_header
+from tests.conftest import REPO, TUM_RPY200, assert_cli_error, cli, need
+from tests.viz.test_rerun_log import entity_paths
 
-FR1 = ["--config", "configs/tum_fr1.yaml"]
+pytestmark = pytest.mark.data  # fr1/rpy frames
+FR1 = ["--config", REPO / "configs" / "tum_fr1.yaml"]
 
 
 def _cfg(*extra):
-    return load_config("configs/tum_fr1.yaml", ["mapping.enabled=false", "output.plots=false", *extra])
+    return load_config(REPO / "configs" / "tum_fr1.yaml", ["mapping.enabled=false", "output.plots=false", *extra])
 
 
 def _digest(folder: Path) -> dict[str, str]:

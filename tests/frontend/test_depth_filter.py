@@ -1,4 +1,4 @@
-"""DIF depth filter (spec section 3) on hand-made depth images."""
+"""DIF depth filter (docs/references.md §3) on hand-made depth images."""
 
 from __future__ import annotations
 
@@ -109,8 +109,9 @@ def test_impossible_min_support_is_a_config_error():
         make(window=2, spatial_radius=0, min_support=3)
 
 
+@pytest.mark.data
 def test_real_tum_frames_keep_most_depth_and_never_invent_any():
-    from conftest import TUM_DESK9, need
+    from tests.conftest import TUM_DESK9, need
     from rgbdslam.config import Config
     from rgbdslam.datasets import open_sequence
 

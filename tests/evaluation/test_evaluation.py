@@ -300,6 +300,7 @@ def make_perturbed_estimate(rpy200: Path, out: Path) -> Path:
     return path
 
 
+@pytest.mark.data
 def test_parity_with_evo_on_real_data(rpy200, tmp_path):
     from evo.core import metrics, sync
     from evo.core.metrics import PoseRelation, StatisticsType, Unit
@@ -361,6 +362,7 @@ def _assert_one_line_error(result, *names: str) -> str:
     return lines[0]
 
 
+@pytest.mark.data
 def test_cli_evaluate_writes_json_and_plots(rpy200, tmp_path):
     est_path = make_perturbed_estimate(rpy200, tmp_path)
     gt_path = rpy200 / "groundtruth.txt"
@@ -407,6 +409,7 @@ def test_cli_no_overlap_clear_message(tmp_path):
     assert not list(tmp_path.glob("*.png"))
 
 
+@pytest.mark.data
 def test_cli_evaluate_compares_several_estimates(rpy200, tmp_path):
     """`rgbdslam evaluate GT EST EST ...`: one row per estimate, numbers equal to evaluating each alone."""
     gt_path = rpy200 / "groundtruth.txt"
