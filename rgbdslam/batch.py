@@ -31,40 +31,69 @@ def _run_dirs(sequences: list[Path], out_root: Path) -> list[Path]:
     return out
 
 
-def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config,
-                  progress: bool = True) -> list[dict[str, Any]]:
+def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config, progress: bool = True,
+                  engine: str = "local", workers: int = 1, address: str | None = None) -> list[dict[str, Any]]:
     """Run SLAM on several sequences, each into ``out_root/<sequence name>``, with one config.
 
     A sequence that fails with an input error (missing folder, no trackable frame, ...) is
     reported and the others still run. Returns one row per sequence (``status`` "ok" or the
     error) and writes them to ``out_root/summary.csv`` and ``summary.md`` after every sequence,
     so an interrupted batch keeps the rows it finished. Ctrl-C stops the batch.
+
+    With one local worker the sequences run here one after the other (with progress bars);
+    otherwise they are jobs of the engine (:mod:`rgbdslam.engine`), quiet, a line per finished one.
     """
+    from rgbdslam.engine import build_engine
+    from rgbdslam.ui import console
+
+    out_root = Path(out_root)
+    out_root.mkdir(parents=True, exist_ok=True)
+    dirs = _run_dirs([Path(s) for s in sequences], out_root)
+    rows: list[dict[str, Any] | None] = [None] * len(sequences)
+    serial = engine == "local" and workers == 1
+    jobs = [(str(seq), str(d), cfg, progress and serial, not serial, f"{k + 1}/{len(sequences)}")
+            for k, (seq, d) in enumerate(zip(sequences, dirs))]
+    with build_engine(engine, workers, address) as eng:
+        if not serial:
+            console.print(f"{len(sequences)} sequences on {eng.describe()}")
+        for k, row in eng.map(run_one, jobs):
+            rows[k] = row
+            if not serial:
+                console.print(f"done {Path(row['sequence']).name}: {row['status'] if row['status'] != 'ok' else _brief(row)}")
+            _write_batch_summary([r for r in rows if r is not None], out_root)
+    return [r for r in rows if r is not None]
+
+
+def _brief(row: dict[str, Any]) -> str:
+    ate = row.get("ate_rmse")
+    return f"{row['tracked']}/{row['frames']} tracked" + (f", ATE {ate:.4f} m" if ate is not None else "")
+
+
+def run_one(seq: str, out_dir: str, cfg: Config, progress: bool, quiet: bool, position: str) -> dict[str, Any]:
+    """One sequence of the batch (in this process or an engine's worker) -> its row."""
     import copy
 
     from rich.markup import escape
 
     from rgbdslam.ui import console
 
-    out_root = Path(out_root)
-    out_root.mkdir(parents=True, exist_ok=True)
-    rows: list[dict[str, Any]] = []
-    for k, (seq, out_dir) in enumerate(zip(sequences, _run_dirs([Path(s) for s in sequences], out_root))):
-        console.rule(f"[bold]{k + 1}/{len(sequences)}[/] {seq}")
-        row: dict[str, Any] = {"sequence": str(seq), "out": str(out_dir)}
-        try:
-            s = run_sequence(seq, out_dir, copy.deepcopy(cfg), progress=progress)
-        except RgbdslamError as e:  # one bad sequence does not stop the batch
-            console.print(f"[red]error:[/] {escape(str(e))}")
-            row["status"] = str(e)
-        else:
-            ate = ((s.get("evaluation") or {}).get("ate") or {}).get("rmse")
-            row.update(status="ok", frames=s["frames"], tracked=s["tracked"], lost=s["lost"],
-                       restarts=len(s["restarts"]), keyframes=len(s["keyframes"]), loops=len(s["loops"]),
-                       ate_rmse=ate, fps=s["fps"])
-        rows.append(row)
-        _write_batch_summary(rows, out_root)
-    return rows
+    quiet_before = console.quiet
+    console.quiet = quiet or quiet_before
+    row: dict[str, Any] = {"sequence": str(seq), "out": str(out_dir)}
+    try:
+        console.rule(f"[bold]{position}[/] {seq}")
+        s = run_sequence(seq, out_dir, copy.deepcopy(cfg), progress=progress)
+    except RgbdslamError as e:  # one bad sequence does not stop the batch
+        console.print(f"[red]error:[/] {escape(str(e))}")
+        row["status"] = str(e)
+        return row
+    finally:
+        console.quiet = quiet_before
+    ate = ((s.get("evaluation") or {}).get("ate") or {}).get("rmse")
+    row.update(status="ok", frames=s["frames"], tracked=s["tracked"], lost=s["lost"],
+               restarts=len(s["restarts"]), keyframes=len(s["keyframes"]), loops=len(s["loops"]),
+               ate_rmse=ate, fps=s["fps"])
+    return row
 
 
 BATCH_COLUMNS = ("sequence", "status", "frames", "tracked", "lost", "restarts", "keyframes", "loops",

@@ -48,12 +48,47 @@ def main() -> None:
 
 config_option = click.option(
     "--config", "-c", "config_path", default=None,
-    help="YAML config file or preset name from configs/ (e.g. tum_fr1).",
+    help="YAML config file or the name of a preset shipped with rgbdslam (default, tum_fr1, ...).",
 )
+camera_option = click.option(
+    "--camera", "camera_file", type=click.Path(path_type=Path), default=None, metavar="FILE",
+    help="Camera file (YAML: fx, fy, cx, cy, size, distortion, depth_scale; see README 'Your own data'). "
+         "Same as --set dataset.camera_file=FILE; wins over the camera a sequence or preset names.",
+)
+
+
+def load_cli_config(config_path, overrides, camera_file=None):
+    """The config of a command: preset/file, --set overrides, then --camera."""
+    from rgbdslam.config import load_config
+
+    cfg = load_config(config_path, overrides)
+    if camera_file is not None:
+        cfg.dataset.camera_file = str(camera_file)
+    return cfg
+
+
 set_option = click.option(
     "--set", "-s", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
     help="Override one config value; repeatable.",
 )
+
+
+engine_options_list = [
+    click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+                 help="Where the jobs run: local (this process, or a process pool with --workers) or a Ray "
+                      "cluster (pip install 'rgbdslam[distributed]').",),
+    click.option("--workers", "-j", type=click.IntRange(min=1), default=1, show_default=True,
+                 help="Parallel jobs: local worker processes, or the CPUs of a new local Ray cluster."),
+    click.option("--address", default=None, metavar="ADDRESS",
+                 help="With --engine ray: a running cluster (auto, HOST:6379 or ray://HOST:10001); inputs and "
+                      "--out must be on storage every node sees at the same path."),
+]
+
+
+def engine_options(f):
+    for opt in reversed(engine_options_list):
+        f = opt(f)
+    return f
 
 
 # ----------------------------------------------------------------------------- run / demo
@@ -63,6 +98,7 @@ set_option = click.option(
 @click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="SEQUENCE...")
 @config_option
 @set_option
+@camera_option
 @click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
               help="Output folder (default: runs/<sequence name>); with several sequences the folder "
                    "that holds one subfolder per sequence and summary.md/.csv (default: runs).")
@@ -75,8 +111,11 @@ set_option = click.option(
 @click.option("--localize", is_flag=True,
               help="With --map: only localise in the map (kept fixed); frames before the first "
                    "relocalisation are left out of trajectory.tum.")
-def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet, map_dir, localize):
-    """Run SLAM on SEQUENCE (a TUM or PUT folder) and write trajectory.tum into --out.
+@engine_options
+def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, quiet, map_dir,
+        localize, engine, workers, address):
+    """Run SLAM on SEQUENCE (a TUM, ETH3D, ICL-NUIM, 7-Scenes or PUT folder, a ROS 1/2 bag or a
+    RealSense recording) and write trajectory.tum into --out.
 
     Several sequences run one after the other with the same config (camera "auto" is decided
     per sequence); a table of their results is printed and written to OUT/summary.md and .csv."""
@@ -86,7 +125,7 @@ def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_s
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
-    cfg = load_config(config_path, overrides)
+    cfg = load_cli_config(config_path, overrides, camera_file)
     if no_map:
         cfg.mapping.enabled = False
     if rerun_spawn:
@@ -96,16 +135,52 @@ def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_s
     if (map_dir is not None or localize) and len(sequences) > 1:
         raise click.UsageError("--map/--localize take a single SEQUENCE")
     if len(sequences) == 1:
+        if engine != "local" or workers != 1 or address is not None:
+            raise click.UsageError("--engine/--workers/--address spread several sequences; give more than one SEQUENCE")
         run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet,
                      map_dir=map_dir, localize=localize)
         return
     out_root = out_dir or Path("runs")
-    rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet)
+    rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet, engine=engine, workers=workers,
+                         address=address)
     click.echo(format_batch_table(rows))
     failed = [r for r in rows if r["status"] != "ok"]
     if failed:
         raise InputError(f"{len(failed)} of {len(rows)} sequences failed (first: {Path(failed[0]['sequence']).name}); "
                          f"see {out_root / 'summary.md'}")
+
+
+@main.command()
+@click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="SEQUENCE...")
+@click.option("--grid", "-g", "grid", multiple=True, metavar="SECTION.KEY=V1,V2,...",
+              help="Values to sweep over; repeatable (every combination runs on every sequence).")
+@config_option
+@set_option
+@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), required=True,
+              help="Folder for the cells' runs (cells/) and results.md/.csv/.png; a re-run keeps finished cells.")
+@click.option("--map", "with_map", is_flag=True, help="Also fuse each cell's map (off: a sweep compares trajectories).")
+@click.option("--quiet", "-q", is_flag=True, help="Only the table at the end.")
+@engine_options
+def sweep(sequences, grid, config_path, overrides, out_dir, with_map, quiet, engine, workers, address):
+    """Run every combination of the --grid values on every SEQUENCE; one table of ATE, RPE and rate per cell.
+
+    Example: rgbdslam sweep SEQ1 SEQ2 --grid registration.mp=2,4 --grid loop.enabled=true,false --out sweeps/a"""
+    from rgbdslam.sweep import format_table, run_sweep
+    from rgbdslam.ui import console
+
+    quiet_before = console.quiet
+    console.quiet = quiet or quiet_before
+    try:
+        res = run_sweep(list(sequences), list(grid), out_dir, config_path, tuple(overrides), engine=engine,
+                        workers=workers, address=address, mapping=with_map)
+    finally:
+        console.quiet = quiet_before
+    click.echo(format_table(res["rows"], res["columns"]))
+    click.echo(f"{res['ran']} cell(s) run, {res['kept']} kept, {res['wall_s']:.1f} s ({res['engine']}); "
+               f"{out_dir / 'results.md'}, results.csv, results.png")
+    failed = [r for r in res["rows"] if r.get("status") != "ok"]
+    if failed:
+        raise InputError(f"{len(failed)} of {len(res['rows'])} cells failed (first: {failed[0]['status']})")
 
 
 @main.command()
@@ -123,6 +198,56 @@ def demo(out_dir, frames, config_path, overrides):
     run_demo(out_dir, frames, cfg)
 
 
+@main.command()
+@config_option
+@set_option
+@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=Path("runs/live"), show_default=True,
+              help="Output folder of the run.")
+@click.option("--record", "record_dir", type=click.Path(path_type=Path), default=None,
+              help="Folder for the frames as they arrive, TUM layout (default: OUT/recording); "
+                   "`rgbdslam run` on it repeats the session.")
+@click.option("--playback", type=click.Path(path_type=Path), default=None,
+              help="Take the frames from a RealSense recording (.bag/.db3) through the SDK's playback "
+                   "instead of a camera.")
+@click.option("--size", type=(int, int), default=(640, 480), show_default=True, metavar="W H",
+              help="Stream size (colour and depth).")
+@click.option("--fps", type=int, default=30, show_default=True, help="Frame rate of the streams.")
+@click.option("--serial", default=None, help="Serial number of the camera to use (default: the first one).")
+@click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
+@click.option("--no-map", is_flag=True, help="Skip map fusion at the end of the run.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def live(config_path, overrides, out_dir, record_dir, playback, size, fps, serial, max_frames, no_map, quiet):
+    """Run SLAM on a live RealSense camera (colour + depth aligned to colour; needs the
+    [realsense] extra). Ctrl-C ends the session: the run then finishes and writes all its
+    outputs (a second Ctrl-C stops at once, keeping what was finished)."""
+    import signal
+
+    from rgbdslam.datasets.realsense import RealSenseSequence
+    from rgbdslam.pipeline import run_sequence
+    from rgbdslam.ui import console
+
+    cfg = load_cli_config(config_path, overrides)
+    if no_map:
+        cfg.mapping.enabled = False
+    if max_frames is not None and max_frames < 1:
+        raise click.UsageError("--max-frames must be at least 1")
+    record_dir = record_dir or out_dir / "recording"
+    seq = RealSenseSequence(record_dir, playback, size[0], size[1], fps, max_frames, serial)
+
+    def first_interrupt(signum, frame):  # the first Ctrl-C ends the stream; the run then finishes normally
+        console.print("[yellow]stopping: finishing the run (Ctrl-C again to stop at once)[/]")
+        seq.stop()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = signal.signal(signal.SIGINT, first_interrupt)
+    try:
+        run_sequence(seq, out_dir, cfg, progress=not quiet)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        seq.close()
+    console.print(f"frames recorded in {record_dir} (TUM layout): rgbdslam run {record_dir} repeats the session")
+
+
 @main.command("config")
 @config_option
 @set_option
@@ -137,12 +262,12 @@ def show_config(config_path, overrides):
 @click.argument("sequence", type=click.Path(path_type=Path))
 @config_option
 @set_option
-def info(sequence, config_path, overrides):
+@camera_option
+def info(sequence, config_path, overrides, camera_file):
     """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
-    from rgbdslam.config import load_config
     from rgbdslam.datasets import describe_sequence
 
-    click.echo(describe_sequence(sequence, load_config(config_path, overrides).dataset))
+    click.echo(describe_sequence(sequence, load_cli_config(config_path, overrides, camera_file)))
 
 
 # ------------------------------------------------------------------ commands added by stages
@@ -163,18 +288,37 @@ def info(sequence, config_path, overrides):
               help="Folder for the PNG plots (default: EST's folder, files named <EST stem>_*.png).")
 @click.option("--no-plots", is_flag=True, help="Write no plots.")
 def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_path, plot_dir, no_plots):
-    """ATE and RPE of trajectory EST against ground truth GT (TUM format); prints a table.
+    """ATE and RPE of trajectory EST against ground truth GT (TUM format, or a sequence folder
+    with ground truth: TUM groundtruth.txt, 7-Scenes pose.txt files, ...); prints a table.
 
     Several ESTs are compared with the same settings: one table with a row each and
     comparison_topview.png (in --plot-dir, default the current folder) with all of them."""
+    import tempfile
+
     from rgbdslam.evaluation.report import compare_and_print, evaluate_and_print
 
     opts = dict(align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference, offset=offset,
                 json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
-    if len(est) == 1:
-        evaluate_and_print(gt, est[0], **opts)
-    else:
-        compare_and_print(gt, list(est), **opts)
+    with tempfile.TemporaryDirectory(prefix="rgbdslam-gt-") as tmp:
+        if gt.is_dir():  # a sequence folder: its own ground truth (7-Scenes pose.txt files, groundtruth.txt, ...)
+            gt = _groundtruth_file(gt, Path(tmp))
+        if len(est) == 1:
+            evaluate_and_print(gt, est[0], **opts)
+        else:
+            compare_and_print(gt, list(est), **opts)
+
+
+def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
+    """The ground truth of a sequence folder as a TUM file (its own file when it has one)."""
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.io.trajectory import write_tum
+
+    gt = open_sequence(sequence).groundtruth()
+    if gt is None:
+        raise InputError(f"{sequence} is a folder without ground truth; give a TUM trajectory file as GT")
+    path = tmp / f"{sequence.resolve().name}_groundtruth.tum"
+    write_tum(gt, path)
+    return path
 
 
 @main.command()
@@ -194,8 +338,25 @@ def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_pat
               help="Start further along the motion's path by this fraction (loop: 0.5 = the other side of the room).")
 @click.option("--time-offset", type=float, default=0.0, show_default=True,
               help="Seconds added to every time stamp (a second session of the same scene).")
-def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase, time_offset):
-    """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout)."""
+@click.option("--stereo", "baseline", type=float, default=None, metavar="BASELINE",
+              help="Render a grey stereo pair per frame instead, the right camera BASELINE metres to the right "
+                   "(same scene and trajectory as the RGB-D sequence of the same options).")
+@click.option("--layout", type=click.Choice(["kitti", "euroc"]), default="kitti", show_default=True,
+              help="With --stereo: KITTI odometry or EuRoC/ASL folder layout.")
+def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase, time_offset, baseline, layout):
+    """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout), or with
+    --stereo a stereo sequence (KITTI or EuRoC layout)."""
+    if baseline is not None:
+        from rgbdslam.datasets.synthetic_stereo import synth_stereo_command
+
+        if dropout or drift:
+            raise InputError("--dropout and --drift simulate an RGB-D depth sensor; a --stereo sequence has no depth "
+                             "images (leave them out)")
+        if phase or time_offset:
+            raise InputError("--phase and --time-offset are for RGB-D sequences (sessions); leave them out with --stereo")
+        synth_stereo_command(out, baseline=baseline, layout=layout, frames=frames, motion=motion, noise=noise,
+                             seed=seed, camera=camera, width=size[0], height=size[1])
+        return
     from rgbdslam.datasets.synthetic import synth_command
 
     synth_command(out, frames=frames, motion=motion, noise=noise, dropout=dropout, drift=drift, seed=seed,
@@ -269,7 +430,12 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
               help="sx,sy,stheta (several separated by ';'), or 'all' for the MASAT paper's 8 levels.")
 @click.option("--instances", default=50, show_default=True, help="Noisy instances per noise level.")
 @click.option("--max-iter", default=50, show_default=True, help="Maximum iterations.")
-@click.option("--workers", default=1, show_default=True, help="Parallel worker processes.")
+@click.option("--workers", default=1, show_default=True,
+              help="Parallel workers: local processes, or the CPUs of a new local Ray cluster.")
+@click.option("--engine", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+              help="Where the instances run: local processes or a Ray cluster (pip install 'rgbdslam[distributed]').")
+@click.option("--address", default=None, metavar="ADDRESS",
+              help="With --engine ray: a running cluster (auto, HOST:6379 or ray://HOST:10001).")
 @click.option("--seed", default=0, show_default=True, help="Seed of the noise.")
 @click.option("--criterion", type=click.Choice(["absolute", "relative"]), default="relative", show_default=True,
               help="Convergence test of Tables 1/2: |dchi2|/chi2 < 1e-6 (relative, g2o's) or |dchi2| < 1e-6 "
@@ -280,7 +446,7 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
               help="Folder for runs.csv, table1.csv, table2.csv, report.md.")
 @click.option("--data", "data_dir", type=click.Path(path_type=Path), default=None,
-              help="Data folder (default: $RGBDSLAM_DATA or <repo>/../shared/data).")
+              help="Data folder holding posegraph/ (default: $RGBDSLAM_DATA).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--timing-only", is_flag=True, help="Only time the initial guesses (best of 5) at each noise level.")
 @click.option("--merge-runs", "merge", type=click.Path(path_type=Path), multiple=True,
@@ -288,15 +454,15 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--first-instance", default=0, show_default=True,
               help="Index of the first noisy instance (to add instances to an earlier run; see --merge-runs).")
 @_optimizer_option
-def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet,
-                    timing_only, merge, first_instance, optimizer):
+def posegraph_bench(dataset, noise, instances, max_iter, workers, engine, address, seed, criterion, methods, out_dir,
+                    data_dir, quiet, timing_only, merge, first_instance, optimizer):
     """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
     from rgbdslam.posegraph.bench import bench_command
 
     click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                              criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,
                              progress=not quiet, timing_only=timing_only, merge=merge,
-                             first_instance=first_instance, optimizer=optimizer))
+                             first_instance=first_instance, optimizer=optimizer, engine=engine, address=address))
 
 
 # ------------------------------------------------------------------------------- maps / viewer

@@ -1,7 +1,8 @@
 """Typed configuration.
 
 Every algorithm parameter lives here, grouped in one dataclass per stage. Presets are
-YAML files in ``configs/`` that override the defaults below; ``--set section.key=value``
+YAML files inside the package (``rgbdslam/presets/``, read with ``importlib.resources`` so an
+installed wheel has them) that override the defaults below; ``--set section.key=value``
 overrides a preset. Unknown keys and values of the wrong type are rejected with a
 message naming the key.
 """
@@ -9,6 +10,7 @@ message naming the key.
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import math
 import types
 import typing
@@ -21,25 +23,37 @@ import yaml
 from rgbdslam.io.text import read_text
 from rgbdslam.errors import ConfigError
 
-PRESET_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+def preset_files() -> dict[str, Any]:
+    """Name -> resource of every preset shipped inside the package (``rgbdslam/presets/*.yaml``)."""
+    root = importlib.resources.files("rgbdslam") / "presets"
+    return {e.name[:-5]: e for e in root.iterdir() if e.name.endswith(".yaml") and e.is_file()}
 
 
 @dataclass
 class DatasetConfig:
-    kind: Literal["auto", "tum", "put", "synthetic"] = "auto"
+    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag", "kitti", "euroc", "stereo"] = "auto"
     # TUM association (semantics of TUM's associate.py)
     max_difference: float = 0.02
     offset: float = 0.0
     associations: str | None = None  # optional existing associations file
-    # Camera: "auto" = camera.yaml in the folder, else freiburg1/2/3 from the folder name
-    # (TUM; ros_default otherwise) or kinect1 (PUT); else the named model
+    # Camera file (YAML: fx fy cx cy size distortion depth_scale, optional depth_camera and
+    # depth_to_color; `--camera FILE`); wins over everything below (docs/formats.md "Camera file")
+    camera_file: str | None = None
+    # Camera: "auto" = camera.yaml in the folder, else what the source says (bag CameraInfo,
+    # 7-Scenes/ETH3D calibration, freiburg1/2/3 in a TUM folder name, kinect1 for PUT), else
+    # ros_default with a warning; or the named model
     camera: Literal["auto", "fr1", "fr2", "fr3", "kinect1", "ros_default"] = "auto"
-    depth_scale: float | None = None  # raw units per metre; None = source default (TUM 5000, PUT 1000)
+    depth_scale: float | None = None  # raw units per metre; None = camera file, else source default (TUM 5000, PUT 1000)
     depth_correction: float = 1.0  # multiply metric depth (off = 1.0)
     first_frame: int = 0
     max_frames: int | None = None
     stride: int = 1
-    groundtruth: str | None = None  # PUT: ground-truth TUM file (default groundtruth.txt or the one *.tum)
+    groundtruth: str | None = None  # PUT: ground-truth TUM file (default groundtruth.txt or the one *.tum); bags: a TUM file
+    # ROS bags: topics (None = found automatically when unambiguous; the error lists the candidates)
+    rgb_topic: str | None = None
+    depth_topic: str | None = None
+    camera_info_topic: str | None = None
     prefetch: int = 4  # frames read ahead by a background thread during `run` (0 = read in the loop)
 
 
@@ -99,6 +113,11 @@ class RegistrationConfig:
     joint_refit: bool = False  # after fusion: one weighted SVD fit on the inliers of all kept references
     joint_gate: float = 0.02  # metres, pairs further from the fused pose are left out of the joint refit
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
+    # after fusion (frames with a depth noise model, i.e. stereo): Gauss-Newton refit on the kept inlier
+    # pairs weighted by their covariances (geometry.mahalanobis; docs/stereo.md)
+    noise_refit: bool = True
+    noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
+    noise_refit_huber: float = 3.0  # Huber threshold of the refit (Mahalanobis distance, sigmas)
     threads: int = 1
     constant_velocity: bool = True
     max_lost: int = 15  # consecutive lost frames before tracking restarts from the last pose (0 = never)
@@ -195,6 +214,10 @@ class MappingConfig:
     enabled: bool = True
     # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
     keyframes_only: bool = True
+    live: bool = True  # fuse keyframes while tracking (keyframes_only); false: fuse after the run
+    # a keyframe whose pose changed by less than this many voxels (at depth_max for a rotation)
+    # stays where the live map integrated it; larger: less re-integration, a map further from the final poses
+    live_tolerance: float = 0.25
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0
     undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing
@@ -226,6 +249,28 @@ class MappingConfig:
 
 
 @dataclass
+class StereoConfig:
+    """Depth from a rectified stereo pair (KITTI, EuRoC, stereo folders; docs/stereo.md)."""
+
+    depth: Literal["sparse", "sgbm"] = "sparse"  # tracking: row-matched ORB key points, or OpenCV SGBM
+    map_depth: Literal["same", "sparse", "sgbm"] = "sgbm"  # what `fuse` re-reads for the map ("same" = depth)
+    # disparity noise (pixels) each method implies: depth sigma = z^2 * sigma / (fx * baseline)
+    sigma_disparity_sparse: float = 0.5
+    sigma_disparity_sgbm: float = 0.5
+    max_disparity: int = 128  # search range (pixels); SGBM rounds it up to a multiple of 16
+    min_disparity: float = 0.5  # smaller disparities (farther than fx * B / this) give no depth
+    row_tolerance: float = 2.0  # sparse: |v_left - v_right| allowed for a match (pixels)
+    max_hamming: int = 50  # sparse: descriptor distance cap
+    ratio: float = 0.9  # sparse: best / second-best Hamming distance along the row band
+    right_features: int = 2  # sparse: ORB budget of the right image, times features.n_features (no grid)
+    patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
+    search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
+    sgbm_block_size: int = 5
+    sgbm_uniqueness: int = 10
+    sgbm_scale: float = 1.0  # SGBM on an image resized by this factor (0.5: ~4x faster, coarser)
+
+
+@dataclass
 class OutputConfig:
     rerun: bool = False  # stream to a spawned Rerun viewer (needs a display)
     rerun_save: str | None = None  # record to this .rrd file
@@ -245,6 +290,7 @@ class Config:
     loop: LoopConfig = field(default_factory=LoopConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict[str, Any]:
@@ -320,7 +366,7 @@ POSITIVE = {
     "registration.e_start", "registration.e_min", "registration.mp", "registration.alpha",
     "registration.reject_translation", "registration.reject_rotation", "registration.pregate",
     "registration.guided_gate", "registration.predicted_gate", "registration.joint_gate",
-    "registration.threads", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
+    "registration.threads", "registration.noise_refit_huber", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
     "depth_filter.max_depth",
     "keyframes.max_gap",
     "loop.sharpness_factor", "loop.sharpness_window", "loop.lsh_tables", "loop.lsh_bits", "loop.min_votes",
@@ -334,13 +380,17 @@ POSITIVE = {
     "mapping.grid_resolution", "mapping.floor_max_tilt_deg", "mapping.floor_distance",
     "mapping.floor_ransac_iterations", "mapping.floor_band", "mapping.obstacle_min_points",
     "output.rerun_image_width", "output.rerun_log_every",
+    "stereo.sigma_disparity_sparse", "stereo.sigma_disparity_sgbm", "stereo.max_disparity", "stereo.min_disparity",
+    "stereo.row_tolerance", "stereo.right_features", "stereo.patch_radius", "stereo.search_radius", "stereo.sgbm_block_size",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
     "features.edge_threshold": (1, 255), "matching.ratio": (0.0, 1.0), "matching.max_hamming": (0, 256),
     "registration.min_agreement": (0.0, 1.0), "registration.min_points": (3, 10**9),
     "registration.predicted_min_inliers": (3, 10**9), "loop.lsh_bits": (1, 64), "loop.min_inliers": (3, 10**9),
-    "mapping.floor_max_tilt_deg": (0.0, 90.0),
+    "mapping.floor_max_tilt_deg": (0.0, 90.0), "mapping.live_tolerance": (0.0, 10.0),
+    "stereo.ratio": (0.0, 1.0), "stereo.max_hamming": (0, 256), "stereo.sgbm_scale": (0.1, 1.0),
+    "stereo.max_disparity": (1, 1024), "stereo.sgbm_block_size": (1, 31),
     # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane (hi None: no upper bound)
     "mapping.voxel_size": (1e-3, None), "mapping.tsdf_voxel": (1e-3, None), "mapping.grid_resolution": (1e-3, None),
 }
@@ -420,16 +470,17 @@ def merge(cfg: Config, data: dict[str, Any] | None, source: str = "config") -> C
     return cfg
 
 
-def resolve_preset(name_or_path: str | Path) -> Path:
-    """A path to a YAML file, or the name of a preset in ``configs/`` (``tum_fr1``)."""
+def resolve_preset(name_or_path: str | Path):
+    """A path to a YAML file, or the name of a preset shipped in the package (``tum_fr1``);
+    returns the file (a Path or an ``importlib.resources`` Traversable)."""
     p = Path(name_or_path)
     if p.is_file():
         return p
-    cand = PRESET_DIR / f"{name_or_path}.yaml"
-    if cand.is_file():
-        return cand
-    presets = ", ".join(sorted(x.stem for x in PRESET_DIR.glob("*.yaml")))
-    raise ConfigError(f"config file {name_or_path} not found; give a YAML path or one of the presets: {presets}")
+    presets = preset_files()
+    if str(name_or_path) in presets:
+        return presets[str(name_or_path)]
+    names = ", ".join(sorted(presets)) or "(none: the package's presets are missing; reinstall rgbdslam)"
+    raise ConfigError(f"config file {name_or_path} not found; give a YAML path or one of the presets: {names}")
 
 
 class _DuplicateKey(Exception):

@@ -16,7 +16,7 @@ from typing import Any
 
 from rgbdslam.config import Config, save_config
 from rgbdslam.datasets import Sequence, open_sequence
-from rgbdslam.datasets.base import depth_warning
+from rgbdslam.stereo.depth import frame_warning
 from rgbdslam.errors import InputError, RgbdslamError, TrackingLost
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.trajectory import Trajectory
@@ -37,6 +37,7 @@ class Tracking:
     wall: float  # seconds
     load_time: float  # seconds spent waiting for frames
     interrupted: bool  # Ctrl-C
+    first_frame_s: float | None = None  # from the start of the process to the first frame tracked
 
 
 def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Config,
@@ -52,7 +53,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     from rgbdslam.ui import console
 
     check_settings(cfg)
-    seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
+    seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg)
     session = None
     if map_dir is not None:
         from rgbdslam.session.sessions import open_map
@@ -61,18 +62,27 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     elif localize:
         raise InputError("--localize needs --map RUN_DIR (the run whose map to localise in)")
     out_dir = prepare_run_folder(Path(out_dir), cfg, console)
+    announce_camera(seq, console)  # after the folder: a path that cannot be written stays one error line
     gt = seq.groundtruth()
     observer = make_observer(cfg, seq.camera, gt)
-    slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes")
+    if not seq.streaming and len(seq) == 0:  # a live stream's length is known when it ends
+        raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
+    # with --map the map is fused after the run (every session of a joined map, in the map's frame)
+    mapper = start_live_map(cfg, seq, out_dir) if session is None else None
+    slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes", mapper=mapper)
     if session is not None:
         session.attach(slam)
-    if len(seq) == 0:
-        raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
-    run = track_all(seq, slam, cfg, out_dir, progress, console)
-    if not slam.state.records or (len(slam.state.records) == 1 and run.frames > 1 and not run.interrupted):
-        fail(seq, slam, run, out_dir)  # raises
+    try:
+        run = track_all(seq, slam, cfg, out_dir, progress, console)
+        if not slam.state.records or (len(slam.state.records) == 1 and run.frames > 1 and not run.interrupted):
+            fail(seq, slam, run, out_dir)  # raises
+    except BaseException:
+        if mapper is not None:
+            mapper.abort()
+        raise
     final = slam.finish()
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
+    summary["first_frame_s"] = run.first_frame_s
     final = save_map_of_run(out_dir, slam, seq, cfg, session, summary, final, console)
     write_outputs(out_dir, slam, summary, final)
     post_process(summary, slam, final, gt, out_dir, cfg, run.interrupted, progress, console)
@@ -82,12 +92,35 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     return summary
 
 
+def announce_camera(seq: Sequence, console) -> None:
+    """Say which camera the run uses and where it came from; warn when it is only a guess."""
+    setup = getattr(seq, "camera_setup", None)
+    if setup is None:
+        console.print(f"camera {seq.camera.name or 'custom'}: fx {seq.camera.fx:g} fy {seq.camera.fy:g} "
+                      f"cx {seq.camera.cx:g} cy {seq.camera.cy:g}", highlight=False)
+        return
+    console.print(setup.describe(), highlight=False)
+    if (warning := setup.fallback_warning()) is not None:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False)
+
+
 def check_settings(cfg: Config) -> None:
     """Settings a later stage would refuse: say so before the run, not after it."""
     if cfg.mapping.enabled:
-        from rgbdslam.mapping.fusion import validate_mapping
+        from rgbdslam.config import validate_section
 
-        validate_mapping(cfg.mapping)
+        validate_section("mapping", cfg.mapping)
+
+
+def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
+    """The map fused while tracking (:mod:`rgbdslam.mapping.live`) when the map is made of the
+    keyframes and ``mapping.live``; None otherwise (the map is fused after the run)."""
+    m = cfg.mapping
+    if not (m.enabled and m.live and m.keyframes_only) or getattr(seq, "streaming", False):
+        return None  # a stream's frames cannot be read again for re-integration
+    from rgbdslam.mapping.live import LiveMap
+
+    return LiveMap(m, seq.camera, str(seq.root), cfg.dataset, str(out_dir / "keyframes"))
 
 
 def prepare_run_folder(out_dir: Path, cfg: Config, console) -> Path:
@@ -134,11 +167,12 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     st = slam.state
     interrupted = False
     load_time = 0.0
+    first_frame_s = None
     t_start = time.perf_counter()
     # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
     frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg.features))
     try:
-        with frame_progress(len(seq), f"SLAM {seq.name}", enabled=progress) as advance:
+        with frame_progress(None if seq.streaming else len(seq), f"SLAM {seq.name}", enabled=progress) as advance:
             for i, pending in frames:
                 t0 = time.perf_counter()
                 try:
@@ -148,9 +182,11 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
                     advance()
                     continue
                 load_time += time.perf_counter() - t0
-                if not st.records and not st.lost and (warning := depth_warning(frame)):
+                if not st.records and not st.lost and (warning := frame_warning(frame)):
                     console.print(f"[yellow]warning:[/] {warning}")  # once, on the first readable frame
                 slam.track(frame)
+                if first_frame_s is None:
+                    first_frame_s = seconds_since_process_start()
                 advance(f"{len(st.loops)} loops, {len(st.lost)} lost" + (f", {len(st.restarts)} restarts"
                                                                       if st.restarts else ""))
                 if (i + 1) % FLUSH_EVERY == 0 and st.records:
@@ -160,7 +196,22 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     finally:
         frames.close()  # stops the reader thread
     return Tracking(len(st.records) + len(st.lost) + len(st.skipped), time.perf_counter() - t_start, load_time,
-                    interrupted)
+                    interrupted, first_frame_s)
+
+
+def seconds_since_process_start() -> float | None:
+    """Wall time since this process started (Linux /proc; None elsewhere): what a user waits
+    from pressing Enter, imports included."""
+    try:
+        with open("/proc/self/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # start time, clock ticks after boot
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    import os
+
+    return uptime - ticks / os.sysconf("SC_CLK_TCK")
 
 
 def _skip(st, index: int, error: InputError, console) -> None:
@@ -178,7 +229,7 @@ def fail(seq: Sequence, slam: SLAM, run: Tracking, out_dir: Path) -> None:
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
     if not run.interrupted:
         summary["status"] = "failed"
-        for name in ("trajectory.tum", "odometry.tum"):  # a 50-frame flush of this run: not a result
+        for name in ("trajectory.tum", "odometry.tum", "poses.txt"):  # a 50-frame flush of this run: not a result
             (out_dir / name).unlink(missing_ok=True)
     write_summary(out_dir, summary)
     slam.observer.abort()  # nothing worth recording: an earlier .rrd at that path stays
@@ -197,6 +248,16 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
     """Evaluation against the ground truth, the trajectories for the observer, the map; each
     adds to run.json and none of them fails a finished run."""
     observer = slam.observer
+    live = None
+    if slam.mapper is not None:
+        if cfg.mapping.enabled and not interrupted and slam.state.keyframes:
+            import concurrent.futures
+
+            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="map")
+            live = pool.submit(finish_live_map, slam, summary, final, out_dir, cfg)  # overlaps the evaluation
+            pool.shutdown(wait=False)
+        else:
+            slam.mapper.abort()
     if gt is not None and len(final) > 1:
         summary["evaluation"] = evaluate(gt, final, out_dir, cfg, console)
         write_summary(out_dir, summary)
@@ -204,7 +265,10 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
     if gt is not None:
         observer.log_trajectory("groundtruth", gt)
     if cfg.mapping.enabled and not interrupted:
-        summary["map"] = fuse_map(out_dir, cfg, observer, progress, console)
+        if live is not None:
+            summary["map"] = _map_summary(live, observer, console)
+        else:
+            summary["map"] = fuse_map(out_dir, cfg, observer, progress, console)
         write_summary(out_dir, summary)
     observer.close()
 
@@ -232,6 +296,36 @@ def fuse_map(out_dir: Path, cfg: Config, observer, progress: bool, console) -> d
     if getattr(fused, "cloud_points", None) is not None:
         observer.log_map(fused.cloud_points, fused.cloud_colors)
     return fused.summary()
+
+
+def finish_live_map(slam: SLAM, summary: dict[str, Any], final: Trajectory, out_dir: Path, cfg: Config):
+    """The live map brought to the final keyframe poses (keyframes of tracking segments that no
+    loop linked to the map left out, as ``rgbdslam fuse`` does) and written to ``out_dir/map``."""
+    t0 = time.perf_counter()
+    st = slam.state
+    poses = {r.index: final.poses[k] for k, r in enumerate(st.records) if r.index == r.keyframe}
+    off = [g for g in summary.get("segments") or [] if not g.get("map", True)]
+    keep = {i for i in poses if not any(g["first"] <= i <= g["last"] for g in off)}
+    res = slam.mapper.finish(poses, keep, out_dir / "map", final, summary["sequence"], slam.depth_filter is not None)
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
+def _map_summary(job, observer, console) -> dict[str, Any]:
+    try:
+        fused = job.result()
+    except RgbdslamError as e:  # like evaluation, the map never stops a finished run
+        console.print(f"[yellow]warning:[/] no map: {e}")
+        return {}
+    except Exception as e:  # noqa: BLE001 - the map process failed unexpectedly: the run's outputs stand
+        console.print(f"[yellow]warning:[/] no map: the map process failed ({e}); "
+                      f"`rgbdslam fuse RUN_DIR` fuses it again")
+        return {}
+    if getattr(fused, "cloud_points", None) is not None:
+        observer.log_map(fused.cloud_points, fused.cloud_colors)
+    out = fused.summary()
+    out["live"] = True
+    return out
 
 
 def run_demo(out_dir: str | Path, frames: int, cfg: Config) -> dict[str, Any]:

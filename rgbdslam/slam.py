@@ -59,9 +59,11 @@ class SlamState:
 class SLAM:
     """The stages built from a typed config; :meth:`track` takes one frame through them."""
 
-    def __init__(self, cfg: Config, camera: Camera, observer=None, keyframe_dir: Path | None = None):
+    def __init__(self, cfg: Config, camera: Camera, observer=None, keyframe_dir: Path | None = None,
+                 mapper=None):
         self.observer = observer if observer is not None else NullObserver()
         self.keyframe_dir = keyframe_dir
+        self.mapper = mapper  # rgbdslam.mapping.live.LiveMap: keyframes fused while tracking
         register = build_pair_registration(cfg)  # matching + the registration strategy, shared with loop closure
         self.frontend = build_frontend(cfg, camera, register)
         self.keyframe_policy = KeyframePolicy(cfg.keyframes)
@@ -161,6 +163,8 @@ class SLAM:
             self.graph.add_loop(e)
             self.state.loops.append((int(e.i), int(e.j)))
             self.observer.log_loop(e.i, e.j, self._pose_of(e.i), pose)
+        if self.mapper is not None:  # the loop moved the keyframes: their submaps are fused again
+            self.mapper.update_poses(self.graph.estimate())
         self.state.add_time("pose_graph", time.perf_counter() - t0)
 
     def _pose_of(self, index: int) -> np.ndarray | None:
@@ -181,6 +185,10 @@ class SLAM:
             self.loop.add_keyframe(result.features, pose)
         if self.keyframe_dir is not None and self.depth_filter is not None:
             _write_depth_png(self.keyframe_dir / f"depth_{frame.index:06d}.png", depth)
+        if self.mapper is not None:  # at the pose graph's current estimate, with the depth the PNG holds
+            map_depth = _png_depth(depth) if self.depth_filter is not None else frame.depth
+            self.mapper.add(frame.index, frame.rgb, map_depth,
+                            self.graph.correction() @ pose if self.graph is not None else pose)
 
     def _keyframe_information(self) -> np.ndarray:
         """Information of the chained relative pose between two keyframes.
@@ -218,6 +226,11 @@ class SLAM:
             else:
                 poses.append(r.pose)
         return Trajectory(odo.timestamps, np.array(poses).reshape(-1, 4, 4))
+
+
+def _png_depth(depth: np.ndarray, scale: float = 5000.0) -> np.ndarray:
+    """``depth`` as written to and read back from a keyframe depth PNG (1/scale m steps)."""
+    return np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16).astype(np.float32) / scale
 
 
 def _write_depth_png(path: Path, depth: np.ndarray, scale: float = 5000.0) -> None:

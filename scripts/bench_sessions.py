@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 
 DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
-REPO = Path(__file__).resolve().parents[1]
 
 
 # ----------------------------------------------------------------------------- sequences
@@ -169,7 +168,7 @@ def case(name: str, work: Path) -> dict:
     tum = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
     if name == "fr1_rpy":
         full = s1 = s2 = tum
-        config, n1 = str(REPO / "configs" / "tum_fr1.yaml"), 100
+        config, n1 = "tum_fr1", 100
         o_full, o1, o2 = [], [f"dataset.max_frames={n1}"], [f"dataset.first_frame={n1}"]
     elif name == "redkitchen":
         full = s1 = s2 = redkitchen_as_tum(work)

@@ -12,6 +12,9 @@ DATA = Path(os.environ.get("RGBDSLAM_DATA", REPO.parent / "shared" / "data"))
 TUM_DESK9 = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
 TUM_RPY200 = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 POSEGRAPH = DATA / "posegraph"
+# the library has no default data folder of its own (an installed package has no repository
+# beside it): the tests' library calls and subprocesses find it through the variable
+os.environ.setdefault("RGBDSLAM_DATA", str(DATA))
 
 
 _CURRENT_TEST: list = []  # the running test item (see _current_test)

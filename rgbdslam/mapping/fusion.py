@@ -29,11 +29,10 @@ from typing import Any
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from rgbdslam.config import Config, MappingConfig, load_config, validate_section
 from rgbdslam.datasets import open_sequence
-from rgbdslam.datasets.base import Sequence
+from rgbdslam.datasets.base import Sequence, as_rgb
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
@@ -233,6 +232,7 @@ class _Tsdf:
     wheel returned empty meshes for every input tried here, so it is not offered."""
 
     def __init__(self, cfg: MappingConfig, camera: Camera):
+        import open3d as o3d
         import open3d.core as o3c
 
         self.cfg = cfg
@@ -249,6 +249,8 @@ class _Tsdf:
         self.intr = o3c.Tensor(camera.K, o3c.float64)
 
     def integrate(self, rgb: np.ndarray, depth: np.ndarray, pose_c2w: np.ndarray) -> None:
+        import open3d as o3d
+
         o3c = self.o3c
         units = np.round(depth * DEPTH_PNG_SCALE).astype(np.uint16)  # the uint16/uint8 kernel is the lean one
         d = o3d.t.geometry.Image(o3c.Tensor(units))
@@ -258,7 +260,9 @@ class _Tsdf:
         self.vol.integrate(blocks, d, c, self.intr, ext, DEPTH_PNG_SCALE, self.cfg.depth_max,
                            self.cfg.sdf_trunc / self.cfg.tsdf_voxel)
 
-    def mesh(self, min_frames: int) -> o3d.geometry.TriangleMesh:
+    def mesh(self, min_frames: int):
+        import open3d as o3d
+
         # the weight counts the frames that saw a voxel; Open3D keeps voxels with weight > threshold
         mesh = self.vol.extract_triangle_mesh(weight_threshold=min_frames - 0.5).to_legacy()
         if mesh.has_vertex_colors():
@@ -267,6 +271,8 @@ class _Tsdf:
 
 
 def _write_ply(path: Path, geom, mesh: bool) -> None:
+    import open3d as o3d
+
     with atomic_path(path) as tmp:
         ok = (o3d.io.write_triangle_mesh if mesh else o3d.io.write_point_cloud)(str(tmp), geom, write_ascii=False)
         if not ok:
@@ -336,11 +342,22 @@ def fuse(
             f"no frame of {sequence.root} to fuse has a pose in the trajectory; check that the trajectory's "
             f"time stamps are the sequence's colour stamps"
         )
+    res = staged(out_dir, lambda stage: _fuse_into(stage, sequence, trajectory, todo, cfg, depth_dir, progress,
+                                                   console, frame_progress))
+    res.seconds = time.perf_counter() - t_start
+    res.peak_rss_mb = _peak_rss_mb()
+    res.rss_growth_mb = max(_peak_rss_mb() - rss0, 0.0)
+    return res
+
+
+def staged(out_dir: Path, work) -> FuseResult:
+    """Run ``work(stage)`` writing into a temporary folder inside ``out_dir``, then move its files
+    into place (:func:`_commit`); a failure or Ctrl-C part-way leaves the earlier map as it was."""
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=".fusing-", dir=out_dir))
     try:
-        res = _fuse_into(stage, sequence, trajectory, todo, cfg, depth_dir, progress, console, frame_progress)
+        res = work(stage)
         _commit(stage, out_dir)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
@@ -352,10 +369,30 @@ def fuse(
     for attr in ("cloud_path", "mesh_path", "map2d_path"):
         if getattr(res, attr) is not None:
             setattr(res, attr, out_dir / getattr(res, attr).name)
-    res.seconds = time.perf_counter() - t_start
-    res.peak_rss_mb = _peak_rss_mb()
-    res.rss_growth_mb = max(_peak_rss_mb() - rss0, 0.0)
     return res
+
+
+def prepare_frame(rgb: np.ndarray, depth: np.ndarray, undistort, cfg: MappingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Colour and depth as fused: undistorted (a grey camera's image as grey colour), depth outside
+    [depth_min, depth_max] set to 0."""
+    rgb, depth = undistort(as_rgb(rgb), depth.astype(np.float32, copy=False))
+    depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0).astype(np.float32)
+    return rgb, depth
+
+
+def integrate_frame(tsdf, acc: VoxelCloud, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray, camera: Camera,
+                    cfg: MappingConfig, timings: dict[str, float] | None = None) -> None:
+    """One prepared frame into the TSDF (if any) and the voxel cloud, at camera-to-world ``pose``."""
+    t1 = time.perf_counter()
+    if tsdf is not None and depth.any():  # Open3D aborts on a frame that touches no block
+        tsdf.integrate(rgb, depth, pose)
+    t2 = time.perf_counter()
+    pts, flat = backproject_image(depth, camera, cfg.cloud_pixel_stride)
+    pts_w = pts @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
+    acc.add(pts_w, rgb.reshape(-1, 3)[flat])
+    if timings is not None:
+        timings["tsdf"] = timings.get("tsdf", 0.0) + t2 - t1
+        timings["cloud"] = timings.get("cloud", 0.0) + time.perf_counter() - t2
 
 
 def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: list[tuple[int, int]],
@@ -375,24 +412,24 @@ def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: li
             depth = frame.depth
             if depth_dir is not None and (depth_dir / f"depth_{i:06d}.png").is_file():
                 depth = read_depth_png(depth_dir / f"depth_{i:06d}.png")
-            rgb, depth = undistort(frame.rgb, depth.astype(np.float32, copy=False))
-            depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0).astype(np.float32)
+            rgb, depth = prepare_frame(frame.rgb, depth, undistort, cfg)
             n_depth += int(np.count_nonzero(depth))
-            pose = trajectory.poses[r]
-            t1 = time.perf_counter()
-            timings["load"] += t1 - t0
-            if tsdf is not None and depth.any():  # Open3D aborts on a frame that touches no block
-                tsdf.integrate(rgb, depth, pose)
-            t2 = time.perf_counter()
-            timings["tsdf"] += t2 - t1
-            pts, flat = backproject_image(depth, camera, cfg.cloud_pixel_stride)
-            pts_w = pts @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
-            acc.add(pts_w, rgb.reshape(-1, 3)[flat])
-            timings["cloud"] += time.perf_counter() - t2
+            timings["load"] += time.perf_counter() - t0
+            integrate_frame(tsdf, acc, rgb, depth, trajectory.poses[r], camera, cfg, timings)
             fused.append(i)
             advance()
+    return write_map(stage, acc, tsdf, fused, n_depth, cfg, trajectory, sequence, timings, console,
+                     depth_dir is not None)
+
+
+def write_map(stage: Path, acc: VoxelCloud, tsdf, fused: list[int], n_depth: int, cfg: MappingConfig,
+              trajectory: Trajectory, sequence: Sequence, timings: dict[str, float], console,
+              filtered_depth: bool) -> FuseResult:
+    """The fused cloud (outliers removed) and mesh as PLY, and the 2-D map, into ``stage``."""
+    import open3d as o3d
+
     if n_depth == 0:
-        used = " (the run's filtered keyframe depth where present)" if depth_dir is not None else ""
+        used = " (the run's filtered keyframe depth where present)" if filtered_depth else ""
         raise InputError(
             f"the map would be empty: no depth of the {len(fused)} frame{'s' if len(fused) != 1 else ''} to fuse{used} lies between "
             f"mapping.depth_min={cfg.depth_min:g} and mapping.depth_max={cfg.depth_max:g} m; widen that range "
@@ -421,7 +458,7 @@ def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: li
         points, colors = points[keep], colors[keep]
     cloud_path = stage / "cloud.ply"
     _write_ply(cloud_path, cloud, mesh=False)
-    timings["cloud"] += time.perf_counter() - t0
+    timings["cloud"] = timings.get("cloud", 0.0) + time.perf_counter() - t0
 
     mesh_path, n_vert, n_tri = None, 0, 0
     if tsdf is not None:
@@ -560,11 +597,11 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     if len((info.get("map_file") or {}).get("session_trajectories") or []) > 1:  # a map joined over sessions
         from rgbdslam.session.fusion import joined_source
 
-        seq, traj, frames, per_session = joined_source(run_dir, cfg.keyframes_only)
+        seq, traj, frames, per_session = joined_source(run_dir, cfg.keyframes_only, run_cfg)
         res = fuse(seq, traj, frames, cfg, run_dir / "map", None, progress)  # raw depth: keyframes/ is per run
         res.sessions = per_session
         return res
-    seq = open_sequence(info["sequence"], run_cfg.dataset)
+    seq = open_sequence(info["sequence"], run_cfg, purpose="map")
     check_run_frames(run_dir, info, len(seq))
     rows = match_frames(np.asarray(seq.timestamps), traj)
     tracked = np.flatnonzero(rows >= 0)

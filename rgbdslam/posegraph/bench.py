@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import csv
 import io
-import multiprocessing as mp
 import os
 import platform
 import time
@@ -94,10 +93,11 @@ class RunRecord:
 
 
 def default_data_dir() -> Path:
+    """``$RGBDSLAM_DATA`` (the development data folder); an installed package has no other default."""
     env = os.environ.get("RGBDSLAM_DATA")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data"
+    raise InputError("no data folder: pass --data FOLDER (the one holding posegraph/) or set RGBDSLAM_DATA")
 
 
 def parse_noise(text: str) -> list[tuple[float, float, float]]:
@@ -220,11 +220,11 @@ def noisy_instance(ref: PoseGraphData, sigma, rng: np.random.Generator) -> PoseG
 
 # ------------------------------------------------------------------------------ running it
 
-_WORKER: dict = {}
-
-
-def _worker_init(dataset, data_dir, ref, gt):
-    _WORKER.update(dataset=dataset, ref=ref, gt=gt)
+def _engine_task(shared, *args):
+    """One instance on an engine's worker; ``shared`` = (dataset, reference graph, ground truth), sent once."""
+    dataset, ref, gt = shared
+    sigma, level, instance, seed, methods, max_iter, tol, optimizer = args
+    return run_instance(ref, gt, dataset, sigma, level, instance, seed, methods, max_iter, tol, optimizer)
 
 
 def run_instance(ref: PoseGraphData, gt: np.ndarray, dataset: str, sigma, level: int, instance: int, seed: int,
@@ -282,19 +282,16 @@ def first_convergence(history: list[float], tol: float, criterion: str) -> tuple
     return False, len(history) - 1, history[-1]
 
 
-def _task(args):
-    sigma, level, instance, seed, methods, max_iter, tol, optimizer = args
-    return run_instance(_WORKER["ref"], _WORKER["gt"], _WORKER["dataset"], sigma, level, instance, seed,
-                        methods, max_iter, tol, optimizer)
-
-
 def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int = 50, workers: int = 1,
                   seed: int = 0, out_dir: str | Path | None = None, data_dir: str | Path | None = None,
                   methods=BENCH_METHODS, tol: float = 1e-6, criterion: str = "relative",
                   progress: bool = True, reference: tuple[PoseGraphData, np.ndarray, str] | None = None,
-                  first_instance: int = 0, optimizer: str = "gtsam") -> dict:
+                  first_instance: int = 0, optimizer: str = "gtsam", engine: str = "local",
+                  address: str | None = None) -> dict:
     """Run the protocol (GN: ``optimizer`` ``"gtsam"`` or ``"g2o"``, see :mod:`rgbdslam.posegraph.gn2d`); write ``runs.csv``, ``table1.csv``, ``table2.csv``, ``report.md`` into ``out_dir``.
 
+    The instances run on ``engine`` (:mod:`rgbdslam.engine`: ``local`` processes, or ``ray`` with
+    ``workers`` CPUs or the cluster at ``address``); the graph travels to each worker once.
     Instances ``first_instance .. first_instance + instances - 1`` are run (so a later call can add
     instances; merge the runs.csv files with :func:`merge_runs`).
     ``reference`` = ``(noise-free graph, ground-truth poses, note)`` replaces the dataset's files
@@ -338,20 +335,13 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
             TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*cols, disable=not progress, transient=False) as bar:
         job = bar.add_task("instances", total=len(tasks))
-        if workers == 1:
-            _worker_init(dataset, data_dir, ref, gt)
-            try:
-                for t in tasks:
-                    records.extend(_task(t))
-                    bar.advance(job)
-            finally:
-                _WORKER.clear()
-        else:
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-            with ctx.Pool(workers, initializer=_worker_init, initargs=(dataset, data_dir, ref, gt)) as pool:
-                for recs in pool.imap_unordered(_task, tasks):
-                    records.extend(recs)
-                    bar.advance(job)
+        from rgbdslam.engine import build_engine
+
+        with build_engine(engine, workers, address) as eng:
+            engine_text = eng.describe()
+            for _, recs in eng.map(_engine_task, tasks, shared=(dataset, ref, gt)):
+                records.extend(recs)
+                bar.advance(job)
     records.sort(key=lambda r: (level_index((r.sigma_x, r.sigma_y, r.sigma_theta)), r.sigma_x, r.sigma_theta,
                                 r.instance, methods.index(r.method)))
     wall = time.perf_counter() - t_start
@@ -359,7 +349,7 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
               + (f" (instances {first_instance}..{first_instance + instances - 1})" if first_instance else "")
               + f"; max {max_iter} GN ({optimizer}) "
               f"iterations; converged when {_crit_text(criterion, tol)}; seed {seed}; "
-              f"{workers} worker(s); wall time {wall:.0f} s; machine: {platform.processor() or platform.machine()}, "
+              f"engine {engine_text}; wall time {wall:.0f} s; machine: {platform.processor() or platform.machine()}, "
               f"{os.cpu_count()} CPUs, Python {platform.python_version()}\n\n{note}.\n")
     report = header + "\n" + format_report(records, dataset, methods, criterion, tol)
     if out_dir is not None:
@@ -602,7 +592,7 @@ def write_outputs(out_dir: Path, records, dataset, methods, report: str, criteri
 def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int = 50, workers: int = 1, seed: int = 0,
                   criterion: str = "relative", methods: str = ",".join(BENCH_METHODS), out_dir=None, data_dir=None,
                   progress: bool = True, timing_only: bool = False, merge: tuple = (), first_instance: int = 0,
-                  optimizer: str = "gtsam") -> str:
+                  optimizer: str = "gtsam", engine: str = "local", address: str | None = None) -> str:
     """CLI entry: parse the option strings, run :func:`run_benchmark` (or only
     :func:`time_initialisers`, or only :func:`merge_runs`), return the markdown report."""
     if merge:
@@ -618,7 +608,7 @@ def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int =
             raise InputError("--timing-only times initial guesses and ground_truth is none; add a method to --methods")
         return time_initialisers(dataset, levels, seed=seed, data_dir=data_dir, methods=timed)
     res = run_benchmark(dataset, levels, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
-                        first_instance=first_instance, optimizer=optimizer,
+                        first_instance=first_instance, optimizer=optimizer, engine=engine, address=address,
                         out_dir=out_dir, data_dir=data_dir, methods=mlist, criterion=criterion, progress=progress)
     return res["report"] + (f"\nwritten to {out_dir}/ (runs.csv, table1.csv, table2.csv, report.md)" if out_dir else "")
 

@@ -12,11 +12,12 @@ per run folder).
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.config import DatasetConfig
+from rgbdslam.config import Config, DatasetConfig
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
@@ -47,25 +48,28 @@ class SessionsSequence(Sequence):
         return frame
 
 
-def open_sessions(data: MapData) -> SessionsSequence:
+def open_sessions(data: MapData, cfg: Config | None = None) -> SessionsSequence:
+    """Every session's sequence, read as it was (its own ``dataset`` settings; the rest of ``cfg``)."""
     seqs = []
     for s in data.sessions:
         try:
             dc = DatasetConfig(**(s.get("dataset") or {}))
         except TypeError as e:
             raise InputError(f"the map's session {s.get('session')} has an unreadable dataset entry ({e})") from None
-        seqs.append(open_sequence(s["sequence"], dc))
+        full = copy.deepcopy(cfg) if cfg is not None else Config()
+        full.dataset = dc
+        seqs.append(open_sequence(s["sequence"], full, purpose="map"))
     return SessionsSequence(seqs)
 
 
-def joined_source(run_dir: str | Path, keyframes_only: bool, data: MapData | None = None
+def joined_source(run_dir: str | Path, keyframes_only: bool, cfg: Config | None = None, data: MapData | None = None
                   ) -> tuple[SessionsSequence, Trajectory, list[int], dict[int, int]]:
     """What :func:`rgbdslam.mapping.fusion.fuse` needs to fuse every session of ``run_dir``'s
     joined map: the sessions as one sequence, every frame's map pose, the frames to fuse
     (keyframes when ``keyframes_only``) and how many of them each session gives."""
     run_dir = Path(run_dir)
     data = data or load_map(run_dir / "map.npz")
-    seq = open_sessions(data)
+    seq = open_sessions(data, cfg)
     a = data.arrays
     main = a["kf_segment"] == 0  # the main component: sessions that never relocalised stay out
     stamps, poses, frames, per_session = [], [], [], {}

@@ -223,7 +223,7 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=10)
     ap.add_argument("--compare", default=None, help="runs.csv of rgbdslam posegraph bench --optimizer g2o")
     ap.add_argument("--record", type=Path, default=None, help="write the test suite's g2o reference file")
-    ap.add_argument("--data", default=None)
+    ap.add_argument("--data", default=os.environ.get("RGBDSLAM_DATA", str(Path(__file__).resolve().parents[3] / "shared" / "data")))
     a = ap.parse_args(argv)
     try:
         return record(a.record) if a.record else protocol(a)

@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--methods", default="masat,weighted_masat,chordal,ground_truth")
     ap.add_argument("--out", type=Path, default=None, help="folder for runs.csv and report.md")
-    ap.add_argument("--data", default=None)
+    ap.add_argument("--data", default=os.environ.get("RGBDSLAM_DATA", str(Path(__file__).resolve().parents[3] / "shared" / "data")))
     a = ap.parse_args(argv)
     try:
         (sigma,) = pb.parse_noise(a.noise)

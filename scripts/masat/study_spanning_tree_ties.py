@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     ap.add_argument("--optimizer", default="g2o", choices=("gtsam", "g2o", "lm"))
     ap.add_argument("--ties", default="index,edge_order,r0,r1")
     ap.add_argument("--out", type=Path, default=None, help="folder for runs.csv and report.md")
-    ap.add_argument("--data", default=None)
+    ap.add_argument("--data", default=os.environ.get("RGBDSLAM_DATA", str(Path(__file__).resolve().parents[3] / "shared" / "data")))
     a = ap.parse_args(argv)
     try:
         (sigma,) = pb.parse_noise(a.noise)

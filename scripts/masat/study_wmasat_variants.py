@@ -42,6 +42,7 @@ import platform
 import shlex
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -253,7 +254,7 @@ def main(argv=None) -> int:
         ap.error(f"unknown variant(s) {bad}; use {', '.join(VARIANTS)}")
     sigma = pb.parse_noise(a.noise)[0]
     t0 = time.perf_counter()
-    ref, gt, _ = pb.reference_graph(a.dataset)
+    ref, gt, _ = pb.reference_graph(a.dataset, os.environ.get("RGBDSLAM_DATA", str(Path(__file__).resolve().parents[3] / "shared" / "data")))
     _STATE.update(ref=ref, gt=gt)
     tasks = [(a.dataset, tuple(sigma), k, a.seed, tuple(variants), not a.no_gn) for k in range(a.instances)]
     res = {}

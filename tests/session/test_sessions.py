@@ -18,15 +18,15 @@ from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.io.trajectory import Trajectory, read_tum
 from rgbdslam.pipeline import run_sequence
 from rgbdslam.session.mapfile import VERSION, MapFileError, load_map, read_header
-from tests.conftest import REPO, TUM_RPY200, assert_cli_error, cli, need
+from tests.conftest import TUM_RPY200, assert_cli_error, cli, need
 from tests.viz.test_rerun_log import entity_paths
 
 pytestmark = pytest.mark.data  # fr1/rpy frames
-FR1 = ["--config", REPO / "configs" / "tum_fr1.yaml"]
+FR1 = ["--config", "tum_fr1"]
 
 
 def _cfg(*extra):
-    return load_config(REPO / "configs" / "tum_fr1.yaml", ["mapping.enabled=false", "output.plots=false", *extra])
+    return load_config("tum_fr1", ["mapping.enabled=false", "output.plots=false", *extra])
 
 
 def _digest(folder: Path) -> dict[str, str]:

@@ -1,0 +1,93 @@
+"""The Ray engine (optional extra ``rgbdslam[distributed]``): jobs as Ray tasks.
+
+Without ``address`` a local Ray cluster with ``workers`` CPUs is started for the command and
+stopped after it; with ``address`` (``auto``, ``HOST:6379`` or ``ray://HOST:10001``) the jobs
+go to that running cluster. When Ray is already initialised in this process (a test, a notebook)
+that session is used and left running.
+
+What travels: the job's arguments and the ``shared`` object (put once into Ray's object store),
+and the results, which come back to the driver. What does not: files. Sequences, data folders
+and output folders are read and written by the workers at the paths the driver gives, so on a
+cluster of several machines they must be on storage every node mounts at the same path, and
+rgbdslam must be installed on every node (the same version).
+
+Ray re-runs a task whose worker process died (``max_retries``); an exception raised by the
+job itself is not retried and is raised again here with its own type.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Iterable, Iterator
+
+from rgbdslam.engine.base import DEFAULT_RETRIES, Engine, EngineError
+from rgbdslam.errors import InputError
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise InputError("--engine ray needs Ray: pip install 'rgbdslam[distributed]' (or pip install ray)") from None
+    return ray
+
+
+def _call(fn: Callable, shared: Any, args: tuple) -> Any:
+    return fn(shared, *args) if shared is not None else fn(*args)
+
+
+class RayEngine(Engine):
+    name = "ray"
+
+    def __init__(self, workers: int = 1, address: str | None = None, retries: int = DEFAULT_RETRIES):
+        ray = _import_ray()
+        self.ray = ray
+        self.workers = workers
+        self.retries = retries
+        self.address = address
+        self._owner = False
+        if not ray.is_initialized():
+            kw = dict(include_dashboard=False, log_to_driver=False, logging_level="ERROR",
+                      configure_logging=True)
+            try:
+                if address is None:
+                    ray.init(num_cpus=workers, **kw)
+                else:
+                    ray.init(address=address, **kw)
+            except ConnectionError as e:
+                raise EngineError(f"no Ray cluster at {address}: {e}; start one with `ray start --head` "
+                                  f"or leave out --address for a local cluster") from None
+            self._owner = True
+        self._remote = ray.remote(num_cpus=1, max_retries=retries)(_call)
+        self.workers = int(ray.cluster_resources().get("CPU", workers))
+
+    def describe(self) -> str:
+        where = self.address or "local cluster"
+        return f"ray ({where}), {self.workers} CPU(s)"
+
+    def map(self, fn: Callable, jobs: Iterable[tuple], shared: Any = None) -> Iterator[tuple[int, Any]]:
+        ray = self.ray
+        shared_ref = ray.put(shared) if shared is not None else None
+        refs = {self._remote.remote(fn, shared_ref, tuple(args)): k for k, args in enumerate(jobs)}
+        pending = list(refs)
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    try:
+                        result = ray.get(ref)
+                    except ray.exceptions.RayTaskError as e:  # the job's own exception, as it was raised
+                        cause = getattr(e, "cause", None)
+                        raise (cause if isinstance(cause, Exception) else e.as_instanceof_cause()) from None
+                    except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError,
+                            ray.exceptions.OutOfMemoryError) as e:
+                        raise EngineError(f"job {refs[ref]} was lost with its worker {self.retries + 1} times "
+                                          f"({type(e).__name__}); giving up") from None
+                    yield refs[ref], result
+        finally:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+
+    def close(self) -> None:
+        if self._owner and self.ray.is_initialized():
+            self.ray.shutdown()
+        self._owner = False

@@ -1,0 +1,336 @@
+"""Fusion while tracking: keyframes go into the map in a background thread as they are made.
+
+One TSDF volume and one voxel cloud hold the map, each keyframe integrated at the pose the pose
+graph gave it when it was made. Both are sums over frames — the cloud per voxel the sum of
+positions, colours and the point count; a TSDF voxel the weighted mean of the frames' signed
+distances with the number of frames as weight — so a frame can be taken out again exactly:
+when poses change (after a loop closure, iSAM2; at the end, the final batch optimisation and
+the tracking segments left out of the map), the keyframes that moved more than a quarter of a
+voxel are *de-integrated* (their images integrated into a scratch volume at the old pose and
+subtracted) and integrated at the new pose. When more than half of the keyframes moved, the map
+is rebuilt instead (one integration per keyframe instead of two). So the map at the end is the
+one fusing the final poses gives, up to the quarter-voxel tolerance and float rounding
+(docs/mapping.md, "Fusion while tracking", has the measured difference), and memory is that of
+one map, not of one volume per keyframe.
+
+All the work happens in one worker thread; the tracking thread only enqueues. Pose updates are
+coalesced: when several are waiting, only the newest is applied. A keyframe's images are held
+until they are integrated; re-integration reads them again (``load``). An error in the thread
+is raised by :meth:`LiveMap.finish`.
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+from typing import Callable
+
+import numpy as np
+
+from rgbdslam.config import MappingConfig
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv, rotation_angle
+
+REBUILD_FRACTION = 0.5  # more keyframes than this moved: rebuild the map instead of de-/re-integrating
+
+
+def moved(a: np.ndarray, b: np.ndarray, tol_m: float, tol_rad: float) -> bool:
+    rel = inv(a) @ b
+    return bool(np.linalg.norm(rel[:3, 3]) > tol_m or rotation_angle(rel[:3, :3]) > tol_rad)
+
+
+class MapState:
+    """The map as keyframes are added and moved (see the module doc); synchronous — it runs in
+    the map process (:class:`LiveMap`) or wherever it is called.
+
+    ``load(index) -> (rgb, depth)`` gives a keyframe's images again: the colour of the sequence
+    and the depth the map uses (the run's filtered keyframe depth)."""
+
+    def __init__(self, cfg: MappingConfig, camera: Camera, load: Callable[[int], tuple[np.ndarray, np.ndarray]]):
+        from rgbdslam.mapping.fusion import _Undistorter
+
+        self.cfg = cfg
+        self.camera = camera
+        self.load = load
+        self.undistort = _Undistorter(camera, cfg.undistort)
+        # live_tolerance voxels (a quarter by default): the translation, and the rotation that moves a
+        # point at depth_max that far
+        self.tol_m = min(cfg.voxel_size, cfg.tsdf_voxel) * cfg.live_tolerance
+        self.tol_rad = self.tol_m / max(cfg.depth_max, 1e-3)
+        self.tsdf = None
+        self.cloud = None
+        self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
+        self.n_depth: dict[int, int] = {}
+        self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
+                      "pose_updates_skipped": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
+                      "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0}
+
+    def shift_mm(self, poses: dict[int, np.ndarray]) -> np.ndarray:
+        """How far each keyframe in the map would move to ``poses``: translation plus the rotation
+        angle times depth_max (an upper bound on how far its points move), in mm."""
+        out = []
+        for i, p in self.used.items():
+            if i in poses:
+                rel = inv(p) @ poses[i]
+                out.append(np.linalg.norm(rel[:3, 3]) + rotation_angle(rel[:3, :3]) * self.cfg.depth_max)
+        return 1e3 * np.array(out)
+
+    def result(self):
+        """``(tsdf or None, VoxelCloud, fused keyframes, depth pixel count)``."""
+        fused = sorted(self.used)
+        return self.tsdf, self.cloud, fused, sum(self.n_depth[i] for i in fused)
+
+    def _volume(self):
+        from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf
+
+        return (_Tsdf(self.cfg, self.camera) if self.cfg.mesh else None), VoxelCloud(self.cfg.voxel_size)
+
+    def _integrate(self, tsdf, cloud, index: int, rgb, depth, pose) -> None:
+        from rgbdslam.mapping.fusion import integrate_frame, prepare_frame
+
+        rgb, depth = prepare_frame(rgb, depth, self.undistort, self.cfg)
+        self.n_depth[index] = int(np.count_nonzero(depth))
+        integrate_frame(tsdf, cloud, rgb, depth, pose, self.camera, self.cfg)
+
+    def add(self, index: int, rgb, depth, pose) -> None:
+        if self.cloud is None:
+            self.tsdf, self.cloud = self._volume()
+        self._integrate(self.tsdf, self.cloud, index, rgb, depth, pose)
+        self.used[index] = pose
+        self.stats["integrated"] += 1
+
+    def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None) -> int:
+        """Bring the map to ``poses`` (keyframes without one stay where they are; only the keyframes
+        in ``keep``, if given); returns how many keyframes moved or left."""
+        want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
+        drop = [i for i in self.used if i not in want]
+        move = [i for i in want if moved(self.used[i], want[i], self.tol_m, self.tol_rad)]
+        if not drop and not move:
+            return 0
+        self.stats["refreshes"] += 1
+        if len(drop) + len(move) > REBUILD_FRACTION * len(self.used):
+            self.tsdf, self.cloud = self._volume()
+            for i, pose in want.items():
+                rgb, depth = self.load(i)
+                self._integrate(self.tsdf, self.cloud, i, rgb, depth, pose)
+            self.used = dict(want)
+            self.stats["rebuilds"] += 1
+            self.stats["reintegrated"] += len(want)
+            return len(drop) + len(move)
+        old_t, old_c = self._volume()
+        new_t, new_c = self._volume()
+        for i in drop + move:
+            rgb, depth = self.load(i)
+            self._integrate(old_t, old_c, i, rgb, depth, self.used[i])
+            if i in want:
+                self._integrate(new_t, new_c, i, rgb, depth, want[i])
+        if self.tsdf is not None:
+            merge_tsdf(self.tsdf.vol, old_t.vol, sign=-1)
+            merge_tsdf(self.tsdf.vol, new_t.vol, sign=+1)
+        add_cloud(self.cloud, old_c, sign=-1)
+        add_cloud(self.cloud, new_c, sign=+1)
+        for i in drop:
+            del self.used[i]
+        for i in move:
+            self.used[i] = want[i]
+        self.stats["deintegrated"] += len(drop) + len(move)
+        self.stats["reintegrated"] += len(move)
+        return len(drop) + len(move)
+
+
+class _SequenceImages:
+    """``load(index)`` for the map process: the sequence re-opened there, the filtered keyframe
+    depth from ``depth_dir`` where the run wrote it."""
+
+    def __init__(self, root: str, dataset_cfg, depth_dir: str | None):
+        self.root, self.dataset_cfg, self.depth_dir = root, dataset_cfg, depth_dir
+        self._seq = None
+
+    def __call__(self, i: int):
+        from pathlib import Path
+
+        from rgbdslam.datasets import open_sequence
+        from rgbdslam.mapping.fusion import read_depth_png
+
+        if self._seq is None:
+            self._seq = open_sequence(self.root, self.dataset_cfg)
+        frame = self._seq.load(i)
+        png = Path(self.depth_dir) / f"depth_{i:06d}.png" if self.depth_dir else None
+        return frame.rgb, (read_depth_png(png) if png is not None and png.is_file() else frame.depth)
+
+
+def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results) -> None:
+    """The map process: keyframes and pose updates from ``jobs``; at ``finish`` the map is
+    brought to the final poses, written, and its :class:`FuseResult` put on ``results``."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
+    state = MapState(cfg, camera, load)
+    try:
+        while True:
+            job = jobs.get()
+            if job is None:
+                return
+            t0 = time.perf_counter()
+            if job[0] == "poses":  # coalesce: add what is queued already, apply only the newest poses
+                while True:
+                    try:
+                        nxt = jobs.get_nowait()
+                    except queue.Empty:
+                        break
+                    if nxt is None:
+                        return
+                    if nxt[0] == "add":
+                        state.add(*nxt[1:])
+                        continue
+                    state.stats["pose_updates_skipped"] += 1
+                    job = nxt
+                    if job[0] == "finish":
+                        break
+            if job[0] == "add":
+                state.add(*job[1:])
+            elif job[0] == "poses":
+                state.refresh(job[1])
+            state.stats["busy_s"] += time.perf_counter() - t0
+            if job[0] == "finish":
+                results.put(("ok", _finish(state, *job[1:])))
+                return
+    except BaseException as e:  # noqa: BLE001 - the driver reports it
+        from rgbdslam.errors import RgbdslamError
+
+        results.put(("error", e if isinstance(e, RgbdslamError) else RuntimeError(f"{type(e).__name__}: {e}")))
+
+
+def _finish(state: MapState, poses, keep, out_dir: str, trajectory, root: str, filtered_depth: bool):
+    from pathlib import Path
+
+    from rgbdslam.errors import InputError
+    from rgbdslam.mapping.fusion import staged, write_map
+    from rgbdslam.ui import console
+
+    t0 = time.perf_counter()
+    shift = state.shift_mm(poses)
+    if len(shift):
+        state.stats["final_shift_median_mm"] = float(np.median(shift))
+        state.stats["final_shift_max_mm"] = float(shift.max())
+    state.stats["final_moved"] = state.refresh(poses, keep)
+    state.stats["final_s"] = time.perf_counter() - t0
+    tsdf, cloud, fused, n_depth = state.result()
+    if not fused:
+        raise InputError("no keyframe of the run is in a tracking segment that belongs to the map; "
+                         "re-run with loop closure on (loop.enabled=true)")
+    seq = type("Root", (), {"root": root})()  # write_map only looks for the sequence's accelerometer.txt
+    res = staged(Path(out_dir), lambda stage: write_map(stage, cloud, tsdf, fused, n_depth, state.cfg, trajectory,
+                                                        seq, {}, console, filtered_depth))
+    res.timings.update({k: round(v, 3) if isinstance(v, float) else v for k, v in state.stats.items()})
+    from rgbdslam.mapping.fusion import _peak_rss_mb
+
+    res.peak_rss_mb = _peak_rss_mb()
+    return res
+
+
+class LiveMap:
+    """The map process, seen from the run: keyframes and pose updates are sent to it as they are
+    made (:meth:`add`, :meth:`update_poses`), :meth:`finish` waits for the written map.
+
+    It is a process, not a thread: integrating a keyframe is long C++ calls (Open3D, NumPy) that
+    would hold the interpreter lock and stall tracking; another process runs beside it on its own
+    core. It is started with ``spawn`` (a fresh interpreter) and imports Open3D while the first
+    frames are tracked."""
+
+    def __init__(self, cfg: MappingConfig, camera: Camera, root: str, dataset_cfg, depth_dir: str | None):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        self._jobs = ctx.Queue()
+        self._results = ctx.Queue()
+        self._proc = ctx.Process(target=_serve, name="rgbdslam-map", daemon=True,
+                                 args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
+                                       self._results))
+        self._proc.start()
+
+    def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
+        """A new keyframe (its depth as the map will use it) at its current world pose."""
+        self._jobs.put(("add", int(index), rgb, depth, np.array(pose, dtype=np.float64)))
+
+    def update_poses(self, poses: dict[int, np.ndarray]) -> None:
+        """The keyframes' current poses (after a loop closure): moved keyframes are re-integrated."""
+        self._jobs.put(("poses", {int(k): np.array(v) for k, v in poses.items()}))
+
+    def finish(self, poses: dict[int, np.ndarray], keep: set[int] | None, out_dir, trajectory, root: str,
+               filtered_depth: bool):
+        """Bring the map to the final ``poses`` (only the keyframes in ``keep``), write it into
+        ``out_dir`` (atomically, as ``rgbdslam fuse`` does) and return the :class:`FuseResult`."""
+        from rgbdslam.errors import RgbdslamError
+
+        self._jobs.put(("finish", {int(k): np.array(v) for k, v in poses.items()}, keep, str(out_dir), trajectory,
+                        root, filtered_depth))
+        while True:
+            try:
+                status, value = self._results.get(timeout=1.0)
+                break
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    raise RgbdslamError(f"the map process ended unexpectedly (exit code {self._proc.exitcode})") from None
+        self._proc.join(timeout=30)
+        if status == "error":
+            raise value
+        return value
+
+    def abort(self) -> None:
+        """Stop the map process without a map (a failed or interrupted run)."""
+        if self._proc.is_alive():
+            self._jobs.put(None)
+            self._proc.join(timeout=5)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join()
+
+
+def add_cloud(dst, src, sign: int) -> None:
+    """Add (``sign`` +1) or take out (-1) the voxel cloud ``src`` from ``dst``; voxels left
+    without points disappear."""
+    src._merge()
+    dst._merge()
+    dst.pending.append((src.keys, sign * src.sums, sign * src.counts))
+    dst._merge()
+    keep = dst.counts > 0.5
+    if not keep.all():
+        dst.keys, dst.sums, dst.counts = dst.keys[keep], dst.sums[keep], dst.counts[keep]
+
+
+def merge_tsdf(dst, src, sign: int = 1) -> None:
+    """Add (``sign`` +1) or take out (-1) the Open3D VoxelBlockGrid ``src`` to/from ``dst`` (same
+    voxel size and attributes): per voxel the weight-averaged TSDF value and colour, the weights
+    added or subtracted — what integrating (or never having integrated) ``src``'s frames gives."""
+    import open3d.core as o3c
+
+    hs = src.hashmap()
+    idx = hs.active_buf_indices().to(o3c.int64)
+    if idx.shape[0] == 0:
+        return
+    keys = hs.key_tensor()[idx]
+    idx = idx.numpy()
+    s_t = src.attribute("tsdf").numpy()[idx]
+    s_w = src.attribute("weight").numpy()[idx].astype(np.float32) * sign
+    s_c = src.attribute("color").numpy()[idx].astype(np.float32)
+    hd = dst.hashmap()
+    _, existed = hd.find(keys)
+    existed = existed.numpy().astype(bool)
+    hd.activate(keys)  # new blocks; may grow the table, so the attribute views are taken after it
+    buf, _ = hd.find(keys)
+    buf = buf.to(o3c.int64).numpy()
+    T, W, C = dst.attribute("tsdf").numpy(), dst.attribute("weight").numpy(), dst.attribute("color").numpy()
+    new = ~existed  # blocks activated now: their memory is not cleared
+    d_w = W[buf].astype(np.float32)
+    d_w[new] = 0
+    d_t = T[buf]
+    d_t[new] = 0
+    d_c = C[buf].astype(np.float32)
+    d_c[new] = 0
+    tw = d_w + s_w
+    ok = tw > 0.5
+    safe = np.where(ok, tw, 1)
+    T[buf] = np.where(ok, (d_t * d_w + s_t * s_w) / safe, 0)
+    C[buf] = np.where(ok, np.clip(np.round((d_c * d_w + s_c * s_w) / safe), 0, 65535), 0).astype(np.uint16)
+    W[buf] = np.where(ok, np.clip(np.round(tw), 0, 65535), 0).astype(np.uint16)

@@ -1,0 +1,281 @@
+"""Scale and speed (issue 22): the whole command against its tracking, start-up, the map fused
+while tracking against fusing the final poses, a sweep on the local pool and on Ray, and the
+memory of a long run. One command gives the whole table.
+
+Usage::
+
+    .venv/bin/python scripts/bench_scale.py [--work DIR] [--parts run,sweep,memory]
+                                            [--long-frames 5000] [--write-docs]
+
+* run: ``rgbdslam run`` on TUM fr1/rpy head200 (preset tum_fr1), as a user starts it (a new
+  process, wall time from start to exit), with the map fused while tracking (default), fused after
+  the run (``mapping.live=false``) and without a map. Reported: the whole-command rate (frames /
+  wall) over the tracking rate the same run writes to run.json (``fps``), the time from the
+  process start to the first tracked frame (run.json ``first_frame_s``), and ``rgbdslam --help``.
+  The live map is compared with ``rgbdslam fuse`` of the same run folder (the final poses fused
+  from scratch): cloud points and nearest-neighbour distances, mesh vertices.
+* sweep: 12 cells — 3 sequences (fr1/desk 9 frames and two 40-frame synthetic sequences) x
+  ``loop.enabled`` x ``depth_filter.enabled`` — with ``rgbdslam sweep``: in one process, on the
+  local process pool (2 workers), on a new local Ray cluster (2 CPUs; the wall time includes
+  starting it) and on a running Ray cluster (``ray start --head --num-cpus 2``; ``--address``).
+  The tables must be identical apart from the timing columns.
+* memory: ``rgbdslam run`` (map fused while tracking) on a long synthetic ``loop`` sequence
+  (320x240); the resident memory of the run process and of its map process, sampled every 0.5 s,
+  at every 1000 frames (frames tracked read from odometry.tum, flushed every 50 frames).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import shlex
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from datetime import date
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from _docs import publish, reference_timing  # noqa: E402
+
+DATA = Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
+RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
+BIN = Path(sys.executable).parent / "rgbdslam"
+TIMING = ("tracking_fps", "cell_fps", "cell_s")
+
+
+def sh(args, **kw) -> float:
+    """Run a command; its wall time (s). Fails loudly."""
+    t0 = time.perf_counter()
+    subprocess.run([str(a) for a in args], check=True, stdout=subprocess.DEVNULL, **kw)
+    return time.perf_counter() - t0
+
+
+# ------------------------------------------------------------------------------------------ run
+
+
+def _cloud(path: Path):
+    import numpy as np
+    import open3d as o3d
+
+    return np.asarray(o3d.io.read_point_cloud(str(path)).points)
+
+
+def _compare_maps(live_dir: Path, work: Path) -> dict:
+    """The live map of a run against `rgbdslam fuse` of a copy of its folder."""
+    import numpy as np
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    ref = work / "refused"
+    shutil.rmtree(ref, ignore_errors=True)
+    shutil.copytree(live_dir, ref, ignore=shutil.ignore_patterns("map", "previous"))
+    sh([BIN, "fuse", ref, "-q"])
+    a, b = _cloud(live_dir / "map" / "cloud.ply"), _cloud(ref / "map" / "cloud.ply")
+    d, _ = cKDTree(b).query(a)
+    ma = np.asarray(o3d.io.read_triangle_mesh(str(live_dir / "map" / "mesh.ply")).vertices)
+    mb = np.asarray(o3d.io.read_triangle_mesh(str(ref / "map" / "mesh.ply")).vertices)
+    dm, _ = cKDTree(mb).query(ma)
+    return {"cloud_live": len(a), "cloud_fused": len(b), "same_points": float(np.mean(d < 1e-6)),
+            "nn_median_mm": 1e3 * float(np.median(d)), "nn_max_mm": 1e3 * float(d.max()),
+            "mesh_live": len(ma), "mesh_fused": len(mb), "mesh_nn_max_mm": 1e3 * float(dm.max()),
+            "mesh_nn_p99_mm": 1e3 * float(np.percentile(dm, 99))}
+
+
+def part_run(work: Path) -> list[str]:
+    rows = []
+    help_s = statistics.median(sh([BIN, "--help"]) for _ in range(3))
+    variants = [("map fused while tracking (default)", []),
+                ("map fused while tracking, mapping.live_tolerance=1 (1 voxel)", ["--set", "mapping.live_tolerance=1"]),
+                ("map fused after the run (mapping.live=false)", ["--set", "mapping.live=false"]),
+                ("no map (--no-map)", ["--no-map"])]
+    runs = {}
+    for name, extra in variants:
+        out = work / f"rpy_{len(runs)}"
+        shutil.rmtree(out, ignore_errors=True)
+        wall = sh([BIN, "run", RPY, "-c", "tum_fr1", "--out", out, "-q", *extra])
+        info = json.loads((out / "run.json").read_text())
+        runs[name] = out
+        whole = info["frames"] / wall
+        m = info.get("map") or {}
+        t = m.get("timings") or {}
+        moved = (f"{t['final_moved']} of {m['frames_fused']} ({t['final_shift_median_mm']:.1f} / "
+                 f"{t['final_shift_max_mm']:.1f} mm)" if "final_moved" in t else "-")
+        rows.append(f"| {name} | {wall:.1f} | {whole:.1f} | {info['fps']:.1f} | {whole / info['fps']:.2f} | "
+                    f"{info.get('first_frame_s') or float('nan'):.2f} | {m.get('seconds', float('nan')):.1f} | {moved} |")
+    cmps = [(name, _compare_maps(runs[name], work)) for name, _ in variants[:2]]
+    first = next(iter(runs.values()))
+    info = json.loads((first / "run.json").read_text())
+    t = (info.get("map") or {}).get("timings") or {}
+    lines = [
+        f"`rgbdslam --help`: {help_s:.2f} s (median of 3).",
+        "",
+        "| run | wall s | whole-command frames/s | tracking frames/s (run.json) | ratio | first tracked frame s "
+        "| map after tracking s | keyframes redone at the end (shift median / max) |",
+        "|---|---|---|---|---|---|---|---|",
+        *rows,
+        "",
+        f"Map process of the default run: {t.get('integrated')} keyframes integrated while tracking, "
+        f"{t.get('refreshes')} pose updates applied ({t.get('pose_updates_skipped')} coalesced), "
+        f"{t.get('deintegrated')} keyframes de-integrated, {t.get('reintegrated')} re-integrated, "
+        f"{t.get('rebuilds')} rebuilds; busy {t.get('busy_s', 0):.1f} s.",
+        "",
+        "Live map against `rgbdslam fuse` of the same run folder (the final poses fused from scratch):",
+        "",
+        "| run | cloud points live / fused | identical points | NN distance median / max mm "
+        "| mesh vertices live / fused | mesh NN p99 / max mm |",
+        "|---|---|---|---|---|---|",
+        *[f"| {name} | {c['cloud_live']} / {c['cloud_fused']} | {100 * c['same_points']:.1f}% | "
+          f"{c['nn_median_mm']:.2f} / {c['nn_max_mm']:.2f} | {c['mesh_live']} / {c['mesh_fused']} | "
+          f"{c['mesh_nn_p99_mm']:.2f} / {c['mesh_nn_max_mm']:.2f} |" for name, c in cmps],
+    ]
+    return lines
+
+
+# ---------------------------------------------------------------------------------------- sweep
+
+
+def _synth(work: Path, name: str, motion: str, seed: int, frames: int, size=(320, 240)) -> Path:
+    from rgbdslam.datasets.synthetic import generate_sequence
+
+    d = work / name
+    if not (d / "groundtruth.txt").is_file():
+        generate_sequence(d, frames=frames, motion=motion, width=size[0], height=size[1], noise=True, seed=seed)
+    return d
+
+
+def _table(path: Path):
+    return [{k: v for k, v in r.items() if k not in TIMING} for r in csv.DictReader(open(path))]
+
+
+def part_sweep(work: Path) -> list[str]:
+    seqs = [DESK, _synth(work, "synth_loop", "loop", 1, 40), _synth(work, "synth_xyz", "xyz", 2, 40)]
+    grid = ["--grid", "loop.enabled=true,false", "--grid", "depth_filter.enabled=true,false"]
+    base = [BIN, "sweep", *seqs, *grid, "-q"]
+    results = {}
+    variants = [("one process (--engine local --workers 1)", []),
+                ("local process pool (--engine local --workers 2)", ["--workers", "2"]),
+                ("Ray, new local cluster (--engine ray --workers 2; includes starting it)",
+                 ["--engine", "ray", "--workers", "2"]),
+                ("Ray, running cluster (--engine ray --address ...)", None)]
+    for k, (name, extra) in enumerate(variants):
+        out = work / f"sweep_{k}"
+        shutil.rmtree(out, ignore_errors=True)
+        if extra is None:
+            tmp = work / "ray_tmp"
+            env = dict(os.environ, RAY_TMPDIR=str(tmp))
+            ray = Path(sys.executable).parent / "ray"
+            subprocess.run([ray, "start", "--head", "--num-cpus", "2", "--include-dashboard", "false",
+                            "--port", "6391"], check=True, capture_output=True, env=env)
+            try:
+                wall = sh([*base, "--out", out, "--engine", "ray", "--address", "127.0.0.1:6391"], env=env)
+            finally:
+                subprocess.run([ray, "stop"], capture_output=True, env=env)
+        else:
+            wall = sh([*base, "--out", out, *extra])
+        results[name] = (wall, _table(out / "results.csv"))
+    ref_wall, ref_table = results[variants[1][0]]
+    lines = ["| engine | cells | wall s | / local pool | table identical to one process |", "|---|---|---|---|---|"]
+    one = results[variants[0][0]][1]
+    for name, (wall, table) in results.items():
+        lines.append(f"| {name} | {len(table)} | {wall:.1f} | {wall / ref_wall:.2f} | "
+                     f"{'yes' if table == one else 'NO'} |")
+    ok = [r for r in one if r["status"] == "ok"]
+    lines += ["", f"{len(ok)} of {len(one)} cells ok; ATE of the cells (m): "
+              + ", ".join(f"{Path(r['sequence']).name[:12]}/{r['loop.enabled']}/{r['depth_filter.enabled']}="
+                          f"{float(r['ate_rmse']):.4f}" for r in ok)]
+    return lines
+
+
+# --------------------------------------------------------------------------------------- memory
+
+
+def _rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return float(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+def part_memory(work: Path, frames: int) -> list[str]:
+    seq = _synth(work, f"synth_long_{frames}", "loop", 0, frames)
+    out = work / "long_run"
+    shutil.rmtree(out, ignore_errors=True)
+    proc = subprocess.Popen([str(BIN), "run", str(seq), "--out", str(out), "-q"], stdout=subprocess.DEVNULL)
+    samples = []  # (frames tracked, main MB, map process MB)
+    t0 = time.perf_counter()
+    log = open(work / "long_samples.csv", "w")  # as it goes: a long run stopped part-way still tells
+    log.write("seconds,frames,run_mb,map_mb\n")
+    while proc.poll() is None:
+        try:
+            n = sum(1 for _ in open(out / "odometry.tum")) - 1
+        except OSError:
+            n = 0
+        kids = _children(proc.pid)
+        samples.append((n, _rss_mb(proc.pid), sum(_rss_mb(c) for c in kids)))
+        log.write(f"{time.perf_counter() - t0:.1f},{n},{samples[-1][1]:.0f},{samples[-1][2]:.0f}\n")
+        log.flush()
+        time.sleep(0.5)
+    wall = time.perf_counter() - t0
+    if proc.returncode:
+        raise SystemExit(f"long run failed ({proc.returncode})")
+    info = json.loads((out / "run.json").read_text())
+    lines = ["| frames tracked | run process MB | map process MB | total MB |", "|---|---|---|---|"]
+    for mark in range(1000, frames + 1, 1000):
+        at = [s for s in samples if s[0] >= mark - 50]
+        if at:
+            n, a, b = at[0]
+            lines.append(f"| {mark} | {a:.0f} | {b:.0f} | {a + b:.0f} |")
+    peak = max(samples, key=lambda s: s[1] + s[2]) if samples else (0, 0, 0)
+    lines += ["", f"{frames} frames in {wall:.0f} s (tracking {info['fps']:.1f} frames/s), "
+              f"{len(info['keyframes'])} keyframes, {len(info['loops'])} loops, ATE "
+              f"{((info.get('evaluation') or {}).get('ate') or {}).get('rmse', float('nan')):.4f} m; peak "
+              f"{peak[1] + peak[2]:.0f} MB at {peak[0]} frames; map {info.get('map', {}).get('cloud_points')} points."]
+    return lines
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_scale"))
+    ap.add_argument("--parts", default="run,sweep,memory")
+    ap.add_argument("--long-frames", type=int, default=5000)
+    ap.add_argument("--write-docs", action="store_true")
+    a = ap.parse_args()
+    a.work.mkdir(parents=True, exist_ok=True)
+    parts = a.parts.split(",")
+    cmd = "python scripts/bench_scale.py " + " ".join(shlex.quote(x) for x in sys.argv[1:])
+    out = ["## Scale", "", f"Command: `{cmd}`  ",
+           f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+           f"{date.today().isoformat()}; shared with other jobs, so compare ratios within this run.  ",
+           f"Speed of the machine: {reference_timing()}", ""]
+    if "run" in parts:
+        out += ["### Whole command, start-up, live map (TUM fr1/rpy head200)", "", *part_run(a.work), ""]
+    if "sweep" in parts:
+        out += ["### Sweep: 12 cells over 3 sequences", "", *part_sweep(a.work), ""]
+    if "memory" in parts:
+        out += [f"### Memory of a {a.long_frames}-frame run (map fused while tracking)", "",
+                *part_memory(a.work, a.long_frames), ""]
+    return publish("\n".join(out), a.write_docs)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
