@@ -133,9 +133,14 @@ def engine_options(f):
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
 @click.option("--rerun-save", type=PATH, default=None, help="Record the run to an .rrd file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.option("--map", "map_dir", type=click.Path(path_type=Path), default=None,
+              help="A finished run's folder: relocalise in its map (map.npz), then extend it (saved in --out).")
+@click.option("--localize", is_flag=True,
+              help="With --map: only localise in the map (kept fixed); frames before the first "
+                   "relocalisation are left out of trajectory.tum.")
 @engine_options
-def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, quiet, engine, workers,
-        address):
+def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, quiet, map_dir,
+        localize, engine, workers, address):
     """Run SLAM on SEQUENCE (a TUM, ETH3D, ICL-NUIM, 7-Scenes or PUT folder, a ROS 1/2 bag or a
     RealSense recording) and write trajectory.tum into --out.
 
@@ -154,10 +159,13 @@ def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_s
         cfg.output.rerun = True
     if rerun_save is not None:
         cfg.output.rerun_save = str(rerun_save)
+    if (map_dir is not None or localize) and len(sequences) > 1:
+        raise click.UsageError("--map/--localize take a single SEQUENCE")
     if len(sequences) == 1:
         if engine != "local" or workers != 1 or address is not None:
             raise click.UsageError("--engine/--workers/--address spread several sequences; give more than one SEQUENCE")
-        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet)
+        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet,
+                     map_dir=map_dir, localize=localize)
         return
     out_root = out_dir or Path("runs")
     rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet, engine=engine, workers=workers,
@@ -353,12 +361,16 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
 @click.option("--camera", type=click.Choice(["ros_default", "fr1", "fr2", "fr3", "kinect1"]), default="ros_default",
               show_default=True, help="Camera model (its distortion is rendered).")
 @click.option("--size", type=(int, int), default=(640, 480), show_default=True, metavar="W H", help="Image size.")
+@click.option("--phase", type=float, default=0.0, show_default=True,
+              help="Start further along the motion's path by this fraction (loop: 0.5 = the other side of the room).")
+@click.option("--time-offset", type=float, default=0.0, show_default=True,
+              help="Seconds added to every time stamp (a second session of the same scene).")
 @click.option("--stereo", "baseline", type=float, default=None, metavar="BASELINE",
               help="Render a grey stereo pair per frame instead, the right camera BASELINE metres to the right "
                    "(same scene and trajectory as the RGB-D sequence of the same options).")
 @click.option("--layout", type=click.Choice(["kitti", "euroc"]), default="kitti", show_default=True,
               help="With --stereo: KITTI odometry or EuRoC/ASL folder layout.")
-def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, baseline, layout):
+def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase, time_offset, baseline, layout):
     """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout), or with
     --stereo a stereo sequence (KITTI or EuRoC layout)."""
     if baseline is not None:
@@ -367,13 +379,15 @@ def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, baseli
         if dropout or drift:
             raise InputError("--dropout and --drift simulate an RGB-D depth sensor; a --stereo sequence has no depth "
                              "images (leave them out)")
+        if phase or time_offset:
+            raise InputError("--phase and --time-offset are for RGB-D sequences (sessions); leave them out with --stereo")
         synth_stereo_command(out, baseline=baseline, layout=layout, frames=frames, motion=motion, noise=noise,
                              seed=seed, camera=camera, width=size[0], height=size[1])
         return
     from rgbdslam.datasets.synthetic import synth_command
 
     synth_command(out, frames=frames, motion=motion, noise=noise, dropout=dropout, drift=drift, seed=seed,
-                  camera=camera, width=size[0], height=size[1])
+                  camera=camera, width=size[0], height=size[1], phase=phase, time_offset=time_offset)
 
 
 # ------------------------------------------------------------------------------- posegraph

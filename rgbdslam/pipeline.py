@@ -41,8 +41,11 @@ class Tracking:
 
 
 def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Config,
-                 progress: bool = True) -> dict[str, Any]:
-    """Run SLAM over a sequence and write the run folder; returns the run summary.
+                 progress: bool = True, map_dir: str | Path | None = None, localize: bool = False) -> dict[str, Any]:
+    """Run SLAM over a sequence and write the run folder (with its map, ``map.npz``); returns the run summary.
+
+    ``map_dir``: a finished run's folder whose map the camera relocalises in and then extends, or
+    only localises in with ``localize`` (:mod:`rgbdslam.session`); checked before anything is written.
 
     Ctrl-C stops the run after the current frame: everything tracked so far is written
     (``run.json`` says ``interrupted``) and KeyboardInterrupt is raised again. Ctrl-C at any
@@ -53,11 +56,18 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     """
     check_settings(cfg)
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg)
+    session = None
+    if map_dir is not None:
+        from rgbdslam.session.sessions import open_map
+
+        session = open_map(map_dir, seq.camera, Path(out_dir), localize)
+    elif localize:
+        raise InputError("--localize needs --map RUN_DIR (the run whose map to localise in)")
     out_dir = make_dirs(Path(out_dir))
     with folder_lock(out_dir, "run"):
         record = RunRecord(out_dir, str(Path(seq.root).resolve()))
         try:
-            return _run(seq, out_dir, cfg, progress, record)
+            return _run(seq, out_dir, cfg, progress, record, session)
         except KeyboardInterrupt:
             record.close("interrupted")
             raise
@@ -75,8 +85,9 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
             raise
 
 
-def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunRecord) -> dict[str, Any]:
-    """The run's steps, in the locked folder; ``record`` keeps run.json and the stage."""
+def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunRecord, session) -> dict[str, Any]:
+    """The run's steps, in the locked folder; ``record`` keeps run.json and the stage; ``session``
+    the saved map this run localises in or extends (None: a new map)."""
     from rgbdslam.ui import console
 
     prepare_run_folder(out_dir, cfg, console, record)
@@ -85,8 +96,11 @@ def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunR
     observer = make_observer(cfg, seq.camera, gt)
     if not seq.streaming and len(seq) == 0:  # a live stream's length is known when it ends
         raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
-    mapper = start_live_map(cfg, seq, out_dir)
+    # with --map the map is fused after the run (every session of a joined map, in the map's frame)
+    mapper = start_live_map(cfg, seq, out_dir) if session is None else None
     slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes", mapper=mapper)
+    if session is not None:
+        session.attach(slam)
     try:
         record.stage = "tracking"
         run = track_all(seq, slam, cfg, out_dir, progress, console)
@@ -103,6 +117,9 @@ def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunR
     summary["first_frame_s"] = run.first_frame_s
     if run.interrupted:
         summary["stopped_during"] = "tracking"
+    record.stage = "writing the trajectory"
+    record.stage = "saving the map"
+    final = save_map_of_run(out_dir, slam, seq, cfg, session, summary, final, console)
     record.stage = "writing the trajectory"
     write_outputs(out_dir, slam, summary, final)
     record.write(summary)
@@ -157,6 +174,32 @@ def prepare_run_folder(out_dir: Path, cfg: Config, console, record: RunRecord) -
     save_config(cfg, out_dir / "config.yaml")
     record.write(record.summary)
     return out_dir
+
+
+def save_map_of_run(out_dir: Path, slam: SLAM, seq: Sequence, cfg: Config, session, summary: dict[str, Any],
+                    final: Trajectory, console) -> Trajectory:
+    """map.npz of the run (a failure to write it is a warning: the trajectories still stand);
+    with ``--map``, run.json's session entry and, when localising, the localised frames only."""
+    from rgbdslam.session.sessions import save_run_map
+
+    if session is not None:
+        final = session.finish(slam, summary, final)
+        ss = summary["session"]
+        if ss["relocalized"]:
+            gaps = sum(b - a + 1 for a, b in ss["not_localized"])
+            console.print(f"session {ss['session']}: relocalised in the map at frame {ss['first_localized_frame']}, "
+                          f"{len(summary['map_loops'])} loops into it; {gaps} frames not localised"
+                          + (" (left out of trajectory.tum)" if session.localize and gaps else ""))
+        else:
+            console.print(f"[yellow]warning:[/] the camera never relocalised in the map {session.path}: " + (
+                "no frame is localised, trajectory.tum is empty (odometry.tum has the session in its own coordinates)"
+                if session.localize else "this session is a separate segment of the saved map (its own coordinates)"))
+    try:
+        save_run_map(out_dir, slam, seq, cfg, session, summary)
+    except (OSError, RgbdslamError) as e:
+        console.print(f"[yellow]warning:[/] no map file: {e}")
+        summary["map_file"] = None
+    return final
 
 
 def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: bool, console) -> Tracking:

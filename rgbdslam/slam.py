@@ -86,6 +86,7 @@ class SLAM:
         self._last_kf: FrameRecord | None = None
         self._info_since_kf: list[np.ndarray] = []
         self.optimised: dict[int, np.ndarray] | None = None  # keyframe poses after finish()
+        self.map_poses: dict[int, np.ndarray] = {}  # keyframes of a loaded map (rgbdslam.session), by id
 
     # ------------------------------------------------------------------ one frame
     def track(self, frame: Frame) -> TrackResult:
@@ -170,7 +171,7 @@ class SLAM:
         for r in reversed(self.state.records):
             if r.index == index:
                 return r.pose
-        return None
+        return self.map_poses.get(index)
 
     def _add_keyframe(self, frame: Frame, result: TrackResult, pose: np.ndarray, depth: np.ndarray) -> None:
         self.state.keyframes.append(frame.index)

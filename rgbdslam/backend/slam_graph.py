@@ -61,6 +61,7 @@ class KeyframeGraph:
         # summed odometry covariance from the first keyframe along the keyframe chain
         self._chain_cov: dict[int, np.ndarray] = {}
         self.loop_kernel_widths: list[float] = []
+        self.new_chain = False  # the next node starts a covariance chain (a session added to a loaded map)
 
     # ------------------------------------------------------------------ building
     def _noise(self, info: np.ndarray, robust: bool, width_scale: float = 1.0):
@@ -93,8 +94,9 @@ class KeyframeGraph:
         init = self.correction() @ pose_guess
         self.order.append(index)
         self.guess[index] = pose_guess
-        if len(self.order) == 1:
+        if len(self.order) == 1 or self.new_chain:
             self._chain_cov[index] = np.zeros((6, 6))
+            self.new_chain = False
         self._pending_values.insert(key(index), _pose3(init))
         if len(self.order) == 1:
             s = self.cfg.prior_sigma
@@ -111,8 +113,18 @@ class KeyframeGraph:
             self._chain_cov[int(j)] = self._chain_cov[int(i)] + np.linalg.inv(info)
         self._add_factor(gtsam.BetweenFactorPose3(key(i), key(j), _pose3(T_ij), self._noise(info, False)))
 
-    def add_loop(self, edge) -> None:
-        """A loop edge (robust kernel); triggers an iSAM2 update when ``cfg.isam2``."""
+    def add_prior(self, index: int, pose: np.ndarray, sigma: float) -> None:
+        """Hold a node at ``pose`` (isotropic ``sigma``; a loaded map kept fixed)."""
+        self._require(index)
+        self._add_factor(gtsam.PriorFactorPose3(key(index), _pose3(pose), gtsam.noiseModel.Isotropic.Sigma(6, sigma)))
+
+    def set_chain_covariance(self, index: int, cov: np.ndarray) -> None:
+        """The summed odometry covariance along the keyframe chain up to ``index`` (see :meth:`kernel_scale`;
+        a loaded map's chains, which :meth:`add_odometry` follows only for the newest node)."""
+        self._chain_cov[int(index)] = np.asarray(cov, dtype=np.float64)
+
+    def add_loop(self, edge, update: bool = True) -> None:
+        """A loop edge (robust kernel); triggers an iSAM2 update when ``cfg.isam2`` and ``update``."""
         self._require(edge.i, edge.j)
         info = _check_information(edge.information, f"loop edge {edge.i}->{edge.j}")
         self.loops.append(edge)
@@ -120,7 +132,7 @@ class KeyframeGraph:
         self.loop_kernel_widths.append(self.cfg.kernel_width * scale)
         self._add_factor(gtsam.BetweenFactorPose3(key(edge.i), key(edge.j), _pose3(edge.T_ij),
                                                   self._noise(info, True, scale)))
-        if self.cfg.isam2:
+        if self.cfg.isam2 and update:
             self.update()
 
     def kernel_scale(self, i: int, j: int, info: np.ndarray) -> float:

@@ -289,8 +289,12 @@ def _rot(axis: int, angle: float) -> np.ndarray:
     return R
 
 
-def make_trajectory(motion: str, frames: int) -> np.ndarray:
+def make_trajectory(motion: str, frames: int, phase: float = 0.0) -> np.ndarray:
     """Smooth camera-to-world poses (frames, 4, 4) for a motion in :data:`MOTIONS`.
+
+    ``phase`` moves the start along the path by that fraction of the sequence (0 = the usual
+    start; loop/circle: 0.5 starts half a turn further on, on the other side of the room), so
+    two sequences of one scene can start at different places (sessions, docs/slam.md).
 
     xyz: translation along all three axes (±0.3 m, periods 4-6 s), fixed view of wall x=3;
     rpy: rotation about the optical centre (±20° roll/pitch/yaw, periods 4-6 s);
@@ -304,8 +308,9 @@ def make_trajectory(motion: str, frames: int) -> np.ndarray:
         raise InputError(f"unknown motion '{motion}'; choose one of {', '.join(MOTIONS)}")
     if frames < 1:
         raise InputError(f"frames must be at least 1 (got {frames})")
-    t = np.arange(frames) / FPS
-    s = np.arange(frames) / max(frames - 1, 1)  # 0..1 over the sequence
+    shift = float(phase) * max(frames - 1, 1)
+    t = (np.arange(frames) + shift) / FPS
+    s = (np.arange(frames) + shift) / max(frames - 1, 1)  # 0..1 over the sequence (+ phase)
     centre = np.array([0.0, 0.0, EYE_HEIGHT])
     ahead = np.array([1.0, 0.0, 0.0])
     poses = np.empty((frames, 4, 4))
@@ -367,7 +372,8 @@ def _is_int(v) -> bool:
     return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
 
 
-def validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera) -> None:
+def validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera, phase=0.0,
+                        time_offset=0.0) -> None:
     """Check every parameter of :func:`generate_sequence` before anything is written; an
     InputError names the parameter (as the ``synth`` option) and its valid range."""
     if not _is_int(frames) or not 1 <= frames <= MAX_FRAMES:
@@ -387,6 +393,10 @@ def validate_parameters(frames, motion, width, height, noise, dropout, drift, se
         raise InputError(f"drift must be a small relative depth error in (-0.5, 0.5) (got {drift})")
     if not _is_int(seed) or seed < 0:
         raise InputError(f"--seed must be a whole number >= 0 (got {seed!r})")
+    if isinstance(phase, bool) or not isinstance(phase, (int, float)) or not 0.0 <= phase < 1.0:
+        raise InputError(f"--phase must be a fraction in [0, 1) (got {phase!r})")
+    if isinstance(time_offset, bool) or not isinstance(time_offset, (int, float)) or not 0.0 <= time_offset <= 1e6:
+        raise InputError(f"--time-offset must be seconds from 0 to 1e6 (got {time_offset!r})")
 
 
 def _check_output(out: Path) -> None:
@@ -469,6 +479,8 @@ def generate_sequence(
     seed: int = 0,
     camera: str = "ros_default",
     progress: bool = False,
+    phase: float = 0.0,
+    time_offset: float = 0.0,
 ) -> dict:
     """Render a synthetic sequence into ``out_dir`` (TUM layout) and return a summary.
 
@@ -476,18 +488,22 @@ def generate_sequence(
     ``dropout``: fraction of depth pixels lost in blob-shaped holes; with either, depth
     beyond 4.5 m is invalid. ``drift``: systematic relative depth error, written depth =
     true depth * (1 + drift) (undo it with ``dataset.depth_correction = 1 / (1 + drift)``).
-    All randomness is seeded by ``seed``. Written: ``rgb/``, ``depth/`` (16-bit, 5000 per
+    All randomness is seeded by ``seed`` (the scene's textures too: one seed, one scene).
+    ``phase`` starts the motion further along its path and ``time_offset`` (s) shifts the time
+    stamps: two sequences of one seed are two sessions in the same scene. Written: ``rgb/``, ``depth/`` (16-bit, 5000 per
     metre), ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``, ``camera.yaml`` (read by the TUM
     reader), ``synthetic.yaml`` (these parameters).
     """
-    validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera)
+    validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera, phase, time_offset)
     start = time.perf_counter()
     out = Path(out_dir)
     _check_output(out)
     cam = scaled_camera(camera, width, height)
-    poses = make_trajectory(motion, frames)
+    poses = make_trajectory(motion, frames, phase)
     params = dict(frames=int(frames), motion=motion, width=int(width), height=int(height), noise=bool(noise),
                   dropout=float(dropout), drift=float(drift), seed=int(seed), camera=camera)
+    if phase or time_offset:  # only then: earlier sequences' synthetic.yaml stay as they were
+        params.update(phase=float(phase), time_offset=float(time_offset))
     # rendered into a temporary sibling folder that replaces ``out`` only when complete: a
     # failure or Ctrl-C part-way leaves an earlier sequence in ``out`` as it was
     target = out.resolve()
@@ -526,7 +542,7 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
     scene = Scene(seed)
     rays = Rays(cam)
     rng = np.random.default_rng([seed, 31337])
-    stamps = EPOCH + np.arange(frames) / FPS
+    stamps = EPOCH + params.get("time_offset", 0.0) + np.arange(frames) / FPS
     names = [f"{ts:.6f}.png" for ts in stamps]
     with frame_progress(frames, f"rendering {frames} frames", enabled=progress) as advance:
         for k in range(frames):

@@ -83,6 +83,7 @@ class LoopCloser:
         # from current-segment to the keyframe's segment's coordinates)
         self._pending: list[tuple[int, _Keyframe, LoopEdge, np.ndarray]] = []
         self._last_query = 0  # frame index of the last search (see due)
+        self.searchable: int | None = None  # only the first this many keyframes are candidates (a fixed map)
         self.stats: dict[str, Any] = {
             "n_observed": 0, "n_sharp": 0, "n_queries": 0, "n_candidates": 0, "n_verified": 0,
             "n_accepted": 0, "n_rejected_geometry": 0, "n_rejected_consistency": 0, "n_segments": 1,
@@ -141,6 +142,27 @@ class LoopCloser:
         self.stats["map_keyframes"] = len(self.keyframes)
         self.stats["map_entries"] = int(self.index.size)
 
+    def add_map_keyframe(self, features, pose: np.ndarray, path: float, turn: float, segment: int) -> None:
+        """A keyframe of a loaded map (:mod:`rgbdslam.session`), with its travel and segment as saved."""
+        self.index.add(len(self.keyframes), features.desc)
+        kf = _Keyframe(int(features.index), features, np.array(pose, dtype=np.float64), float(path), float(turn),
+                       int(segment))
+        self.keyframes.append(kf)
+        self._by_index[kf.index] = kf
+
+    def begin_session(self, map_only: bool) -> None:
+        """The keyframes so far are a loaded map, its segments older ones: the new session is a new
+        segment that relocalises against them (as after a tracking loss). ``map_only``: they stay
+        the only loop candidates (a fixed map: localisation)."""
+        n = len(self.keyframes)
+        if n:
+            self.segment = max(kf.segment for kf in self.keyframes) + 1
+            self._segment_start = n
+            self.relocalizing = True
+            self.stats.update(n_segments=self.segment + 1, map_keyframes=n, map_entries=int(self.index.size))
+        if map_only:
+            self.searchable = n
+
     def _travel(self, pose: np.ndarray) -> tuple[float, float]:
         """(metres, degrees) travelled in the current segment up to ``pose``."""
         last = self.keyframes[-1]
@@ -173,6 +195,8 @@ class LoopCloser:
         n = len(self.keyframes)
         first = self._segment_start  # position of the current segment's first keyframe
         n_old = first if self.relocalizing else max(first, n - self.lc.skip_recent)
+        if self.searchable is not None:
+            n_old = min(n_old, self.searchable)
         if n_old <= 0 or len(features.desc) == 0:
             return []
         votes = self.index.votes(features.desc)[:n_old]

@@ -69,6 +69,7 @@ class FuseResult:
     cloud_points: np.ndarray | None = None  # (N, 3) float32, world frame
     cloud_colors: np.ndarray | None = None  # (N, 3) uint8 RGB
     map2d: Any = None  # Map2D when the 2-D map was made
+    sessions: dict[int, int] | None = None  # frames fused per session (a map joined over sessions)
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -83,6 +84,7 @@ class FuseResult:
             "cloud": str(self.cloud_path) if self.cloud_path else None,
             "mesh": str(self.mesh_path) if self.mesh_path else None,
             "map2d": str(self.map2d_path) if self.map2d_path else None,
+            **({"frames_fused_per_session": self.sessions} if self.sessions else {}),
         }
 
 
@@ -651,6 +653,13 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     info, run_cfg, traj = read_run(run_dir)
     cfg = cfg or run_cfg.mapping
     validate_mapping(cfg)
+    if len((info.get("map_file") or {}).get("session_trajectories") or []) > 1:  # a map joined over sessions
+        from rgbdslam.session.fusion import joined_source
+
+        seq, traj, frames, per_session = joined_source(run_dir, cfg.keyframes_only, run_cfg)
+        res = fuse(seq, traj, frames, cfg, run_dir / "map", None, progress)  # raw depth: keyframes/ is per run
+        res.sessions = per_session
+        return res
     seq = open_sequence(info["sequence"], run_cfg, purpose="map")
     check_run_frames(run_dir, info, len(seq))
     rows = match_frames(np.asarray(seq.timestamps), traj)

@@ -58,6 +58,9 @@ def rerun_executable() -> str | None:
     return str(cand) if cand.is_file() else shutil.which("rerun")
 
 
+# trajectories of the sessions of a joined map (world/trajectory/session_<s>)
+SESSION_COLORS = ((0, 200, 255), (255, 80, 80), (120, 220, 90), (200, 120, 255), (255, 200, 60))
+
 class RerunLogger:
     """Observer the pipeline calls per frame; writes to a viewer (``spawn``) and/or an .rrd file."""
 
@@ -259,6 +262,8 @@ class RerunLogger:
         if name == "groundtruth" and self.gt_align is not None:
             P = P @ self.gt_align[:3, :3].T + self.gt_align[:3, 3]
         color = {"groundtruth": (255, 170, 0), "odometry": (150, 150, 150)}.get(name, (0, 200, 255))
+        if name.startswith("session_") and name[8:].isdigit():  # the sessions of a joined map, one colour each
+            color = SESSION_COLORS[int(name[8:]) % len(SESSION_COLORS)]
         self._log_strip(f"world/trajectory/{name}", P, color, static=True)
 
     def log_map(self, points: np.ndarray, colors: np.ndarray) -> None:
@@ -344,6 +349,9 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
             log.log_trajectory("odometry", read_tum(run_dir / "odometry.tum"))
         if gt is not None:
             log.log_trajectory("groundtruth", gt)
+        for name in (info.get("map_file") or {}).get("session_trajectories") or []:  # a map joined over sessions
+            if (run_dir / name).is_file():
+                log.log_trajectory(Path(name).stem, read_tum(run_dir / name))
         stamps = {round(float(t), 6): k for k, t in enumerate(traj.timestamps)}
         for i, j in info.get("loops") or []:
             if seq is not None and 0 <= i < len(seq) and 0 <= j < len(seq):

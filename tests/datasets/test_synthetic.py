@@ -154,6 +154,23 @@ def test_loop_returns_to_the_start_view(tmp_path):
     assert np.abs(seq.load(0).rgb.astype(int) - seq.load(4).rgb).mean() > 20
 
 
+def test_a_second_session_starts_elsewhere_in_the_same_room(tmp_path):
+    """--phase starts the path further on, --time-offset shifts the stamps; one seed, one room."""
+    full = make_trajectory("loop", 101)
+    np.testing.assert_allclose(make_trajectory("loop", 101, phase=0.5)[:51], full[50:], atol=1e-12)
+    np.testing.assert_allclose(make_trajectory("xyz", 41, phase=0.25)[:31], make_trajectory("xyz", 41)[10:], atol=1e-12)
+    generate_sequence(tmp_path / "a", frames=21, motion="loop", width=160, height=120, seed=4)
+    generate_sequence(tmp_path / "b", frames=11, motion="loop", width=160, height=120, seed=4, phase=0.5,
+                      time_offset=100.0)
+    a, b = open_sequence(tmp_path / "a"), open_sequence(tmp_path / "b")
+    assert b.timestamps[0] - a.timestamps[0] == pytest.approx(100.0)
+    np.testing.assert_allclose(b.groundtruth().poses[0], a.groundtruth().poses[10], atol=1e-6)
+    # the same place seen in both sessions: the same image
+    assert np.mean(np.any(a.load(10).rgb != b.load(0).rgb, axis=2)) < 0.002
+    with pytest.raises(InputError, match="--phase must be a fraction"):
+        generate_sequence(tmp_path / "c", frames=2, phase=1.5)
+
+
 @pytest.mark.parametrize("motion", MOTIONS)
 def test_motions_stay_inside_looking_at_surfaces(motion):
     poses = make_trajectory(motion, 300)

@@ -1,0 +1,191 @@
+"""Saved maps (issue 19): map.npz written and read back, its checks, localising in it and
+extending it on real fr1/rpy frames (session 1: frames 0-49, session 2: frames 50-89)."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rgbdslam.config import load_config
+from rgbdslam.evaluation.ate import ate
+from rgbdslam.geometry.camera import CAMERAS
+from rgbdslam.io.trajectory import Trajectory, read_tum
+from rgbdslam.pipeline import run_sequence
+from rgbdslam.session.mapfile import VERSION, MapFileError, load_map, read_header
+from tests.conftest import TUM_RPY200, assert_cli_error, cli, need
+from tests.viz.test_rerun_log import entity_paths
+
+pytestmark = pytest.mark.data  # fr1/rpy frames
+FR1 = ["--config", "tum_fr1"]
+
+
+def _cfg(*extra):
+    return load_config("tum_fr1", ["mapping.enabled=false", "output.plots=false", *extra])
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _joint_ate(*trajs: Path) -> float:
+    parts = [read_tum(p) for p in trajs]
+    t = Trajectory(np.concatenate([p.timestamps for p in parts]), np.concatenate([p.poses for p in parts]))
+    return ate(read_tum(TUM_RPY200 / "groundtruth.txt"), t).rmse
+
+
+@pytest.fixture(scope="module")
+def session1(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("maps") / "s1"
+    run_sequence(need(TUM_RPY200), out, _cfg("dataset.max_frames=50"), progress=False)
+    return out
+
+
+def test_map_file_holds_the_run(session1):
+    info = json.loads((session1 / "run.json").read_text())
+    m = load_map(session1 / "map.npz")
+    assert info["map_file"]["keyframes"] == m.n_keyframes == len(info["keyframes"])
+    assert list(m.arrays["kf_frame"]) == info["keyframes"]
+    assert m.camera.name == "fr1" and m.camera.fx == 517.3
+    assert m.sessions[0]["sequence"] == str(TUM_RPY200.resolve()) and m.sessions[0]["dataset"]["max_frames"] == 50
+    assert m.config["loop"]["relocalize_confirm"] == 2 and m.landmarks is None
+    # every tracked frame comes back at its trajectory.tum pose from its keyframe and relative pose
+    stamps, poses = m.session_poses(0)
+    traj = read_tum(session1 / "trajectory.tum")
+    assert np.allclose(stamps, traj.timestamps) and np.allclose(poses, traj.poses, atol=1e-5)
+    # key points lifted with depth: camera points in front of the camera, reprojecting to their pixels
+    f = m.features(0)
+    pts, uv = f["pts"][f["valid"]].astype(float), f["uv"][f["valid"]].astype(float)
+    assert len(pts) > 200 and np.all(pts[:, 2] > 0.2)
+    assert np.allclose(m.camera.project(pts), uv, atol=0.05)
+    assert read_header(session1 / "map.npz")["version"] == VERSION
+
+
+def _rewrite(src: Path, dst: Path, header=None, arrays=None) -> None:
+    """A copy of the map file with its header or some arrays replaced (a zip of .npy members)."""
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            name = item.filename[:-4]
+            if name == "header" and header is not None:
+                data = _npy(np.frombuffer(json.dumps(header).encode(), np.uint8))
+            elif arrays and name in arrays:
+                data = _npy(arrays[name])
+            zout.writestr(item, data)
+
+
+def _npy(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
+def _bad_map_dir(tmp_path: Path, session1: Path, kind: str) -> Path:
+    bad = tmp_path / f"bad_{kind}"
+    bad.mkdir()
+    src = session1 / "map.npz"
+    if kind == "truncated":
+        (bad / "map.npz").write_bytes(src.read_bytes()[: src.stat().st_size // 2])
+    elif kind == "version":
+        h = read_header(src)
+        h["version"] = VERSION + 1
+        _rewrite(src, bad / "map.npz", header=h)
+    elif kind == "altered":
+        with np.load(src) as z:
+            pose = z["kf_pose"].copy()
+        pose[1, 0, 3] += 0.01  # one keyframe moved by 1 cm: still a valid array, but not the saved one
+        _rewrite(src, bad / "map.npz", arrays={"kf_pose": pose})
+    return bad
+
+
+@pytest.mark.parametrize("kind, message", [
+    ("truncated", "is truncated or corrupt"),
+    ("version", f"is map format version {VERSION + 1}, this rgbdslam reads version {VERSION}; update rgbdslam"),
+    ("altered", "is corrupt: its contents do not match the checksum in its header"),
+    ("missing", "does not exist; --map takes the folder of a finished `rgbdslam run`"),
+])
+def test_a_bad_map_is_one_line_and_touches_nothing(session1, tmp_path, kind, message):
+    bad = tmp_path / "nothing_here" if kind == "missing" else _bad_map_dir(tmp_path, session1, kind)
+    out = tmp_path / "out"
+    res = cli(["run", TUM_RPY200, *FR1, "--map", bad, "--localize", "--out", out, "-q", "--no-map"])
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2, res.output
+    assert res.stderr.startswith(f"error: {bad / 'map.npz'} {message}") and res.stderr.count("\n") == 1
+    assert not out.exists()
+
+
+def test_another_camera_is_refused(session1, tmp_path):
+    res = cli(["run", TUM_RPY200, "--set", "dataset.camera=fr3", "--map", session1, "--out", tmp_path / "o", "-q"])
+    assert_cli_error(res, f"{session1 / 'map.npz'} was made with camera fr1 (fx 517.3, fy 516.5, cx 318.6, cy 255.3, "
+                          f"640x480), this sequence's camera is fr3 (fx 535.4, fy 539.2, cx 320.1, cy 247.6, 640x480): "
+                          f"a map serves only the camera it was made with (check --config / dataset.camera)")
+    assert not (tmp_path / "o").exists()
+
+
+def test_map_folder_is_not_the_output(session1):
+    before = _digest(session1)
+    res = cli(["run", TUM_RPY200, *FR1, "--map", session1, "--out", session1, "-q"])
+    assert_cli_error(res, f"--out {session1} is the folder of the map given with --map; the saved run must stay "
+                          f"untouched: choose another --out")
+    assert _digest(session1) == before
+    assert_cli_error(cli(["run", TUM_RPY200, "--localize", "--out", session1.parent / "x", "-q"]),
+                     "--localize needs --map RUN_DIR (the run whose map to localise in)")
+
+
+@pytest.mark.parametrize("localize", [True, False])
+def test_second_session_lands_in_the_map(session1, tmp_path, localize):
+    before = _digest(session1)
+    out = tmp_path / ("loc" if localize else "ext")
+    cfg = _cfg("dataset.first_frame=50", "dataset.max_frames=40")
+    cfg.mapping.enabled = not localize  # extending: the joined map is fused, both sessions' frames
+    if not localize:
+        cfg.output.rerun_save = str(tmp_path / "rec.rrd")
+    s = run_sequence(TUM_RPY200, out, cfg, progress=False, map_dir=session1, localize=localize)
+    assert _digest(session1) == before  # the old run is untouched
+    ss = s["session"]
+    assert ss["mode"] == ("localize" if localize else "extend") and ss["session"] == 1
+    assert ss["relocalized"] and ss["first_localized_frame"] <= 10
+    assert s["map_loops"] and all(x["session"] == 0 for x in s["map_loops"])
+    traj = read_tum(out / "trajectory.tum")
+    n_out = sum(b - a + 1 for a, b in ss["not_localized"])
+    assert len(traj) == (s["tracked"] - n_out if localize else s["tracked"])
+    # both sessions in one frame: one alignment for session 1's and session 2's poses
+    assert _joint_ate(session1 / "trajectory.tum", out / "trajectory.tum") < 0.035
+    if localize:
+        assert s["map_file"] is None and not (out / "map.npz").exists()
+        return
+    m = load_map(out / "map.npz")
+    assert [x["session"] for x in m.sessions] == [0, 1]
+    assert m.n_keyframes == len(load_map(session1 / "map.npz").arrays["kf_frame"]) + len(s["keyframes"])
+    assert set(np.unique(m.arrays["kf_segment"])) == {0}  # one connected map
+    assert _joint_ate(out / "sessions" / "session_0.tum", out / "sessions" / "session_1.tum") < 0.035
+    fused = s["map"]["frames_fused_per_session"]
+    assert fused == {0: int(np.sum(m.arrays["kf_session"] == 0)), 1: len(s["keyframes"])}
+    assert (out / "map" / "cloud.ply").stat().st_size > 0 and (out / "map" / "map2d.png").is_file()
+    # Rerun: each session's trajectory apart (its own entity and colour)
+    assert {"/world/trajectory/session_0", "/world/trajectory/session_1"} <= entity_paths(tmp_path / "rec.rrd")
+
+
+def test_a_session_elsewhere_stays_apart(session1, tmp_path):
+    """Frames of another scene (synthetic room, same fr1 camera) never relocalise: localising
+    leaves every frame out, extending keeps the session as its own segment of the map."""
+    from rgbdslam.datasets.synthetic import generate_sequence
+
+    seq = tmp_path / "room"
+    generate_sequence(seq, frames=12, motion="xyz", camera="fr1", seed=5)
+    cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", "dataset.camera=fr1"])
+    loc = run_sequence(seq, tmp_path / "loc", cfg, progress=False, map_dir=session1, localize=True)
+    assert not loc["session"]["relocalized"] and loc["session"]["not_localized"] == [[0, 11]]
+    assert not [x for x in (tmp_path / "loc" / "trajectory.tum").read_text().splitlines() if not x.startswith("#")]
+    ext = run_sequence(seq, tmp_path / "ext", cfg, progress=False, map_dir=session1)
+    assert not ext["session"]["relocalized"] and not ext["map_loops"]
+    m = load_map(tmp_path / "ext" / "map.npz")
+    seg = m.arrays["kf_segment"]
+    assert set(seg[m.arrays["kf_session"] == 0]) == {0} and set(seg[m.arrays["kf_session"] == 1]) == {1}
+    with pytest.raises(MapFileError, match="was made with camera fr1"):
+        load_map(tmp_path / "ext" / "map.npz", camera=CAMERAS["fr3"])
