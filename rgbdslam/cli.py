@@ -259,7 +259,7 @@ def info(sequence, config_path, overrides, camera_file):
     """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
     from rgbdslam.datasets import describe_sequence
 
-    click.echo(describe_sequence(sequence, load_cli_config(config_path, overrides, camera_file).dataset))
+    click.echo(describe_sequence(sequence, load_cli_config(config_path, overrides, camera_file)))
 
 
 # ------------------------------------------------------------------ commands added by stages
@@ -326,8 +326,23 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
 @click.option("--camera", type=click.Choice(["ros_default", "fr1", "fr2", "fr3", "kinect1"]), default="ros_default",
               show_default=True, help="Camera model (its distortion is rendered).")
 @click.option("--size", type=(int, int), default=(640, 480), show_default=True, metavar="W H", help="Image size.")
-def synth(out, frames, motion, noise, dropout, drift, seed, camera, size):
-    """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout)."""
+@click.option("--stereo", "baseline", type=float, default=None, metavar="BASELINE",
+              help="Render a grey stereo pair per frame instead, the right camera BASELINE metres to the right "
+                   "(same scene and trajectory as the RGB-D sequence of the same options).")
+@click.option("--layout", type=click.Choice(["kitti", "euroc"]), default="kitti", show_default=True,
+              help="With --stereo: KITTI odometry or EuRoC/ASL folder layout.")
+def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, baseline, layout):
+    """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout), or with
+    --stereo a stereo sequence (KITTI or EuRoC layout)."""
+    if baseline is not None:
+        from rgbdslam.datasets.synthetic_stereo import synth_stereo_command
+
+        if dropout or drift:
+            raise InputError("--dropout and --drift simulate an RGB-D depth sensor; a --stereo sequence has no depth "
+                             "images (leave them out)")
+        synth_stereo_command(out, baseline=baseline, layout=layout, frames=frames, motion=motion, noise=noise,
+                             seed=seed, camera=camera, width=size[0], height=size[1])
+        return
     from rgbdslam.datasets.synthetic import synth_command
 
     synth_command(out, frames=frames, motion=motion, noise=noise, dropout=dropout, drift=drift, seed=seed,

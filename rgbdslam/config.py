@@ -32,7 +32,7 @@ def preset_files() -> dict[str, Any]:
 
 @dataclass
 class DatasetConfig:
-    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag"] = "auto"
+    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag", "kitti", "euroc", "stereo"] = "auto"
     # TUM association (semantics of TUM's associate.py)
     max_difference: float = 0.02
     offset: float = 0.0
@@ -113,6 +113,11 @@ class RegistrationConfig:
     joint_refit: bool = False  # after fusion: one weighted SVD fit on the inliers of all kept references
     joint_gate: float = 0.02  # metres, pairs further from the fused pose are left out of the joint refit
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
+    # after fusion (frames with a depth noise model, i.e. stereo): Gauss-Newton refit on the kept inlier
+    # pairs weighted by their covariances (geometry.mahalanobis; docs/stereo.md)
+    noise_refit: bool = True
+    noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
+    noise_refit_huber: float = 3.0  # Huber threshold of the refit (Mahalanobis distance, sigmas)
     threads: int = 1
     constant_velocity: bool = True
     max_lost: int = 15  # consecutive lost frames before tracking restarts from the last pose (0 = never)
@@ -244,6 +249,28 @@ class MappingConfig:
 
 
 @dataclass
+class StereoConfig:
+    """Depth from a rectified stereo pair (KITTI, EuRoC, stereo folders; docs/stereo.md)."""
+
+    depth: Literal["sparse", "sgbm"] = "sparse"  # tracking: row-matched ORB key points, or OpenCV SGBM
+    map_depth: Literal["same", "sparse", "sgbm"] = "sgbm"  # what `fuse` re-reads for the map ("same" = depth)
+    # disparity noise (pixels) each method implies: depth sigma = z^2 * sigma / (fx * baseline)
+    sigma_disparity_sparse: float = 0.5
+    sigma_disparity_sgbm: float = 0.5
+    max_disparity: int = 128  # search range (pixels); SGBM rounds it up to a multiple of 16
+    min_disparity: float = 0.5  # smaller disparities (farther than fx * B / this) give no depth
+    row_tolerance: float = 2.0  # sparse: |v_left - v_right| allowed for a match (pixels)
+    max_hamming: int = 50  # sparse: descriptor distance cap
+    ratio: float = 0.9  # sparse: best / second-best Hamming distance along the row band
+    right_features: int = 2  # sparse: ORB budget of the right image, times features.n_features (no grid)
+    patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
+    search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
+    sgbm_block_size: int = 5
+    sgbm_uniqueness: int = 10
+    sgbm_scale: float = 1.0  # SGBM on an image resized by this factor (0.5: ~4x faster, coarser)
+
+
+@dataclass
 class OutputConfig:
     rerun: bool = False  # stream to a spawned Rerun viewer (needs a display)
     rerun_save: str | None = None  # record to this .rrd file
@@ -263,6 +290,7 @@ class Config:
     loop: LoopConfig = field(default_factory=LoopConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def to_dict(self) -> dict[str, Any]:
@@ -338,7 +366,7 @@ POSITIVE = {
     "registration.e_start", "registration.e_min", "registration.mp", "registration.alpha",
     "registration.reject_translation", "registration.reject_rotation", "registration.pregate",
     "registration.guided_gate", "registration.predicted_gate", "registration.joint_gate",
-    "registration.threads", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
+    "registration.threads", "registration.noise_refit_huber", "registration.max_jump_translation", "registration.max_jump_rotation_deg",
     "depth_filter.max_depth",
     "keyframes.max_gap",
     "loop.sharpness_factor", "loop.sharpness_window", "loop.lsh_tables", "loop.lsh_bits", "loop.min_votes",
@@ -352,6 +380,8 @@ POSITIVE = {
     "mapping.grid_resolution", "mapping.floor_max_tilt_deg", "mapping.floor_distance",
     "mapping.floor_ransac_iterations", "mapping.floor_band", "mapping.obstacle_min_points",
     "output.rerun_image_width", "output.rerun_log_every",
+    "stereo.sigma_disparity_sparse", "stereo.sigma_disparity_sgbm", "stereo.max_disparity", "stereo.min_disparity",
+    "stereo.row_tolerance", "stereo.right_features", "stereo.patch_radius", "stereo.search_radius", "stereo.sgbm_block_size",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -359,6 +389,8 @@ BOUNDS = {
     "registration.min_agreement": (0.0, 1.0), "registration.min_points": (3, 10**9),
     "registration.predicted_min_inliers": (3, 10**9), "loop.lsh_bits": (1, 64), "loop.min_inliers": (3, 10**9),
     "mapping.floor_max_tilt_deg": (0.0, 90.0), "mapping.live_tolerance": (0.0, 10.0),
+    "stereo.ratio": (0.0, 1.0), "stereo.max_hamming": (0, 256), "stereo.sgbm_scale": (0.1, 1.0),
+    "stereo.max_disparity": (1, 1024), "stereo.sgbm_block_size": (1, 31),
     # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane (hi None: no upper bound)
     "mapping.voxel_size": (1e-3, None), "mapping.tsdf_voxel": (1e-3, None), "mapping.grid_resolution": (1e-3, None),
 }

@@ -16,7 +16,7 @@ from typing import Any
 
 from rgbdslam.config import Config, save_config
 from rgbdslam.datasets import Sequence, open_sequence
-from rgbdslam.datasets.base import depth_warning
+from rgbdslam.stereo.depth import frame_warning
 from rgbdslam.errors import InputError, RgbdslamError, TrackingLost
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.trajectory import Trajectory
@@ -50,7 +50,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     from rgbdslam.ui import console
 
     check_settings(cfg)
-    seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg.dataset)
+    seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg)
     out_dir = prepare_run_folder(Path(out_dir), cfg, console)
     announce_camera(seq, console)  # after the folder: a path that cannot be written stays one error line
     gt = seq.groundtruth()
@@ -142,7 +142,7 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
                     advance()
                     continue
                 load_time += time.perf_counter() - t0
-                if not st.records and not st.lost and (warning := depth_warning(frame)):
+                if not st.records and not st.lost and (warning := frame_warning(frame)):
                     console.print(f"[yellow]warning:[/] {warning}")  # once, on the first readable frame
                 slam.track(frame)
                 if first_frame_s is None:
@@ -189,7 +189,7 @@ def fail(seq: Sequence, slam: SLAM, run: Tracking, out_dir: Path) -> None:
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
     if not run.interrupted:
         summary["status"] = "failed"
-        for name in ("trajectory.tum", "odometry.tum"):  # a 50-frame flush of this run: not a result
+        for name in ("trajectory.tum", "odometry.tum", "poses.txt"):  # a 50-frame flush of this run: not a result
             (out_dir / name).unlink(missing_ok=True)
     write_summary(out_dir, summary)
     slam.observer.abort()  # nothing worth recording: an earlier .rrd at that path stays

@@ -18,10 +18,11 @@ from rgbdslam import __version__
 from rgbdslam.datasets import Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.kitti import write_kitti_poses
 from rgbdslam.io.trajectory import Trajectory, write_tum
 
 # what a run writes into its folder; a new run into the same folder first moves these to previous/
-RUN_ARTEFACTS = ("trajectory.tum", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
+RUN_ARTEFACTS = ("trajectory.tum", "poses.txt", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
                  "plots", "map", "keyframes", "recording.rrd")
 
 
@@ -145,6 +146,7 @@ def write_trajectories(out_dir: Path, odometry: Trajectory, final: Trajectory | 
     """odometry.tum and trajectory.tum (the odometry until the pose graph is optimised)."""
     write_tum(odometry, out_dir / "odometry.tum")
     write_tum(final if final is not None else odometry, out_dir / "trajectory.tum")
+    write_kitti_poses(final if final is not None else odometry, out_dir / "poses.txt")  # KITTI format, same poses
 
 
 def write_outputs(out_dir: Path, slam, summary: dict, final: Trajectory | None) -> None:

@@ -23,6 +23,7 @@ NON_DEFAULT = {
     "backend.init": "odometry",
     "mapping.gravity": "camera",
     "mapping.mesh": False,
+    "stereo.depth": "sgbm",
     "output.rerun_save": "rec.rrd",
 }
 

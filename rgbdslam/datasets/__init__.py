@@ -4,7 +4,9 @@
 Each source's module declares its reader with :func:`rgbdslam.datasets.registry.reader`:
 ``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes, ETH3D SLAM and ICL-NUIM's
 TUM variant), ``put`` (POZNAN/PUT Kinect layout), ``7scenes`` (Microsoft 7-Scenes) and
-``rosbag`` (ROS 1 / ROS 2 bags and RealSense recordings).
+``rosbag`` (ROS 1 / ROS 2 bags and RealSense recordings); stereo: ``kitti`` (KITTI odometry),
+``euroc`` (EuRoC/ASL) and ``stereo`` (a plain left/right folder), which compute depth from the
+pair (``datasets.stereo_base``).
 """
 
 from __future__ import annotations
@@ -29,14 +31,19 @@ def _load_builtin() -> None:
     from rgbdslam.datasets import put  # noqa: F401
     from rgbdslam.datasets import sevenscenes  # noqa: F401
     from rgbdslam.datasets import rosbag  # noqa: F401
+    from rgbdslam.datasets import euroc, kitti, stereo_folder  # noqa: F401  (stereo readers)
 
 
-def open_sequence(path: str | Path, cfg=None) -> Sequence:
-    """Open the sequence in ``path`` with the reader named by ``cfg.kind`` (or detected)."""
-    from rgbdslam.config import DatasetConfig
+def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequence:
+    """Open the sequence in ``path`` with the reader named by ``cfg.kind`` (or detected).
+
+    ``cfg`` is the dataset section, or the whole config: stereo readers then also take their
+    depth method from it (``stereo.depth``; ``stereo.map_depth`` with ``purpose="map"``)."""
+    from rgbdslam.config import Config, DatasetConfig
 
     _load_builtin()
-    cfg = cfg or DatasetConfig()
+    full = cfg if isinstance(cfg, Config) else None
+    cfg = full.dataset if full is not None else (cfg or DatasetConfig())
     path = Path(path)
     if not path.exists():
         raise InputError(f"sequence folder {path} does not exist; check the path (TUM data sets live under ../shared/data/tum)")
@@ -50,11 +57,15 @@ def open_sequence(path: str | Path, cfg=None) -> Sequence:
             raise InputError(
                 f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
                 f"with time-stamp-named PNGs (TUM, ETH3D, ICL-NUIM), frame-NNNNNN.color.jpg (7-Scenes), "
-                f"a 'matched' file (PUT) or a ROS bag (metadata.yaml, .bag, .db3, .mcap)"
+                f"a 'matched' file (PUT), a ROS bag (metadata.yaml, .bag, .db3, .mcap), calib.txt with image_0/ "
+                f"and image_1/ (KITTI), mav0/cam0 and mav0/cam1 (EuRoC), or left/, right/ and stereo.yaml (stereo)"
             )
     if kind not in READERS:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
-    return READERS[kind][1](path, cfg)
+    seq = READERS[kind][1](path, cfg)
+    if full is not None and hasattr(seq, "configure"):
+        seq.configure(full, purpose)
+    return seq
 
 
 def describe_sequence(path: str | Path, cfg=None) -> str:
@@ -75,13 +86,19 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
         f"groundtruth {f'{len(gt)} poses' if gt is not None else 'none'}",
     ]
     if len(seq):
-        from rgbdslam.datasets.base import depth_warning
+        from rgbdslam.stereo.depth import frame_warning
 
         first = seq.load(0)
         valid = first.depth[first.depth > 0]
-        lines.append(f"depth       frame 0: {valid.size / first.depth.size:.0%} valid, median "
-                     f"{float(np.median(valid)) if valid.size else 0:.2f} m")
-        warning = depth_warning(first)
+        if getattr(seq, "rig", None) is not None:  # stereo: the pair's geometry and the depth method
+            lines.append(f"stereo      baseline {seq.rig.baseline:.4f} m, depth from the pair: {seq.method} "
+                         f"(sigma {first.depth_noise.sigma(10.0):.3f} m at 10 m)")
+            lines.append(f"depth       frame 0: {valid.size} pixels, median "
+                         f"{float(np.median(valid)) if valid.size else 0:.2f} m")
+        else:
+            lines.append(f"depth       frame 0: {valid.size / first.depth.size:.0%} valid, median "
+                         f"{float(np.median(valid)) if valid.size else 0:.2f} m")
+        warning = frame_warning(first)
         if warning:
             lines.append(f"warning     {warning}")
     if setup is not None and setup.fallback_warning():

@@ -17,16 +17,28 @@ from rgbdslam.io.trajectory import Trajectory
 
 @dataclass
 class Frame:
-    """One RGB-D frame as every stage sees it."""
+    """One RGB-D frame as every stage sees it (a stereo pair arrives as one too: the left image
+    and the depth computed from the pair, see datasets/stereo_base.py)."""
 
     index: int  # position in the sequence (after stride/first_frame)
     timestamp: float  # seconds (the colour image's time stamp)
-    rgb: np.ndarray  # (H, W, 3) uint8, RGB order
+    rgb: np.ndarray  # (H, W, 3) uint8, RGB order, or (H, W) uint8 for a grey camera (see as_rgb)
     depth: np.ndarray  # (H, W) float32 metres, 0 = no measurement
     camera: Camera
     name: str = ""  # e.g. the colour file's relative path, for messages
     # key points found ahead of time (frontend.features.detect, run in the reader thread), or None
     detections: Any = field(default=None, repr=False, compare=False)
+    # stereo sources only: the rectified right image, and the depth noise model of the depth
+    # (geometry.stereo.DepthNoise: depth_noise.sigma(z) in metres, depth_noise.covariance(points));
+    # None for RGB-D cameras
+    right: np.ndarray | None = field(default=None, repr=False, compare=False)
+    depth_noise: Any = field(default=None, repr=False, compare=False)
+
+
+def as_rgb(image: np.ndarray) -> np.ndarray:
+    """A (H, W, 3) view of a colour image, or the grey image repeated in three channels."""
+    image = np.asarray(image)
+    return image if image.ndim == 3 else np.repeat(image[:, :, None], 3, axis=2)
 
 
 def depth_warning(frame: Frame) -> str | None:

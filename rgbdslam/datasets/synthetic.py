@@ -405,7 +405,7 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
-def _replace_folder(new: Path, out: Path) -> None:
+def _replace_folder(new: Path, out: Path, generated: tuple[str, ...] = GENERATED) -> None:
     """Put the finished sequence in ``new`` (a temporary folder inside an existing ``out``, else
     beside it) in the place of ``out``.
 
@@ -419,14 +419,15 @@ def _replace_folder(new: Path, out: Path) -> None:
     replaced = new / ".replaced"  # removed with ``new`` at the end
     replaced.mkdir()
     moved_out, moved_in = [], []
+    want_in = [n for n in generated if os.path.lexists(new / n)]
     try:
         with interrupts_deferred():
             try:
-                for name in GENERATED:
+                for name in generated:
                     if os.path.lexists(out / name):
                         os.replace(out / name, replaced / name)
                         moved_out.append(name)
-                for name in GENERATED:
+                for name in want_in:
                     os.replace(new / name, out / name)
                     moved_in.append(name)
             except OSError:  # put the earlier sequence back as it was
@@ -436,7 +437,7 @@ def _replace_folder(new: Path, out: Path) -> None:
                     os.replace(replaced / name, out / name)
                 raise
     finally:  # swapped (also when a Ctrl-C held back during the renames is raised now): drop the old copy
-        if len(moved_in) == len(GENERATED):
+        if len(moved_in) == len(want_in):
             shutil.rmtree(new, ignore_errors=True)
 
 

@@ -41,6 +41,7 @@ class EvaluationReport:
     rpe_note: str | None = None  # why RPE is missing, when it is
     plots: list[str] = field(default_factory=list)
     json_path: str | None = None
+    kitti: Any = None  # evaluation.kitti.KittiResult: KITTI's relative metric, when a segment fits
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (no per-pose arrays)."""
@@ -71,6 +72,7 @@ class EvaluationReport:
             }
         elif self.rpe_note:
             d["rpe_note"] = self.rpe_note
+        d["kitti"] = self.kitti.to_dict() if self.kitti is not None else None
         return d
 
 
@@ -114,7 +116,10 @@ def evaluate_trajectories(
         note = str(e)
     settings = {"align": align, "delta": float(delta), "delta_unit": delta_unit,
                 "max_difference": float(max_difference), "offset": float(offset)}
-    rep = EvaluationReport(ate=a, rpe=r, settings=settings, gt_name=gt_name, est_name=est_name, rpe_note=note)
+    from rgbdslam.evaluation.kitti import kitti_metric
+
+    rep = EvaluationReport(ate=a, rpe=r, settings=settings, gt_name=gt_name, est_name=est_name, rpe_note=note,
+                           kitti=kitti_metric(gt, est, max_difference, offset))
     if plot_dir is not None:
         rep.plots = write_plots(rep, plot_dir, plot_prefix)
     if json_path is not None:
@@ -311,6 +316,11 @@ def format_table(report: EvaluationReport) -> Table:
     if r is not None:
         row("RPE trans (m)", r.trans, r.n_pairs, ".4f")
         row("RPE rot (deg)", r.rot, r.n_pairs, ".3f")
+    k = report.kitti
+    if k is not None:
+        table.add_row("KITTI t_err (%)", f"{k.t_err_pct:.3f}", *[""] * 5, str(k.n_segments))
+        table.add_row("KITTI r_err (deg/m)", f"{k.r_err_deg_per_m:.5f}", *[""] * 5, str(k.n_segments))
+        table.add_row("end drift (%)", f"{k.end_drift_pct:.3f}", *[""] * 5, f"{k.path_length:.1f} m")
     caption = f"alignment {a.align}"
     if a.align == "sim3":
         caption += f" (scale {a.scale:.4f})"
@@ -320,5 +330,8 @@ def format_table(report: EvaluationReport) -> Table:
         caption += f"; RPE delta {r.delta:g} {r.delta_unit}"
     if r is None and report.rpe_note:
         caption += escape(f"; RPE not computed: {report.rpe_note}")
+    if k is not None:
+        caption += (f"; KITTI metric: mean over segments of {', '.join(f'{L:g}' for L in k.lengths)} m every "
+                    f"{k.step} frame(s), no alignment" + escape(f" ({k.note})" if k.note else ""))
     table.caption = caption
     return table

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -33,6 +34,7 @@ class FrameFeatures:
     n_detected: int  # corners detected before ORB keeps the best n_features (sharpness gate)
     uv_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (N, 2) distorted pixels
     response: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (N,) ORB response
+    depth_noise: Any = None  # the frame's DepthNoise (stereo) or None: covariance of pts
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
 
@@ -164,8 +166,11 @@ def detect(rgb: np.ndarray, fc: FeaturesConfig) -> Detections:
 
 
 def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:
-    """``frame`` with its :class:`Detections` attached (``Sequence.prefetched(then=...)``)."""
-    frame.detections = detect(frame.rgb, fc)
+    """``frame`` with its :class:`Detections` attached (``Sequence.prefetched(then=...)``); kept
+    when the reader already made them in this image with this config (sparse stereo does)."""
+    det = frame.detections
+    if not (isinstance(det, Detections) and det.image is frame.rgb and det.config == fc):
+        frame.detections = detect(frame.rgb, fc)
     return frame
 
 
@@ -190,6 +195,7 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig) -> Fr
         n_detected=det.n_detected,
         uv_raw=det.uv_raw,
         response=det.response,
+        depth_noise=frame.depth_noise,
     )
     lift(feats, frame.depth, camera, mc)
     return feats

@@ -162,6 +162,8 @@ class Frontend:
         kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
         if rc.joint_refit and len(kept) > 1:
             pose = self._joint_refit(pose, kept_pairs, feats)
+        if rc.noise_refit and feats.depth_noise is not None:
+            pose = self._noise_refit(pose, kept_pairs, feats)
         info = sum(res.information for res in kept)
         last = self.refs[-1]
         relative = inv(last.pose) @ pose
@@ -244,6 +246,34 @@ class Frontend:
         if ok.sum() < max(3, rc.min_points):
             return pose
         return fit_rigid(C[ok], W[ok], w[ok])
+
+    def _noise_refit(self, pose: np.ndarray, pairs: list, feats: FrameFeatures) -> np.ndarray:
+        """Gauss-Newton refit of the current pose on the descriptor matches (``noise_refit_all``)
+        or inlier pairs of all kept references, each pair weighted by the inverse of its two
+        points' covariances from the depth noise model (stereo: long along the viewing ray,
+        ``DepthNoise.covariance``), robust (Huber). The fused pose is kept when the refit moves
+        it further than the candidate gates (docs/stereo.md)."""
+        from rgbdslam.geometry.mahalanobis import refine_pose_mahalanobis
+
+        rc = self.rc
+        W, C, SW, SC = [], [], [], []
+        for r, res in pairs:
+            m = res.matches if rc.noise_refit_all and res.matches is not None else res.pairs
+            P = r.features.pts[m[:, 0]]
+            R = r.pose[:3, :3]
+            W.append(transform_points(r.pose, P))
+            SW.append(R @ r.features.depth_noise.covariance(P) @ R.T)
+            c = feats.pts[m[:, 1]]
+            C.append(c)
+            SC.append(feats.depth_noise.covariance(c))
+        W, C, SW, SC = (np.concatenate(x) for x in (W, C, SW, SC))
+        if len(W) < max(3, rc.min_points):
+            return pose
+        refined, _, _ = refine_pose_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
+        d = inv(pose) @ refined
+        if np.linalg.norm(d[:3, 3]) > rc.reject_translation or rotation_angle(d[:3, :3]) > rc.reject_rotation:
+            return pose
+        return refined
 
     def _map(self, jobs: list[tuple]) -> list:
         if self._executor is not None and len(jobs) > 1:

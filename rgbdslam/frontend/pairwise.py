@@ -33,6 +33,7 @@ class RegistrationResult:
     pairs: np.ndarray  # (n_inliers, 2) int: (index into ref features, index into cur features)
     information: np.ndarray  # 6x6 information of inv(T) (rotation, translation), right perturbation
     timings: dict[str, float] = field(default_factory=dict)
+    matches: np.ndarray | None = None  # (n_matches, 2) every descriptor match, before any geometric filter
 
 
 class PairRegistration:
@@ -59,6 +60,7 @@ class PairRegistration:
         n_matches = len(ia)
         if n_matches < need:
             return None
+        all_matches = np.stack([ia, ib], axis=1)
         if not guided and self.mc.prefilter != self.strategy.replaces_prefilter:
             m = prefilter(ref, cur, ia, ib, self.mc, self.seed, T0)
             ia, ib = ia[m], ib[m]
@@ -79,6 +81,7 @@ class PairRegistration:
             pairs=np.stack([ia[keep], ib[keep]], axis=1),
             information=fit.information,
             timings={"matching": t1 - t0, "registration": time.perf_counter() - t1},
+            matches=all_matches,
         )
 
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from rgbdslam.config import Config, MappingConfig, load_config, validate_section
 from rgbdslam.datasets import open_sequence
-from rgbdslam.datasets.base import Sequence
+from rgbdslam.datasets.base import Sequence, as_rgb
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
@@ -371,8 +371,9 @@ def staged(out_dir: Path, work) -> FuseResult:
 
 
 def prepare_frame(rgb: np.ndarray, depth: np.ndarray, undistort, cfg: MappingConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Colour and depth as fused: undistorted, depth outside [depth_min, depth_max] set to 0."""
-    rgb, depth = undistort(rgb, depth.astype(np.float32, copy=False))
+    """Colour and depth as fused: undistorted (a grey camera's image as grey colour), depth outside
+    [depth_min, depth_max] set to 0."""
+    rgb, depth = undistort(as_rgb(rgb), depth.astype(np.float32, copy=False))
     depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0).astype(np.float32)
     return rgb, depth
 
@@ -591,7 +592,7 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     info, run_cfg, traj = read_run(run_dir)
     cfg = cfg or run_cfg.mapping
     validate_mapping(cfg)
-    seq = open_sequence(info["sequence"], run_cfg.dataset)
+    seq = open_sequence(info["sequence"], run_cfg, purpose="map")
     check_run_frames(run_dir, info, len(seq))
     rows = match_frames(np.asarray(seq.timestamps), traj)
     tracked = np.flatnonzero(rows >= 0)

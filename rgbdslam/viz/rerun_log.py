@@ -201,7 +201,7 @@ class RerunLogger:
         if self.scale < 1.0:
             rgb = cv2.resize(rgb, self.img_size, interpolation=cv2.INTER_AREA)
             depth = cv2.resize(depth, self.img_size, interpolation=cv2.INTER_NEAREST)
-        self.rec.log("world/camera/image/rgb", rr.Image(rgb, color_model="RGB").compress(jpeg_quality=85))
+        self.rec.log("world/camera/image/rgb", rr.Image(rgb, color_model="RGB" if rgb.ndim == 3 else "L").compress(jpeg_quality=85))
         mm = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
         self.rec.log("world/camera/image/depth", rr.DepthImage(mm, meter=1000.0))
 
@@ -314,7 +314,7 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
     info, cfg, traj = read_run(run_dir)
     seq = None
     try:
-        seq = open_sequence(info["sequence"], cfg.dataset)
+        seq = open_sequence(info["sequence"], cfg)
     except InputError as e:
         console.print(f"[yellow]warning:[/] no images in the recording: {e}")
     if seq is not None:

@@ -1,0 +1,180 @@
+"""Synthetic stereo sequences with exact ground truth (``rgbdslam synth --stereo BASELINE``).
+
+The scene, textures and trajectory are those of :mod:`rgbdslam.datasets.synthetic` for the
+same seed and motion (so an RGB-D run of ``rgbdslam synth`` with the same options follows the
+very same trajectory); a second camera ``BASELINE`` metres to the right of the first (along
+its x axis, same orientation and intrinsics) renders the right image. Images are written
+grey (as KITTI's and EuRoC's cameras), in one of two layouts:
+
+* ``kitti``: ``sequences/00/image_0`` (left), ``image_1`` (right), ``calib.txt`` (P0, P1 with
+  ``P1[0,3] = -fx * B``), ``times.txt``, and ``poses/00.txt`` (left camera-to-world). The
+  pair is rectified, so the camera must have no distortion.
+* ``euroc``: ``mav0/cam0``, ``mav0/cam1`` (``data/<ns>.png``, ``data.csv``, ``sensor.yaml``
+  with intrinsics, distortion and ``T_BS``), ``mav0/state_groundtruth_estimate0/data.csv``
+  (body pose). The body frame is not the camera: ``T_BS`` of cam0 is a fixed rotation and
+  offset like a real EuRoC rig, so readers must apply it. With a distorted camera (fr1, fr2,
+  kinect1) the images are rendered distorted, and the reader's rectification is tested too.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from rgbdslam.datasets.synthetic import (
+    EPOCH,
+    FPS,
+    Rays,
+    Scene,
+    _check_output,
+    _replace_folder,
+    make_trajectory,
+    scaled_camera,
+    validate_parameters,
+)
+from rgbdslam.errors import InputError
+from rgbdslam.geometry.se3 import inv, make_pose, pose_to_tum
+from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.kitti import format_kitti_calib, format_kitti_poses
+from rgbdslam.ui import console, frame_progress
+
+LAYOUTS = ("kitti", "euroc")
+GENERATED = ("sequences", "poses", "mav0", "synthetic.yaml")
+# body (IMU) to cam0 of the synthetic EuRoC rig: camera z forward = body x, camera x = -body y
+T_BS_CAM0 = make_pose(np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]), np.array([0.02, -0.06, 0.01]))
+
+
+def right_offset(baseline: float) -> np.ndarray:
+    """Left-camera-to-right-camera placement: the right camera's pose is ``left @ right_offset``."""
+    return make_pose(np.eye(3), np.array([baseline, 0.0, 0.0]))
+
+
+def _grey(rgb: np.ndarray, noise: bool, rng: np.random.Generator) -> np.ndarray:
+    g = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    if noise:
+        g = np.clip(g + rng.normal(0.0, 2.0, g.shape), 0, 255).astype(np.uint8)
+    return g
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+        raise InputError(f"cannot write {path}; check the folder is writable and not full")
+
+
+def _sensor_yaml(cam, T_BS: np.ndarray, comment: str) -> str:
+    d = list(cam.dist[:4]) if len(cam.dist) >= 4 else [0.0] * 4
+    return (
+        f"# {comment}\nsensor_type: camera\ncomment: {comment}\n"
+        f"T_BS:\n  cols: 4\n  rows: 4\n  data: [{', '.join(repr(float(v)) for v in T_BS.ravel())}]\n"
+        f"rate_hz: {FPS:g}\nresolution: [{cam.width}, {cam.height}]\ncamera_model: pinhole\n"
+        f"intrinsics: [{cam.fx!r}, {cam.fy!r}, {cam.cx!r}, {cam.cy!r}]\n"
+        f"distortion_model: radial-tangential\ndistortion_coefficients: [{', '.join(repr(float(v)) for v in d)}]\n"
+    )
+
+
+def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str = "kitti", frames: int = 100,
+                             motion: str = "loop", width: int = 640, height: int = 480, noise: bool = False,
+                             seed: int = 0, camera: str = "ros_default", progress: bool = False) -> dict:
+    """Render a stereo sequence into ``out_dir`` in ``layout`` (see the module doc)."""
+    validate_parameters(frames, motion, width, height, noise, 0.0, 0.0, seed, camera)
+    if isinstance(baseline, bool) or not isinstance(baseline, (int, float)) or not 0.0 < baseline <= 10.0:
+        raise InputError(f"--stereo must be a baseline in metres, above 0 and at most 10 (got {baseline!r})")
+    if layout not in LAYOUTS:
+        raise InputError(f"unknown stereo layout '{layout}'; choose one of {', '.join(LAYOUTS)}")
+    cam = scaled_camera(camera, width, height)
+    if layout == "kitti" and cam.has_distortion:
+        raise InputError(f"the KITTI layout holds rectified images, but camera '{camera}' has lens distortion; "
+                         f"choose --camera ros_default or fr3, or --layout euroc (its reader rectifies)")
+    start = time.perf_counter()
+    out = Path(out_dir)
+    _check_output(out)
+    poses = make_trajectory(motion, frames)
+    params = dict(frames=int(frames), motion=motion, width=int(width), height=int(height), noise=bool(noise),
+                  seed=int(seed), camera=camera, stereo_baseline=float(baseline), layout=layout)
+    target = out.resolve()
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        where = target if target.is_dir() else target.parent
+        work = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=where))
+    except OSError as e:
+        raise InputError(f"cannot create the sequence folder {out} ({e.strerror or e}); choose a writable place") from None
+    try:
+        atomic_write_text(work / "synthetic.yaml",
+                          yaml.safe_dump({"generator": "rgbdslam synthetic stereo v1", **params}, sort_keys=False))
+        (_write_kitti if layout == "kitti" else _write_euroc)(work, cam, poses, float(baseline), noise, seed, progress)
+        _replace_folder(work, target, GENERATED)
+    finally:
+        if not (work / ".replaced").is_dir() or not any((work / ".replaced").iterdir()):
+            shutil.rmtree(work, ignore_errors=True)
+    return {"path": str(out), "seconds": time.perf_counter() - start, **params}
+
+
+def _render_pairs(cam, poses: np.ndarray, baseline: float, noise: bool, seed: int, progress: bool):
+    scene = Scene(seed)
+    rays = Rays(cam)
+    rng = np.random.default_rng([seed, 31337, 2])
+    off = right_offset(baseline)
+    with frame_progress(len(poses), f"rendering {len(poses)} stereo pairs", enabled=progress) as advance:
+        for k, P in enumerate(poses):
+            left = _grey(scene.render(rays, P)[0], noise, rng)
+            right = _grey(scene.render(rays, P @ off)[0], noise, rng)
+            yield k, left, right
+            advance()
+
+
+def _write_kitti(out: Path, cam, poses, baseline, noise, seed, progress) -> None:
+    seq = out / "sequences" / "00"
+    (seq / "image_0").mkdir(parents=True)
+    (seq / "image_1").mkdir()
+    (out / "poses").mkdir()
+    for k, left, right in _render_pairs(cam, poses, baseline, noise, seed, progress):
+        _write_png(seq / "image_0" / f"{k:06d}.png", left)
+        _write_png(seq / "image_1" / f"{k:06d}.png", right)
+    P0 = np.hstack([cam.K, np.zeros((3, 1))])
+    P1 = P0.copy()
+    P1[0, 3] = -cam.fx * baseline
+    atomic_write_text(seq / "calib.txt", format_kitti_calib(P0, P1))
+    atomic_write_text(seq / "times.txt", "".join(f"{k / FPS:.6e}\n" for k in range(len(poses))))
+    # KITTI's poses are relative to the first frame (frame 0 = identity)
+    atomic_write_text(out / "poses" / "00.txt", format_kitti_poses(inv(poses[0]) @ poses))
+
+
+def _write_euroc(out: Path, cam, poses, baseline, noise, seed, progress) -> None:
+    mav = out / "mav0"
+    stamps = (EPOCH * 1e9 + np.round(np.arange(len(poses)) / FPS * 1e9)).astype(np.int64)
+    T_BS1 = T_BS_CAM0 @ right_offset(baseline)
+    for c, T_BS in (("cam0", T_BS_CAM0), ("cam1", T_BS1)):
+        (mav / c / "data").mkdir(parents=True)
+        atomic_write_text(mav / c / "sensor.yaml", _sensor_yaml(cam, T_BS, f"synthetic {c}"))
+        atomic_write_text(mav / c / "data.csv", "#timestamp [ns],filename\n"
+                          + "".join(f"{t},{t}.png\n" for t in stamps))
+    for k, left, right in _render_pairs(cam, poses, baseline, noise, seed, progress):
+        _write_png(mav / "cam0" / "data" / f"{stamps[k]}.png", left)
+        _write_png(mav / "cam1" / "data" / f"{stamps[k]}.png", right)
+    body = poses @ inv(T_BS_CAM0)  # T_WB = T_WS inv(T_BS)
+    t, q = pose_to_tum(body)
+    gt = mav / "state_groundtruth_estimate0"
+    gt.mkdir()
+    header = ("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+              "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], "
+              "b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], "
+              "b_a_RS_S_z [m s^-2]\n")
+    rows = "".join(f"{s}," + ",".join(repr(float(v)) for v in (*p, r[3], r[0], r[1], r[2])) + ",0" * 9 + "\n"
+                   for s, p, r in zip(stamps, t, q))
+    atomic_write_text(gt / "data.csv", header + rows)
+
+
+def synth_stereo_command(out_dir: str | Path, **kwargs) -> dict:
+    summary = generate_stereo_sequence(out_dir, progress=True, **kwargs)
+    console.print(
+        f"wrote {summary['frames']} {summary['motion']} stereo pairs ({summary['width']}x{summary['height']}, "
+        f"baseline {summary['stereo_baseline']:g} m, {summary['layout']} layout) to {summary['path']} in "
+        f"{summary['seconds']:.1f} s"
+    )
+    return summary

@@ -1,0 +1,176 @@
+"""Stereo input: accuracy and speed of the two depth methods, on real KITTI and on synthetic
+stereo with exact ground truth.
+
+Usage::
+
+    .venv/bin/python scripts/bench_stereo.py [--seeds 0,1,2] [--frames 150] [--motions loop,circle]
+        [--work DIR] [--json FILE]
+
+1. Depth accuracy: synthetic stereo pairs (0.12 m baseline, 640x480, image noise) against the
+   exact rendered depth: disparity error (median = bias, 1.4826 * MAD = sigma, share > 1 px) and
+   the share of pixels / key points that get depth, for ``sparse`` and ``sgbm``.
+2. KITTI 06 frames 0-50 (../shared/data/kitti/odometry_06_head51), config ``kitti``, with each
+   depth method: ATE RMSE, KITTI's relative metric (short segments: 5-50 m, the path is 60 m),
+   end-point drift, frames/s of the whole run (mapping off).
+3. Synthetic loop-type sequences (``--motions``, ``--seeds``): the same trajectory rendered as
+   RGB-D (``rgbdslam synth``) and as stereo (``--stereo 0.12``, KITTI layout), both run with the
+   default config: ATE of each and the ratio stereo / RGB-D (target <= 1.5).
+4. Speed: the whole pipeline on KITTI-sized pairs (1226x370) with each depth method, next to the
+   RGB-D pipeline on TUM fr1/rpy (640x480) in the same process, so that a ratio survives a
+   shared machine: frames/s are quoted with the fr1/rpy frames/s measured in the same run.
+
+Prints a Markdown report (and writes JSON with ``--json``). All runs are seeded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+DATA = Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
+KITTI = DATA / "kitti" / "odometry_06_head51"
+RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+
+
+def depth_accuracy(work: Path, seed: int = 0, frames: int = 30) -> dict:
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.datasets.synthetic import Rays, Scene, make_trajectory
+    from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
+
+    seq_dir = work / f"depthacc_s{seed}"
+    if not (seq_dir / "synthetic.yaml").exists():
+        generate_stereo_sequence(seq_dir, 0.12, "kitti", frames=frames, motion="loop", noise=True, seed=seed)
+    out = {}
+    for method in ("sparse", "sgbm"):
+        cfg = load_config(None, [f"stereo.depth={method}"])
+        seq = open_sequence(seq_dir, cfg)
+        world = make_trajectory("loop", frames)  # KITTI layout poses start at the identity: render from the world's
+        scene, rays = Scene(seed), Rays(seq.camera)
+        fb = seq.camera.fx * seq.rig.baseline
+        errs, cover, t = [], [], []
+        for i in range(0, len(seq), max(1, len(seq) // 6)):
+            t0 = time.perf_counter()
+            f = seq.load(i)
+            t.append(time.perf_counter() - t0)
+            true = scene.render(rays, world[i])[1]
+            ok = (f.depth > 0) & (true > 0)
+            errs.append(fb / f.depth[ok] - fb / true[ok])
+            cover.append(int(np.count_nonzero(f.depth > 0)))
+        e = np.concatenate(errs)
+        med = float(np.median(e))
+        out[method] = {"bias_px": med, "sigma_px": float(1.4826 * np.median(np.abs(e - med))),
+                       "gross_share": float(np.mean(np.abs(e) > 1.0)), "depth_pixels_median": float(np.median(cover)),
+                       "load_ms_median": 1e3 * float(np.median(t))}
+    return out
+
+
+def run(seq, cfg_name: str | None, sets: list[str], out: Path) -> dict:
+    from rgbdslam.config import load_config
+    from rgbdslam.pipeline import run_sequence
+
+    cfg = load_config(cfg_name, ["mapping.enabled=false", "output.plots=false", *sets])
+    s = run_sequence(seq, out, cfg, progress=False)
+    ev = s.get("evaluation") or {}
+    k = ev.get("kitti") or {}
+    return {"ate": (ev.get("ate") or {}).get("rmse"), "fps": s["fps"], "processing_fps": s["processing_fps"],
+            "frames": s["frames"], "lost": s["lost"], "t_err_pct": k.get("t_err_pct"),
+            "r_err_deg_per_m": k.get("r_err_deg_per_m"), "end_drift_pct": k.get("end_drift_pct"),
+            "kitti_note": k.get("note")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--motions", default="loop,circle")
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--work", type=Path, default=None)
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--skip-synthetic", action="store_true")
+    args = ap.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench_stereo_"))
+    work.mkdir(parents=True, exist_ok=True)
+    from rgbdslam.datasets.synthetic import generate_sequence
+    from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
+
+    report: dict = {"machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPUs, load average "
+                               f"{os.getloadavg()[0]:.1f} at start", "command": " ".join(sys.argv)}
+    report["depth_accuracy"] = depth_accuracy(work)
+    print("depth accuracy", json.dumps(report["depth_accuracy"]), flush=True)
+
+    # KITTI with both methods, and fr1/rpy (RGB-D) in between for the speed ratio
+    kitti = {}
+    for method in ("sparse", "sgbm"):
+        kitti[method] = run(KITTI, "kitti", [f"stereo.depth={method}"], work / f"kitti_{method}")
+        print("kitti", method, kitti[method], flush=True)
+    kitti["rgbd_fr1_rpy"] = run(RPY, "tum_fr1", [], work / "rpy")
+    print("fr1/rpy", kitti["rgbd_fr1_rpy"], flush=True)
+    report["kitti"] = kitti
+
+    synth = []
+    if not args.skip_synthetic:
+        for motion in args.motions.split(","):
+            for seed in [int(s) for s in args.seeds.split(",")]:
+                rg, st = work / f"{motion}_s{seed}_rgbd", work / f"{motion}_s{seed}_stereo"
+                if not (rg / "groundtruth.txt").exists():
+                    generate_sequence(rg, frames=args.frames, motion=motion, noise=True, seed=seed)
+                if not (st / "synthetic.yaml").exists():
+                    generate_stereo_sequence(st, 0.12, "kitti", frames=args.frames, motion=motion, noise=True,
+                                             seed=seed)
+                a = run(rg, None, [], work / f"run_{motion}_{seed}_rgbd")
+                row = {"motion": motion, "seed": seed, "rgbd": a["ate"]}
+                for method in ("sparse", "sgbm"):
+                    b = run(st, None, [f"stereo.depth={method}"], work / f"run_{motion}_{seed}_{method}")
+                    row[method] = b["ate"]
+                    row[f"{method}_lost"] = b["lost"]
+                    row[f"{method}_ratio"] = b["ate"] / a["ate"] if a["ate"] and b["ate"] is not None else None
+                synth.append(row)
+                print("synthetic", row, flush=True)
+    report["synthetic"] = synth
+    report["load_average_end"] = os.getloadavg()[0]
+    print_markdown(report)
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2))
+
+
+def print_markdown(r: dict) -> None:
+    print(f"\nmachine: {r['machine']}; load average at the end {r['load_average_end']:.1f}\n")
+    print("| method | disparity bias (px) | sigma (px) | errors > 1 px | pixels with depth | read + depth ms |")
+    print("|---|---|---|---|---|---|")
+    for m, d in r["depth_accuracy"].items():
+        print(f"| {m} | {d['bias_px']:+.3f} | {d['sigma_px']:.3f} | {100 * d['gross_share']:.1f} % | "
+              f"{d['depth_pixels_median']:.0f} | {d['load_ms_median']:.0f} |")
+    print("\n| KITTI 06 0-50 | ATE (m) | t_err (%) | r_err (deg/m) | end drift (%) | lost | frames/s | "
+          "frames/s / fr1-rpy frames/s |")
+    print("|---|---|---|---|---|---|---|---|")
+    ref = r["kitti"]["rgbd_fr1_rpy"]["fps"]
+    for m in ("sparse", "sgbm"):
+        d = r["kitti"][m]
+        print(f"| {m} | {d['ate']:.4f} | {d['t_err_pct']:.3f} | {d['r_err_deg_per_m']:.4f} | {d['end_drift_pct']:.3f} | "
+              f"{d['lost']} | {d['fps']:.1f} | {d['fps'] / ref:.2f} |")
+    d = r["kitti"]["rgbd_fr1_rpy"]
+    print(f"| (RGB-D fr1/rpy 200, tum_fr1) | {d['ate']:.4f} | | | | {d['lost']} | {d['fps']:.1f} | 1.00 |")
+    if r["synthetic"]:
+        print("\n| sequence | RGB-D ATE (m) | stereo sparse ATE (m) | ratio | stereo SGBM ATE (m) | ratio |")
+        print("|---|---|---|---|---|---|")
+        for s in r["synthetic"]:
+            print(f"| {s['motion']} seed {s['seed']} | {s['rgbd']:.4f} | {s['sparse']:.4f} | {s['sparse_ratio']:.2f} | "
+                  f"{s['sgbm']:.4f} | {s['sgbm_ratio']:.2f} |")
+        for m in ("sparse", "sgbm"):
+            ratios = [s[f"{m}_ratio"] for s in r["synthetic"]]
+            print(f"\n{m}: median ratio {np.median(ratios):.2f}, worst {max(ratios):.2f}")
+
+
+if __name__ == "__main__":
+    main()
