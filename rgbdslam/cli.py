@@ -303,16 +303,51 @@ def fuse(run_dir, overrides, quiet):
     fuse_command(run_dir, overrides, progress=not quiet)
 
 
+def _export_help() -> str:
+    from rgbdslam.export import FORMATS
+
+    return "Format(s) to write; repeatable or comma-separated, 'all' for every one: " + "; ".join(
+        f"{k} = {v[2]}" for k, v in FORMATS.items()) + "."
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--format", "-f", "formats", multiple=True, required=True, metavar="FORMAT[,FORMAT...]",
+              help=_export_help())
+@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
+              help="Output folder (default: RUN_DIR/export).")
+@click.option("--max-points", default=100_000, show_default=True,
+              help="Points in the COLMAP points3D.txt / nerfstudio sparse_pc.ply (the map's cloud, subsampled).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def export(run_dir, formats, out_dir, max_points, quiet):
+    """Write a finished run (RUN_DIR) in formats other tools read: trajectories (TUM, KITTI,
+    EuRoC, evo), COLMAP and nerfstudio models of the keyframes, the map as PCD/OBJ/GLB."""
+    from rgbdslam.export import export_run, parse_formats
+
+    written = export_run(run_dir, parse_formats(formats), out_dir, max_points=max_points, progress=not quiet)
+    for name, paths in written.items():
+        click.echo(f"{name}: " + ", ".join(str(p) for p in paths))
+
+
 @main.command()
 @click.argument("path", type=click.Path(path_type=Path))
 @click.option("--save", type=click.Path(path_type=Path), default=None,
               help="Write the recording here (default for a run folder: RUN_DIR/recording.rrd).")
+@click.option("--web", is_flag=True,
+              help="Serve Rerun's web viewer (for a machine without a display) and print the address to open.")
+@click.option("--bind", default="127.0.0.1", show_default=True,
+              help="With --web: the address to serve on (0.0.0.0 = every network interface).")
+@click.option("--web-port", default=9090, show_default=True, help="With --web: port of the viewer page.")
+@click.option("--grpc-port", default=9876, show_default=True, help="With --web: port the recording is served on.")
+@click.option("--serve-for", type=float, default=None, metavar="SECONDS",
+              help="With --web: stop serving after this many seconds (default: until Ctrl-C).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def view(path, save, quiet):
+def view(path, save, web, bind, web_port, grpc_port, serve_for, quiet):
     """Open PATH (an .rrd recording or a run folder, recorded first) in the Rerun viewer."""
     from rgbdslam.viz.rerun_log import view as view_recording
 
-    view_recording(path, save, progress=not quiet)
+    view_recording(path, save, progress=not quiet, web=web, bind=bind, web_port=web_port, grpc_port=grpc_port,
+                   serve_for=serve_for)
 
 
 if __name__ == "__main__":  # pragma: no cover
