@@ -56,6 +56,22 @@ set_option = click.option(
 )
 
 
+def frame_options(f):
+    """--first-frame / --stride / --max-frames: short for --set dataset.KEY=N (checked the same way)."""
+    for name, key, text in (("--max-frames", "max_frames", "Track at most N frames (dataset.max_frames)."),
+                            ("--stride", "stride", "Use every N-th frame (dataset.stride)."),
+                            ("--first-frame", "first_frame", "Start at frame N, counted from 0 "
+                                                             "(dataset.first_frame).")):
+        f = click.option(name, key, type=int, default=None, metavar="N", help=text)(f)
+    return f
+
+
+def with_frame_options(overrides, first_frame, stride, max_frames) -> tuple[str, ...]:
+    extra = [f"dataset.{k}={v}" for k, v in (("first_frame", first_frame), ("stride", stride),
+                                             ("max_frames", max_frames)) if v is not None]
+    return tuple(overrides) + tuple(extra)
+
+
 # ----------------------------------------------------------------------------- run / demo
 
 
@@ -69,8 +85,10 @@ set_option = click.option(
 @click.option("--no-map", is_flag=True, help="Skip map fusion at the end of the run.")
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
 @click.option("--rerun-save", type=click.Path(path_type=Path), default=None, help="Record the run to an .rrd file.")
+@frame_options
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet):
+def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, first_frame, stride, max_frames,
+        quiet):
     """Run SLAM on SEQUENCE (a TUM or PUT folder) and write trajectory.tum into --out.
 
     Several sequences run one after the other with the same config (camera "auto" is decided
@@ -81,7 +99,7 @@ def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_s
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
-    cfg = load_config(config_path, overrides)
+    cfg = load_config(config_path, with_frame_options(overrides, first_frame, stride, max_frames))
     if no_map:
         cfg.mapping.enabled = False
     if rerun_spawn:
@@ -129,12 +147,14 @@ def show_config(config_path, overrides):
 @click.argument("sequence", type=click.Path(path_type=Path))
 @config_option
 @set_option
-def info(sequence, config_path, overrides):
+@frame_options
+def info(sequence, config_path, overrides, first_frame, stride, max_frames):
     """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
     from rgbdslam.config import load_config
     from rgbdslam.datasets import describe_sequence
 
-    click.echo(describe_sequence(sequence, load_config(config_path, overrides).dataset))
+    cfg = load_config(config_path, with_frame_options(overrides, first_frame, stride, max_frames))
+    click.echo(describe_sequence(sequence, cfg.dataset))
 
 
 # ------------------------------------------------------------------ commands added by stages

@@ -476,7 +476,21 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     return validate(cfg)
 
 
-def save_config(cfg: Config, path: str | Path) -> None:
+# where one run writes its outputs: given on the command line (--rerun-save, --rerun), not part of a
+# configuration that is given back to --config to repeat a run (it would overwrite the earlier recording)
+RUN_OUTPUT_KEYS = {"output.rerun": False, "output.rerun_save": None}
+
+
+def save_config(cfg: Config, path: str | Path, outputs: bool = True) -> None:
+    """Write ``cfg`` as YAML atomically; ``outputs=False`` leaves the one-run output keys
+    (:data:`RUN_OUTPUT_KEYS`) at their defaults, as a run folder's config.yaml does."""
+    import copy
+
     from rgbdslam.io.atomic import atomic_write_text
 
+    if not outputs:
+        cfg = copy.deepcopy(cfg)
+        for key, default in RUN_OUTPUT_KEYS.items():
+            section, name = key.split(".")
+            setattr(getattr(cfg, section), name, default)
     atomic_write_text(path, cfg.dump())

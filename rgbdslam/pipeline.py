@@ -386,7 +386,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     out_dir.mkdir(parents=True, exist_ok=True)
     if keep_previous_run(out_dir):
         console.print(f"note: the earlier run in {out_dir} was moved to {out_dir / 'previous'}")
-    save_config(cfg, out_dir / "config.yaml")
+    save_config(cfg, out_dir / "config.yaml", outputs=False)  # a re-run from it must not overwrite this run's outputs
     gt = seq.groundtruth()
     observer = _make_observer(cfg, seq.camera, gt)
     slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes")
@@ -495,28 +495,9 @@ def _evaluate(gt: Trajectory, est: Trajectory, out_dir: Path, cfg: Config, conso
 
 
 def _print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
-    msg = (f"{s['frames']} frames, {s['tracked']} tracked, {s['lost']} lost"
-           + (f", {s['skipped']} unreadable" if s["skipped"] else "")
-           + f", {len(s['keyframes'])} keyframes, {len(s['loops'])} loops; "
-           f"{s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without waiting for images)")
-    console.print(msg)
-    if s.get("restarts"):
-        n, r = len(s["restarts"]), s.get("relocalized", 0)
-        frames = ", ".join(str(i) for i in s["restarts"])
-        console.print(f"[yellow]tracking restarted {n}× after a loss (frame {frames}); "
-                      + (f"{r} of {n} new segment(s) relocalised against the map[/]" if r else
-                         "not relocalised: those segments' poses are only known up to an offset[/]"))
-        off = [g for g in s.get("segments", []) if not g["map"]]
-        if off:
-            spans = ", ".join(f"{g['first']}–{g['last']}" for g in off)
-            console.print(f"[yellow]frames {spans} ({sum(g['frames'] for g in off)} tracked) are not linked to the "
-                          f"map by any loop: trajectory.tum keeps them (up to an unknown offset), the map leaves "
-                          f"them out[/]")
-    ev = s.get("evaluation") or {}
-    ate = (ev.get("ate") or {}).get("rmse")
-    if ate is not None:
-        console.print(f"ATE RMSE {ate:.4f} m over {ev['ate'].get('n_pairs', '?')} poses")
-    console.print(f"outputs in {out_dir}")
+    from rgbdslam.ui import print_run_summary
+
+    print_run_summary(s, out_dir)
 
 
 def run_demo(out_dir: str | Path, frames: int, cfg: Config) -> dict[str, Any]:

@@ -580,6 +580,13 @@ def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (
     """``rgbdslam fuse``: the run's config with ``section.key=value`` overrides, fuse, print a summary."""
     from rgbdslam.ui import console
 
+    from rgbdslam.errors import ConfigError
+
+    for item in overrides:  # the run's other settings are fixed by its trajectory: only the map's may change
+        key = item.split("=", 1)[0].strip()
+        if "=" in item and not key.startswith("mapping."):
+            raise ConfigError(f"fuse --set changes map settings only (mapping.KEY=VALUE); '{key}' is not one; "
+                              f"re-run `rgbdslam run` to change it")
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"
     cfg = load_config(cfg_path if cfg_path.is_file() else None, overrides)
