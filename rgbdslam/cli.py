@@ -136,11 +136,20 @@ def demo(out_dir, frames, config_path, overrides):
 @main.command("config")
 @config_option
 @set_option
-def show_config(config_path, overrides):
+@click.option("--explain", is_flag=True,
+              help="Print every key with its type, accepted range, default and a one-line description "
+                   "(and the value here when the preset or --set changed it).")
+def show_config(config_path, overrides, explain):
     """Print the effective configuration (defaults, preset, overrides) as YAML."""
     from rgbdslam.config import load_config
 
-    click.echo(load_config(config_path, overrides).dump(), nl=False)
+    cfg = load_config(config_path, overrides)
+    if explain:
+        from rgbdslam.config_doc import explain as explain_config
+
+        click.echo(explain_config(cfg), nl=False)
+        return
+    click.echo(cfg.dump(), nl=False)
 
 
 @main.command("info")
