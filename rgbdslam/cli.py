@@ -181,17 +181,19 @@ def info(sequence, config_path, overrides, first_frame, stride, max_frames):
 @click.option("--offset", type=float, default=0.0, show_default=True, help="Time offset (s) added to EST stamps.")
 @click.option("--json", "json_path", type=click.Path(path_type=Path), default=None, help="Write the summary as JSON.")
 @click.option("--plot-dir", type=click.Path(path_type=Path), default=None,
-              help="Folder for the PNG plots (default: EST's folder, files named <EST stem>_*.png).")
-@click.option("--no-plots", is_flag=True, help="Write no plots.")
+              help="Write PNG plots into this folder (none without it): ate_topview.png, ate_over_time.png, "
+                   "rpe_over_time.png; with several EST each one's plots are prefixed with its short name "
+                   "(e.g. runA_trajectory_ate_topview.png) and comparison_topview.png overlays them all.")
+@click.option("--no-plots", is_flag=True, hidden=True, help="No effect: plots are written only with --plot-dir.")
 def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_path, plot_dir, no_plots):
     """ATE and RPE of trajectory EST against ground truth GT (TUM format); prints a table.
 
-    Several ESTs are compared with the same settings: one table with a row each and
-    comparison_topview.png (in --plot-dir, default the current folder) with all of them."""
+    Several ESTs are compared with the same settings: one table with a row each (and, with
+    --plot-dir, comparison_topview.png with all of them)."""
     from rgbdslam.evaluation.report import compare_and_print, evaluate_and_print
 
     opts = dict(align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference, offset=offset,
-                json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
+                json_path=json_path, plot_dir=plot_dir, plots=plot_dir is not None)
     if len(est) == 1:
         evaluate_and_print(gt, est[0], **opts)
     else:

@@ -455,7 +455,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     _write_outputs(out_dir, slam, summary, final)
 
     if gt is not None and len(final) > 1:
-        summary["evaluation"] = _evaluate(gt, final, out_dir, cfg, console)
+        summary["evaluation"] = _evaluate(gt, final, out_dir, cfg, console, _groundtruth_name(seq))
         atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
     if observer is not None:
         observer.log_trajectory("estimate", final)
@@ -482,12 +482,20 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     return summary
 
 
-def _evaluate(gt: Trajectory, est: Trajectory, out_dir: Path, cfg: Config, console) -> dict[str, Any]:
+def _groundtruth_name(seq: Sequence) -> str:
+    """The ground-truth file's path, as `rgbdslam evaluate --json` names it."""
+    path = seq.groundtruth_path() if hasattr(seq, "groundtruth_path") else Path(seq.root) / "groundtruth.txt"
+    return str(path) if path is not None else "ground truth"
+
+
+def _evaluate(gt: Trajectory, est: Trajectory, out_dir: Path, cfg: Config, console,
+              gt_name: str = "ground truth") -> dict[str, Any]:
     from rgbdslam.evaluation.report import evaluate_trajectories
 
     plot_dir = out_dir / "plots" if cfg.output.plots else None
-    try:
-        rep = evaluate_trajectories(gt, est, json_path=out_dir / "evaluation.json", plot_dir=plot_dir)
+    try:  # the files named as `rgbdslam evaluate GT RUN_DIR/trajectory.tum --json` names them
+        rep = evaluate_trajectories(gt, est, json_path=out_dir / "evaluation.json", plot_dir=plot_dir,
+                                    gt_name=gt_name, est_name=str(out_dir / "trajectory.tum"))
     except RgbdslamError as e:  # evaluation is a bonus: it never stops a finished run
         console.print(f"[yellow]warning:[/] no evaluation: {e}")
         return {}

@@ -249,3 +249,20 @@ def test_view_web_serves_the_viewer_on_loopback(run_dir):
     assert proc.returncode == 0, err[-500:]
     assert f"http://localhost:{port}/?url=rerun%2Bhttp%3A%2F%2Flocalhost%3A{port + 1}%2Fproxy" in err.replace("\n", "")
     assert "ssh -L" in err
+
+
+def test_run_evaluation_json_names_files_like_evaluate_json(run_dir, tmp_path):
+    """The run's evaluation.json and `rgbdslam evaluate GT RUN_DIR/trajectory.tum --json` agree:
+    same keys, same file names, same numbers; the run's plots carry the names --help gives."""
+    run_eval = json.loads((run_dir / "evaluation.json").read_text())
+    gt = Path(json.loads((run_dir / "run.json").read_text())["sequence"]) / "groundtruth.txt"
+    res = cli(["evaluate", gt, run_dir / "trajectory.tum", "--json", tmp_path / "e.json",
+               "--plot-dir", tmp_path / "plots"])
+    assert res.exit_code == 0, res.output
+    cmd_eval = json.loads((tmp_path / "e.json").read_text())
+    assert run_eval.keys() == cmd_eval.keys()
+    assert run_eval["ground_truth"] == cmd_eval["ground_truth"] == str(gt)
+    assert run_eval["estimate"] == cmd_eval["estimate"] == str(run_dir / "trajectory.tum")
+    assert run_eval["ate"]["rmse"] == pytest.approx(cmd_eval["ate"]["rmse"], rel=1e-6)  # file: 9 decimals
+    assert [Path(p).name for p in run_eval["plots"]] == [Path(p).name for p in cmd_eval["plots"]]
+    assert all(Path(p).is_file() for p in run_eval["plots"] + cmd_eval["plots"])
