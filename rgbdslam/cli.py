@@ -324,14 +324,16 @@ def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterio
 @main.command()
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @set_option
+@click.option("--render", is_flag=True,
+              help="Also render PNG previews without a display: RUN_DIR/map/cloud.png and mesh.png.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def fuse(run_dir, overrides, quiet):
+def fuse(run_dir, overrides, render, quiet):
     """Fuse the map of a finished run folder into RUN_DIR/map: cloud.ply, mesh.ply, map2d.png/.yaml.
 
     Uses the run's config.yaml; --set mapping.KEY=VALUE changes it for this fusion."""
     from rgbdslam.mapping.fusion import fuse_command
 
-    fuse_command(run_dir, overrides, progress=not quiet)
+    fuse_command(run_dir, overrides, progress=not quiet, render=render)
 
 
 def _export_help() -> str:
