@@ -242,7 +242,7 @@ def posegraph() -> None:
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="File format.")
 def posegraph_info(file, fmt):
     """Describe the pose graph in FILE (kind, vertices, edges, duplicates)."""
-    from rgbdslam.backend.graph_io import graph_info
+    from rgbdslam.posegraph.graph_io import graph_info
 
     click.echo(graph_info(file, fmt))
 
@@ -256,7 +256,7 @@ def posegraph_info(file, fmt):
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="Input format.")
 def posegraph_init(file, method, out, fmt):
     """Compute an initial guess for the pose graph in FILE and write it (with the edges) as g2o."""
-    from rgbdslam.backend.initializers import initialize_file
+    from rgbdslam.posegraph.commands import initialize_file
 
     click.echo(initialize_file(file, method, out, fmt))
 
@@ -275,7 +275,7 @@ def posegraph_init(file, method, out, fmt):
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer, quiet):
     """Initialise and optimise the pose graph in FILE (Gauss-Newton, or --optimizer lm); print the chi2 report."""
-    from rgbdslam.backend.optimize import optimize_file
+    from rgbdslam.posegraph.commands import optimize_file
 
     click.echo(optimize_file(file, init=init, out=out, max_iter=max_iter, tol=tol, criterion=criterion, fmt=fmt,
                              progress=not quiet, optimizer=optimizer))
@@ -310,7 +310,7 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet,
                     timing_only, merge, first_instance, optimizer):
     """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
-    from rgbdslam.backend.posegraph_bench import bench_command
+    from rgbdslam.posegraph.bench import bench_command
 
     click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                              criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,

@@ -91,33 +91,3 @@ def frame_progress(total: int, description: str, enabled: bool = True,
 
         yield advance
 
-
-def run_summary_lines(s: dict) -> list[tuple[str, str]]:
-    """The closing summary of a run as ``(style, text)`` lines of one sentence or clause each, short
-    enough for an 80-column terminal (only a long folder name can make one longer): a window
-    never breaks a sentence in the middle."""
-    lines = [("", f"{s['frames']} frames: {s['tracked']} tracked, {s['lost']} lost"
-                  + (f", {s['skipped']} unreadable" if s.get("skipped") else "")
-                  + f"; {len(s['keyframes'])} keyframes, {len(s['loops'])} loops"),
-             ("", f"speed: {s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without waiting for images)")]
-    if s.get("restarts"):
-        n, r = len(s["restarts"]), s.get("relocalized", 0)
-        lines.append(("yellow", f"tracking restarted {n}x after a loss (frame {', '.join(map(str, s['restarts']))})"))
-        lines.append(("yellow", f"{r} of {n} new segment(s) relocalised against the map" if r else
-                      "not relocalised: those segments' poses are known only up to an offset"))
-        off = [g for g in s.get("segments", []) if not g["map"]]
-        if off:
-            spans = ", ".join(f"{g['first']}-{g['last']}" for g in off)
-            lines.append(("yellow", f"no loop links frames {spans} to the map ({sum(g['frames'] for g in off)} "
-                                    f"tracked):"))
-            lines.append(("yellow", "trajectory.tum keeps them (up to an unknown offset), the map leaves them out"))
-    ev = s.get("evaluation") or {}
-    ate = (ev.get("ate") or {}).get("rmse")
-    if ate is not None:
-        lines.append(("", f"ATE RMSE {ate:.4f} m over {ev['ate'].get('n_pairs', '?')} poses"))
-    return lines
-
-
-def print_run_summary(s: dict, out_dir) -> None:
-    for style, text in run_summary_lines(s) + [("", f"outputs in {out_dir}")]:
-        console.print(Text(text, style=style), soft_wrap=True)

@@ -8,10 +8,10 @@ import re
 import numpy as np
 import pytest
 
-from rgbdslam.backend.chordal2d import (chordal_headings, chordal_se2, positions_given_headings,
+from rgbdslam.posegraph.chordal2d import (chordal_headings, chordal_se2, positions_given_headings,
                                         refine_headings)
-from rgbdslam.backend.graph import PoseGraph, se2_between
-from rgbdslam.backend.initializers import initialize
+from rgbdslam.posegraph.graph import PoseGraphData, se2_between
+from rgbdslam.posegraph.initializers import initialize
 from rgbdslam.errors import InputError
 
 from conftest import DATA, need
@@ -22,7 +22,7 @@ def _graph(pairs, z, info=None, n=None):
     ej = np.array([p[1] for p in pairs])
     n = n or int(max(ei.max(), ej.max()) + 1)
     info = np.tile(np.eye(3), (len(pairs), 1, 1)) if info is None else info
-    return PoseGraph(2, np.arange(n), np.zeros((n, 3)), ei, ej, np.asarray(z, float), info)
+    return PoseGraphData(2, np.arange(n), np.zeros((n, 3)), ei, ej, np.asarray(z, float), info)
 
 
 def _wrapdiff(a, b):
@@ -104,8 +104,8 @@ def test_disconnected_graph_is_a_clear_error():
 
 def test_real_city10k_chordal_beats_masat_initial_chi2():
     need(DATA / "posegraph" / "iSAM" / "groundtruth" / "city10000_groundtruth.txt")
-    from rgbdslam.backend.optimize import chi2, degrees_of_freedom
-    from rgbdslam.backend.posegraph_bench import noisy_instance, reference_graph
+    from rgbdslam.posegraph.factors import chi2, degrees_of_freedom
+    from rgbdslam.posegraph.bench import noisy_instance, reference_graph
 
     ref, gt, _ = reference_graph("city10k", DATA)
     g = noisy_instance(ref, (0.3, 0.3, 0.3), np.random.default_rng(7))
@@ -120,7 +120,7 @@ def test_real_city10k_chordal_beats_masat_initial_chi2():
 def test_cli_init_and_optimize_with_chordal_and_lm(tmp_path):
     from click.testing import CliRunner
 
-    from rgbdslam.backend.graph_io import read_graph, write_g2o
+    from rgbdslam.posegraph.graph_io import read_graph, write_g2o
     from rgbdslam.cli import main
 
     rng = np.random.default_rng(11)
@@ -209,7 +209,7 @@ def test_rounded_singular_translation_information_does_not_crash_cholesky(tmp_pa
     Cholesky factor used to raise numpy's LinAlgError ("Matrix is not positive definite")."""
     from click.testing import CliRunner
 
-    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.posegraph.graph_io import read_graph
     from rgbdslam.cli import main
 
     src = tmp_path / "rounded.g2o"

@@ -13,6 +13,7 @@ from rich.console import Console
 
 from conftest import assert_cli_error, cli
 from rgbdslam import ui
+from rgbdslam.run_folder import summary_lines
 
 
 def test_plain_progress_lines_when_not_a_terminal(monkeypatch):
@@ -51,7 +52,7 @@ def test_closing_summary_fits_eighty_columns():
          "relocalized": 0, "segments": [{"first": 1000, "last": 4999, "frames": 3999, "map": False},
                                         {"first": 9000, "last": 12344, "frames": 3300, "map": False}],
          "evaluation": {"ate": {"rmse": 0.01234, "n_pairs": 12000}}}
-    lines = [text for _, text in ui.run_summary_lines(s)]
+    lines = [text for _, text in summary_lines(s)]
     assert all(len(t) <= 80 for t in lines), [t for t in lines if len(t) > 80]
     assert "without waiting for images" in " ".join(lines)
 

@@ -1,4 +1,4 @@
-"""g2o-style SE(2) Gauss–Newton (rgbdslam.backend.gn2d): Jacobians, exactness, agreement with GTSAM."""
+"""g2o-style SE(2) Gauss–Newton (rgbdslam.posegraph.gn2d): Jacobians, exactness, agreement with GTSAM."""
 
 from __future__ import annotations
 
@@ -7,11 +7,13 @@ import re
 import numpy as np
 import pytest
 
-from rgbdslam.backend.gn2d import chi2_g2o, edge_errors, edge_jacobians, gauss_newton_g2o, oplus
-from rgbdslam.backend.graph import PoseGraph, se2_between, se2_compose, wrap_angle
-from rgbdslam.backend.graph_io import write_g2o
-from rgbdslam.backend.optimize import chi2, gauss_newton, optimize_file, run_gauss_newton
-from rgbdslam.backend.posegraph_bench import run_benchmark
+from rgbdslam.posegraph.gn2d import chi2_g2o, edge_errors, edge_jacobians, gauss_newton_g2o, oplus
+from rgbdslam.posegraph.graph import PoseGraphData, se2_between, se2_compose, wrap_angle
+from rgbdslam.posegraph.graph_io import write_g2o
+from rgbdslam.posegraph.commands import optimize_file
+from rgbdslam.posegraph.factors import chi2
+from rgbdslam.posegraph.optimize import gauss_newton, run_gauss_newton
+from rgbdslam.posegraph.bench import run_benchmark
 from rgbdslam.errors import InputError
 
 
@@ -114,7 +116,7 @@ def test_noisy_loop_matches_gtsam_where_error_models_coincide():
     sig = np.array([0.02, 0.02, 0.01])
     meas = se2_between(gt[ei], gt[ej]) + rng.normal(size=(len(ei), 3)) * sig
     info = np.tile(np.diag(1 / sig**2), (len(ei), 1, 1))
-    g = PoseGraph(2, np.arange(n), gt.copy(), ei, ej, meas, info, True, "loop")
+    g = PoseGraphData(2, np.arange(n), gt.copy(), ei, ej, meas, info, True, "loop")
     init = gt + rng.normal(size=gt.shape) * [0.05, 0.05, 0.03]
     init[0] = gt[0]
     ours = gauss_newton_g2o(g, init, max_iter=50, tol=1e-10, criterion="relative")
@@ -130,14 +132,14 @@ def test_failure_and_errors():
     g, gt = grid_walk(30)
     # vertex 29 has no edges left: H is singular -> a reported failure, not an exception
     keep = (g.edges_i != 29) & (g.edges_j != 29)
-    g2 = PoseGraph(2, g.ids, g.poses, g.edges_i[keep], g.edges_j[keep], g.meas[keep], g.info[keep], True, "cut")
+    g2 = PoseGraphData(2, g.ids, g.poses, g.edges_i[keep], g.edges_j[keep], g.meas[keep], g.info[keep], True, "cut")
     res = gauss_newton_g2o(g2, gt, max_iter=5)
     assert not res.converged and res.failure and res.poses is None
     with pytest.raises(InputError, match=r"initial poses have shape \(5, 3\), expected \(30, 3\)"):
         gauss_newton_g2o(g, gt[:5])
     with pytest.raises(InputError, match="unknown optimizer 'ceres'; use gtsam or g2o or lm"):
         run_gauss_newton(g, gt, "ceres")
-    g3 = PoseGraph(3, np.arange(2), np.tile(np.eye(4), (2, 1, 1)), np.array([0]), np.array([1]),
+    g3 = PoseGraphData(3, np.arange(2), np.tile(np.eye(4), (2, 1, 1)), np.array([0]), np.array([1]),
                    np.eye(4)[None], np.eye(6)[None], True, "se3")
     with pytest.raises(InputError, match=r"g2o-style Gauss-Newton \(--optimizer g2o\) is SE\(2\) only"):
         gauss_newton_g2o(g3, g3.poses)
@@ -164,7 +166,7 @@ def test_bench_and_optimize_file_with_g2o_optimizer(tmp_path):
     text = optimize_file(path, init="masat", out=tmp_path / "out.g2o", progress=False, optimizer="g2o")
     assert "optimizer g2o" in text
     assert re.search(r"; \d+ iteration\(s\), converged; ", text), text  # not "not converged" / "failed: ..."
-    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.posegraph.graph_io import read_graph
 
     out = read_graph(tmp_path / "out.g2o").poses
     np.testing.assert_allclose(out[0], [0.0, 0.0, 0.0], atol=1e-12)  # MASAT's root, held fixed by g2o-style GN
@@ -187,7 +189,7 @@ def test_levenberg_marquardt_agrees_with_gn_and_never_increases_chi2():
     assert gn.converged and lm.converged
     assert lm.chi2_final == pytest.approx(gn.chi2_final, rel=1e-6)
     # from a poor start (odometry chaining of noisy edges) LM only takes steps that lower chi2
-    from rgbdslam.backend.initializers import initialize
+    from rgbdslam.posegraph.initializers import initialize
 
     lm2 = run_gauss_newton(g, initialize(g, "odometry"), "lm", max_iter=50, tol=1e-6, criterion="relative")
     h = np.array(lm2.chi2_history)
@@ -197,7 +199,7 @@ def test_levenberg_marquardt_agrees_with_gn_and_never_increases_chi2():
 
 def test_matches_real_g2o_chi2_history():
     """gn2d.py against g2o itself: χ² after every one of 20 Gauss–Newton iterations, recorded from
-    g2o (g2o-python 0.0.12) by ``scripts/g2o_parity.py --record`` on a synthetic grid world, for a
+    g2o (g2o-python 0.0.12) by ``scripts/masat/g2o_parity.py --record`` on a synthetic grid world, for a
     mild, a heading-noise and a large-noise case (odometry start, angle errors past ±π)."""
     import json
     from pathlib import Path
@@ -207,7 +209,7 @@ def test_matches_real_g2o_chi2_history():
     for case in ref["cases"]:
         ei, ej = np.array(case["ei"]), np.array(case["ej"])
         info = np.array([np.diag(d) for d in case["info_diag"]])
-        g = PoseGraph(2, np.arange(case["n"]), np.zeros((case["n"], 3)), ei, ej, np.array(case["meas"]), info)
+        g = PoseGraphData(2, np.arange(case["n"]), np.zeros((case["n"], 3)), ei, ej, np.array(case["meas"]), info)
         r = run_gauss_newton(g, np.array(case["init"]), "g2o", max_iter=20, tol=0.0, criterion="absolute",
                              keep_poses=False)
         ours, theirs = np.array(r.chi2_history), np.array(case["g2o_chi2"])
@@ -285,7 +287,7 @@ def test_library_gauss_newton_checks_iterations_but_allows_tol_zero():
 
 
 def test_error_summary_is_one_line_and_never_empty():
-    from rgbdslam.backend.optimize import error_summary
+    from rgbdslam.posegraph.convergence import error_summary
 
     gtsam_text = ("\nIndeterminate linear system detected while working near variable\n2 (Symbol: 2).\n\n"
                   "Thrown when a linear system is ill-posed.  See\nhttps://github.com/borglab/gtsam/...\n")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.backend.graph_io import detect_format, graph_info, read_graph, write_g2o
+from rgbdslam.posegraph.graph_io import detect_format, graph_info, read_graph, write_g2o
 from rgbdslam.errors import InputError
 
 from conftest import DATA, need

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.backend.graph import se2_between, se2_compose, se2_inverse, se3_inverse
-from rgbdslam.backend.masat import bfs_order, masat_initialize_pose2, masat_initialize_pose3, masat_se2
+from rgbdslam.geometry.se3 import inv
+from rgbdslam.posegraph.graph import se2_between, se2_compose, se2_inverse
+from rgbdslam.posegraph.masat import bfs_order, masat_initialize_pose2, masat_initialize_pose3, masat_se2
 from rgbdslam.errors import InputError
 
 
@@ -94,7 +95,7 @@ def test_masat_se3_consistent_is_exact():
     rng = np.random.default_rng(2)
     gt = [np.eye(4)] + [_pose3(rng.normal(size=3), rng.normal(size=3) * 3) for _ in range(5)]
     pairs = [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (0, 3), (5, 1), (4, 2)]
-    edges = [(i, j, se3_inverse(gt[i]) @ gt[j], np.eye(6)) for i, j in pairs]
+    edges = [(i, j, inv(gt[i]) @ gt[j], np.eye(6)) for i, j in pairs]
     for weighted in (False, True):
         est = masat_initialize_pose3(6, edges, weighted=weighted)
         np.testing.assert_allclose(est, np.array(gt), atol=1e-9)
@@ -106,7 +107,7 @@ def test_masat_se3_chordal_mean_hand_computed():
     T01 = _pose3([0, 0, 0], [0, 1, 0])
     T02 = _pose3([0, 0, 0.2], [1, 0, 0])
     pred_from_1 = _pose3([0, 0, 0.6], [1, 0.4, 0])
-    T12 = se3_inverse(T01) @ pred_from_1
+    T12 = inv(T01) @ pred_from_1
     est = masat_initialize_pose3(3, [(0, 1, T01, None), (0, 2, T02, None), (1, 2, T12, None)])
     np.testing.assert_allclose(est[2, :3, 3], [1.0, 0.2, 0.0], atol=1e-12)
     np.testing.assert_allclose(est[2, :3, :3], Rotation.from_rotvec([0, 0, 0.4]).as_matrix(), atol=1e-12)
@@ -120,7 +121,7 @@ def test_masat_se3_chordal_mean_different_axes():
     T01 = _pose3([0, 0, 0], [0, 0, 1])
     T02 = np.eye(4); T02[:3, :3] = Rx
     P = np.eye(4); P[:3, :3] = Ry
-    T12 = se3_inverse(T01) @ P
+    T12 = inv(T01) @ P
     est = masat_initialize_pose3(3, [(0, 1, T01, None), (0, 2, T02, None), (1, 2, T12, None)])
     U, _, Vt = np.linalg.svd(Rx + Ry)
     np.testing.assert_allclose(est[2, :3, :3], U @ Vt, atol=1e-12)
@@ -216,8 +217,8 @@ def test_masat_se2_matches_literal_algorithm_1_at_any_measurement_scale():
 
 # ------------------------------------------------------------------------ other initial guesses
 
-from rgbdslam.backend.graph import PoseGraph  # noqa: E402
-from rgbdslam.backend.initializers import initialize, odometry, spanning_tree  # noqa: E402
+from rgbdslam.posegraph.graph import PoseGraphData  # noqa: E402
+from rgbdslam.posegraph.initializers import initialize, odometry, spanning_tree  # noqa: E402
 
 
 def _se2_close(a, b, atol=1e-12):
@@ -233,7 +234,7 @@ def _graph2(poses_gt, pairs, noise=None):
     if noise is not None:
         z = z + noise
     n = len(poses_gt)
-    return PoseGraph(2, np.arange(n), np.zeros((n, 3)), ei, ej, z, np.tile(np.eye(3) * 100, (len(ei), 1, 1)))
+    return PoseGraphData(2, np.arange(n), np.zeros((n, 3)), ei, ej, z, np.tile(np.eye(3) * 100, (len(ei), 1, 1)))
 
 
 def test_odometry_and_spanning_tree_hand_computed():
@@ -257,7 +258,7 @@ def test_odometry_and_spanning_tree_hand_computed():
 def test_spanning_tree_tie_breaking_hand_computed():
     """Square 0-2, 0-1, 1-3, 2-3 (edges in that file order): vertex 3 has two parents one level up.
     By index, 1 is dequeued before 2 and places 3; in file order (g2o's), 0's first edge leads to 2."""
-    from rgbdslam.backend.initializers import bfs_tree_ordered
+    from rgbdslam.posegraph.initializers import bfs_tree_ordered
 
     gt = np.array([[0, 0, 0], [1, 0, 0.5], [0, 1, -0.5], [1, 1, 1.0]], float)
     noise = np.zeros((4, 3))
@@ -305,8 +306,8 @@ def test_gtsam_initialisers_exact_on_consistent_graphs():
     gt3 = [np.eye(4)] + [_pose3(rng.normal(size=3) * 0.5, rng.normal(size=3)) for _ in range(5)]
     p3 = [(k, k + 1) for k in range(5)] + [(0, 3), (1, 5)]
     ei = np.array([p[0] for p in p3]); ej = np.array([p[1] for p in p3])
-    z = np.array([se3_inverse(gt3[i]) @ gt3[j] for i, j in p3])
-    g3 = PoseGraph(3, np.arange(6), np.tile(np.eye(4), (6, 1, 1)), ei, ej, z, np.tile(np.eye(6), (len(ei), 1, 1)))
+    z = np.array([inv(gt3[i]) @ gt3[j] for i, j in p3])
+    g3 = PoseGraphData(3, np.arange(6), np.tile(np.eye(4), (6, 1, 1)), ei, ej, z, np.tile(np.eye(6), (len(ei), 1, 1)))
     for m in ("chordal", "odometry", "spanning_tree", "masat", "weighted_masat"):
         np.testing.assert_allclose(initialize(g3, m), np.array(gt3), atol=1e-6, err_msg=m)
 
@@ -322,7 +323,7 @@ def _masat3_reference(n, edges):
 
     nbrs = {v: [] for v in range(n)}
     for i, j, T, _ in edges:
-        nbrs[i].append((j, se3_inverse(T)))  # prediction of i from j: X_j T_ij^-1
+        nbrs[i].append((j, inv(T)))  # prediction of i from j: X_j T_ij^-1
         nbrs[j].append((i, T))  # prediction of j from i: X_i T_ij
     X = [None] * n
     X[0] = np.eye(4)
@@ -353,8 +354,8 @@ def test_masat_se3_matches_literal_algorithm_1_on_inconsistent_graph():
     pairs = [(k, k + 1) for k in range(n - 1)] + [tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(40)]
     edges = []
     for i, j in pairs:
-        T = se3_inverse(gt[i]) @ gt[j] @ _pose3(rng.normal(size=3) * 0.2, rng.normal(size=3) * 0.3)
-        edges.append((int(j), int(i), se3_inverse(T), None) if rng.random() < 0.3 else (int(i), int(j), T, None))
+        T = inv(gt[i]) @ gt[j] @ _pose3(rng.normal(size=3) * 0.2, rng.normal(size=3) * 0.3)
+        edges.append((int(j), int(i), inv(T), None) if rng.random() < 0.3 else (int(i), int(j), T, None))
     np.testing.assert_allclose(masat_initialize_pose3(n, edges), _masat3_reference(n, edges), atol=1e-10)
 
 
@@ -378,18 +379,18 @@ def test_weighted_masat_conservative_variance_propagation_hand_computed():
 
 
 def test_posegraph_edge_list3_feeds_masat_initialize_pose3():
-    from rgbdslam.backend.masat import masat
+    from rgbdslam.posegraph.masat import masat
 
     rng = np.random.default_rng(5)
     n = 12
     gt = [np.eye(4)] + [_pose3(rng.normal(size=3) * 0.3, rng.normal(size=3)) for _ in range(n - 1)]
     pairs = [(k, k + 1) for k in range(n - 1)] + [(0, 5), (3, 9), (11, 2)]
     ei = np.array([p[0] for p in pairs]); ej = np.array([p[1] for p in pairs])
-    z = np.array([se3_inverse(gt[i]) @ gt[j] @ _pose3(rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.05)
+    z = np.array([inv(gt[i]) @ gt[j] @ _pose3(rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.05)
                   for i, j in pairs])
     info = np.tile(np.diag([100.0, 100, 100, 400, 400, 400]), (len(pairs), 1, 1))  # g2o order: t then r
     info[3] = np.diag([1.0, 1, 1, 2, 2, 2])
-    g = PoseGraph(3, np.arange(n), np.tile(np.eye(4), (n, 1, 1)), ei, ej, z, info)
+    g = PoseGraphData(3, np.arange(n), np.tile(np.eye(4), (n, 1, 1)), ei, ej, z, info)
     for w in (False, True):
         np.testing.assert_allclose(masat_initialize_pose3(n, g.edge_list3(), weighted=w), masat(g, weighted=w),
                                    atol=1e-12)
@@ -414,7 +415,7 @@ def test_weighted_masat_survives_variances_that_overflow():
         np.testing.assert_allclose(p, masat_se2(4, ei, ej, z), rtol=1e-12)
     # SE(3): the same chain
     T = [np.eye(4), _pose3([0, 0, 0.1], [1, 0, 0]), _pose3([0, 0, 0.2], [1e200, 0, 0]), _pose3([0, 0, 0.3], [1e200, 1, 0])]
-    edges = [(i, j, se3_inverse(T[i]) @ T[j], np.eye(6)) for i, j in pairs]
+    edges = [(i, j, inv(T[i]) @ T[j], np.eye(6)) for i, j in pairs]
     p3 = masat_initialize_pose3(4, edges, weighted=True)
     assert np.all(np.isfinite(p3))
     np.testing.assert_allclose(p3, masat_initialize_pose3(4, edges), rtol=1e-9)
@@ -423,7 +424,7 @@ def test_weighted_masat_survives_variances_that_overflow():
 def test_weighted_masat_singular_information_means_an_unmeasured_direction():
     """An edge without heading information says nothing about the heading: its heading variance is
     infinite (capped), not the pseudo-inverse's 0 (which made it the most trusted prediction)."""
-    from rgbdslam.backend.masat import _MAX_VAR, _edge_variances
+    from rgbdslam.posegraph.masat import _MAX_VAR, _edge_variances
 
     vt, vr = _edge_variances(np.array([np.diag([4.0, 4.0, 0.0]), np.diag([1.0, 1.0, 2.0])]), 2, slice(0, 2), slice(2, 3))
     np.testing.assert_allclose(vt, [0.25, 1.0])
@@ -455,7 +456,7 @@ def test_lago_on_a_3d_graph_is_an_error_not_a_relabelled_chordal_run(tmp_path):
     # relaxation's optimum is the exact chain
     res = _cli(["posegraph", "init", src, "--method", "chordal", "-o", out])
     assert res.exit_code == 0 and "chordal initial guess" in res.stdout, res.output
-    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.posegraph.graph_io import read_graph
 
     np.testing.assert_allclose(read_graph(out).poses[:, :3, 3], [[0, 0, 0], [1, 0, 0], [2, 0, 0]], atol=1e-12)
 

@@ -276,7 +276,7 @@ def test_tracking_loss_is_relocalised(tmp_path):
     assert s["evaluation"]["ate"]["rmse"] < 0.02
     # the keyframe graph is written as g2o: a vertex per keyframe at its final pose, an odometry
     # edge between consecutive keyframes (the restart's too) and every loop edge
-    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.posegraph.graph_io import read_graph
 
     g = read_graph(tmp_path / "run" / "posegraph.g2o")
     assert g.ids.tolist() == s["keyframes"]
@@ -285,7 +285,7 @@ def test_tracking_loss_is_relocalised(tmp_path):
     at = {round(t, 6): P for t, P in zip(final.timestamps, final.poses)}
     kf_poses = np.array([at[round(t, 6)] for t in s["timestamps_keyframes"]])
     assert np.allclose(g.poses, kf_poses, atol=1e-9)
-    from rgbdslam.backend.graph import info6_g2o_to_gtsam
+    from rgbdslam.posegraph.graph import info6_g2o_to_gtsam
     from rgbdslam.frontend.odometry import RESTART_INFORMATION
 
     restart_edge = g.ids[g.edges_j].tolist().index(85)  # carries no more than the restart's weak information
@@ -306,7 +306,7 @@ def test_tracking_loss_is_relocalised(tmp_path):
 
 
 def test_tracking_segments_hand_worked():
-    from rgbdslam.pipeline import tracking_segments
+    from rgbdslam.run_folder import tracking_segments
 
     frames = [*range(0, 10), *range(20, 30), *range(40, 45)]
     # a loop from segment 1 back to segment 0 joins them (20 frames); segment 2 (5 frames) is alone

@@ -9,14 +9,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rgbdslam.backend.graph import se2_between
-from rgbdslam.backend.optimize import chi2, degrees_of_freedom, gauss_newton, has_converged
-from rgbdslam.backend.posegraph_bench import (NOISE_LEVELS, first_convergence, noisy_instance, parse_noise,
+from rgbdslam.posegraph.graph import se2_between
+from rgbdslam.posegraph.convergence import has_converged
+from rgbdslam.posegraph.factors import chi2, degrees_of_freedom
+from rgbdslam.posegraph.optimize import gauss_newton
+from rgbdslam.posegraph.bench import (NOISE_LEVELS, first_convergence, noisy_instance, parse_noise,
                                               run_benchmark)
-from rgbdslam.backend.synthetic_graph import manhattan_world as manhattan_like
+from rgbdslam.posegraph.synthetic import manhattan_world as manhattan_like
 from rgbdslam.errors import InputError
 
 from conftest import DATA, need
+
+# the paper-reproduction studies: scripts outside the package, importing paper_stats.py beside them
+MASAT_SCRIPTS = Path(__file__).resolve().parents[1] / "scripts" / "masat"
+
+
+def _masat_script(name: str) -> Path:
+    import sys
+
+    if str(MASAT_SCRIPTS) not in sys.path:
+        sys.path.insert(0, str(MASAT_SCRIPTS))
+    return MASAT_SCRIPTS / f"{name}.py"
 
 
 def test_parse_noise():
@@ -59,13 +72,13 @@ def test_convergence_tests_on_hand_histories():
 
 def test_noise_free_graph_from_ground_truth_converges_at_once():
     """Exact measurements, exact start: chi2 ~ 0; the first iteration must report convergence."""
-    from rgbdslam.backend.graph import PoseGraph
+    from rgbdslam.posegraph.graph import PoseGraphData
 
     rng = np.random.default_rng(3)
     poses = np.column_stack([rng.uniform(-5, 5, 12), rng.uniform(-5, 5, 12), rng.uniform(-3, 3, 12)])
     i = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 0, 3, 5])
     j = np.array([1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 6, 9, 11])
-    g = PoseGraph(dim=2, ids=np.arange(12), poses=poses, edges_i=i, edges_j=j,
+    g = PoseGraphData(dim=2, ids=np.arange(12), poses=poses, edges_i=i, edges_j=j,
                   meas=se2_between(poses[i], poses[j]), info=np.tile(np.eye(3) * 100.0, (len(i), 1, 1)))
     res = gauss_newton(g, poses, max_iter=50)
     assert res.chi2_final < 1e-12
@@ -130,7 +143,7 @@ def test_real_m3500_masat_converges_at_low_noise(tmp_path):
 
 
 def test_runs_csv_round_trip_and_merge(tmp_path):
-    from rgbdslam.backend.posegraph_bench import format_report, load_runs, merge_runs
+    from rgbdslam.posegraph.bench import format_report, load_runs, merge_runs
 
     ref, gt = manhattan_like(80, seed=4)
     kw = dict(instances=2, seed=1, progress=False, reference=(ref, gt, "synthetic"), workers=1)
@@ -164,7 +177,7 @@ def test_chunked_runs_reproduce_one_run(tmp_path):
 
 
 def test_optimum_rate_counts_only_runs_ending_at_ground_truths_chi2():
-    from rgbdslam.backend.posegraph_bench import RunRecord, format_report, summarise
+    from rgbdslam.posegraph.bench import RunRecord, format_report, summarise
 
     def rec(inst, method, conv, rchi2):
         return RunRecord("m3500", 0.2, 0.2, 0.2, inst, method, 10.0, conv, 5, rchi2, conv, 5, rchi2, 0.0, 0.0)
@@ -185,12 +198,12 @@ def test_optimum_rate_counts_only_runs_ending_at_ground_truths_chi2():
 
 
 def test_compare_to_paper_script(tmp_path, capsys):
-    """scripts/compare_to_paper.py: counts, Wilson interval and Fisher verdicts on hand-made runs."""
+    """scripts/masat/compare_to_paper.py: counts, Wilson interval and Fisher verdicts on hand-made runs."""
     import importlib.util
 
-    from rgbdslam.backend.posegraph_bench import RunRecord, compare_with_paper, format_report, write_outputs
+    from rgbdslam.posegraph.bench import RunRecord, compare_with_paper, format_report, write_outputs
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "compare_to_paper.py"
+    path = _masat_script("compare_to_paper")
     spec = importlib.util.spec_from_file_location("compare_to_paper", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -224,7 +237,7 @@ def test_compare_to_paper_script(tmp_path, capsys):
 def test_holm_adjustment_by_hand():
     """Holm–Bonferroni: sorted p (0.005, 0.01, 0.03, 0.04) times (4, 3, 2, 1) = (0.02, 0.03, 0.06, 0.04),
     then the running maximum (0.02, 0.03, 0.06, 0.06), returned in the input order."""
-    from rgbdslam.backend.posegraph_bench import RunRecord, compare_with_paper, holm_adjust
+    from rgbdslam.posegraph.bench import RunRecord, compare_with_paper, holm_adjust
 
     np.testing.assert_allclose(holm_adjust([0.01, 0.04, 0.03, 0.005]), [0.03, 0.06, 0.06, 0.02])
     np.testing.assert_allclose(holm_adjust([0.5, 0.6]), [1.0, 1.0])  # capped at 1
@@ -244,7 +257,12 @@ def test_holm_adjustment_by_hand():
 
 def test_paired_comparison_exact_mcnemar_by_hand():
     """8 instances where only A converged, none where only B did: p = 2 * 0.5**8 (two-sided)."""
-    from rgbdslam.backend.posegraph_bench import RunRecord, format_paired, paired_comparison
+    import sys
+
+    from rgbdslam.posegraph.bench import RunRecord
+
+    sys.path.insert(0, str(MASAT_SCRIPTS))
+    from paper_stats import format_paired, paired_comparison  # the studies' statistics, outside the package
 
     s = (0.2, 0.2, 0.2)
 
@@ -266,10 +284,10 @@ def test_paired_comparison_exact_mcnemar_by_hand():
 
 
 def test_heterogeneous_noise_study_instances():
-    """scripts/study_heterogeneous_noise.py: each edge's information matches its own noise."""
+    """scripts/masat/study_heterogeneous_noise.py: each edge's information matches its own noise."""
     import importlib.util
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "study_heterogeneous_noise.py"
+    path = _masat_script("study_heterogeneous_noise")
     spec = importlib.util.spec_from_file_location("study_heterogeneous_noise", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -293,14 +311,14 @@ def test_heterogeneous_noise_study_instances():
 
 
 def test_spanning_tree_tie_study_reproduces_the_benchmark_column(tmp_path, capsys):
-    """scripts/study_spanning_tree_ties.py: its ``index`` tree is the benchmark's spanning tree, run
+    """scripts/masat/study_spanning_tree_ties.py: its ``index`` tree is the benchmark's spanning tree, run
     for run, on the protocol's own instances; other tie rules are valid but different trees."""
     import importlib.util
 
-    from rgbdslam.backend.posegraph_bench import load_runs, reference_graph, run_instance
+    from rgbdslam.posegraph.bench import load_runs, reference_graph, run_instance
 
     need(DATA / "posegraph" / "iSAM" / "groundtruth" / "manhattanOlson3500_groundtruth.txt")
-    path = Path(__file__).resolve().parents[1] / "scripts" / "study_spanning_tree_ties.py"
+    path = _masat_script("study_spanning_tree_ties")
     spec = importlib.util.spec_from_file_location("study_spanning_tree_ties", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -427,7 +445,7 @@ def test_noise_models_weigh_singular_and_projected_information_exactly():
     """GTSAM's Gaussian.Information factors Omega by Cholesky; for a singular Omega (a valid
     rank-deficient edge, or one the reader projected onto the PSD cone) the weights must still
     be e^T Omega e, which SqrtInformation(diag(sqrt w) V^T) gives exactly."""
-    from rgbdslam.backend.optimize import _dense_models
+    from rgbdslam.posegraph.factors import _dense_models
 
     rng = np.random.default_rng(4)
     A = rng.normal(size=(6, 3))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.backend.slam_graph import PoseGraph, information_from_registration
+from rgbdslam.backend.slam_graph import KeyframeGraph
 from rgbdslam.config import BackendConfig
 from rgbdslam.frontend.keyframes import KeyframePolicy
 from rgbdslam.config import KeyframeConfig
@@ -38,8 +38,8 @@ def ate(est: dict[int, np.ndarray], gt: np.ndarray) -> float:
     return float(np.sqrt(np.mean([np.sum((est[k][:3, 3] - gt[k][:3, 3]) ** 2) for k in est])))
 
 
-def build(cfg: BackendConfig, gt: np.ndarray, loops=((39, 0),), false_loops=()) -> tuple[PoseGraph, dict]:
-    g = PoseGraph(cfg)
+def build(cfg: BackendConfig, gt: np.ndarray, loops=((39, 0),), false_loops=()) -> tuple[KeyframeGraph, dict]:
+    g = KeyframeGraph(cfg)
     odo = {0: gt[0].copy()}
     for k in range(len(gt)):
         if k > 0:
@@ -99,14 +99,6 @@ def test_robust_kernel_limits_false_loop_damage():
     assert errs[1] > 10 * errs[0]  # the false loop stands out as an outlier
 
 
-def test_information_from_registration():
-    I = information_from_registration(100, 0.0173205, spread=2.0, sigma_floor=0.001)
-    sigma2 = (0.0173205 / np.sqrt(3)) ** 2
-    assert I[3, 3] == pytest.approx(100 / sigma2, rel=1e-6)
-    assert I[0, 0] == pytest.approx(400 / sigma2, rel=1e-6)
-    assert information_from_registration(10, 0.0, sigma_floor=0.01)[3, 3] == pytest.approx(10 / 1e-4)
-
-
 def test_keyframe_policy_thresholds():
     kp = KeyframePolicy(KeyframeConfig(min_translation=0.1, min_rotation_deg=10.0, max_gap=5))
     P = np.eye(4)
@@ -134,7 +126,7 @@ def test_isam2_failure_is_survived_and_the_batch_still_solves(monkeypatch):
             raise RuntimeError("Indeterminate linear system detected while working near variable x7")
 
     monkeypatch.setattr(sg.gtsam, "ISAM2", FailingISAM2)
-    g = PoseGraph(BackendConfig())
+    g = KeyframeGraph(BackendConfig())
     g.add_node(0, np.eye(4))
     g.add_node(1, make_pose(np.eye(3), [0.1, 0, 0]))
     g.add_odometry(0, 1, make_pose(np.eye(3), [0.1, 0, 0]), np.eye(6) * 1e4)
@@ -161,7 +153,7 @@ def test_failed_batch_keeps_the_initial_guess(monkeypatch):
     monkeypatch.setattr(sg.gtsam, "LevenbergMarquardtOptimizer", FailingLM)
     cfg = BackendConfig()
     cfg.isam2 = False
-    g = PoseGraph(cfg)
+    g = KeyframeGraph(cfg)
     g.add_node(0, np.eye(4))
     g.add_node(1, make_pose(np.eye(3), [0.1, 0, 0]))
     g.add_odometry(0, 1, make_pose(np.eye(3), [0.12, 0, 0]), np.eye(6) * 1e4)

@@ -26,9 +26,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from rgbdslam.backend.gn2d import factor_spd
-from rgbdslam.backend.graph import PoseGraph, wrap_angle
-from rgbdslam.backend.masat import bfs_order
+from rgbdslam.posegraph.gn2d import factor_spd
+from rgbdslam.posegraph.graph import PoseGraphData, wrap_angle
+from rgbdslam.posegraph.masat import bfs_order
 from rgbdslam.errors import InputError
 
 
@@ -52,7 +52,7 @@ def _solve_anchored(A: sp.spmatrix, b: np.ndarray, n_unknowns: int, fixed: np.nd
     return out
 
 
-def chordal_headings(graph: PoseGraph) -> np.ndarray:
+def chordal_headings(graph: PoseGraphData) -> np.ndarray:
     """Step 1: headings from the chordal relaxation (vertex 0 at 0)."""
     n, m = graph.n_vertices, graph.n_edges
     i, j = graph.edges_i, graph.edges_j
@@ -71,7 +71,7 @@ def chordal_headings(graph: PoseGraph) -> np.ndarray:
     return np.arctan2(x[1::2], x[0::2])
 
 
-def _incidence(graph: PoseGraph, w: np.ndarray) -> sp.csc_matrix:
+def _incidence(graph: PoseGraphData, w: np.ndarray) -> sp.csc_matrix:
     m, n = graph.n_edges, graph.n_vertices
     r = np.arange(m)
     return sp.coo_matrix((np.concatenate([-w, w]), (np.concatenate([r, r]),
@@ -79,7 +79,7 @@ def _incidence(graph: PoseGraph, w: np.ndarray) -> sp.csc_matrix:
                          shape=(m, n)).tocsc()
 
 
-def refine_headings(graph: PoseGraph, theta: np.ndarray) -> np.ndarray:
+def refine_headings(graph: PoseGraphData, theta: np.ndarray) -> np.ndarray:
     """Step 2: unwrap every edge's relative angle against ``theta``, re-solve the headings linearly."""
     i, j = graph.edges_i, graph.edges_j
     k = np.round((theta[j] - theta[i] - graph.meas[:, 2]) / (2.0 * np.pi))
@@ -98,7 +98,7 @@ def _psd_cholesky(omega: np.ndarray) -> np.ndarray:
     return np.linalg.cholesky((V * w[:, None, :]) @ np.transpose(V, (0, 2, 1)))
 
 
-def positions_given_headings(graph: PoseGraph, theta: np.ndarray) -> np.ndarray:
+def positions_given_headings(graph: PoseGraphData, theta: np.ndarray) -> np.ndarray:
     """Step 3: positions by weighted linear least squares with the headings fixed; returns (n, 3)."""
     n, m = graph.n_vertices, graph.n_edges
     i, j = graph.edges_i, graph.edges_j
@@ -131,7 +131,7 @@ def positions_given_headings(graph: PoseGraph, theta: np.ndarray) -> np.ndarray:
     return np.column_stack([x[0::2], x[1::2], wrap_angle(theta)])
 
 
-def chordal_se2(graph: PoseGraph, refine: bool = True) -> np.ndarray:
+def chordal_se2(graph: PoseGraphData, refine: bool = True) -> np.ndarray:
     """Chordal initial guess of an SE(2) graph, ``(n, 3)`` poses with vertex 0 at the origin."""
     if graph.dim != 2:
         raise InputError("chordal_se2 needs an SE(2) graph")

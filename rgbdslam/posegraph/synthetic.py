@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbdslam.backend.graph import PoseGraph, se2_between
+from rgbdslam.posegraph.graph import PoseGraphData, se2_between
 
 
-def manhattan_world(n: int = 150, seed: int = 0) -> tuple[PoseGraph, np.ndarray]:
+def manhattan_world(n: int = 150, seed: int = 0) -> tuple[PoseGraphData, np.ndarray]:
     """A seeded grid walk (unit steps, 90° turns) with loop closures between revisited places.
 
     Odometry edges ``k -> k+1`` plus an edge ``i -> j`` (j > i + 2) whenever pose j is within one
@@ -28,6 +28,6 @@ def manhattan_world(n: int = 150, seed: int = 0) -> tuple[PoseGraph, np.ndarray]
                 pairs.append((i, int(j)))
     ei = np.array([p[0] for p in pairs])
     ej = np.array([p[1] for p in pairs])
-    g = PoseGraph(2, np.arange(n), poses.copy(), ei, ej, se2_between(poses[ei], poses[ej]),
+    g = PoseGraphData(2, np.arange(n), poses.copy(), ei, ej, se2_between(poses[ei], poses[ej]),
                   np.tile(np.eye(3), (len(ei), 1, 1)), True, "synthetic")
     return g, poses

@@ -3,13 +3,13 @@
 Usage::
 
     # the protocol's instances, optimised by g2o itself; --compare checks run-by-run agreement
-    .venv/bin/python scripts/g2o_parity.py --dataset m3500 --noise 0.15,0.15,0.3 --method masat \\
+    .venv/bin/python scripts/masat/g2o_parity.py --dataset m3500 --noise 0.15,0.15,0.3 --method masat \\
         --instances 50 [--first-instance 0] [--seed 0] [--compare RUNS.csv]
 
     # re-record the reference file the test suite compares gn2d.py with
-    .venv/bin/python scripts/g2o_parity.py --record tests/data/g2o_reference.json
+    .venv/bin/python scripts/masat/g2o_parity.py --record tests/data/g2o_reference.json
 
-The MASAT paper ran g2o; ``rgbdslam/backend/gn2d.py`` re-implements g2o's SE(2) edge, vertex update
+The MASAT paper ran g2o; ``rgbdslam/posegraph/gn2d.py`` re-implements g2o's SE(2) edge, vertex update
 and Gauss–Newton step in NumPy.  This script checks that claim against g2o itself, through the
 PyPI binding ``g2o-python`` 0.0.12.  That wheel is built against NumPy 1.x and crashes under the
 NumPy 2 this project pins, so it lives in its own environment, ``.venv-g2o`` (numpy 1.26.4 +
@@ -37,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the repository (this file is in scripts/masat/)
 G2O_VENV = ROOT / ".venv-g2o"
 G2O_PINS = ("numpy==1.26.4", "g2o-python==0.0.12")
 
@@ -121,9 +121,9 @@ def protocol(a) -> int:
     import numpy as np
     from scipy.stats import binomtest
 
-    from rgbdslam.backend import posegraph_bench as pb
-    from rgbdslam.backend.initializers import initialize
-    from rgbdslam.backend.optimize import degrees_of_freedom
+    from rgbdslam.posegraph import bench as pb
+    from rgbdslam.posegraph.initializers import initialize
+    from rgbdslam.posegraph.factors import degrees_of_freedom
 
     (sigma,) = pb.parse_noise(a.noise)
     level = pb.level_index(sigma)
@@ -145,7 +145,7 @@ def protocol(a) -> int:
         for r in pb.load_runs(a.compare):
             if (r.dataset, (r.sigma_x, r.sigma_y, r.sigma_theta), r.method) == (a.dataset, tuple(sigma), a.method):
                 ours[r.instance] = r
-    lines = [f"`scripts/g2o_parity.py {' '.join(sys.argv[1:])}` — {pb.DATASET_NAMES[a.dataset]}, noise {a.noise}, "
+    lines = [f"`scripts/masat/g2o_parity.py {' '.join(sys.argv[1:])}` — {pb.DATASET_NAMES[a.dataset]}, noise {a.noise}, "
              f"start {a.method}, instances {insts[0]}-{insts[-1]} of seed {a.seed}; g2o-python 0.0.12 in .venv-g2o; "
              f"{os.cpu_count()} CPUs ({platform.machine()}), wall time {wall:.0f} s", "",
              "| instance | g2o: converged / iterations / reduced χ² | ours (--compare) | same verdict |",
@@ -178,9 +178,9 @@ def record(path: Path) -> int:
     """Reference χ² histories of g2o on a seeded synthetic grid world (three noise / start cases)."""
     import numpy as np
 
-    from rgbdslam.backend import posegraph_bench as pb
-    from rgbdslam.backend.initializers import initialize
-    from rgbdslam.backend.synthetic_graph import manhattan_world
+    from rgbdslam.posegraph import bench as pb
+    from rgbdslam.posegraph.initializers import initialize
+    from rgbdslam.posegraph.synthetic import manhattan_world
 
     ref, _ = manhattan_world(300, seed=11)
     cases = []
@@ -197,7 +197,7 @@ def record(path: Path) -> int:
     doc = dict(source="g2o via g2o-python 0.0.12 (numpy 1.26.4), SparseOptimizer + BlockSolverSE2 + "
                       "LinearSolverEigenSE2 + OptimizationAlgorithmGaussNewton, vertex 0 fixed, "
                       "chi2 recomputed after each optimize(1); graph: manhattan_world(300, seed=11)",
-               command="scripts/g2o_parity.py --record " + str(path), cases=cases)
+               command="scripts/masat/g2o_parity.py --record " + str(path), cases=cases)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc) + "\n")
     print(f"wrote {path}: {len(cases)} cases")

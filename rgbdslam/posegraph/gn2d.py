@@ -26,7 +26,7 @@ the gauge is fixed by *holding vertex ``root`` constant*, as g2o fixes the first
 prior, so it adds nothing to χ²) — and solves ``H δ = −b`` with SuperLU (``splu``, minimum
 degree on ``Hᵀ + H``).  χ² = ``Σ eᵀ Ω e`` with this error.
 
-Checked against g2o itself (``scripts/g2o_parity.py``; g2o-python 0.0.12): the χ² after every
+Checked against g2o itself (``scripts/masat/g2o_parity.py``; g2o-python 0.0.12): the χ² after every
 iteration agrees to ~1e-9 relative (``tests/test_gn2d.py::test_matches_real_g2o_chi2_history``).
 """
 
@@ -39,11 +39,12 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from rgbdslam.backend.graph import PoseGraph, wrap_angle
 from rgbdslam.errors import InputError
+from rgbdslam.posegraph.convergence import CRITERIA, GNResult, check_iteration_options, iterate_until_converged
+from rgbdslam.posegraph.graph import PoseGraphData, wrap_angle
 
 
-def _edge_arrays(graph: PoseGraph):
+def _edge_arrays(graph: PoseGraphData):
     if graph.dim != 2:
         raise InputError("the g2o-style Gauss-Newton (--optimizer g2o) is SE(2) only; use --optimizer gtsam for SE(3)")
     ei = np.asarray(graph.edges_i, np.int64)
@@ -93,7 +94,7 @@ def edge_jacobians(poses: np.ndarray, ei: np.ndarray, ej: np.ndarray, z: np.ndar
     return rot(A0), rot(B0)
 
 
-def chi2_g2o(graph: PoseGraph, poses: np.ndarray) -> float:
+def chi2_g2o(graph: PoseGraphData, poses: np.ndarray) -> float:
     """χ² = Σ eᵀ Ω e with g2o's SE(2) error."""
     ei, ej, z, om = _edge_arrays(graph)
     e = edge_errors(np.asarray(poses, float), ei, ej, z)
@@ -165,17 +166,15 @@ def factor_spd(H: sp.spmatrix):
     return spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 
-def gauss_newton_g2o(graph: PoseGraph, initial: np.ndarray, max_iter: int = 50, tol: float = 1e-6,
+def gauss_newton_g2o(graph: PoseGraphData, initial: np.ndarray, max_iter: int = 50, tol: float = 1e-6,
                      criterion: str = "relative", keep_poses: bool = True,
                      callback: Callable[[int, float], None] | None = None, root: int = 0):
     """At most ``max_iter`` g2o-style Gauss–Newton iterations; same interface and result as
-    :func:`rgbdslam.backend.optimize.gauss_newton` (``GNResult``; χ² is g2o's, ``Σ eᵀΩe``).
+    :func:`rgbdslam.posegraph.optimize.gauss_newton` (``GNResult``; χ² is g2o's, ``Σ eᵀΩe``).
 
     Vertex ``root`` is held at ``initial[root]``.  Stops at the first iteration passing the
     convergence test; a singular system or a non-finite χ² ends the run as not converged.
     """
-    from rgbdslam.backend.optimize import CRITERIA, GNResult, check_iteration_options, iterate_until_converged
-
     if criterion not in CRITERIA:
         raise InputError(f"unknown convergence criterion {criterion!r}; use relative or absolute")
     check_iteration_options(max_iter, tol, allow_zero_tol=True)

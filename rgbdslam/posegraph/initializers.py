@@ -4,14 +4,14 @@
   inverted); a missing odometry edge is an InputError.
 * ``spanning_tree`` — BFS from vertex 0; every vertex is placed from its BFS parent through
   one edge joining them (as g2o's ``computeInitialGuess`` with unit edge costs).
-* ``masat`` / ``weighted_masat`` — see :mod:`rgbdslam.backend.masat`.
+* ``masat`` / ``weighted_masat`` — see :mod:`rgbdslam.posegraph.masat`.
 * ``lago`` (SE(2)) — GTSAM's LAGO (``gtsam.lago.initialize(graph, useOdometricPath=False)``: its
   2kπ angle unwrapping along a spanning tree instead of the odometry chain, which was better on
   M3500 at σθ = 0.05–0.2 — both fail often at the paper's noise levels, see docs/posegraph.md);
   ``chordal`` — SE(3): GTSAM's chordal relaxation (``gtsam.InitializePose3.initialize``; on a
   tree, which it cannot solve, the exact chained poses that are the relaxation's optimum); SE(2):
   this project's chordal relaxation of the headings + linear positions
-  (:mod:`rgbdslam.backend.chordal2d`). ``lago`` is SE(2) only: on an SE(3) graph it is an
+  (:mod:`rgbdslam.posegraph.chordal2d`). ``lago`` is SE(2) only: on an SE(3) graph it is an
   InputError that points to ``chordal``.
 
 All return poses with vertex 0 at the origin / identity: ``(n, 3)`` rows ``(x, y, theta)`` for
@@ -22,14 +22,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbdslam.backend.graph import PoseGraph, se2_compose, se2_inverse, se3_inverse, wrap_angle
-from rgbdslam.backend.masat import bfs_order, masat
 from rgbdslam.errors import InputError
+from rgbdslam.geometry.se3 import inv
+from rgbdslam.posegraph.chordal2d import chordal_se2
+from rgbdslam.posegraph.convergence import error_summary, name_vertices
+from rgbdslam.posegraph.factors import build_factor_graph, poses_from_values
+from rgbdslam.posegraph.graph import PoseGraphData, se2_compose, se2_inverse, wrap_angle
+from rgbdslam.posegraph.masat import bfs_order, masat
 
 METHODS = ("odometry", "spanning_tree", "masat", "weighted_masat", "lago", "chordal")
 
 
-def _chain(graph: PoseGraph, parent: np.ndarray, order: np.ndarray, edge_of: np.ndarray, fwd: np.ndarray) -> np.ndarray:
+def _chain(graph: PoseGraphData, parent: np.ndarray, order: np.ndarray, edge_of: np.ndarray, fwd: np.ndarray) -> np.ndarray:
     """Place vertices (``order``: root first, parents before children) from their ``parent``
     through edge ``edge_of``; all vertices of one tree depth are composed in one vectorised step."""
     n = graph.n_vertices
@@ -49,7 +53,7 @@ def _chain(graph: PoseGraph, parent: np.ndarray, order: np.ndarray, edge_of: np.
             out[vs] = se2_compose(out[parent[vs]], z[vs])
         return out
     z = graph.meas[edge_of].copy()
-    z[~fwd] = se3_inverse(z[~fwd])
+    z[~fwd] = inv(z[~fwd])
     out = np.tile(np.eye(4), (n, 1, 1))
     for d in range(len(bounds) - 1):
         vs = by_depth[bounds[d]:bounds[d + 1]]
@@ -57,7 +61,7 @@ def _chain(graph: PoseGraph, parent: np.ndarray, order: np.ndarray, edge_of: np.
     return out
 
 
-def _edge_lookup(graph: PoseGraph) -> dict[tuple[int, int], int]:
+def _edge_lookup(graph: PoseGraphData) -> dict[tuple[int, int], int]:
     """First edge index for each (i, j) pair (either direction, key as stored)."""
     lut: dict[tuple[int, int], int] = {}
     for k, (a, b) in enumerate(zip(graph.edges_i.tolist(), graph.edges_j.tolist())):
@@ -65,7 +69,7 @@ def _edge_lookup(graph: PoseGraph) -> dict[tuple[int, int], int]:
     return lut
 
 
-def odometry(graph: PoseGraph) -> np.ndarray:
+def odometry(graph: PoseGraphData) -> np.ndarray:
     n = graph.n_vertices
     lut = _edge_lookup(graph)
     edge_of = np.zeros(n, np.int64)
@@ -143,7 +147,7 @@ def bfs_tree_ordered(n: int, ei: np.ndarray, ej: np.ndarray, tie_break="index",
     return np.asarray(order, np.int64), np.asarray(parent, np.int64), np.asarray(edge_of, np.int64)
 
 
-def spanning_tree(graph: PoseGraph, tie_break="index") -> np.ndarray:
+def spanning_tree(graph: PoseGraphData, tie_break="index") -> np.ndarray:
     """BFS spanning-tree initial guess; ``tie_break`` as in :func:`bfs_tree_ordered` (the default
     ``"index"`` is the benchmark's tree)."""
     order, parent, edge_of = bfs_tree_ordered(graph.n_vertices, graph.edges_i, graph.edges_j, tie_break)
@@ -151,11 +155,9 @@ def spanning_tree(graph: PoseGraph, tie_break="index") -> np.ndarray:
     return _chain(graph, parent, order, edge_of, fwd)
 
 
-def _gtsam_init(graph: PoseGraph) -> np.ndarray:
+def _gtsam_init(graph: PoseGraphData) -> np.ndarray:
     """GTSAM's LAGO (SE(2)) or chordal ``InitializePose3`` (SE(3)); a failure is one line."""
     import gtsam
-
-    from rgbdslam.backend.optimize import build_factor_graph, error_summary, name_vertices, poses_from_values
 
     bfs_order(graph.n_vertices, graph.edges_i, graph.edges_j)  # connectivity check, clear error
     fg = build_factor_graph(graph, root=0)
@@ -178,7 +180,7 @@ def _gtsam_init(graph: PoseGraph) -> np.ndarray:
     return poses
 
 
-def lago(graph: PoseGraph) -> np.ndarray:
+def lago(graph: PoseGraphData) -> np.ndarray:
     """GTSAM's LAGO; SE(2) only (an SE(3) graph is an InputError pointing to ``chordal``)."""
     if graph.dim != 2:
         raise InputError(f"{graph.source or 'pose graph'}: LAGO is for 2-D (SE(2)) graphs only and this graph is "
@@ -193,10 +195,8 @@ def lago(graph: PoseGraph) -> np.ndarray:
     return _gtsam_init(graph)
 
 
-def chordal(graph: PoseGraph) -> np.ndarray:
+def chordal(graph: PoseGraphData) -> np.ndarray:
     if graph.dim == 2:
-        from rgbdslam.backend.chordal2d import chordal_se2
-
         return chordal_se2(graph)
     bfs_order(graph.n_vertices, graph.edges_i, graph.edges_j)  # connected (a clear error otherwise)
     if graph.n_edges == graph.n_vertices - 1:
@@ -207,7 +207,7 @@ def chordal(graph: PoseGraph) -> np.ndarray:
     return _gtsam_init(graph)
 
 
-def initialize(graph: PoseGraph, method: str) -> np.ndarray:
+def initialize(graph: PoseGraphData, method: str) -> np.ndarray:
     """Initial poses by ``method`` (one of :data:`METHODS`)."""
     if method == "masat":
         return masat(graph, weighted=False)
@@ -222,21 +222,3 @@ def initialize(graph: PoseGraph, method: str) -> np.ndarray:
     if method == "lago":
         return lago(graph)
     raise InputError(f"unknown initialisation method {method!r}; use one of {', '.join(METHODS)}")
-
-
-def initialize_file(path, method: str, out, fmt: str = "auto") -> str:
-    """Read a pose-graph file, build the ``method`` initial guess, write it as g2o; returns a report line."""
-    import time
-
-    from rgbdslam.backend.graph_io import read_graph, write_g2o
-    from rgbdslam.backend.optimize import chi2, degrees_of_freedom
-
-    graph = read_graph(path, fmt)
-    t0 = time.perf_counter()
-    poses = initialize(graph, method)
-    dt = time.perf_counter() - t0
-    write_g2o(out, graph, poses)
-    c = chi2(graph, poses)
-    notes = f" ({'; '.join(graph.notes)})" if graph.notes else ""
-    return (f"{graph.summary()}{notes}\n{method} initial guess in {dt * 1e3:.1f} ms: chi2 {c:.6g}, "
-            f"reduced chi2 {c / max(degrees_of_freedom(graph), 1):.4g}; written to {out}")

@@ -15,7 +15,7 @@ Formats and the conventions that differ between them:
   records (``POINT2``, ``LANDMARK``, ...) are ignored with a note.  The roll-pitch-yaw
   information is used as rotation-vector information (they agree to first order).
 
-SE(3) information is stored in g2o (t, r) order in :class:`PoseGraph` (see graph.py).
+SE(3) information is stored in g2o (t, r) order in :class:`PoseGraphData` (see graph.py).
 Malformed lines raise :class:`rgbdslam.errors.InputError` naming ``file:line``.
 """
 
@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.backend.graph import PoseGraph, empty_poses, se3_from_tq, se3_to_tq, wrap_angle
+from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
+from rgbdslam.posegraph.graph import PoseGraphData, empty_poses, wrap_angle
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.text import read_lines
@@ -192,7 +193,7 @@ def _check_info(path: Path, tag: str, info: np.ndarray, lines, what: str = "info
     raise AssertionError("unreachable")  # pragma: no cover
 
 
-def _assemble(path, dim, vid, vposes, ei_raw, ej_raw, meas, info, edge_lines, fmt, notes) -> PoseGraph:
+def _assemble(path, dim, vid, vposes, ei_raw, ej_raw, meas, info, edge_lines, fmt, notes) -> PoseGraphData:
     if len(ei_raw) == 0:
         raise InputError(f"{path}: the file has no pose-graph edges; give a graph with EDGE records")
     ids = np.unique(np.concatenate([vid, ei_raw, ej_raw]))
@@ -209,7 +210,7 @@ def _assemble(path, dim, vid, vposes, ei_raw, ej_raw, meas, info, edge_lines, fm
     if n_est < len(vid):
         notes = [*notes, f"{len(vid) - n_est} repeated vertex line(s): the last estimate of each vertex is used"]
     del index
-    return PoseGraph(dim=dim, ids=ids, poses=poses, edges_i=ei, edges_j=ej, meas=meas, info=info,
+    return PoseGraphData(dim=dim, ids=ids, poses=poses, edges_i=ei, edges_j=ej, meas=meas, info=info,
                      has_poses=n_est == len(ids), source=f"{path} ({fmt})", notes=notes)
 
 
@@ -221,7 +222,7 @@ def _sym_from_upper(vals: np.ndarray, d: int) -> np.ndarray:
     return M
 
 
-def _read_g2o(path: Path, text_lines: list[str]) -> PoseGraph:
+def _read_g2o(path: Path, text_lines: list[str]) -> PoseGraphData:
     rows, lines, notes = _scan(path, text_lines, _G2O, _IGNORED["g2o"])
     has2 = "EDGE_SE2" in rows or "VERTEX_SE2" in rows
     has3 = "EDGE_SE3:QUAT" in rows or "VERTEX_SE3:QUAT" in rows
@@ -251,19 +252,19 @@ def _read_g2o(path: Path, text_lines: list[str]) -> PoseGraph:
             if len(bad):
                 raise InputError(f"{path}:{lines[tag][bad[0]]}: {tag} quaternion is not unit length; fix the line")
     vid = _int_ids(path, "VERTEX_SE3:QUAT", v[:, 0], lines["VERTEX_SE3:QUAT"]) if len(v) else np.zeros(0, np.int64)
-    vposes = se3_from_tq(v[:, 1:4], v[:, 4:8]) if len(v) else np.zeros((0, 4, 4))
+    vposes = pose_from_tum(v[:, 1:4], v[:, 4:8]) if len(v) else np.zeros((0, 4, 4))
     if len(e) == 0:
         raise InputError(f"{path}: the file has no pose-graph edges; give a graph with EDGE records")
     ei = _int_ids(path, "EDGE_SE3:QUAT", e[:, 0], lines["EDGE_SE3:QUAT"])
     ej = _int_ids(path, "EDGE_SE3:QUAT", e[:, 1], lines["EDGE_SE3:QUAT"])
-    meas = se3_from_tq(e[:, 2:5], e[:, 5:9])
+    meas = pose_from_tum(e[:, 2:5], e[:, 5:9])
     info = _sym_from_upper(e[:, 9:30], 6)
     info, note = _check_info(path, "EDGE_SE3:QUAT", info, lines["EDGE_SE3:QUAT"])
     notes = notes + [note] if note else notes
     return _assemble(path, 3, vid, vposes, ei, ej, meas, info, lines["EDGE_SE3:QUAT"], "g2o", notes)
 
 
-def _read_toro(path: Path, text_lines: list[str]) -> PoseGraph:
+def _read_toro(path: Path, text_lines: list[str]) -> PoseGraphData:
     rows, lines, notes = _scan(path, text_lines, _TORO, _IGNORED["toro"])
     v = _numbers(path, "VERTEX2", rows["VERTEX2"], lines["VERTEX2"])
     e = _numbers(path, "EDGE2", rows["EDGE2"], lines["EDGE2"])
@@ -282,7 +283,7 @@ def _read_toro(path: Path, text_lines: list[str]) -> PoseGraph:
     return _assemble(path, 2, vid, vposes, ei, ej, e[:, 2:5], info, lines["EDGE2"], "TORO", notes)
 
 
-def _read_isam(path: Path, text_lines: list[str]) -> PoseGraph:
+def _read_isam(path: Path, text_lines: list[str]) -> PoseGraphData:
     rows, lines, notes = _scan(path, text_lines, _ISAM, _IGNORED["isam"])
     two = rows["ODOMETRY"] + rows["EDGE2"]
     two_lines = lines["ODOMETRY"] + lines["EDGE2"]
@@ -322,7 +323,7 @@ def _read_isam(path: Path, text_lines: list[str]) -> PoseGraph:
     return _assemble(path, 3, np.zeros(0, np.int64), np.zeros((0, 4, 4)), ei, ej, meas, info, el, "iSAM", notes)
 
 
-def read_graph(path: str | Path, fmt: str = "auto") -> PoseGraph:
+def read_graph(path: str | Path, fmt: str = "auto") -> PoseGraphData:
     """Read a pose graph (g2o, TORO or iSAM; ``fmt="auto"`` detects it from the records)."""
     path = Path(path)
     if not path.is_file():
@@ -340,7 +341,7 @@ def _upper(M: np.ndarray, d: int) -> np.ndarray:
     return M[:, iu[0], iu[1]]
 
 
-def graph_to_g2o_text(graph: PoseGraph, poses: np.ndarray | None = None) -> str:
+def graph_to_g2o_text(graph: PoseGraphData, poses: np.ndarray | None = None) -> str:
     """The graph as g2o text; ``poses`` (default ``graph.poses``) become the VERTEX records."""
     poses = graph.poses if poses is None else np.asarray(poses, float)
     ids = graph.ids
@@ -355,10 +356,10 @@ def graph_to_g2o_text(graph: PoseGraph, poses: np.ndarray | None = None) -> str:
             out.append(f"EDGE_SE2 {ids[graph.edges_i[k]]} {ids[graph.edges_j[k]]} "
                        + " ".join(f"{v:.17g}" for v in (*z, *up[k])))
     else:
-        t, q = se3_to_tq(poses)
+        t, q = pose_to_tum(poses)
         for k in range(len(ids)):
             out.append(f"VERTEX_SE3:QUAT {ids[k]} " + " ".join(f"{v:.17g}" for v in (*t[k], *q[k])))
-        te, qe = se3_to_tq(graph.meas)
+        te, qe = pose_to_tum(graph.meas)
         up = _upper(graph.info, 6)
         for k in range(graph.n_edges):
             out.append(f"EDGE_SE3:QUAT {ids[graph.edges_i[k]]} {ids[graph.edges_j[k]]} "
@@ -366,7 +367,7 @@ def graph_to_g2o_text(graph: PoseGraph, poses: np.ndarray | None = None) -> str:
     return "\n".join(out) + "\n"
 
 
-def write_g2o(path: str | Path, graph: PoseGraph, poses: np.ndarray | None = None) -> None:
+def write_g2o(path: str | Path, graph: PoseGraphData, poses: np.ndarray | None = None) -> None:
     """Write the graph (with ``poses`` as vertex estimates) as a g2o file, atomically."""
     atomic_write_text(path, graph_to_g2o_text(graph, poses))
 

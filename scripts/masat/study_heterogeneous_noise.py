@@ -2,14 +2,14 @@
 
 Usage::
 
-    .venv/bin/python scripts/study_heterogeneous_noise.py [--dataset m3500] [--noise 0.2,0.2,0.2]
+    .venv/bin/python scripts/masat/study_heterogeneous_noise.py [--dataset m3500] [--noise 0.2,0.2,0.2]
         [--model loguniform|loops] [--spread 3] [--instances 30] [--seed 1] [--workers 2]
         [--methods masat,weighted_masat,chordal,ground_truth] [--out DIR]
 
 In the MASAT paper's protocol every edge gets the same noise and the same information matrix, so
 weighting the ancestors' predictions by their edges' information cannot change anything; only
 the accumulated (path) variance separates weighted MASAT from MASAT there, and the two are
-statistically the same (``scripts/compare_to_paper.py --paired weighted_masat,masat``).  SLAM
+statistically the same (``scripts/masat/compare_to_paper.py --paired weighted_masat,masat``).  SLAM
 graphs are not like that: odometry and loop-closure edges, or edges from different sensors, carry
 different information.  This study keeps the protocol (noise-free graph, GTSAM Gauss–Newton, at
 most 50 iterations, converged when ``|Δχ²|/χ² < 1e-6``, Table 1c's "at the optimum" rule) but draws
@@ -20,8 +20,8 @@ information ``diag(1/(s_e σ)²)``:
 * ``loops``: odometry edges (``j = i + 1``) ``s_e = 1/spread``, every other edge ``s_e = spread``.
 
 It prints the paired comparison of weighted MASAT against MASAT (exact McNemar test, see
-``rgbdslam.backend.posegraph_bench.paired_comparison``), the rates of every start, and writes a
-``runs.csv`` (``--out``) that ``scripts/compare_to_paper.py --paired`` reads.  Seed 1 by default:
+``paper_stats.paired_comparison`` beside this script), the rates of every start, and writes a
+``runs.csv`` (``--out``) that ``scripts/masat/compare_to_paper.py --paired`` reads.  Seed 1 by default:
 these instances are not the protocol's.
 """
 
@@ -38,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.backend import posegraph_bench as pb
+from rgbdslam.posegraph import bench as pb
+import paper_stats as ps  # beside this script
 from rgbdslam.errors import InputError
 
 _STATE: dict = {}
@@ -99,7 +100,7 @@ def main(argv=None) -> int:
         recs = [r for i in range(a.instances) for r in _run(i)]
     wall = time.perf_counter() - t0
     S = pb.summarise(recs)
-    cmd = " ".join(["scripts/study_heterogeneous_noise.py"] + [shlex.quote(x) for x in (argv or sys.argv[1:])])
+    cmd = " ".join(["scripts/masat/study_heterogeneous_noise.py"] + [shlex.quote(x) for x in (argv or sys.argv[1:])])
     lines = [f"`{cmd}` — {pb.DATASET_NAMES[a.dataset]}, base noise {a.noise}, model {a.model} (spread {a.spread:g}), "
              f"{a.instances} instances of seed {a.seed}; {a.workers} worker(s), {os.cpu_count()} CPUs "
              f"({platform.machine()}), wall time {wall:.0f} s", "",
@@ -109,7 +110,7 @@ def main(argv=None) -> int:
         lines.append(f"| {pb.METHOD_NAMES[m]} | {s['rate']:.2f} | {s['opt_rate']:.2f} | {1e3 * s['init_s']:.0f} |")
     if "masat" in methods and "weighted_masat" in methods:
         lines += ["", "Paired, same instances (exact McNemar):", "",
-                  pb.format_paired(pb.paired_comparison(recs, "weighted_masat", "masat"), "weighted_masat", "masat")]
+                  ps.format_paired(ps.paired_comparison(recs, "weighted_masat", "masat"), "weighted_masat", "masat")]
     report = "\n".join(lines) + "\n"
     print(report)
     if a.out is not None:

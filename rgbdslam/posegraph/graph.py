@@ -1,8 +1,8 @@
 """One in-memory pose graph for SE(2) and SE(3), plus the small Lie-group helpers it needs.
 
-Conventions (used by every module in ``rgbdslam.backend``):
+Conventions (used by every module in ``rgbdslam.posegraph``):
 
-* vertices are stored densely, ``0..n-1``; ``PoseGraph.ids`` maps a dense index to the id used
+* vertices are stored densely, ``0..n-1``; ``PoseGraphData.ids`` maps a dense index to the id used
   in the file (files may skip ids);
 * SE(2) poses and measurements are ``(x, y, theta)`` rows; SE(3) ones are 4x4 matrices
   (camera/robot-to-world for poses, ``T_ij = T_i^-1 T_j`` for measurements);
@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rgbdslam.geometry.se3 import inv, pose_from_tum, pose_to_tum
 
 
 def wrap_angle(a):
@@ -59,12 +58,6 @@ def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ SE(3)
 
 
-# 4x4 helpers shared with the rest of the package
-se3_inverse = inv
-se3_from_tq = pose_from_tum  # (t (N,3), q xyzw (N,4)) -> (N,4,4)
-se3_to_tq = pose_to_tum  # (N,4,4) -> t (N,3), q xyzw (N,4) with w >= 0
-
-
 def info6_g2o_to_gtsam(info: np.ndarray) -> np.ndarray:
     """Reorder 6x6 information from (t, r) blocks (g2o) to (r, t) blocks (GTSAM Pose3 tangent)."""
     p = np.array([3, 4, 5, 0, 1, 2])
@@ -76,7 +69,7 @@ def info6_g2o_to_gtsam(info: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class PoseGraph:
+class PoseGraphData:
     """A pose graph (SE(2) if ``dim == 2`` else SE(3)).
 
     ``poses`` holds the vertex estimates from the file (zeros / identity when a format stores
@@ -106,12 +99,12 @@ class PoseGraph:
     def dof_per_vertex(self) -> int:
         return 3 if self.dim == 2 else 6
 
-    def copy(self) -> "PoseGraph":
-        return PoseGraph(self.dim, self.ids.copy(), self.poses.copy(), self.edges_i.copy(),
+    def copy(self) -> "PoseGraphData":
+        return PoseGraphData(self.dim, self.ids.copy(), self.poses.copy(), self.edges_i.copy(),
                          self.edges_j.copy(), self.meas.copy(), self.info.copy(), self.has_poses,
                          self.source, list(self.notes))
 
-    def with_poses(self, poses: np.ndarray) -> "PoseGraph":
+    def with_poses(self, poses: np.ndarray) -> "PoseGraphData":
         g = self.copy()
         g.poses = np.asarray(poses, float).copy()
         g.has_poses = True

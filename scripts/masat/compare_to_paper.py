@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python scripts/compare_to_paper.py RUNS.csv [RUNS.csv ...] [--methods masat,weighted_masat]
+    .venv/bin/python scripts/masat/compare_to_paper.py RUNS.csv [RUNS.csv ...] [--methods masat,weighted_masat]
         [--alpha 0.05] [--paper-instances 50] [--paired weighted_masat,masat]
 
 Reads the ``runs.csv`` files of ``rgbdslam posegraph bench`` (several files of one data set are
@@ -31,7 +31,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from rgbdslam.backend import posegraph_bench as pb
+from rgbdslam.posegraph import bench as pb
+import paper_stats as ps  # beside this script
 from rgbdslam.errors import InputError
 
 
@@ -56,8 +57,8 @@ def main(argv=None) -> int:
         print("error: give runs.csv files of exactly one data set", file=sys.stderr)
         return 2
     rows = pb.compare_with_paper(records, [m.strip() for m in a.methods.split(",") if m.strip()], a.alpha, a.paper_instances)
-    print(f"{pb.DATASET_NAMES[records[0].dataset]} — `{' '.join(['scripts/compare_to_paper.py'] + (argv or sys.argv[1:]))}`\n")
-    print(pb.format_paper_comparison(rows))
+    print(f"{pb.DATASET_NAMES[records[0].dataset]} — `{' '.join(['scripts/masat/compare_to_paper.py'] + (argv or sys.argv[1:]))}`\n")
+    print(ps.format_paper_comparison(rows))
     for key, what in (("verdict", "each cell on its own"), ("verdict_holm", "Holm-adjusted over the table")):
         tally = {v: sum(r[key] == v for r in rows) for v in ("above", "same", "below")}
         print(f"\n{len(rows)} comparisons at alpha {a.alpha}, {what}: {tally['above']} above, {tally['same']} same, "
@@ -69,7 +70,7 @@ def main(argv=None) -> int:
             return 2
         print(f"\nPaired: {pb.METHOD_NAMES.get(m[0], m[0])} against {pb.METHOD_NAMES.get(m[1], m[1])} "
               "on the same instances (exact McNemar test)\n")
-        print(pb.format_paired(pb.paired_comparison(records, m[0], m[1], a.alpha), m[0], m[1]))
+        print(ps.format_paired(ps.paired_comparison(records, m[0], m[1], a.alpha), m[0], m[1]))
     return 0
 
 

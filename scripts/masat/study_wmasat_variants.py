@@ -2,10 +2,10 @@
 
 Usage::
 
-    .venv/bin/python scripts/study_wmasat_variants.py [--dataset city10k] [--noise 0.15,0.15,0.3]
+    .venv/bin/python scripts/masat/study_wmasat_variants.py [--dataset city10k] [--noise 0.15,0.15,0.3]
         [--instances 12] [--seed 1] [--workers 2] [--variants v1,v2,...]
 
-The MASAT paper's protocol (``rgbdslam.backend.posegraph_bench``: noisy instance, initial guess,
+The MASAT paper's protocol (``rgbdslam.posegraph.bench``: noisy instance, initial guess,
 at most 50 GTSAM Gauss–Newton iterations, converged when ``|Δχ²|/χ² < 1e-6``), but on instances
 drawn with a seed *other* than the protocol's seed 0, so that choosing among variants here does
 not tune to the instances of docs/benchmarks.md.  For each variant it prints the convergence rate,
@@ -45,13 +45,14 @@ import time
 
 import numpy as np
 
-from rgbdslam.backend import posegraph_bench as pb
-from rgbdslam.backend.chordal2d import positions_given_headings, refine_headings
-from rgbdslam.backend.gn2d import chi2_g2o
-from rgbdslam.backend.graph import se2_compose, se2_inverse, wrap_angle
-from rgbdslam.backend.initializers import initialize
-from rgbdslam.backend.masat import _edge_variances, bfs_order, masat_se2
-from rgbdslam.backend.optimize import chi2 as gtsam_chi2, run_gauss_newton
+from rgbdslam.posegraph import bench as pb
+from rgbdslam.posegraph.chordal2d import positions_given_headings, refine_headings
+from rgbdslam.posegraph.gn2d import chi2_g2o
+from rgbdslam.posegraph.graph import se2_compose, se2_inverse, wrap_angle
+from rgbdslam.posegraph.initializers import initialize
+from rgbdslam.posegraph.masat import _edge_variances, bfs_order, masat_se2
+from rgbdslam.posegraph.factors import chi2 as gtsam_chi2
+from rgbdslam.posegraph.optimize import run_gauss_newton
 
 _STATE: dict = {}
 
@@ -267,7 +268,7 @@ def main(argv=None) -> int:
             res[k] = o
             print(f"instance {k} done", file=sys.stderr, flush=True)
     wall = time.perf_counter() - t0
-    print(f"`{' '.join(shlex.quote(x) for x in ['.venv/bin/python', 'scripts/study_wmasat_variants.py'] + (argv or sys.argv[1:]))}`"
+    print(f"`{' '.join(shlex.quote(x) for x in ['.venv/bin/python', 'scripts/masat/study_wmasat_variants.py'] + (argv or sys.argv[1:]))}`"
           f" — {pb.DATASET_NAMES.get(a.dataset, a.dataset)}, noise {','.join(f'{s:g}' for s in sigma)}, "
           f"{a.instances} instances of seed {a.seed}; {a.workers} worker(s), {os.cpu_count()} CPUs "
           f"({platform.machine()}), wall time {wall:.0f} s\n")

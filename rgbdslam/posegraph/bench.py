@@ -11,7 +11,7 @@ For a dataset (M3500, City10k, M10000) and a noise level (σx, σy, σθ):
    so results do not depend on the number of workers;
 3. build each initial guess (odometry, spanning tree, MASAT, weighted MASAT, LAGO and the
    ground truth as control), time it, run at most ``max_iter`` Gauss–Newton iterations with
-   a prior on vertex 0, and record convergence (see :mod:`rgbdslam.backend.optimize`),
+   a prior on vertex 0, and record convergence (see :mod:`rgbdslam.posegraph.optimize`),
    iterations and reduced χ² (χ² / dof);
 4. summarise: Table 1 (convergence rate) and Table 2 (mean iterations and mean reduced χ² over
    converged runs), with the paper's numbers beside ours, plus mean init time per method.
@@ -30,12 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.backend.graph import PoseGraph, se2_between, wrap_angle
-from rgbdslam.backend.graph_io import read_graph
-from rgbdslam.backend.initializers import initialize
-from rgbdslam.backend.optimize import (OPTIMIZERS, check_iteration_options, degrees_of_freedom, gauss_newton,
-                                       has_converged, run_gauss_newton)
+from rgbdslam.posegraph.graph import PoseGraphData, se2_between, wrap_angle
+from rgbdslam.posegraph.graph_io import read_graph
+from rgbdslam.posegraph.initializers import initialize
 from rgbdslam.errors import InputError
+from rgbdslam.posegraph.convergence import check_iteration_options, has_converged
+from rgbdslam.posegraph.factors import degrees_of_freedom
+from rgbdslam.posegraph.optimize import OPTIMIZERS, gauss_newton, run_gauss_newton
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.text import read_text
 
@@ -164,13 +165,13 @@ def parse_methods(text: str, allowed=BENCH_METHODS) -> tuple[str, ...]:
 # --------------------------------------------------------------------------- noise-free graphs
 
 
-def _regenerate(graph: PoseGraph, poses: np.ndarray) -> PoseGraph:
+def _regenerate(graph: PoseGraphData, poses: np.ndarray) -> PoseGraphData:
     g = graph.with_poses(poses)
     g.meas = se2_between(poses[g.edges_i], poses[g.edges_j])
     return g
 
 
-def reference_graph(dataset: str, data_dir: str | Path | None = None) -> tuple[PoseGraph, np.ndarray, str]:
+def reference_graph(dataset: str, data_dir: str | Path | None = None) -> tuple[PoseGraphData, np.ndarray, str]:
     """Noise-free graph, ground-truth poses (vertex 0 at the origin) and a note on where they come from."""
     data_dir = Path(data_dir) if data_dir else default_data_dir()
     root = data_dir / "posegraph"
@@ -195,7 +196,7 @@ def reference_graph(dataset: str, data_dir: str | Path | None = None) -> tuple[P
         raise InputError(f"{path}: optimising the original M10000 graph did not converge; cannot build a reference")
     opt = res.poses
     # put vertex 0 at the origin
-    from rgbdslam.backend.graph import se2_compose, se2_inverse
+    from rgbdslam.posegraph.graph import se2_compose, se2_inverse
     opt = se2_compose(se2_inverse(opt[0]), opt)
     g = _regenerate(g, opt)
     note = (f"M10000 has no public ground truth: {path.name} was optimised to convergence "
@@ -204,7 +205,7 @@ def reference_graph(dataset: str, data_dir: str | Path | None = None) -> tuple[P
     return g, opt, note
 
 
-def noisy_instance(ref: PoseGraph, sigma, rng: np.random.Generator) -> PoseGraph:
+def noisy_instance(ref: PoseGraphData, sigma, rng: np.random.Generator) -> PoseGraphData:
     """A noisy copy of ``ref``: N(0, σ) on each edge's (x, y, θ) (θ wrapped), information diag(1/σ²).
     ``sigma`` is one (3,) triple for every edge, or an (n_edges, 3) array of per-edge deviations."""
     sigma = np.broadcast_to(np.asarray(sigma, float), ref.meas.shape)
@@ -226,7 +227,7 @@ def _worker_init(dataset, data_dir, ref, gt):
     _WORKER.update(dataset=dataset, ref=ref, gt=gt)
 
 
-def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int, instance: int, seed: int,
+def run_instance(ref: PoseGraphData, gt: np.ndarray, dataset: str, sigma, level: int, instance: int, seed: int,
                  methods=BENCH_METHODS, max_iter: int = 50, tol: float = 1e-6,
                  optimizer: str = "gtsam", custom: dict | None = None) -> list[RunRecord]:
     """All initial guesses + GN on one noisy instance (seeded by ``(seed, dataset, level, instance)``)."""
@@ -234,14 +235,14 @@ def run_instance(ref: PoseGraph, gt: np.ndarray, dataset: str, sigma, level: int
                       methods, max_iter, tol, optimizer, custom)
 
 
-def protocol_instance(ref: PoseGraph, dataset: str, sigma, level: int, instance: int, seed: int) -> PoseGraph:
+def protocol_instance(ref: PoseGraphData, dataset: str, sigma, level: int, instance: int, seed: int) -> PoseGraphData:
     """Noisy instance ``instance`` of noise level ``level`` — the same graph every run of the protocol uses."""
     check_seed(seed)
     rng = np.random.default_rng([seed, DATASETS.index(dataset) if dataset in DATASETS else 99, level, instance])
     return noisy_instance(ref, sigma, rng)
 
 
-def run_starts(g: PoseGraph, gt: np.ndarray, dataset: str, sigma, instance: int, methods=BENCH_METHODS,
+def run_starts(g: PoseGraphData, gt: np.ndarray, dataset: str, sigma, instance: int, methods=BENCH_METHODS,
                max_iter: int = 50, tol: float = 1e-6, optimizer: str = "gtsam",
                custom: dict | None = None) -> list[RunRecord]:
     """Each initial guess of ``methods`` + at most ``max_iter`` GN iterations on the noisy graph ``g``;
@@ -290,9 +291,9 @@ def _task(args):
 def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int = 50, workers: int = 1,
                   seed: int = 0, out_dir: str | Path | None = None, data_dir: str | Path | None = None,
                   methods=BENCH_METHODS, tol: float = 1e-6, criterion: str = "relative",
-                  progress: bool = True, reference: tuple[PoseGraph, np.ndarray, str] | None = None,
+                  progress: bool = True, reference: tuple[PoseGraphData, np.ndarray, str] | None = None,
                   first_instance: int = 0, optimizer: str = "gtsam") -> dict:
-    """Run the protocol (GN: ``optimizer`` ``"gtsam"`` or ``"g2o"``, see :mod:`rgbdslam.backend.gn2d`); write ``runs.csv``, ``table1.csv``, ``table2.csv``, ``report.md`` into ``out_dir``.
+    """Run the protocol (GN: ``optimizer`` ``"gtsam"`` or ``"g2o"``, see :mod:`rgbdslam.posegraph.gn2d`); write ``runs.csv``, ``table1.csv``, ``table2.csv``, ``report.md`` into ``out_dir``.
 
     Instances ``first_instance .. first_instance + instances - 1`` are run (so a later call can add
     instances; merge the runs.csv files with :func:`merge_runs`).
@@ -399,7 +400,7 @@ def summarise(records: list[RunRecord], criterion: str = "relative") -> dict:
         conv = [x for x in v if x[0]]
         refs = [gt_chi2.get((key[0], r.instance)) for r in rs]
         if all(ref is not None and np.isfinite(ref) for ref in refs):
-            opt_rate = float(np.mean([_at_optimum(x[0], x[2], ref) for x, ref in zip(v, refs)]))
+            opt_rate = float(np.mean([at_optimum(x[0], x[2], ref) for x, ref in zip(v, refs)]))
         else:
             opt_rate = float("nan")
         out[key] = dict(
@@ -410,11 +411,11 @@ def summarise(records: list[RunRecord], criterion: str = "relative") -> dict:
     return out
 
 
-def _noise_text(sigma) -> str:
+def noise_text(sigma) -> str:
     return ",".join(f"{v:g}" for v in sigma)
 
 
-def _at_optimum(converged: bool, reduced_chi2: float, reference: float) -> bool:
+def at_optimum(converged: bool, reduced_chi2: float, reference: float) -> bool:
     """Table 1c's rule: converged, and within :data:`OPTIMUM_RTOL` of ground truth + GN's reduced χ²."""
     return bool(converged and reduced_chi2 <= reference * (1 + OPTIMUM_RTOL))
 
@@ -439,7 +440,7 @@ def table_rows(records, dataset, methods, criterion: str = "relative"):
         p1 = PAPER_TABLE1[dataset][k] if k < 8 and dataset in PAPER_TABLE1 else None
         p2 = PAPER_TABLE2[dataset][k] if k < 8 and dataset in PAPER_TABLE2 else None
         counts = sorted({S[(s, m)]["n"] for m in methods})
-        row1 = {"noise": _noise_text(s), "instances": "/".join(map(str, counts)), "criterion": criterion}
+        row1 = {"noise": noise_text(s), "instances": "/".join(map(str, counts)), "criterion": criterion}
         row2 = dict(row1)
         for m in methods:
             row1[f"{m}_n"] = S[(s, m)]["n"]
@@ -493,7 +494,7 @@ def format_report(records, dataset, methods=BENCH_METHODS, criterion: str = "rel
         diff = [r for r in cmp_rows if r["verdict"] != "same"]
         lines += ["", "Differences from the paper's Table 1 beyond sampling noise (two-sided Fisher exact test, "
                   "p < 0.05, the paper's count = rate × 50; w-MASAT and chordal against the paper's MASAT): "
-                  + ("; ".join(f"{_noise_text(r['sigma'])} {METHOD_NAMES[r['method']]} {r['rate']:.2f} vs "
+                  + ("; ".join(f"{noise_text(r['sigma'])} {METHOD_NAMES[r['method']]} {r['rate']:.2f} vs "
                                + ("the paper's MASAT " if r["paper_column"] != r["method"] else "")
                                + f"{r['paper']:.2f} ({r['verdict']}, p = {r['p']:.3f}, Holm-adjusted over the "
                                f"table's {n_cmp} comparisons {r['p_holm']:.3f})" for r in diff) or "none") + "."]
@@ -575,67 +576,6 @@ def holm_adjust(p) -> np.ndarray:
     return out
 
 
-def format_paper_comparison(rows: list[dict]) -> str:
-    out = ["| noise | start | ours k/n | rate [95 % Wilson] | paper (column) | Fisher p | verdict | Holm p | "
-           "verdict (Holm) |", "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        col = "" if r["paper_column"] == r["method"] else f" ({METHOD_NAMES[r['paper_column']]})"
-        out.append(f"| {_noise_text(r['sigma'])} | {METHOD_NAMES[r['method']]} | {r['k']}/{r['n']} | "
-                   f"{r['rate']:.2f} [{r['lo']:.2f}, {r['hi']:.2f}] | {r['paper']:.2f}{col} | {r['p']:.3f} | "
-                   f"{r['verdict']} | {r['p_holm']:.3f} | {r['verdict_holm']} |")
-    return "\n".join(out)
-
-
-def paired_comparison(records, a: str, b: str, alpha: float = 0.05, criterion: str = "relative") -> list[dict]:
-    """Per noise level: exact McNemar test of start ``a`` against start ``b`` on the same instances,
-    for "converged" and for "converged to the optimum" (final χ² within :data:`OPTIMUM_RTOL` of GT + GN's;
-    ``None`` without ground-truth runs).  Of the instances where exactly one of the two converged,
-    ``only_a`` were ``a``'s; p is the two-sided binomial test of ``only_a`` against half of them."""
-    from scipy.stats import binomtest
-
-    by = {(r.sigma_x, r.sigma_y, r.sigma_theta, r.instance, r.method): r for r in records}
-    rows = []
-    for sigma in sorted({(r.sigma_x, r.sigma_y, r.sigma_theta) for r in records}, key=lambda s: (level_index(s), s)):
-        inst = sorted(k[3] for k in by if k[:3] == sigma and k[4] == a and (*sigma, k[3], b) in by)
-        if not inst:
-            continue
-        row = dict(sigma=sigma, n=len(inst))
-        for what in ("converged", "optimum"):
-            def ok(r, what=what):
-                conv, _, rchi2 = r.verdict(criterion)
-                if what == "converged":
-                    return conv
-                g = by.get((*sigma, r.instance, "ground_truth"))
-                return None if g is None else _at_optimum(conv, rchi2, g.verdict(criterion)[2])
-            va = [ok(by[(*sigma, i, a)]) for i in inst]
-            vb = [ok(by[(*sigma, i, b)]) for i in inst]
-            if any(v is None for v in va + vb):
-                row[what] = None
-                continue
-            only_a = sum(x and not y for x, y in zip(va, vb))
-            only_b = sum(y and not x for x, y in zip(va, vb))
-            p = 1.0 if only_a + only_b == 0 else float(binomtest(only_a, only_a + only_b, 0.5).pvalue)
-            verdict = "same" if p >= alpha else (f"{a} better" if only_a > only_b else f"{b} better")
-            row[what] = dict(rate_a=sum(va) / len(va), rate_b=sum(vb) / len(vb), only_a=only_a, only_b=only_b,
-                             p=p, verdict=verdict)
-        rows.append(row)
-    return rows
-
-
-def format_paired(rows: list[dict], a: str, b: str) -> str:
-    na, nb = METHOD_NAMES.get(a, a), METHOD_NAMES.get(b, b)
-    out = [f"| noise | n | converged {na} / {nb} | only {na} / only {nb} | McNemar p | "
-           f"at optimum {na} / {nb} | only {na} / only {nb} | McNemar p |", "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        cells = []
-        for what in ("converged", "optimum"):
-            c = r[what]
-            cells += ["–", "–", "–"] if c is None else [f"{c['rate_a']:.2f} / {c['rate_b']:.2f}",
-                                                       f"{c['only_a']} / {c['only_b']}", f"{c['p']:.3f}"]
-        out.append(f"| {_noise_text(r['sigma'])} | {r['n']} | " + " | ".join(cells) + " |")
-    return "\n".join(out)
-
-
 def _csv_text(rows: list[dict]) -> str:
     buf = io.StringIO()
     if rows:
@@ -646,7 +586,7 @@ def _csv_text(rows: list[dict]) -> str:
 
 
 def write_runs_csv(path: Path, records) -> None:
-    """One row per :class:`RunRecord` (what ``--merge-runs`` and ``scripts/compare_to_paper.py`` read)."""
+    """One row per :class:`RunRecord` (what ``--merge-runs`` and ``scripts/masat/compare_to_paper.py`` read)."""
     atomic_write_text(path, _csv_text([asdict(r) for r in records]))
 
 
@@ -710,7 +650,7 @@ def time_initialisers(dataset: str, noise_levels, repeats: int = 5, seed: int = 
                 initialize(g, m)
                 best = min(best, time.perf_counter() - t0)
             cells.append(f"{best * 1e3:.1f}")
-        lines.append(f"| {_noise_text(s)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {noise_text(s)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python scripts/study_spanning_tree_ties.py [--dataset city10k] [--noise 0.15,0.15,0.15]
+    .venv/bin/python scripts/masat/study_spanning_tree_ties.py [--dataset city10k] [--noise 0.15,0.15,0.15]
         [--instances 50] [--seed 0] [--workers 2] [--optimizer g2o] [--ties index,edge_order,r0,r1]
         [--out DIR]
 
@@ -36,8 +36,9 @@ from pathlib import Path
 
 from scipy.stats import binomtest
 
-from rgbdslam.backend import posegraph_bench as pb
-from rgbdslam.backend.initializers import spanning_tree
+from rgbdslam.posegraph import bench as pb
+import paper_stats as ps  # beside this script
+from rgbdslam.posegraph.initializers import spanning_tree
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text
 
@@ -95,7 +96,7 @@ def main(argv=None) -> int:
     k = pb.level_index(sigma)
     paper = pb.paper_rate(a.dataset, k, "spanning_tree")
     paper_txt = "–" if paper is None else f"{paper:.2f}"
-    cmd = " ".join(["scripts/study_spanning_tree_ties.py"] + [shlex.quote(x) for x in (argv or sys.argv[1:])])
+    cmd = " ".join(["scripts/masat/study_spanning_tree_ties.py"] + [shlex.quote(x) for x in (argv or sys.argv[1:])])
     lines = [f"`{cmd}` — {pb.DATASET_NAMES[a.dataset]}, noise {a.noise}, instances {instances.start}-"
              f"{instances.stop - 1} of seed {a.seed}, optimizer {a.optimizer}; {a.workers} worker(s), "
              f"{os.cpu_count()} CPUs ({platform.machine()}), wall time {wall:.0f} s", "",
@@ -114,7 +115,7 @@ def main(argv=None) -> int:
     if len(custom) > 1:
         first = next(iter(custom))
         for m in list(custom)[1:]:
-            lines += ["", pb.format_paired(pb.paired_comparison(recs, m, first), m, first)]
+            lines += ["", ps.format_paired(ps.paired_comparison(recs, m, first), m, first)]
     report = "\n".join(lines) + "\n"
     print(report)
     if a.out is not None:

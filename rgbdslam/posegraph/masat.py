@@ -24,7 +24,7 @@ Public entry points:
 
 * :func:`masat_initialize_pose3` — the SLAM back end's SE(3) call;
 * :func:`masat_initialize_pose2` — the SE(2) counterpart;
-* :func:`masat` — on a :class:`~rgbdslam.backend.graph.PoseGraph`.
+* :func:`masat` — on a :class:`~rgbdslam.posegraph.graph.PoseGraphData`.
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order
 
-from rgbdslam.backend.graph import PoseGraph, se2_inverse, se3_inverse
+from rgbdslam.geometry.se3 import inv
+from rgbdslam.posegraph.graph import PoseGraphData, se2_inverse
 from rgbdslam.errors import InputError
 
 _EPS_VAR = 1e-12
@@ -248,7 +249,7 @@ def masat_se3(n: int, ei, ej, meas, info=None, weighted: bool = False, root: int
     order, _ = bfs_order(n, ei, ej, root)
     perm, src, fwd, ptr = _incoming(n, ei, ej, order)
     z = meas[perm]
-    z = np.where(fwd[:, None, None], z, se3_inverse(z))
+    z = np.where(fwd[:, None, None], z, inv(z))
     Rz = z[:, :3, :3]
     tz = z[:, :3, 3]
     R = np.tile(np.eye(3), (n, 1, 1))
@@ -347,11 +348,11 @@ def _unpack_edges(edges, zshape, ishape, need_info):
     return ei, ej, z, info
 
 
-# --------------------------------------------------------------------------------- on a PoseGraph
+# --------------------------------------------------------------------------------- on a PoseGraphData
 
 
-def masat(graph: PoseGraph, weighted: bool = False, root: int = 0) -> np.ndarray:
-    """MASAT initial poses for a :class:`PoseGraph` ((n,3) for SE(2), (n,4,4) for SE(3))."""
+def masat(graph: PoseGraphData, weighted: bool = False, root: int = 0) -> np.ndarray:
+    """MASAT initial poses for a :class:`PoseGraphData` ((n,3) for SE(2), (n,4,4) for SE(3))."""
     if graph.dim == 2:
         return masat_se2(graph.n_vertices, graph.edges_i, graph.edges_j, graph.meas,
                          graph.info if weighted else None, weighted, root)
