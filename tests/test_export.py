@@ -266,3 +266,26 @@ def test_run_evaluation_json_names_files_like_evaluate_json(run_dir, tmp_path):
     assert run_eval["ate"]["rmse"] == pytest.approx(cmd_eval["ate"]["rmse"], rel=1e-6)  # file: 9 decimals
     assert [Path(p).name for p in run_eval["plots"]] == [Path(p).name for p in cmd_eval["plots"]]
     assert all(Path(p).is_file() for p in run_eval["plots"] + cmd_eval["plots"])
+
+
+def test_an_interrupted_export_keeps_the_earlier_one(run_dir, tmp_path, monkeypatch):
+    from rgbdslam.export import export_run
+    from rgbdslam.export.run import RunExport
+
+    out = tmp_path / "out"
+    export_run(run_dir, ["colmap"], out, max_points=500, progress=False)
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    views = RunExport.views
+
+    def interrupted(self):
+        for k, v in enumerate(views(self)):
+            if k == 2:
+                raise KeyboardInterrupt
+            yield v
+
+    monkeypatch.setattr(RunExport, "views", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        export_run(run_dir, ["colmap"], out, max_points=900, progress=False)
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before  # the earlier model, whole; no temporary folder left beside it
+    assert sorted(p.name for p in out.iterdir()) == ["colmap"]
