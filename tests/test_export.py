@@ -229,26 +229,36 @@ def test_view_web_serves_the_viewer_on_loopback(run_dir):
     """`rgbdslam view --web` on a headless machine: the page answers on loopback, then it stops (bounded)."""
     port = 9400 + (int(time.time()) % 200) * 2
     proc = subprocess.Popen([str(Path(sys.executable).parent / "rgbdslam"), "view", str(run_dir), "--web", "-q",
-                             "--web-port", str(port), "--grpc-port", str(port + 1), "--serve-for", "20"],
+                             "--web-port", str(port), "--grpc-port", str(port + 1), "--serve-for", "10"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         page = None
         t0 = time.monotonic()
-        while time.monotonic() - t0 < 60 and proc.poll() is None:
+        while time.monotonic() - t0 < 180 and proc.poll() is None:
             try:
-                page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2).read().decode()
+                page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).read().decode()
                 break
             except OSError:
                 time.sleep(0.5)
         assert page is not None and "rerun" in page.lower()
-        out, err = proc.communicate(timeout=60)
+        out, err = proc.communicate(timeout=180)
     finally:
         if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+            proc.terminate()  # rgbdslam stops the server it started (which also dies with it on Linux)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
     assert proc.returncode == 0, err[-500:]
     assert f"http://localhost:{port}/?url=rerun%2Bhttp%3A%2F%2Flocalhost%3A{port + 1}%2Fproxy" in err.replace("\n", "")
     assert "ssh -L" in err
+    from rgbdslam.viz.rerun_log import _port_open
+
+    t0 = time.monotonic()  # the server stopped with it: nothing is left listening
+    while (_port_open("127.0.0.1", port) or _port_open("127.0.0.1", port + 1)) and time.monotonic() - t0 < 30:
+        time.sleep(0.5)
+    assert not _port_open("127.0.0.1", port) and not _port_open("127.0.0.1", port + 1)
 
 
 def test_run_evaluation_json_names_files_like_evaluate_json(run_dir, tmp_path):

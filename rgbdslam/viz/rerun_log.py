@@ -392,9 +392,10 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
         raise InputError(f"{path} does not exist; give an .rrd file or the --out folder of `rgbdslam run`")
     exe = rerun_executable()
     if web:
-        if exe is None:
+        server = rerun_binary() or exe
+        if server is None:
             raise RgbdslamError("the `rerun` program of rerun-sdk was not found; reinstall rerun-sdk")
-        serve_web(exe, rrd, bind, web_port, grpc_port, serve_for)
+        serve_web(server, rrd, bind, web_port, grpc_port, serve_for)
         return rrd
     if not has_display():
         console.print(f"no display here, so no viewer was opened; the recording is {rrd.resolve()} "
@@ -404,6 +405,28 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
         raise RgbdslamError(f"the `rerun` viewer was not found; install rerun-sdk, then run `rerun {rrd}`")
     subprocess.Popen([exe, str(rrd)], start_new_session=True)
     return rrd
+
+
+def rerun_binary() -> str | None:
+    """The viewer binary itself (``rerun_cli/rerun``): the ``rerun`` script on PATH is a Python
+    wrapper that runs it as a child, so stopping the wrapper would leave the server running."""
+    try:
+        import rerun_cli
+    except ImportError:
+        return None
+    cand = Path(rerun_cli.__file__).parent / ("rerun.exe" if sys.platform.startswith("win") else "rerun")
+    return str(cand) if cand.is_file() else None
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    """Linux: the server gets SIGTERM when rgbdslam dies, even by SIGKILL (no orphaned server)."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
 
 
 def _port_open(host: str, port: int) -> bool:
@@ -437,7 +460,8 @@ def serve_web(exe: str, rrd: Path, bind: str = "127.0.0.1", web_port: int = 9090
     log = tempfile.TemporaryFile()
     cmd = [exe, "--serve-web", "--bind", bind, "--web-viewer-port", str(web_port), "--port", str(grpc_port),
            str(rrd.resolve())]
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
     try:
         t0 = time.monotonic()
         while not (_port_open(host, web_port) and _port_open(host, grpc_port)):
