@@ -285,7 +285,7 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--dataset", type=click.Choice(["m3500", "city10k", "m10000"]), default=None,
               help="Benchmark graph (required unless --merge-runs).")
 @click.option("--noise", default="0.2,0.2,0.2", show_default=True,
-              help="sx,sy,stheta (several separated by ';'), or 'all' for the spec's 8 levels.")
+              help="sx,sy,stheta (several separated by ';'), or 'all' for the MASAT paper's 8 levels.")
 @click.option("--instances", default=50, show_default=True, help="Noisy instances per noise level.")
 @click.option("--max-iter", default=50, show_default=True, help="Maximum iterations.")
 @click.option("--workers", default=1, show_default=True, help="Parallel worker processes.")

@@ -74,11 +74,11 @@ class RegistrationConfig:
     # RANSAC baseline
     ransac_iterations: int = 200  # iterations of the RANSAC baseline
     ransac_threshold: float = 0.03  # metres: inlier distance of the RANSAC baseline
-    # ISVD (spec section 1)
+    # ISVD (docs/references.md §1)
     max_iterations: int = 10  # ISVD: most rounds of fit-and-gate
     e_start: float = 0.32  # halved each round: 0.32 .. 0.01, the last gate is the first below e_min
     e_min: float = 0.02  # ISVD stops once its gate falls below this (m)
-    # ISLAM (spec section 2)
+    # ISLAM (docs/references.md §2)
     mp: int = 4  # ISLAM: registered against the last mp frames (MP of the thesis)
     alpha: float = 0.2  # ISLAM gate of iteration j: alpha * j**beta (m)
     beta: float = -1.0  # ISLAM gate exponent (negative: the gate shrinks each iteration)
@@ -109,7 +109,7 @@ class RegistrationConfig:
 
 @dataclass
 class DepthFilterConfig:
-    """DIF, the conditional averaging depth filter (spec section 3, docs/slam.md)."""
+    """DIF, the conditional averaging depth filter (docs/references.md §3, docs/slam.md)."""
 
     enabled: bool = False  # run DIF on every frame (off by default: no gain measured, docs/slam.md)
     window: int = 2  # K previous filtered frames warped into the current one (0 = spatial only)
@@ -130,7 +130,7 @@ class KeyframeConfig:
 
 @dataclass
 class LoopConfig:
-    """Sharpness-gated loop closure (spec section 4, docs/slam.md)."""
+    """Sharpness-gated loop closure (docs/references.md §4, docs/slam.md)."""
 
     enabled: bool = True  # detect loops and optimise the pose graph
     # sharpness gate: measure > factor * median(measure of the previous window frames).
@@ -211,7 +211,7 @@ class MappingConfig:
     sdf_trunc: float = 0.04  # metres: TSDF truncation distance
     mesh_min_frames: int = 2  # voxels seen by fewer frames are left out of the mesh
     tsdf_initial_blocks: int = 2000  # 8^3-voxel blocks preallocated (the hash map grows)
-    # 2-D occupancy map (spec section 6)
+    # 2-D occupancy map (docs/references.md §6)
     map2d: bool = True
     grid_resolution: float = 0.05  # metres per cell
     gravity: Literal["auto", "accelerometer", "camera"] = "auto"  # up direction hint for the floor

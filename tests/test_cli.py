@@ -11,7 +11,7 @@ import pytest
 import yaml
 from rich.console import Console
 
-from conftest import assert_cli_error, cli
+from tests.conftest import assert_cli_error, cli
 from rgbdslam import ui
 from rgbdslam.run_folder import summary_lines
 
@@ -59,7 +59,7 @@ def test_closing_summary_fits_eighty_columns():
 
 @pytest.fixture(scope="module")
 def desk_run(tmp_path_factory):
-    from conftest import TUM_DESK9, need
+    from tests.conftest import TUM_DESK9, need
 
     seq = need(TUM_DESK9)
     out = tmp_path_factory.mktemp("cli") / "run"
@@ -69,6 +69,7 @@ def desk_run(tmp_path_factory):
     return seq, out, rrd
 
 
+@pytest.mark.data
 def test_frame_flags_select_frames(desk_run):
     _, out, _ = desk_run
     assert json.loads((out / "run.json").read_text())["frames"] == 6
@@ -76,6 +77,7 @@ def test_frame_flags_select_frames(desk_run):
     assert saved["dataset"]["max_frames"] == 6  # the selection is part of the run: repeated from config.yaml
 
 
+@pytest.mark.data
 def test_rerun_from_config_yaml_keeps_the_earlier_recording(desk_run, tmp_path):
     seq, out, rrd = desk_run
     saved = yaml.safe_load((out / "config.yaml").read_text())
@@ -87,10 +89,12 @@ def test_rerun_from_config_yaml_keeps_the_earlier_recording(desk_run, tmp_path):
     assert json.loads((tmp_path / "again" / "run.json").read_text())["frames"] == 6
 
 
+@pytest.mark.data
 def test_frame_flags_are_checked_like_set(desk9):
     assert_cli_error(cli(["run", desk9, "--stride", 0, "-q"]), "config key 'dataset.stride' must be at least 1; got 0")
 
 
+@pytest.mark.data
 def test_fuse_set_outside_mapping_is_an_error(desk_run):
     _, out, _ = desk_run
     res = cli(["fuse", out, "--set", "registration.mp=3", "-q"])

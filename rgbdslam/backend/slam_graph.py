@@ -7,7 +7,7 @@
 * iSAM2: pending factors are pushed into an incremental solver whenever a loop arrives,
   so the current estimate (and the drift ``correction``) stays up to date during the run;
 * ``optimize``: a final batch Levenberg–Marquardt (or Gauss–Newton) over all factors, from
-  the initial values chosen by ``cfg.init``: MASAT (paper 000, spec section 5), weighted
+  the initial values chosen by ``cfg.init``: MASAT (docs/references.md §5), weighted
   MASAT, odometry chaining, BFS spanning tree, or the iSAM2 estimate.
 """
 

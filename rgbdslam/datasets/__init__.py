@@ -1,6 +1,7 @@
-"""Sequence readers behind one interface, and a registry that picks the reader for a folder.
+"""Sequence readers behind one interface (``base.Sequence``), one module per source, and
+:func:`open_sequence`, which picks the reader for a folder.
 
-Each source lives in its own module and registers itself with :func:`register`:
+Each source's module declares its reader with :func:`rgbdslam.datasets.registry.reader`:
 ``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes) and ``put`` (POZNAN/PUT
 Kinect layout).
 """
@@ -8,33 +9,23 @@ Kinect layout).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from rgbdslam.datasets.base import Frame, Sequence
+from rgbdslam.datasets.registry import READERS
 from rgbdslam.errors import InputError
-
-# name -> (detector(path) -> bool, factory(path, dataset_config) -> Sequence)
-_REGISTRY: dict[str, tuple[Callable[[Path], bool], Callable[..., Sequence]]] = {}
-
-
-def register(name: str, detect: Callable[[Path], bool]):
-    def deco(factory: Callable[..., Sequence]):
-        _REGISTRY[name] = (detect, factory)
-        return factory
-
-    return deco
 
 
 def available() -> list[str]:
     _load_builtin()
-    return sorted(_REGISTRY)
+    return sorted(READERS)
 
 
 def _load_builtin() -> None:
-    # Importing the modules registers them.
-    from rgbdslam.datasets import put, tum  # noqa: F401
+    # Importing the modules declares their readers (tum first: it is tried first).
+    from rgbdslam.datasets import tum  # noqa: F401
+    from rgbdslam.datasets import put  # noqa: F401
 
 
 def open_sequence(path: str | Path, cfg=None) -> Sequence:
@@ -50,15 +41,15 @@ def open_sequence(path: str | Path, cfg=None) -> Sequence:
         raise InputError(f"{path} is not a folder; give the sequence's folder (the one with rgb.txt or matched)")
     kind = cfg.kind
     if kind in ("auto", "synthetic"):
-        kind = next((n for n, (detect, _) in _REGISTRY.items() if detect(path)), None)
+        kind = next((n for n, (detect, _) in READERS.items() if detect(path)), None)
         if kind is None:
             raise InputError(
                 f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
                 f"with time-stamp-named PNGs (TUM), or a 'matched' file (PUT)"
             )
-    if kind not in _REGISTRY:
+    if kind not in READERS:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
-    return _REGISTRY[kind][1](path, cfg)
+    return READERS[kind][1](path, cfg)
 
 
 def describe_sequence(path: str | Path, cfg=None) -> str:
@@ -89,4 +80,4 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["Frame", "Sequence", "open_sequence", "register", "available", "describe_sequence"]
+__all__ = ["Frame", "Sequence", "open_sequence", "available", "describe_sequence"]

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from rgbdslam.io.text import read_text
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.tum import (
     CAMERA_FILE,
     RgbdFileSequence,
@@ -70,7 +70,7 @@ def _is_put(path: Path) -> bool:
     return (path / MATCHED).is_file()
 
 
-@register("put", _is_put)
+@reader("put", _is_put)
 class PutSequence(RgbdFileSequence):
     """A PUT Kinect folder; see the module docstring."""
 

@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from rgbdslam.io.text import read_lines, read_text
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
@@ -304,7 +304,7 @@ def _is_tum(path: Path) -> bool:
     return listed("rgb") and listed("depth")
 
 
-@register("tum", _is_tum)
+@reader("tum", _is_tum)
 class TumSequence(RgbdFileSequence):
     """A TUM RGB-D folder; see the module docstring."""
 

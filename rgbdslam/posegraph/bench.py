@@ -1,4 +1,4 @@
-"""The MASAT paper's benchmark protocol (spec §5, paper 000 §4), reproduced with GTSAM.
+"""The MASAT paper's benchmark protocol (docs/references.md §5, the paper's §4), reproduced with GTSAM.
 
 For a dataset (M3500, City10k, M10000) and a noise level (σx, σy, σθ):
 
@@ -48,7 +48,7 @@ METHOD_NAMES = {"odometry": "Odometry", "spanning_tree": "Sp. tree", "masat": "M
 NOISE_LEVELS = ((0.1, 0.1, 0.1), (0.15, 0.15, 0.15), (0.2, 0.2, 0.2), (0.25, 0.25, 0.25),
                 (0.3, 0.3, 0.3), (0.35, 0.35, 0.35), (0.15, 0.15, 0.3), (0.3, 0.3, 0.15))
 
-# Paper 000, Table 1: convergence rate of (Odometry, Spanning tree, MASAT, Ground truth) + GN
+# The MASAT paper (docs/references.md), Table 1: convergence rate of (Odometry, Spanning tree, MASAT, Ground truth) + GN
 PAPER_TABLE1 = {
     "m3500": [(.64, 1.0, 1.0, 1.0), (.36, .96, 1.0, 1.0), (.26, .82, .96, 1.0), (.28, .72, .94, 1.0),
               (.20, .52, .80, 1.0), (.08, .42, .70, .98), (.04, .28, .76, 1.0), (.76, 1.0, 1.0, 1.0)],
@@ -58,7 +58,7 @@ PAPER_TABLE1 = {
                (0.0, .10, .82, 1.0), (0.0, .02, .60, .94), (0.0, .02, .84, 1.0), (.30, .84, 1.0, 1.0)],
 }
 _PAPER_T1_COLS = ("odometry", "spanning_tree", "masat", "ground_truth")
-# Paper 000, Table 2 (MASAT + GN): mean iterations, mean reduced χ² over converged runs
+# The MASAT paper, Table 2 (MASAT + GN): mean iterations, mean reduced χ² over converged runs
 PAPER_TABLE2 = {
     "m3500": [(6.3, 1.0), (9.14, 1.04), (12.92, 1.07), (16.36, 1.1), (21.05, 1.16), (22.77, 1.18), (19.95, 1.07), (6.88, 1.0)],
     "city10k": [(6.16, 1.0), (7.8, 1.0), (11.83, 1.01), (12.45, 1.02), (23.94, 1.05), (29.33, 1.09), (23.81, 1.01), (6.68, 1.0)],
@@ -101,7 +101,7 @@ def default_data_dir() -> Path:
 
 
 def parse_noise(text: str) -> list[tuple[float, float, float]]:
-    """``"0.2,0.2,0.2"`` -> one level; ``"0.2"`` -> (0.2, 0.2, 0.2); ``"all"`` -> the spec's 8 levels;
+    """``"0.2,0.2,0.2"`` -> one level; ``"0.2"`` -> (0.2, 0.2, 0.2); ``"all"`` -> the MASAT paper's 8 levels;
     several levels separated by ``;``."""
     text = text.strip()
     if text == "all":
@@ -368,7 +368,7 @@ def run_benchmark(dataset: str, noise_levels, instances: int = 50, max_iter: int
 
 
 def level_index(sigma) -> int:
-    """Index of ``sigma`` in the spec's 8 noise levels (100 if it is not one of them)."""
+    """Index of ``sigma`` in the MASAT paper's 8 noise levels (100 if it is not one of them)."""
     s = tuple(round(float(v), 6) for v in sigma)
     for k, lv in enumerate(NOISE_LEVELS):
         if s == tuple(round(v, 6) for v in lv):

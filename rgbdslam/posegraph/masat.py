@@ -1,4 +1,5 @@
-"""MASAT — Multi-Ancestor Spatial Approximation Tree initial guess (spec §5, paper 000, Algorithm 1).
+"""MASAT — Multi-Ancestor Spatial Approximation Tree initial guess (docs/references.md §5: the MASAT
+paper, Algorithm 1).
 
 Breadth-first from the root vertex; each vertex, when it is reached, is placed at the average
 of the predictions ``pose(v) ∘ z_vw`` of **all** its already-fixed neighbours ``v`` (a vertex is

@@ -2,7 +2,7 @@
 g2o's SE(2) variant in :mod:`rgbdslam.posegraph.gn2d`); χ² and factors in
 :mod:`rgbdslam.posegraph.factors`.
 
-Convergence (spec §5, paper 000 §4): a run converged when the χ² change between two
+Convergence (docs/references.md §5, the MASAT paper §4): a run converged when the χ² change between two
 consecutive iterations falls below 1e-6 within ``max_iter`` iterations.  The paper ran g2o
 (``gn_var_cholmod``); g2o's stop test (``-gainThreshold``, default 1e-6) is *relative*,
 ``(χ²_prev - χ²) / χ² < 1e-6``.  We default to ``|Δχ²| / max(χ², 1) < tol`` (``criterion="relative"``;

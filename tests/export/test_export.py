@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import assert_cli_error, cli
+from tests.conftest import assert_cli_error, cli
 from rgbdslam.config import Config
 from rgbdslam.datasets.synthetic import generate_sequence
 from rgbdslam.io.trajectory import read_tum

@@ -87,7 +87,7 @@ def test_spawn_without_display_fails_in_one_line(tmp_path, monkeypatch):
 
 
 def test_view_run_folder_without_display_writes_recording(tmp_path, monkeypatch):
-    from test_mapping import POSES
+    from tests.mapping.test_mapping import POSES
 
     seq, run = _plane_run_with_recording(tmp_path, monkeypatch)
     stamps = [100.0, 100.5, 101.0]
@@ -174,7 +174,7 @@ def test_failed_run_keeps_earlier_rerun_save(tmp_path):
 
 
 def _plane_run_with_recording(tmp_path, monkeypatch):
-    from test_mapping import POSES, _write_tum_folder  # the hand-rendered plane sequence
+    from tests.mapping.test_mapping import POSES, _write_tum_folder  # the hand-rendered plane sequence
 
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

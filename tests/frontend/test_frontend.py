@@ -18,7 +18,7 @@ from rgbdslam.geometry.se3 import inv, rotation_angle
 
 @pytest.fixture(scope="module")
 def desk(request):
-    from conftest import TUM_DESK9, need
+    from tests.conftest import TUM_DESK9, need
 
     seq = open_sequence(need(TUM_DESK9))
     return seq, [seq.load(i) for i in range(len(seq))]
@@ -55,6 +55,7 @@ def register_pair(desk, cfg: Config, i: int, j: int):
     return fa, fb, res
 
 
+@pytest.mark.data
 @pytest.mark.parametrize("method", ["ransac", "isvd", "islam"])
 def test_register_two_real_frames_matches_groundtruth(desk, method):
     cfg = Config()
@@ -66,6 +67,7 @@ def test_register_two_real_frames_matches_groundtruth(desk, method):
     assert np.all(np.linalg.eigvalsh(res.information) > 0)
 
 
+@pytest.mark.data
 def test_frontend_tracks_desk_and_survives_zero_depth(desk):
     seq, frames = desk
     gt = seq.groundtruth()
@@ -88,6 +90,7 @@ def test_frontend_tracks_desk_and_survives_zero_depth(desk):
     assert np.allclose(results[2].pose @ results[4].relative, results[4].pose)
 
 
+@pytest.mark.data
 def test_frontend_deterministic(desk):
     seq, frames = desk
     cfg = Config()
@@ -98,6 +101,7 @@ def test_frontend_deterministic(desk):
     assert np.array_equal(runs[0], runs[1])
 
 
+@pytest.mark.data
 def test_lift_and_set_depth(desk):
     seq, frames = desk
     cfg = Config()
@@ -164,6 +168,7 @@ def test_point_information_equals_jacobian_product():
     assert np.allclose(point_information(P, 0.01), H / 1e-4)
 
 
+@pytest.mark.data
 @pytest.mark.parametrize("prefilter", ["none", "homography", "fundamental"])
 def test_prefilter_variants_register_real_pair(desk, prefilter):
     cfg = Config()
@@ -172,6 +177,7 @@ def test_prefilter_variants_register_real_pair(desk, prefilter):
     register_pair(desk, cfg, 1, 3)
 
 
+@pytest.mark.data
 def test_guided_match_is_mutual_and_consistent(desk):
     from rgbdslam.frontend.matching import guided_match
 
@@ -191,8 +197,9 @@ def test_guided_match_is_mutual_and_consistent(desk):
     assert len(guided_match(fa, fb, off, 0.05, cfg.matching)[0]) < 0.2 * len(ia)
 
 
+@pytest.mark.data
 def test_restart_after_max_lost_and_no_origin_without_depth(desk):
-    from conftest import TUM_RPY200, need
+    from tests.conftest import TUM_RPY200, need
 
     seq, frames = desk
     other = open_sequence(need(TUM_RPY200))
@@ -218,6 +225,7 @@ def test_restart_after_max_lost_and_no_origin_without_depth(desk):
     assert len(fe.refs) == 2
 
 
+@pytest.mark.data
 def test_ratio_test_and_grid_bucketing(desk):
     from rgbdslam.frontend.features import _bucket
     from rgbdslam.frontend.matching import match_descriptors
@@ -237,8 +245,9 @@ def test_ratio_test_and_grid_bucketing(desk):
     assert _bucket(uv, resp, cfg.features, (480, 640)).tolist() == [1, 3, 4, 5, 6]
 
 
+@pytest.mark.data
 def test_detection_count_falls_with_blur_and_opens_the_gate(desk):
-    """The sharpness gate's measure (spec section 4) must see blur: ORB's kept count cannot
+    """The sharpness gate's measure (docs/references.md §4) must see blur: ORB's kept count cannot
     (it is capped at n_features), the uncapped detection count can."""
     import dataclasses
 
@@ -264,9 +273,11 @@ def test_detection_count_falls_with_blur_and_opens_the_gate(desk):
     assert count_detections(np.zeros((40, 40), np.uint8), cfg.features) == 0
 
 
-def test_detections_made_ahead_are_used_only_for_their_config(desk):
+@pytest.mark.data
+def test_detections_made_ahead_are_used_only_for_their_config(desk, monkeypatch):
     import dataclasses
 
+    import rgbdslam.frontend.features as features
     from rgbdslam.frontend.features import detect, with_detections
 
     seq, frames = desk
@@ -274,7 +285,10 @@ def test_detections_made_ahead_are_used_only_for_their_config(desk):
     plain = extract_features(frames[1], cfg.features, cfg.matching)
     ahead = with_detections(dataclasses.replace(frames[1]), cfg.features)
     assert ahead.detections is not None
+    calls = []  # detect() is deterministic: only its calls show whether the detections made ahead were used
+    monkeypatch.setattr(features, "detect", lambda *a, **k: calls.append(1) or detect(*a, **k))
     f = extract_features(ahead, cfg.features, cfg.matching)
+    assert calls == []  # used, not made again
     for name in ("uv", "uv_raw", "desc", "response", "valid"):
         assert np.array_equal(getattr(f, name), getattr(plain, name)), name
     assert f.n_detected == plain.n_detected
@@ -283,13 +297,16 @@ def test_detections_made_ahead_are_used_only_for_their_config(desk):
     other.features.n_features = 300
     stale = dataclasses.replace(frames[1], detections=detect(frames[1].rgb, other.features))
     assert len(extract_features(stale, cfg.features, cfg.matching).desc) == len(plain.desc) != 300
+    assert calls == [1]
     # nor are detections of another image (a frame copied with a new colour image)
     other_image = dataclasses.replace(ahead, rgb=frames[2].rgb)
     assert other_image.detections is ahead.detections
     assert np.array_equal(extract_features(other_image, cfg.features, cfg.matching).desc,
                           extract_features(dataclasses.replace(frames[2]), cfg.features, cfg.matching).desc)
+    assert calls == [1, 1, 1]
 
 
+@pytest.mark.data
 def test_newest_reference_guided_by_a_good_prediction(rpy200):
     """registration.predicted_gate: at 30 Hz the newest reference is matched around the
     prediction on most frames, as accurately as by brute force; at a third of the frame rate the
@@ -318,6 +335,7 @@ def test_newest_reference_guided_by_a_good_prediction(rpy200):
     assert guided3 < 0.3 * n3  # 10 Hz: the previous prediction is rarely good enough
 
 
+@pytest.mark.data
 def test_a_new_registration_strategy_plugs_in_without_touching_the_loop(desk):
     """A strategy is one class with ``select``: here plain least squares on every pre-filtered
     pair (no outlier loop). Given to the front end and the loop closer through the pairwise

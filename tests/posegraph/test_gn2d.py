@@ -19,7 +19,7 @@ from rgbdslam.errors import InputError
 
 def grid_walk(n=120, seed=0):
     """Noise-free Manhattan-like walk with loop closures (the bench tests' generator)."""
-    from test_posegraph_bench import manhattan_like
+    from tests.posegraph.test_bench import manhattan_like
 
     return manhattan_like(n, seed)
 
@@ -202,9 +202,8 @@ def test_matches_real_g2o_chi2_history():
     g2o (g2o-python 0.0.12) by ``scripts/masat/g2o_parity.py --record`` on a synthetic grid world, for a
     mild, a heading-noise and a large-noise case (odometry start, angle errors past ±π)."""
     import json
-    from pathlib import Path
 
-    ref = json.loads((Path(__file__).parent / "data" / "g2o_reference.json").read_text())
+    ref = json.loads((REPO / "tests" / "data" / "g2o_reference.json").read_text())
     assert len(ref["cases"]) == 3
     for case in ref["cases"]:
         ei, ej = np.array(case["ei"]), np.array(case["ej"])
@@ -249,7 +248,7 @@ def test_cli_optimize_init_file_needs_vertex_estimates(tmp_path):
 # ----------------------------------------------------------------------- input validation (one line)
 
 
-from conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
+from tests.conftest import REPO, assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
 
 
 _TRIANGLE = ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\n"

@@ -18,7 +18,7 @@ from rgbdslam.errors import InputError
 from rgbdslam.evaluation.associate import associate
 from rgbdslam.geometry.camera import CAMERAS
 
-from conftest import DATA
+from tests.conftest import DATA, REPO
 
 DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
 need_desk = pytest.mark.usefixtures("desk9")  # fails when the excerpt is missing (conftest.need)
@@ -77,6 +77,7 @@ def test_associate_greedy_smallest_difference_first(tmp_path):
 # ----------------------------------------------------------------------------- TUM on real data
 
 
+@pytest.mark.data
 @need_desk
 def test_tum_reader_fr1_desk():
     seq = open_sequence(DESK)
@@ -104,6 +105,7 @@ def test_tum_reader_fr1_desk():
     assert gt.timestamps[0] < seq.timestamps[0] < gt.timestamps[-1]
 
 
+@pytest.mark.data
 @need_desk
 def test_tum_frame_selection_and_depth_options():
     cfg = DatasetConfig(first_frame=1, stride=3, max_frames=2, depth_scale=2500.0, depth_correction=1.1)
@@ -222,6 +224,7 @@ def test_a_binary_list_file_is_one_clear_error(tmp_path):
 # ----------------------------------------------------------------------------- PUT
 
 
+@pytest.mark.data
 @need_desk
 def test_put_reader_on_converted_fr1_desk(tmp_path):
     dst = convert_tum_to_put(DESK, tmp_path / "put_desk")
@@ -267,6 +270,7 @@ def test_put_errors(tmp_path):
         PutSequence(d, DatasetConfig(groundtruth="gt.txt")).groundtruth()
 
 
+@pytest.mark.data
 @need_desk
 def test_convert_refuses_nonempty_output(tmp_path):
     (tmp_path / "out").mkdir()
@@ -277,11 +281,12 @@ def test_convert_refuses_nonempty_output(tmp_path):
     shutil.rmtree(tmp_path / "out")
 
 
+@pytest.mark.data
 @need_desk
 def test_tum_to_put_script(tmp_path, capsys):
     import importlib.util
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "tum_to_put.py"
+    path = REPO / "scripts" / "tum_to_put.py"
     spec = importlib.util.spec_from_file_location("tum_to_put", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -345,6 +350,7 @@ def test_prefetch_stops_reading_when_the_caller_stops(tmp_path):
     assert max(loaded) <= 3 + 2 and len(loaded) < 30  # nothing beyond the read-ahead window
 
 
+@pytest.mark.data
 @need_desk
 def test_tum_folders_without_lists_are_read_by_file_name(tmp_path):
     """rgb/ and depth/ of time-stamp-named PNGs without rgb.txt/depth.txt: the same sequence."""
@@ -382,6 +388,7 @@ def test_depth_warning_flags_implausible_depth():
     assert depth_warning(frame(half)) is None
 
 
+@pytest.mark.data
 @need_desk
 def test_info_reports_depth_of_the_first_frame():
     from rgbdslam.config import DatasetConfig

@@ -399,7 +399,7 @@ def test_posegraph_edge_list3_feeds_masat_initialize_pose3():
 # ----------------------------------------------------------------------- input validation (one line)
 
 
-from conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
+from tests.conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
 
 
 def test_weighted_masat_survives_variances_that_overflow():

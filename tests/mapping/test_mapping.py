@@ -20,7 +20,7 @@ from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.mapping.fusion import VoxelCloud, fuse, fuse_run, match_frames, select_by_motion
 from rgbdslam.mapping.map2d import FREE, OCCUPIED, UNKNOWN, build_map2d, up_from_accelerometer, write_map2d
 
-from conftest import DATA
+from tests.conftest import DATA
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 
 W, H, F = 160, 120, 100.0  # a small ideal pinhole camera
@@ -252,6 +252,7 @@ def test_accelerometer_gravity_convention():
 # ----------------------------------------------------------------------------- real frames
 
 
+@pytest.mark.data
 @pytest.mark.usefixtures("rpy200")
 def test_rpy_groundtruth_fusion_finds_floor_and_desk(tmp_path):
     """20 keyframes of fr1/rpy fused with the ground truth: the floor found by RANSAC is the

@@ -14,7 +14,7 @@ from rgbdslam.posegraph.graph import PoseGraphData, se2_between
 from rgbdslam.posegraph.initializers import initialize
 from rgbdslam.errors import InputError
 
-from conftest import DATA, need
+from tests.conftest import DATA, need
 
 
 def _graph(pairs, z, info=None, n=None):
@@ -102,6 +102,7 @@ def test_disconnected_graph_is_a_clear_error():
         chordal_se2(g)
 
 
+@pytest.mark.data
 def test_real_city10k_chordal_beats_masat_initial_chi2():
     need(DATA / "posegraph" / "iSAM" / "groundtruth" / "city10000_groundtruth.txt")
     from rgbdslam.posegraph.factors import chi2, degrees_of_freedom

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from rgbdslam.cli import main
 from rgbdslam.errors import InputError
 from rgbdslam.evaluation.associate import associate
-from rgbdslam.evaluation.ate import align, ate
+from rgbdslam.evaluation.ate import ate, umeyama_alignment
 from rgbdslam.evaluation.report import evaluate_files, evaluate_trajectories
 from rgbdslam.evaluation.rpe import delta_pairs, rpe
 from rgbdslam.io.trajectory import Trajectory, read_tum, write_tum
@@ -129,11 +129,11 @@ def test_align_recovers_known_similarity():
     R = Rotation.from_rotvec([0.3, -0.5, 1.1]).as_matrix()
     t = np.array([1.0, -2.0, 0.5])
     data = 2.5 * R @ model + t[:, None]
-    R2, t2, s2 = align(model, data, "sim3")
+    R2, t2, s2 = umeyama_alignment(model, data, "sim3")
     np.testing.assert_allclose(R2, R, atol=1e-12)
     np.testing.assert_allclose(t2, t, atol=1e-12)
     assert s2 == pytest.approx(2.5, abs=1e-12)
-    R3, t3, s3 = align(model, R @ model + t[:, None], "se3")
+    R3, t3, s3 = umeyama_alignment(model, R @ model + t[:, None], "se3")
     np.testing.assert_allclose(R3, R, atol=1e-12)
     np.testing.assert_allclose(t3, t, atol=1e-12)
     assert s3 == 1.0
@@ -300,6 +300,7 @@ def make_perturbed_estimate(rpy200: Path, out: Path) -> Path:
     return path
 
 
+@pytest.mark.data
 def test_parity_with_evo_on_real_data(rpy200, tmp_path):
     from evo.core import metrics, sync
     from evo.core.metrics import PoseRelation, StatisticsType, Unit
@@ -361,6 +362,7 @@ def _assert_one_line_error(result, *names: str) -> str:
     return lines[0]
 
 
+@pytest.mark.data
 def test_cli_evaluate_writes_json_and_plots(rpy200, tmp_path):
     est_path = make_perturbed_estimate(rpy200, tmp_path)
     gt_path = rpy200 / "groundtruth.txt"
@@ -415,6 +417,7 @@ def test_cli_no_overlap_clear_message(tmp_path):
     assert not list(tmp_path.glob("*.png"))
 
 
+@pytest.mark.data
 def test_cli_evaluate_compares_several_estimates(rpy200, tmp_path):
     """`rgbdslam evaluate GT EST EST ...`: one row per estimate, numbers equal to evaluating each alone."""
     gt_path = rpy200 / "groundtruth.txt"

@@ -6,12 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import cli
+from tests.conftest import cli
 from rgbdslam.geometry.se3 import make_pose
 from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.mapping.map2d import FREE, OCCUPIED, UNKNOWN, Map2D, render_preview
 from rgbdslam.viz.render import look_at, splat
-from test_mapping import plane_run  # noqa: F401 - the fixture: three posed frames of a textured plane
+from tests.mapping.test_mapping import plane_run  # noqa: F401 - the fixture: three posed frames of a textured plane
 
 MAP_SETS = ["--set", "mapping.depth_min=0.1", "--set", "mapping.mesh_min_frames=1", "--set", "mapping.map2d=false"]
 

@@ -289,11 +289,12 @@ def test_observe_uses_the_configured_measure():
 # ------------------------------------------------------------------ real frames (TUM fr1)
 
 
-from conftest import DATA  # noqa: E402
+from tests.conftest import DATA  # noqa: E402
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
 
 
+@pytest.mark.data
 @pytest.mark.usefixtures("desk9", "rpy200")
 def test_real_revisit_accepted_and_other_room_rejected():
     from rgbdslam.datasets import open_sequence

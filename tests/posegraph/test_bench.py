@@ -18,10 +18,10 @@ from rgbdslam.posegraph.bench import (NOISE_LEVELS, first_convergence, noisy_ins
 from rgbdslam.posegraph.synthetic import manhattan_world as manhattan_like
 from rgbdslam.errors import InputError
 
-from conftest import DATA, need
+from tests.conftest import DATA, REPO, need
 
 # the paper-reproduction studies: scripts outside the package, importing paper_stats.py beside them
-MASAT_SCRIPTS = Path(__file__).resolve().parents[1] / "scripts" / "masat"
+MASAT_SCRIPTS = REPO / "scripts" / "masat"
 
 
 def _masat_script(name: str) -> Path:
@@ -129,6 +129,7 @@ def test_tiny_benchmark_masat_converges_and_workers_do_not_change_results(tmp_pa
     assert "Table 1" in (tmp_path / "report.md").read_text()
 
 
+@pytest.mark.data
 def test_real_m3500_masat_converges_at_low_noise(tmp_path):
     need(DATA / "posegraph" / "iSAM" / "groundtruth" / "manhattanOlson3500_groundtruth.txt")
     res = run_benchmark("m3500", [(0.1, 0.1, 0.1)], instances=2, workers=1, seed=0, progress=False,
@@ -310,6 +311,7 @@ def test_heterogeneous_noise_study_instances():
         mod.edge_scales(ref, "nope", 3.0, np.random.default_rng(0))
 
 
+@pytest.mark.data
 def test_spanning_tree_tie_study_reproduces_the_benchmark_column(tmp_path, capsys):
     """scripts/masat/study_spanning_tree_ties.py: its ``index`` tree is the benchmark's spanning tree, run
     for run, on the protocol's own instances; other tie rules are valid but different trees."""
@@ -360,7 +362,7 @@ def test_cli_bench_without_dataset_is_a_usage_error(tmp_path):
 # ----------------------------------------------------------------------- input validation (one line)
 
 
-from conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
+from tests.conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
 
 
 @pytest.mark.parametrize("text,message", [

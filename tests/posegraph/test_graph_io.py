@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from rgbdslam.posegraph.graph_io import detect_format, graph_info, read_graph, write_g2o
 from rgbdslam.errors import InputError
 
-from conftest import DATA, need
+from tests.conftest import DATA, need
 
 G2O_SE2 = """\
 VERTEX_SE2 0 0 0 0
@@ -162,6 +162,7 @@ def test_sparse_vertex_ids_are_kept(tmp_path):
     assert "VERTEX_SE2 35 " in (tmp_path / "o.g2o").read_text()
 
 
+@pytest.mark.data
 def test_real_m3500_counts():
     path = need(DATA / "posegraph" / "iSAM" / "manhattanOlson3500.txt")
     g = read_graph(path)
@@ -229,7 +230,7 @@ _E01 = "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n"
 _E12 = "EDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\n"
 
 
-from conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
+from tests.conftest import assert_cli_error as _assert_cli_error, cli as _cli  # noqa: E402
 
 
 def test_non_utf8_graph_file_is_one_line_error(tmp_path):
@@ -353,6 +354,7 @@ def test_indefinite_information_is_projected_and_noted(tmp_path):
     assert np.linalg.eigvalsh(g3.info[0])[0] > -1e-9 and len(g3.notes) == 1
 
 
+@pytest.mark.data
 def test_real_cubicle_is_read_with_its_indefinite_edges_projected():
     g = read_graph(need(DATA / "posegraph" / "SE-Sync" / "cubicle.g2o"))
     assert g.dim == 3 and g.n_edges == 16869
