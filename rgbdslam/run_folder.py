@@ -22,7 +22,7 @@ from rgbdslam.io.trajectory import Trajectory, write_tum
 
 # what a run writes into its folder; a new run into the same folder first moves these to previous/
 RUN_ARTEFACTS = ("trajectory.tum", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
-                 "plots", "map", "keyframes", "recording.rrd")
+                 "plots", "map", "keyframes", "recording.rrd", "export")
 
 
 def _finished_run(run_json: Path) -> bool:
