@@ -118,6 +118,22 @@ def engine_options(f):
     return f
 
 
+def frame_options(f):
+    """--first-frame / --stride / --max-frames: short for --set dataset.KEY=N (checked the same way)."""
+    for name, key, text in (("--max-frames", "max_frames", "Track at most N frames (dataset.max_frames)."),
+                            ("--stride", "stride", "Use every N-th frame (dataset.stride)."),
+                            ("--first-frame", "first_frame", "Start at frame N, counted from 0 "
+                                                             "(dataset.first_frame).")):
+        f = click.option(name, key, type=int, default=None, metavar="N", help=text)(f)
+    return f
+
+
+def with_frame_options(overrides, first_frame, stride, max_frames) -> tuple[str, ...]:
+    extra = [f"dataset.{k}={v}" for k, v in (("first_frame", first_frame), ("stride", stride),
+                                             ("max_frames", max_frames)) if v is not None]
+    return tuple(overrides) + tuple(extra)
+
+
 # ----------------------------------------------------------------------------- run / demo
 
 
@@ -132,6 +148,7 @@ def engine_options(f):
 @click.option("--no-map", is_flag=True, help="Skip map fusion at the end of the run.")
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
 @click.option("--rerun-save", type=PATH, default=None, help="Record the run to an .rrd file.")
+@frame_options
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--map", "map_dir", type=click.Path(path_type=Path), default=None,
               help="A finished run's folder: relocalise in its map (map.npz), then extend it (saved in --out).")
@@ -139,8 +156,8 @@ def engine_options(f):
               help="With --map: only localise in the map (kept fixed); frames before the first "
                    "relocalisation are left out of trajectory.tum.")
 @engine_options
-def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, quiet, map_dir,
-        localize, engine, workers, address):
+def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, first_frame, stride,
+        max_frames, quiet, map_dir, localize, engine, workers, address):
     """Run SLAM on SEQUENCE (a TUM, ETH3D, ICL-NUIM, 7-Scenes or PUT folder, a ROS 1/2 bag or a
     RealSense recording) and write trajectory.tum into --out.
 
@@ -152,7 +169,7 @@ def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_s
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
-    cfg = load_cli_config(config_path, overrides, camera_file)
+    cfg = load_cli_config(config_path, with_frame_options(overrides, first_frame, stride, max_frames), camera_file)
     if no_map:
         cfg.mapping.enabled = False
     if rerun_spawn:
@@ -278,11 +295,20 @@ def live(config_path, overrides, out_dir, record_dir, playback, size, fps, seria
 @main.command("config")
 @config_option
 @set_option
-def show_config(config_path, overrides):
+@click.option("--explain", is_flag=True,
+              help="Print every key with its type, accepted range, default and a one-line description "
+                   "(and the value here when the preset or --set changed it).")
+def show_config(config_path, overrides, explain):
     """Print the effective configuration (defaults, preset, overrides) as YAML."""
     from rgbdslam.config import load_config
 
-    click.echo(load_config(config_path, overrides).dump(), nl=False)
+    cfg = load_config(config_path, overrides)
+    if explain:
+        from rgbdslam.config_doc import explain as explain_config
+
+        click.echo(explain_config(cfg), nl=False)
+        return
+    click.echo(cfg.dump(), nl=False)
 
 
 @main.command("info")
@@ -290,11 +316,13 @@ def show_config(config_path, overrides):
 @config_option
 @set_option
 @camera_option
-def info(sequence, config_path, overrides, camera_file):
+@frame_options
+def info(sequence, config_path, overrides, camera_file, first_frame, stride, max_frames):
     """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
     from rgbdslam.datasets import describe_sequence
 
-    click.echo(describe_sequence(sequence, load_cli_config(config_path, overrides, camera_file)))
+    cfg = load_cli_config(config_path, with_frame_options(overrides, first_frame, stride, max_frames), camera_file)
+    click.echo(describe_sequence(sequence, cfg))
 
 
 # ------------------------------------------------------------------ commands added by stages
@@ -312,20 +340,22 @@ def info(sequence, config_path, overrides, camera_file):
 @click.option("--offset", type=float, default=0.0, show_default=True, help="Time offset (s) added to EST stamps.")
 @click.option("--json", "json_path", type=PATH, default=None, help="Write the summary as JSON.")
 @click.option("--plot-dir", type=PATH, default=None,
-              help="Folder for the PNG plots (default: EST's folder, files named <EST stem>_*.png).")
-@click.option("--no-plots", is_flag=True, help="Write no plots.")
+              help="Write PNG plots into this folder (none without it): ate_topview.png, ate_over_time.png, "
+                   "rpe_over_time.png; with several EST each one's plots are prefixed with its short name "
+                   "(e.g. runA_trajectory_ate_topview.png) and comparison_topview.png overlays them all.")
+@click.option("--no-plots", is_flag=True, hidden=True, help="No effect: plots are written only with --plot-dir.")
 def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_path, plot_dir, no_plots):
     """ATE and RPE of trajectory EST against ground truth GT (TUM format, or a sequence folder
     with ground truth: TUM groundtruth.txt, 7-Scenes pose.txt files, ...); prints a table.
 
-    Several ESTs are compared with the same settings: one table with a row each and
-    comparison_topview.png (in --plot-dir, default the current folder) with all of them."""
+    Several ESTs are compared with the same settings: one table with a row each (and, with
+    --plot-dir, comparison_topview.png with all of them)."""
     import tempfile
 
     from rgbdslam.evaluation.report import compare_and_print, evaluate_and_print
 
     opts = dict(align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference, offset=offset,
-                json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
+                json_path=json_path, plot_dir=plot_dir, plots=plot_dir is not None)
     with tempfile.TemporaryDirectory(prefix="rgbdslam-gt-") as tmp:
         if gt.is_dir():  # a sequence folder: its own ground truth (7-Scenes pose.txt files, groundtruth.txt, ...)
             gt = _groundtruth_file(gt, Path(tmp))
@@ -499,26 +529,63 @@ def posegraph_bench(dataset, noise, instances, max_iter, workers, engine, addres
 @main.command()
 @click.argument("run_dir", type=PATH)
 @set_option
+@click.option("--render", is_flag=True,
+              help="Also render PNG previews without a display: RUN_DIR/map/cloud.png and mesh.png.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def fuse(run_dir, overrides, quiet):
+def fuse(run_dir, overrides, render, quiet):
     """Fuse the map of a finished run folder into RUN_DIR/map: cloud.ply, mesh.ply, map2d.png/.yaml.
 
     Uses the run's config.yaml; --set mapping.KEY=VALUE changes it for this fusion."""
     from rgbdslam.mapping.fusion import fuse_command
 
-    fuse_command(run_dir, overrides, progress=not quiet)
+    fuse_command(run_dir, overrides, progress=not quiet, render=render)
+
+
+def _export_help() -> str:
+    from rgbdslam.export import FORMATS
+
+    return "Format(s) to write; repeatable or comma-separated, 'all' for every one: " + "; ".join(
+        f"{k} = {v[2]}" for k, v in FORMATS.items()) + "."
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--format", "-f", "formats", multiple=True, required=True, metavar="FORMAT[,FORMAT...]",
+              help=_export_help())
+@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
+              help="Output folder (default: RUN_DIR/export).")
+@click.option("--max-points", default=100_000, show_default=True,
+              help="Points in the COLMAP points3D.txt / nerfstudio sparse_pc.ply (the map's cloud, subsampled).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def export(run_dir, formats, out_dir, max_points, quiet):
+    """Write a finished run (RUN_DIR) in formats other tools read: trajectories (TUM, KITTI,
+    EuRoC, evo), COLMAP and nerfstudio models of the keyframes, the map as PCD/OBJ/GLB."""
+    from rgbdslam.export import export_run, parse_formats
+
+    written = export_run(run_dir, parse_formats(formats), out_dir, max_points=max_points, progress=not quiet)
+    for name, paths in written.items():
+        click.echo(f"{name}: " + ", ".join(str(p) for p in paths))
 
 
 @main.command()
 @click.argument("path", type=PATH)
 @click.option("--save", type=PATH, default=None,
               help="Write the recording here (default for a run folder: RUN_DIR/recording.rrd).")
+@click.option("--web", is_flag=True,
+              help="Serve Rerun's web viewer (for a machine without a display) and print the address to open.")
+@click.option("--bind", default="127.0.0.1", show_default=True,
+              help="With --web: the address to serve on (0.0.0.0 = every network interface).")
+@click.option("--web-port", default=9090, show_default=True, help="With --web: port of the viewer page.")
+@click.option("--grpc-port", default=9876, show_default=True, help="With --web: port the recording is served on.")
+@click.option("--serve-for", type=float, default=None, metavar="SECONDS",
+              help="With --web: stop serving after this many seconds (default: until Ctrl-C).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def view(path, save, quiet):
+def view(path, save, web, bind, web_port, grpc_port, serve_for, quiet):
     """Open PATH (an .rrd recording or a run folder, recorded first) in the Rerun viewer."""
     from rgbdslam.viz.rerun_log import view as view_recording
 
-    view_recording(path, save, progress=not quiet)
+    view_recording(path, save, progress=not quiet, web=web, bind=bind, web_port=web_port, grpc_port=grpc_port,
+                   serve_for=serve_for)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -32,10 +32,10 @@ def preset_files() -> dict[str, Any]:
 
 @dataclass
 class DatasetConfig:
-    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag", "kitti", "euroc", "stereo"] = "auto"
+    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag", "kitti", "euroc", "stereo"] = "auto"  # reader; auto: by the folder's files
     # TUM association (semantics of TUM's associate.py)
-    max_difference: float = 0.02
-    offset: float = 0.0
+    max_difference: float = 0.02  # seconds: colour and depth images closer in time than this are paired
+    offset: float = 0.0  # seconds added to the depth time stamps before pairing
     associations: str | None = None  # optional existing associations file
     # Camera file (YAML: fx fy cx cy size distortion depth_scale, optional depth_camera and
     # depth_to_color; `--camera FILE`); wins over everything below (docs/formats.md "Camera file")
@@ -46,9 +46,9 @@ class DatasetConfig:
     camera: Literal["auto", "fr1", "fr2", "fr3", "kinect1", "ros_default"] = "auto"
     depth_scale: float | None = None  # raw units per metre; None = camera file, else source default (TUM 5000, PUT 1000)
     depth_correction: float = 1.0  # multiply metric depth (off = 1.0)
-    first_frame: int = 0
-    max_frames: int | None = None
-    stride: int = 1
+    first_frame: int = 0  # first frame used, counted from 0 after pairing (--first-frame)
+    max_frames: int | None = None  # use at most this many frames (None = all; --max-frames)
+    stride: int = 1  # use every n-th frame (--stride)
     groundtruth: str | None = None  # PUT: ground-truth TUM file (default groundtruth.txt or the one *.tum); bags: a TUM file
     # ROS bags: topics (None = found automatically when unambiguous; the error lists the candidates)
     rgb_topic: str | None = None
@@ -59,48 +59,48 @@ class DatasetConfig:
 
 @dataclass
 class FeaturesConfig:
-    n_features: int = 1000
-    scale_factor: float = 1.2
-    n_levels: int = 8
-    fast_threshold: int = 20
-    edge_threshold: int = 31
-    patch_size: int = 31
+    n_features: int = 1000  # ORB key points kept per frame (the strongest)
+    scale_factor: float = 1.2  # ORB pyramid scale step between levels
+    n_levels: int = 8  # ORB pyramid levels
+    fast_threshold: int = 20  # FAST corner threshold of the ORB detector
+    edge_threshold: int = 31  # ORB border (pixels) where no key point is detected
+    patch_size: int = 31  # ORB descriptor patch size (pixels)
     grid_rows: int = 1  # >1 enables bucketing: features spread over a grid
-    grid_cols: int = 1
-    undistort: bool = True
+    grid_cols: int = 1  # columns of the bucketing grid (see grid_rows)
+    undistort: bool = True  # undistort key point positions with the camera's distortion before registration
 
 
 @dataclass
 class MatchingConfig:
-    cross_check: bool = True
+    cross_check: bool = True  # keep a match only when each descriptor is the other's nearest neighbour
     ratio: float | None = None  # Lowe ratio test (None = off)
-    max_hamming: int = 64
-    prefilter: Literal["none", "homography", "fundamental", "rigid3d"] = "rigid3d"
+    max_hamming: int = 64  # largest descriptor Hamming distance of a match (bits)
+    prefilter: Literal["none", "homography", "fundamental", "rigid3d"] = "rigid3d"  # outlier pre-filter
     prefilter_threshold: float = 0.03  # metres for rigid3d, pixels for 2-D models
-    prefilter_iterations: int = 200
-    min_depth: float = 0.1
-    max_depth: float = 6.0
+    prefilter_iterations: int = 200  # RANSAC iterations of the pre-filter
+    min_depth: float = 0.1  # metres: key points with depth outside [min_depth, max_depth] are not used
+    max_depth: float = 6.0  # metres: see min_depth
 
 
 @dataclass
 class RegistrationConfig:
-    method: Literal["ransac", "isvd", "islam"] = "islam"
+    method: Literal["ransac", "isvd", "islam"] = "islam"  # frame-to-frame registration
     # RANSAC baseline
-    ransac_iterations: int = 200
-    ransac_threshold: float = 0.03
+    ransac_iterations: int = 200  # iterations of the RANSAC baseline
+    ransac_threshold: float = 0.03  # metres: inlier distance of the RANSAC baseline
     # ISVD (docs/references.md §1)
-    max_iterations: int = 10
+    max_iterations: int = 10  # ISVD: most rounds of fit-and-gate
     e_start: float = 0.32  # halved each round: 0.32 .. 0.01, the last gate is the first below e_min
-    e_min: float = 0.02
+    e_min: float = 0.02  # ISVD stops once its gate falls below this (m)
     # ISLAM (docs/references.md §2)
-    mp: int = 4
-    alpha: float = 0.2
-    beta: float = -1.0
-    min_error: float = 0.01
-    min_points: int = 12
-    fusion: Literal["thesis", "chordal"] = "chordal"
+    mp: int = 4  # ISLAM: registered against the last mp frames (MP of the thesis)
+    alpha: float = 0.2  # ISLAM gate of iteration j: alpha * j**beta (m)
+    beta: float = -1.0  # ISLAM gate exponent (negative: the gate shrinks each iteration)
+    min_error: float = 0.01  # ISLAM stops once its gate falls below this (m)
+    min_points: int = 12  # ISLAM: a reference needs this many surviving pairs
+    fusion: Literal["thesis", "chordal"] = "chordal"  # ISLAM's fusion of its references' poses
     reject_translation: float = 0.05  # candidate disagreement gates (m, rad)
-    reject_rotation: float = 0.05
+    reject_rotation: float = 0.05  # radians: see reject_translation
     min_agreement: float = 0.5  # lost if the agreeing candidates hold less of the total weight
     pregate: float | None = None  # drop pairs this far (m) from the constant-velocity prediction first
     guided_gate: float | None = 0.05  # older ISLAM references: gate (m) around the newest one's pose, no RANSAC
@@ -109,7 +109,7 @@ class RegistrationConfig:
     # (no brute-force Hamming matrix, no RANSAC); brute force when that keeps fewer than
     # predicted_min_inliers inliers (None = always brute force; docs/frontend.md)
     predicted_gate: float | None = 0.05
-    predicted_min_inliers: int = 60
+    predicted_min_inliers: int = 60  # inliers the guided match needs before falling back to brute force
     joint_refit: bool = False  # after fusion: one weighted SVD fit on the inliers of all kept references
     joint_gate: float = 0.02  # metres, pairs further from the fused pose are left out of the joint refit
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
@@ -118,68 +118,68 @@ class RegistrationConfig:
     noise_refit: bool = True
     noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
     noise_refit_huber: float = 3.0  # Huber threshold of the refit (Mahalanobis distance, sigmas)
-    threads: int = 1
-    constant_velocity: bool = True
+    threads: int = 1  # threads registering the ISLAM references in parallel
+    constant_velocity: bool = True  # predict each pose from the last motion (else from the last pose)
     max_lost: int = 15  # consecutive lost frames before tracking restarts from the last pose (0 = never)
     max_jump_translation: float = 0.15  # m per frame: candidates further from the prediction are rejected
     max_jump_rotation_deg: float = 15.0  # deg per frame, likewise
-    seed: int = 0
+    seed: int = 0  # seed of RANSAC's random choices
 
 
 @dataclass
 class DepthFilterConfig:
     """DIF, the conditional averaging depth filter (docs/references.md §3, docs/slam.md)."""
 
-    enabled: bool = False
+    enabled: bool = False  # run DIF on every frame (off by default: no gain measured, docs/slam.md)
     window: int = 2  # K previous filtered frames warped into the current one (0 = spatial only)
     spatial_radius: int = 1  # window half-size of the spatial averaging (0 = temporal only)
     tolerance_a: float = 0.01  # agreement tolerance = a + b * z^2 (metres)
-    tolerance_b: float = 0.0035
+    tolerance_b: float = 0.0035  # see tolerance_a (1/m)
     min_support: int = 3  # agreeing samples (besides the pixel itself) needed to keep a pixel
-    min_depth: float = 0.3
-    max_depth: float = 5.0
+    min_depth: float = 0.3  # metres: depth outside [min_depth, max_depth] is dropped
+    max_depth: float = 5.0  # metres: see min_depth
 
 
 @dataclass
 class KeyframeConfig:
     min_translation: float = 0.10  # metres moved since the last keyframe
     min_rotation_deg: float = 10.0  # degrees turned since the last keyframe
-    max_gap: int = 15  # frames
+    max_gap: int = 15  # frames: a keyframe at least every max_gap frames
 
 
 @dataclass
 class LoopConfig:
     """Sharpness-gated loop closure (docs/references.md §4, docs/slam.md)."""
 
-    enabled: bool = True
+    enabled: bool = True  # detect loops and optimise the pose graph
     # sharpness gate: measure > factor * median(measure of the previous window frames).
     # "n_detected" is the thesis' count of detected features (FAST corners at ORB's threshold
     # before ORB keeps the best features.n_features: rgbdslam.frontend.features.count_detections). "response" =
     # sum of the ORB responses of the kept key points (the default before 2026-11-30, docs/slam.md).
     sharpness_measure: Literal["n_detected", "response"] = "n_detected"
-    sharpness_factor: float = 1.2
-    sharpness_window: int = 20
+    sharpness_factor: float = 1.2  # a frame is sharp when its measure exceeds this times the window's median
+    sharpness_window: int = 20  # frames in the sharpness gate's median
     sharpness_min_history: int = 5  # frames seen before the gate can open
     # also search a frame when none of the last query_gap frames was searched (0 = sharp frames
     # only, the thesis' gate): where every frame is equally sharp the gate never opens and a
     # revisit goes unnoticed (docs/slam.md, benchmarks.md "Synthetic variants")
     query_gap: int = 5
     # candidate search
-    index: Literal["lsh", "brute"] = "lsh"
+    index: Literal["lsh", "brute"] = "lsh"  # keyframe descriptor index for the candidate search (lsh or brute force)
     lsh_tables: int = 8  # hash tables, each keyed on lsh_bits random descriptor bits
-    lsh_bits: int = 24
+    lsh_bits: int = 24  # descriptor bits per LSH key
     min_votes: int = 20  # query descriptors colliding with a keyframe before it is a candidate
     skip_recent: int = 20  # keyframes
-    max_candidates: int = 3
-    seed: int = 0
+    max_candidates: int = 3  # keyframes verified per query
+    seed: int = 0  # seed of the LSH bit choice
     # verification
-    min_inliers: int = 40
-    max_residual: float = 0.02
-    max_loops_per_frame: int = 1
+    min_inliers: int = 40  # inliers a loop's registration needs
+    max_residual: float = 0.02  # metres: largest mean residual of an accepted loop registration
+    max_loops_per_frame: int = 1  # loop edges added per query frame
     stop_at_first: bool = False  # verify candidates in vote order and stop at max_loops_per_frame loops
     # agreement with the current estimate: |T_loop - T_est| < bound + drift_ratio * travelled
-    consistency_translation: float = 0.3  # metres
-    consistency_rotation_deg: float = 15.0
+    consistency_translation: float = 0.3  # metres: a loop may disagree with the estimate this much (+ drift ratio)
+    consistency_rotation_deg: float = 15.0  # degrees: see consistency_translation
     drift_ratio_translation: float = 0.1  # extra metres allowed per metre travelled since the keyframe
     drift_ratio_rotation: float = 0.1  # extra degrees allowed per degree turned since the keyframe
     # relocalisation after a tracking loss (no estimate to agree with): a match into an older
@@ -188,8 +188,8 @@ class LoopConfig:
     # within relocalize_translation / relocalize_rotation_deg; 1 = the first sound match links
     relocalize_confirm: int = 2
     relocalize_window: int = 15  # frames a match waits for its confirmation
-    relocalize_translation: float = 0.1  # metres
-    relocalize_rotation_deg: float = 5.0
+    relocalize_translation: float = 0.1  # metres: two relocalisation matches agree within this
+    relocalize_rotation_deg: float = 5.0  # degrees: see relocalize_translation
 
 
 @dataclass
@@ -197,21 +197,21 @@ class BackendConfig:
     """GTSAM pose graph over keyframes (docs/slam.md)."""
 
     enabled: bool = False  # a graph of odometry edges only; loop.enabled (the default) builds it anyway
-    init: Literal["masat", "weighted_masat", "odometry", "spanning_tree", "isam2"] = "masat"
+    init: Literal["masat", "weighted_masat", "odometry", "spanning_tree", "isam2"] = "masat"  # initial guess
     robust_kernel: Literal["none", "huber", "cauchy"] = "cauchy"  # applied to loop edges
     kernel_width: float = 1.0  # in whitened units (sigmas)
     kernel_chain_scaling: bool = True  # widen each loop's kernel by the odometry drift expected between its ends
     isam2: bool = True  # incremental update whenever a loop edge arrives
     isam2_extra_updates: int = 4  # extra iSAM2 relinearisation steps after each loop
     optimizer: Literal["lm", "gn"] = "lm"  # final batch optimisation
-    max_iterations: int = 100
-    relative_error_tol: float = 1e-6
+    max_iterations: int = 100  # iterations of the final batch optimisation
+    relative_error_tol: float = 1e-6  # the batch optimisation stops when the error changes less than this (relative)
     prior_sigma: float = 1e-4  # first keyframe's prior (rad and metres)
 
 
 @dataclass
 class MappingConfig:
-    enabled: bool = True
+    enabled: bool = True  # fuse the map at the end of a run
     # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
     keyframes_only: bool = True
     live: bool = True  # fuse keyframes while tracking (keyframes_only); false: fuse after the run
@@ -219,19 +219,19 @@ class MappingConfig:
     # stays where the live map integrated it; larger: less re-integration, a map further from the final poses
     live_tolerance: float = 0.25
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
-    select_rotation_deg: float = 5.0
+    select_rotation_deg: float = 5.0  # degrees: see select_translation
     undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing
     depth_min: float = 0.3  # metres; depth outside [depth_min, depth_max] is ignored
-    depth_max: float = 3.0
+    depth_max: float = 3.0  # metres: see depth_min
     # coloured point cloud
     voxel_size: float = 0.01  # voxel-grid downsampling of the merged cloud (m)
     cloud_pixel_stride: int = 2  # back-project every n-th pixel (a 1 cm voxel holds several anyway)
     outlier_neighbors: int = 20  # statistical outlier removal (0 = off)
-    outlier_std: float = 2.0
+    outlier_std: float = 2.0  # statistical outlier removal: standard deviations beyond the neighbours' mean distance
     # TSDF mesh
     mesh: bool = True  # Open3D tensor VoxelBlockGrid TSDF + marching cubes
-    tsdf_voxel: float = 0.01  # metres
-    sdf_trunc: float = 0.04  # metres
+    tsdf_voxel: float = 0.01  # metres: TSDF voxel size
+    sdf_trunc: float = 0.04  # metres: TSDF truncation distance
     mesh_min_frames: int = 2  # voxels seen by fewer frames are left out of the mesh
     tsdf_initial_blocks: int = 2000  # 8^3-voxel blocks preallocated (the hash map grows)
     # 2-D occupancy map (docs/references.md §6)
@@ -240,12 +240,12 @@ class MappingConfig:
     gravity: Literal["auto", "accelerometer", "camera"] = "auto"  # up direction hint for the floor
     floor_max_tilt_deg: float = 20.0  # a floor plane's normal is within this of "up"
     floor_distance: float = 0.02  # RANSAC inlier distance of the floor plane (m)
-    floor_ransac_iterations: int = 500
+    floor_ransac_iterations: int = 500  # RANSAC iterations of the floor plane search
     floor_band: float = 0.05  # |height| below this = floor point (m)
     obstacle_min_height: float = 0.10  # points between these heights above the floor occupy a cell
-    obstacle_max_height: float = 1.80
+    obstacle_max_height: float = 1.80  # metres: see obstacle_min_height
     obstacle_min_points: int = 3  # points needed to mark a cell occupied
-    seed: int = 0
+    seed: int = 0  # seed of the floor RANSAC
 
 
 @dataclass
@@ -276,7 +276,7 @@ class OutputConfig:
     rerun_save: str | None = None  # record to this .rrd file
     rerun_image_width: int = 320  # images are logged at this width (aspect kept)
     rerun_log_every: int = 1  # log images every n-th frame (poses/scalars every frame)
-    plots: bool = True
+    plots: bool = True  # write the evaluation plots into RUN_DIR/plots when the sequence has ground truth
 
 
 @dataclass
@@ -615,7 +615,21 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
     return validate(cfg)
 
 
-def save_config(cfg: Config, path: str | Path) -> None:
+# where one run writes its outputs: given on the command line (--rerun-save, --rerun), not part of a
+# configuration that is given back to --config to repeat a run (it would overwrite the earlier recording)
+RUN_OUTPUT_KEYS = {"output.rerun": False, "output.rerun_save": None}
+
+
+def save_config(cfg: Config, path: str | Path, outputs: bool = True) -> None:
+    """Write ``cfg`` as YAML atomically; ``outputs=False`` leaves the one-run output keys
+    (:data:`RUN_OUTPUT_KEYS`) at their defaults, as a run folder's config.yaml does."""
+    import copy
+
     from rgbdslam.io.atomic import atomic_write_text
 
+    if not outputs:
+        cfg = copy.deepcopy(cfg)
+        for key, default in RUN_OUTPUT_KEYS.items():
+            section, name = key.split(".")
+            setattr(getattr(cfg, section), name, default)
     atomic_write_text(path, cfg.dump())

@@ -123,7 +123,8 @@ def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunR
     record.stage = "writing the trajectory"
     write_outputs(out_dir, slam, summary, final)
     record.write(summary)
-    post_process(summary, slam, final, gt, out_dir, cfg, run.interrupted, progress, console, record)
+    post_process(summary, slam, final, gt, out_dir, cfg, run.interrupted, progress, console, record,
+                 groundtruth_name(seq))
     record.stage = "end"
     record.write(summary, final=True)  # only now: "finished" (or "interrupted" from the tracking loop)
     print_summary(summary, out_dir, console)
@@ -171,7 +172,7 @@ def prepare_run_folder(out_dir: Path, cfg: Config, console, record: RunRecord) -
     if keep_previous_run(out_dir):
         console.print(f"note: the earlier run in {out_dir} was moved to {out_dir / 'previous'}")
     record.owns = True
-    save_config(cfg, out_dir / "config.yaml")
+    save_config(cfg, out_dir / "config.yaml", outputs=False)  # a re-run from it must not overwrite this run's outputs
     record.write(record.summary)
     return out_dir
 
@@ -290,7 +291,8 @@ def fail(seq: Sequence, slam: SLAM, run: Tracking, out_dir: Path, record: RunRec
 
 
 def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Trajectory | None, out_dir: Path,
-                 cfg: Config, interrupted: bool, progress: bool, console, record: RunRecord) -> None:
+                 cfg: Config, interrupted: bool, progress: bool, console, record: RunRecord,
+                 gt_name: str = "ground truth") -> None:
     """Evaluation against the ground truth, the trajectories for the observer, the map; each
     adds to run.json and none of them fails a finished run by bad input (a full disk or Ctrl-C
     does: ``record`` names the stage)."""
@@ -307,7 +309,7 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
             slam.mapper.abort()
     if gt is not None and len(final) > 1:
         record.stage = "evaluation"
-        summary["evaluation"] = evaluate(gt, final, out_dir, cfg, console)
+        summary["evaluation"] = evaluate(gt, final, out_dir, cfg, console, gt_name)
         record.write(summary)
     observer.log_trajectory("estimate", final)
     if gt is not None:
@@ -323,12 +325,20 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
     observer.close()
 
 
-def evaluate(gt: Trajectory, est: Trajectory, out_dir: Path, cfg: Config, console) -> dict[str, Any]:
+def groundtruth_name(seq: Sequence) -> str:
+    """The ground-truth file's path, as `rgbdslam evaluate --json` names it."""
+    path = seq.groundtruth_path() if hasattr(seq, "groundtruth_path") else Path(seq.root) / "groundtruth.txt"
+    return str(path) if path is not None else "ground truth"
+
+
+def evaluate(gt: Trajectory, est: Trajectory, out_dir: Path, cfg: Config, console,
+             gt_name: str = "ground truth") -> dict[str, Any]:
     from rgbdslam.evaluation.report import evaluate_trajectories
 
     plot_dir = out_dir / "plots" if cfg.output.plots else None
-    try:
-        rep = evaluate_trajectories(gt, est, json_path=out_dir / "evaluation.json", plot_dir=plot_dir)
+    try:  # the files named as `rgbdslam evaluate GT RUN_DIR/trajectory.tum --json` names them
+        rep = evaluate_trajectories(gt, est, json_path=out_dir / "evaluation.json", plot_dir=plot_dir,
+                                    gt_name=gt_name, est_name=str(out_dir / "trajectory.tum"))
     except RgbdslamError as e:  # evaluation is a bonus: it never stops a finished run
         console.print(f"[yellow]warning:[/] no evaluation: {e}")
         return {}

@@ -38,7 +38,7 @@ from rgbdslam.io.trajectory import Trajectory, write_tum
 
 # what a run writes into its folder; a new run into the same folder first moves these to previous/
 RUN_ARTEFACTS = ("trajectory.tum", "poses.txt", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
-                 "plots", "map", "keyframes", "recording.rrd", "map.npz", "sessions")
+                 "plots", "map", "keyframes", "recording.rrd", "map.npz", "sessions", "export")
 PREVIOUS = "previous"
 MANIFEST = ".rgbdslam-previous.json"
 LOCK_NAME = ".rgbdslam.lock"
@@ -239,29 +239,37 @@ def write_outputs(out_dir: Path, slam, summary: dict, final: Trajectory | None) 
         write_g2o(out_dir / "posegraph.g2o", slam.graph.as_graph(slam.optimised))
 
 
-def print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
-    msg = (f"{s['frames']} frames, {s['tracked']} tracked, {s['lost']} lost"
-           + (f", {s['skipped']} unreadable" if s["skipped"] else "")
-           + f", {len(s['keyframes'])} keyframes, {len(s['loops'])} loops; "
-           f"{s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without waiting for images)")
-    console.print(msg)
+def summary_lines(s: dict[str, Any]) -> list[tuple[str, str]]:
+    """The closing summary of a run as ``(style, text)`` lines of one sentence or clause each, short
+    enough for an 80-column terminal (only a long folder name can make one longer): a window
+    never breaks a sentence in the middle."""
+    lines = [("", f"{s['frames']} frames: {s['tracked']} tracked, {s['lost']} lost"
+                  + (f", {s['skipped']} unreadable" if s.get("skipped") else "")
+                  + f"; {len(s['keyframes'])} keyframes, {len(s['loops'])} loops"),
+             ("", f"speed: {s['fps']:.1f} frames/s ({s['processing_fps']:.1f} without waiting for images)")]
     if s.get("restarts"):
         n, r = len(s["restarts"]), s.get("relocalized", 0)
-        frames = ", ".join(str(i) for i in s["restarts"])
-        console.print(f"[yellow]tracking restarted {n}× after a loss (frame {frames}); "
-                      + (f"{r} of {n} new segment(s) relocalised against the map[/]" if r else
-                         "not relocalised: those segments' poses are only known up to an offset[/]"))
+        lines.append(("yellow", f"tracking restarted {n}x after a loss (frame {', '.join(map(str, s['restarts']))})"))
+        lines.append(("yellow", f"{r} of {n} new segment(s) relocalised against the map" if r else
+                      "not relocalised: those segments' poses are known only up to an offset"))
         off = [g for g in s.get("segments", []) if not g["map"]]
         if off:
-            spans = ", ".join(f"{g['first']}–{g['last']}" for g in off)
-            console.print(f"[yellow]frames {spans} ({sum(g['frames'] for g in off)} tracked) are not linked to the "
-                          f"map by any loop: trajectory.tum keeps them (up to an unknown offset), the map leaves "
-                          f"them out[/]")
+            spans = ", ".join(f"{g['first']}-{g['last']}" for g in off)
+            lines.append(("yellow", f"no loop links frames {spans} to the map ({sum(g['frames'] for g in off)} "
+                                    f"tracked):"))
+            lines.append(("yellow", "trajectory.tum keeps them (up to an unknown offset), the map leaves them out"))
     ev = s.get("evaluation") or {}
     ate = (ev.get("ate") or {}).get("rmse")
     if ate is not None:
-        console.print(f"ATE RMSE {ate:.4f} m over {ev['ate'].get('n_pairs', '?')} poses")
-    console.print(f"outputs in {out_dir}")
+        lines.append(("", f"ATE RMSE {ate:.4f} m over {ev['ate'].get('n_pairs', '?')} poses"))
+    return lines
+
+
+def print_summary(s: dict[str, Any], out_dir: Path, console) -> None:
+    from rich.text import Text
+
+    for style, text in summary_lines(s) + [("", f"outputs in {out_dir}")]:
+        console.print(Text(text, style=style), soft_wrap=True)
 
 
 class RunRecord:

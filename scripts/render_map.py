@@ -1,15 +1,7 @@
 #!/usr/bin/env python
-"""Render a run's fused map (map/mesh.ply, map/cloud.ply) to PNG without a display.
-
-Open3D's OffscreenRenderer needs EGL/OpenGL, which headless machines often lack, so this
-projects points into a virtual pinhole camera with NumPy and keeps the nearest one per pixel
-(z-buffer splatting: every point covers a small square whose side shrinks with depth). The
-mesh is drawn as its vertices, shaded by their normals (Lambert, light from the viewer), which
-reads as a surface at TSDF resolution; the cloud is drawn in its own colours.
-
-The viewpoint stands ``--back`` metres behind the cameras' mean position (away from the
-cloud's median point) and ``--lift`` metres above it, level with the floor found by the 2-D
-map (map/map2d.yaml), looking at the cloud's median point.
+"""Render a run's fused map to PNG without a display, for the docs (rgbdslam.viz.render; the
+same pictures as `rgbdslam fuse --render`, here into another folder with a name prefix, and the
+2-D map preview copied beside them).
 
     python scripts/render_map.py RUN_DIR --out docs/ [--prefix rpy200_] [--width 640]
 """
@@ -21,121 +13,8 @@ import shutil
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
-import open3d as o3d
-import yaml
-
-from rgbdslam.io.trajectory import read_tum
-
-
-def up_vector(run_dir: Path, poses: np.ndarray) -> np.ndarray:
-    """World "up": the floor normal of map/map2d.yaml, else minus the cameras' mean image-down axis."""
-    meta = run_dir / "map" / "map2d.yaml"
-    if meta.is_file():
-        T = np.array(yaml.safe_load(meta.read_text())["rgbdslam_world_to_map"])
-        return T[2, :3]
-    d = -poses[:, :3, 1].mean(axis=0)
-    return d / np.linalg.norm(d)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """World-to-camera (OpenCV axes: x right, y down, z forward) looking from eye at target."""
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)  # right = forward x up
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z])
-    T[:3, 3] = -T[:3, :3] @ eye
-    return T
-
-
-def default_view(points: np.ndarray, poses: np.ndarray, up: np.ndarray,
-                 back: float = 1.0, lift: float = 0.8) -> np.ndarray:
-    """Look at the cloud's median point from behind the cameras' mean position, raised by ``lift``."""
-    target = np.median(points, axis=0)
-    centre = poses[:, :3, 3].mean(axis=0)
-    fwd = target - centre
-    fwd -= (fwd @ up) * up
-    fwd /= max(np.linalg.norm(fwd), 1e-9)
-    return look_at(centre - back * fwd + lift * up, target, up)
-
-
-def splat(points: np.ndarray, colors: np.ndarray, w2c: np.ndarray, width: int, height: int,
-          hfov_deg: float = 80.0, size: float = 2.5, background=(255, 255, 255)) -> np.ndarray:
-    """Nearest-point image (H, W, 3) uint8 of coloured points seen by the camera ``w2c``."""
-    f = 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2)
-    P = points @ w2c[:3, :3].T + w2c[:3, 3]
-    ok = P[:, 2] > 0.05
-    P, C = P[ok], colors[ok]
-    u = f * P[:, 0] / P[:, 2] + width / 2
-    v = f * P[:, 1] / P[:, 2] + height / 2
-    r = np.clip(np.ceil(size * 1.5 / P[:, 2]).astype(int), 1, 6)  # splat radius shrinks with depth
-    us, vs, zs, cs = [], [], [], []
-    for rad in np.unique(r):
-        sel = r == rad
-        for du in range(-rad + 1, rad):
-            for dv in range(-rad + 1, rad):
-                us.append(np.round(u[sel]).astype(int) + du)
-                vs.append(np.round(v[sel]).astype(int) + dv)
-                zs.append(P[sel, 2])
-                cs.append(C[sel])
-    u, v, z, c = (np.concatenate(x) for x in (us, vs, zs, cs))
-    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    pix, z, c = (v * width + u)[inside], z[inside], c[inside]
-    order = np.lexsort((z, pix))  # by pixel, nearest first
-    pix, c = pix[order], c[order]
-    first = np.r_[True, pix[1:] != pix[:-1]]
-    img = np.empty((height * width, 3), np.uint8)
-    img[:] = background
-    img[pix[first]] = c[first]
-    return img.reshape(height, width, 3)
-
-
-def shade(mesh: o3d.geometry.TriangleMesh, w2c: np.ndarray) -> np.ndarray:
-    """Per-vertex grey-blue Lambert shading with the light at the viewer."""
-    if not mesh.has_vertex_normals():
-        mesh.compute_vertex_normals()
-    V = np.asarray(mesh.vertices)
-    N = np.asarray(mesh.vertex_normals)
-    eye = -w2c[:3, :3].T @ w2c[:3, 3]
-    to_eye = eye - V
-    to_eye /= np.linalg.norm(to_eye, axis=1, keepdims=True)
-    lam = np.abs(np.sum(N * to_eye, axis=1))  # TSDF normals may face either way
-    base = np.array([200.0, 205.0, 215.0])
-    if mesh.has_vertex_colors():  # tint with the fused colour, keep the shading dominant
-        base = 0.5 * base + 0.5 * 255 * np.asarray(mesh.vertex_colors)
-    return np.clip(base * (0.25 + 0.75 * lam[:, None]), 0, 255).astype(np.uint8)
-
-
-def render_run(run_dir: Path, out: Path, prefix: str = "", width: int = 640, back: float = 1.0,
-               lift: float = 0.8) -> list[Path]:
-    run_dir, out = Path(run_dir), Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    height = width * 3 // 4
-    traj = read_tum(run_dir / "trajectory.tum")
-    written = []
-    mesh_path, cloud_path = run_dir / "map" / "mesh.ply", run_dir / "map" / "cloud.ply"
-    pc = o3d.io.read_point_cloud(str(cloud_path)) if cloud_path.is_file() else None
-    mesh = o3d.io.read_triangle_mesh(str(mesh_path)) if mesh_path.is_file() else None
-    pts = np.asarray(pc.points) if pc is not None else np.asarray(mesh.vertices)
-    w2c = default_view(pts, traj.poses, up_vector(run_dir, traj.poses), back, lift)
-    if mesh is not None:
-        img = splat(np.asarray(mesh.vertices), shade(mesh, w2c), w2c, width, height, size=2.0)
-        written.append(out / f"{prefix}mesh.png")
-        cv2.imwrite(str(written[-1]), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    if pc is not None:
-        col = (np.asarray(pc.colors) * 255).astype(np.uint8)
-        img = splat(np.asarray(pc.points), col, w2c, width, height, size=2.5)
-        written.append(out / f"{prefix}cloud.png")
-        cv2.imwrite(str(written[-1]), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    preview = run_dir / "map" / "map2d_preview.png"
-    if preview.is_file():
-        written.append(out / f"{prefix}map2d_preview.png")
-        shutil.copyfile(preview, written[-1])
-    return written
+from rgbdslam.errors import RgbdslamError
+from rgbdslam.viz.render import render_run
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,10 +26,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--back", type=float, default=1.0, help="metres behind the cameras' mean position")
     ap.add_argument("--lift", type=float, default=0.8, help="metres above it")
     a = ap.parse_args(argv)
-    if not (a.run_dir / "trajectory.tum").is_file() or not (a.run_dir / "map").is_dir():
-        print(f"error: {a.run_dir} has no trajectory.tum or map/; run `rgbdslam fuse {a.run_dir}` first", file=sys.stderr)
+    try:
+        written = render_run(a.run_dir, a.out, a.prefix, a.width, a.back, a.lift)
+    except RgbdslamError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
-    for p in render_run(a.run_dir, a.out, a.prefix, a.width, a.back, a.lift):
+    preview = a.run_dir / "map" / "map2d_preview.png"
+    if preview.is_file():
+        written.append(a.out / f"{a.prefix}map2d_preview.png")
+        shutil.copyfile(preview, written[-1])
+    for p in written:
         print(f"{p}  ({p.stat().st_size // 1024} kB)")
     return 0
 

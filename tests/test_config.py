@@ -254,3 +254,47 @@ def test_upper_ends_are_accepted_by_their_consumers(desk9, tmp_path):
                                     "--set", "backend.enabled=true", *sum((["--set", s] for s in sets), [])])
     assert res.exit_code == 0, res.output
     assert (tmp_path / "r" / "map" / "mesh.ply").is_file() and (tmp_path / "r" / "posegraph.g2o").is_file()
+
+
+# ------------------------------------------------------------------ config --explain
+
+
+def test_every_key_is_explained_next_to_its_field():
+    from rgbdslam.config_doc import explain_rows
+
+    rows = explain_rows()
+    assert len(rows) == sum(len(v) for v in Config().to_dict().values())
+    missing = [r["key"] for r in rows if len(r["description"]) < 8]
+    assert not missing, f"give these fields a '# description' comment in config.py: {missing}"
+    # group headers above a block of fields are not descriptions of its first field
+    assert not any(r["description"].lower().startswith(("islam (", "isvd (", "ransac baseline", "candidate search",
+                                                         "verification")) for r in rows)
+
+
+def test_explained_ranges_are_the_ones_enforced():
+    """The range text comes from the rules validate_section applies: a value just outside fails."""
+    from rgbdslam.config_doc import explain_rows
+
+    rows = {r["key"]: r for r in explain_rows()}
+    assert rows["registration.mp"]["range"] == ">= 1" and rows["registration.mp"]["type"] == "int"
+    assert rows["registration.beta"]["range"] == "any"
+    assert rows["matching.ratio"]["range"] == "0 to 1, or null"
+    assert rows["mapping.depth_min"]["range"] == ">= 0, < mapping.depth_max"
+    assert rows["loop.index"]["range"] == "one of lsh, brute"
+    for key, bad in (("registration.mp", 0), ("matching.ratio", 1.5), ("registration.alpha", 0.0),
+                     ("features.n_levels", 17), ("mapping.voxel_size", 1e-4)):
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            load_config(None, [f"{key}={bad}"])
+
+
+def test_config_explain_command_prints_every_key(tmp_path):
+    from tests.conftest import cli
+
+    res = cli(["config", "--explain", "--set", "registration.mp=6"])
+    assert res.exit_code == 0, res.output
+    out = res.stdout
+    for section, values in Config().to_dict().items():
+        for name in values:
+            assert f"\n{section}.{name}: " in "\n" + out, f"{section}.{name}"
+    assert "registration.mp: int, >= 1; default 4 (here 6)\n" in out
+    assert max(len(ln) for ln in out.splitlines() if ln.startswith("    ")) <= 80

@@ -174,14 +174,12 @@ def evaluate_and_print(
     ``options`` are passed to :func:`evaluate_files` (align, delta, delta_unit,
     max_difference, offset, json_path).
 
-    Plots go to ``plot_dir`` when given; otherwise, unless ``plots`` is False, next to the
-    estimate as ``<est stem>_ate_topview.png`` etc., so several estimates can share a folder.
+    Plots (``ate_topview.png``, ``ate_over_time.png``, ``rpe_over_time.png``) are written only
+    into ``plot_dir``, when it is given (as evo writes plots only when asked).
     """
     console = console or Console()
-    prefix = ""
-    if plots and plot_dir is None:
-        plot_dir, prefix = Path(est_path).parent, f"{Path(est_path).stem}_"
-    rep = evaluate_files(gt_path, est_path, plot_dir=plot_dir if plots else None, plot_prefix=prefix, **options)
+    rep = evaluate_files(gt_path, est_path, plot_dir=plot_dir if plots else None, **options)
+    _print_names(console, [("estimate", est_path), ("ground truth", gt_path)])
     console.print(format_table(rep))
     for p in rep.plots + ([rep.json_path] if rep.json_path else []):
         console.print(f"wrote {escape(p)}")
@@ -200,10 +198,10 @@ def compare_and_print(
     """``rgbdslam evaluate GT EST EST ...``: every estimate against the same ground truth with the
     same settings; prints one comparison table (best ATE RMSE in bold).
 
-    Plots: each estimate's own plots (as for one estimate) and ``comparison_topview.png`` with
-    all estimates, in ``plot_dir`` (default: the current folder for the comparison, each
-    estimate's folder for its own plots). ``json_path`` gets ``{"ground_truth", "estimates":
-    [report, ...]}``. ``options`` as for :func:`evaluate_files` (align, delta, ...).
+    Plots, only when ``plot_dir`` is given: each estimate's own plots prefixed with its short
+    name (``runA_trajectory_ate_topview.png``) and ``comparison_topview.png`` with all estimates.
+    ``json_path`` gets ``{"ground_truth", "estimates": [report, ...]}``. ``options`` as for
+    :func:`evaluate_files` (align, delta, ...).
     """
     console = console or Console()
     seen: set[str] = set()
@@ -215,18 +213,17 @@ def compare_and_print(
     names = _short_names([str(p) for p in est_paths])
     for est in est_paths:  # every estimate first: one that fails stops the command before any file is written
         reports.append(evaluate_files(gt_path, est, **options))
+    plots = plots and plot_dir is not None
+    _print_names(console, [("ground truth", gt_path)])
     console.print(format_comparison(reports))
     for est, name, rep in zip(est_paths, names, reports):
         if not plots:
             break
-        if plot_dir is None:  # next to the estimate, as for one estimate
-            own_dir, prefix = Path(est).parent, f"{Path(est).stem}_"
-        else:  # one folder for all: prefixes that tell runA/trajectory.tum from runB/trajectory.tum
-            own_dir, prefix = Path(plot_dir), f"{Path(name).with_suffix('').as_posix().replace('/', '_')}_"
-        rep.plots = write_plots(rep, own_dir, prefix)
+        # one folder for all: prefixes that tell runA/trajectory.tum from runB/trajectory.tum
+        rep.plots = write_plots(rep, Path(plot_dir), f"{Path(name).with_suffix('').as_posix().replace('/', '_')}_")
     written = [p for r in reports for p in r.plots]
     if plots:
-        path = Path(plot_dir if plot_dir is not None else ".") / "comparison_topview.png"
+        path = Path(plot_dir) / "comparison_topview.png"
         _write(path, lambda p: plot_trajectories_topview(
             reports[0].ate.gt, {n: r.ate.aligned for n, r in zip(names, reports)}, p))
         written.append(str(path))
@@ -237,6 +234,12 @@ def compare_and_print(
     for p in written:
         console.print(f"wrote {escape(p)}")
     return reports
+
+
+def _print_names(console: Console, named: list[tuple[str, str | Path]]) -> None:
+    """One line per file above a table (a table title would break a long path across lines)."""
+    for what, path in named:
+        console.print(f"{what}: {escape(str(path))}", soft_wrap=True, highlight=False)
 
 
 def _short_names(paths: list[str]) -> list[str]:
@@ -255,7 +258,7 @@ def format_comparison(reports: list[EvaluationReport]) -> Table:
     names = _short_names([r.est_name for r in reports])
     best = min(range(len(reports)), key=lambda k: reports[k].ate.rmse)
     first = reports[0]
-    table = Table(title=escape(f"{len(reports)} estimates vs {first.gt_name}"), title_justify="left")
+    table = Table(title=f"{len(reports)} estimates vs the ground truth", title_justify="left")
     table.add_column("estimate", overflow="fold", min_width=min(36, max(len(n) for n in names)))
     for col in ("ATE\nrmse", "ATE\nmax", "RPE t\nrmse", "RPE r\nrmse", "poses"):
         table.add_column(col, justify="right", no_wrap=True)
@@ -303,7 +306,7 @@ def _write(path: str | Path, writer) -> None:
 def format_table(report: EvaluationReport) -> Table:
     """A rich table: ATE and RPE statistics, pair counts and the settings in the caption."""
     a, r = report.ate, report.rpe
-    table = Table(title=escape(f"{report.est_name} vs {report.gt_name}"), title_justify="left")
+    table = Table(title="estimate vs ground truth", title_justify="left")
     table.add_column("metric")
     for col in ("rmse", "mean", "median", "std", "min", "max"):
         table.add_column(col, justify="right")

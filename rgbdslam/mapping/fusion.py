@@ -47,7 +47,8 @@ with interrupts_deferred():  # Ctrl-C during Open3D's start-up leaves its C++ st
 DEPTH_PNG_SCALE = 5000.0  # keyframes/depth_*.png units per metre
 STAMP_TOLERANCE = 1e-3  # seconds: a trajectory line belongs to a frame when the stamps agree this well
 # the files a fusion writes into its folder: all of them come from one fusion (see _commit)
-MAP_FILES = ("cloud.ply", "mesh.ply", "map2d.png", "map2d.yaml", "map2d_preview.png")
+# (cloud.png and mesh.png are the renders of `fuse --render`: a new fusion removes older ones)
+MAP_FILES = ("cloud.ply", "mesh.ply", "map2d.png", "map2d.yaml", "map2d_preview.png", "cloud.png", "mesh.png")
 
 
 @dataclass
@@ -681,12 +682,21 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
     return fuse(seq, traj, frames, cfg, run_dir / "map", depth_dir if depth_dir.is_dir() else None, progress)
 
 
-def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (), progress: bool = True) -> FuseResult:
-    """``rgbdslam fuse``: the run's config with ``section.key=value`` overrides, fuse, print a summary."""
+def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (), progress: bool = True,
+                 render: bool = False) -> FuseResult:
+    """``rgbdslam fuse``: the run's config with ``mapping.key=value`` overrides, fuse, print a
+    summary; ``render``: also PNG previews of the cloud and the mesh (:mod:`rgbdslam.viz.render`)."""
     from rgbdslam.ui import console
 
     from rgbdslam.run_folder import folder_lock
 
+    from rgbdslam.errors import ConfigError
+
+    for item in overrides:  # the run's other settings are fixed by its trajectory: only the map's may change
+        key = item.split("=", 1)[0].strip()
+        if "=" in item and not key.startswith("mapping."):
+            raise ConfigError(f"fuse --set changes map settings only (mapping.KEY=VALUE); '{key}' is not one; "
+                              f"re-run `rgbdslam run` to change it")
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"
     cfg = load_config(cfg_path if cfg_path.is_file() else None, overrides)
@@ -699,4 +709,9 @@ def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (
         f"{res.n_points} cloud points, {res.n_triangles} mesh triangles -> {res.out_dir}",
         soft_wrap=True,
     )
+    if render:
+        from rgbdslam.viz.render import render_run
+
+        for p in render_run(run_dir, res.out_dir):
+            console.print(f"rendered {p}", soft_wrap=True, highlight=False)
     return res

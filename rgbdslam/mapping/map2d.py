@@ -251,7 +251,41 @@ def render_preview(grid: Map2D, trajectory: Trajectory | None, min_size: int = 6
         y0 = img.shape[0] - 12
         cv2.line(img, (10, y0), (10 + bar, y0), (0, 0, 0), 3)
         cv2.putText(img, "1 m", (10, y0 - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    return img
+    return np.vstack([img, legend_strip(img.shape[1], trajectory is not None and len(trajectory) > 0)])
+
+
+# the preview's legend: (label, kind, BGR colour); kinds: a cell swatch, a line, a dot
+LEGEND = [("free", "cell", (FREE,) * 3), ("occupied", "cell", (OCCUPIED,) * 3), ("unknown", "cell", (UNKNOWN,) * 3),
+          ("camera path", "line", (0, 0, 255)), ("start", "dot", (0, 160, 0)), ("end", "dot", (255, 0, 0))]
+
+
+def legend_strip(width: int, with_trajectory: bool = True, row: int = 24) -> np.ndarray:
+    """A white BGR strip ``width`` pixels wide naming the preview's colours, items wrapped onto
+    as many rows as the width needs."""
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.45
+    items = [x for x in LEGEND if with_trajectory or x[1] == "cell"]
+    sizes = [22 + cv2.getTextSize(label, font, scale, 1)[0][0] + 16 for label, _, _ in items]
+    rows, x = 1, 8
+    for w in sizes:
+        if x + w > width and x > 8:
+            rows, x = rows + 1, 8
+        x += w
+    strip = np.full((rows * row + 6, width, 3), 255, np.uint8)
+    x, y = 8, 6
+    for (label, kind, color), w in zip(items, sizes):
+        if x + w > width and x > 8:
+            x, y = 8, y + row
+        mid = y + row // 2 - 2
+        if kind == "cell":
+            cv2.rectangle(strip, (x, mid - 7), (x + 14, mid + 7), color, -1)
+            cv2.rectangle(strip, (x, mid - 7), (x + 14, mid + 7), (120, 120, 120), 1)
+        elif kind == "line":
+            cv2.line(strip, (x, mid), (x + 14, mid), color, 2, cv2.LINE_AA)
+        else:
+            cv2.circle(strip, (x + 7, mid), 6, color, -1, cv2.LINE_AA)
+        cv2.putText(strip, label, (x + 22, mid + 5), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
+        x += w
+    return strip
 
 
 def write_map2d(grid: Map2D, out_dir: str | Path, trajectory: Trajectory | None = None) -> Path:

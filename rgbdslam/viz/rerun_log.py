@@ -370,11 +370,14 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
     return out_rrd
 
 
-def view(path: str | Path, save: str | Path | None = None, progress: bool = True) -> Path:
+def view(path: str | Path, save: str | Path | None = None, progress: bool = True, web: bool = False,
+         bind: str = "127.0.0.1", web_port: int = 9090, grpc_port: int = 9876,
+         serve_for: float | None = None) -> Path:
     """Open an .rrd file or a run folder in the Rerun viewer and return the .rrd's path.
 
     A run folder is recorded first (to ``save``, else RUN_DIR/recording.rrd unless that exists).
-    Without a display the viewer is not started: one line says so and names the file."""
+    Without a display the viewer is not started: one line says so and names the file.
+    ``web``: serve Rerun's web viewer instead (:func:`serve_web`), for a machine without a display."""
     from rgbdslam.ui import console
 
     path = Path(path)
@@ -397,6 +400,12 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
     else:
         raise InputError(f"{path} does not exist; give an .rrd file or the --out folder of `rgbdslam run`")
     exe = rerun_executable()
+    if web:
+        server = rerun_binary() or exe
+        if server is None:
+            raise RgbdslamError("the `rerun` program of rerun-sdk was not found; reinstall rerun-sdk")
+        serve_web(server, rrd, bind, web_port, grpc_port, serve_for)
+        return rrd
     if not has_display():
         console.print(f"no display here, so no viewer was opened; the recording is {rrd.resolve()} "
                       f"(open it with `rerun {rrd.resolve()}` on a machine with a display)", soft_wrap=True)
@@ -405,3 +414,93 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
         raise RgbdslamError(f"the `rerun` viewer was not found; install rerun-sdk, then run `rerun {rrd}`")
     subprocess.Popen([exe, str(rrd)], start_new_session=True)
     return rrd
+
+
+def rerun_binary() -> str | None:
+    """The viewer binary itself (``rerun_cli/rerun``): the ``rerun`` script on PATH is a Python
+    wrapper that runs it as a child, so stopping the wrapper would leave the server running."""
+    try:
+        import rerun_cli
+    except ImportError:
+        return None
+    cand = Path(rerun_cli.__file__).parent / ("rerun.exe" if sys.platform.startswith("win") else "rerun")
+    return str(cand) if cand.is_file() else None
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    """Linux: the server gets SIGTERM when rgbdslam dies, even by SIGKILL (no orphaned server)."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+def _port_open(host: str, port: int) -> bool:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.settimeout(0.5)
+        return sock.connect_ex((host, port)) == 0
+
+
+def serve_web(exe: str, rrd: Path, bind: str = "127.0.0.1", web_port: int = 9090, grpc_port: int = 9876,
+              serve_for: float | None = None, startup_timeout: float = 30.0) -> None:
+    """Serve ``rrd`` with Rerun's web viewer (``rerun --serve-web``): the viewer page on
+    ``web_port`` and the recording over gRPC on ``grpc_port``, both bound to ``bind`` (loopback by
+    default: reach it from your own machine through an SSH tunnel). Prints how to open it, then
+    serves until Ctrl-C (or ``serve_for`` seconds) and stops the server."""
+    import time
+
+    from rgbdslam.ui import console
+
+    for name, port in (("--web-port", web_port), ("--grpc-port", grpc_port)):
+        if not 1 <= port <= 65535:
+            raise InputError(f"{name} must be a port number between 1 and 65535 (got {port})")
+    if web_port == grpc_port:
+        raise InputError(f"--web-port and --grpc-port must differ (both {web_port})")
+    host = "127.0.0.1" if bind in ("0.0.0.0", "::", "") else bind
+    for port in (web_port, grpc_port):
+        if _port_open(host, port):
+            raise InputError(f"port {port} on {host} is already in use (another viewer?); choose another with "
+                             f"--web-port / --grpc-port")
+    log = tempfile.TemporaryFile()
+    cmd = [exe, "--serve-web", "--bind", bind, "--web-viewer-port", str(web_port), "--port", str(grpc_port),
+           str(rrd.resolve())]
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+    try:
+        t0 = time.monotonic()
+        while not (_port_open(host, web_port) and _port_open(host, grpc_port)):
+            if proc.poll() is not None or time.monotonic() - t0 > startup_timeout:
+                log.seek(0)
+                lines = [x for x in log.read().decode("utf-8", "replace").splitlines() if x.strip()]
+                why = lines[-1].strip() if lines else f"exit code {proc.returncode}"
+                raise RgbdslamError(f"the Rerun web viewer did not start ({why[-200:]})")
+            time.sleep(0.2)
+        name = "localhost" if host == "127.0.0.1" else host
+        url = f"http://{name}:{web_port}/?url=rerun%2Bhttp%3A%2F%2F{name}%3A{grpc_port}%2Fproxy"
+        console.print(f"serving {rrd} with Rerun's web viewer: open {url} in a browser", soft_wrap=True)
+        if host == "127.0.0.1":
+            console.print(f"from another computer: ssh -L {web_port}:localhost:{web_port} -L {grpc_port}:localhost:"
+                          f"{grpc_port} THIS_MACHINE, then open the same address there "
+                          f"(or --bind 0.0.0.0 to serve on the network)", soft_wrap=True)
+        console.print("Ctrl-C stops the server" if serve_for is None else f"serving for {serve_for:g} s",
+                      soft_wrap=True)
+        try:
+            proc.wait(timeout=serve_for)
+        except subprocess.TimeoutExpired:
+            pass
+        else:
+            raise RgbdslamError(f"the Rerun web viewer stopped (exit code {proc.returncode})")
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        log.close()

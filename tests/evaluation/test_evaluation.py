@@ -375,10 +375,18 @@ def test_cli_evaluate_writes_json_and_plots(rpy200, tmp_path):
     assert data["ate"]["rmse"] == pytest.approx(lib.ate.rmse, abs=1e-12)
     assert data["rpe"]["trans"]["rmse"] == pytest.approx(lib.rpe.trans.rmse, abs=1e-12)
     assert data["rpe"]["delta_unit"] == "s" and data["ate"]["n_pairs"] == 200
-    # default plot location: next to EST, prefixed with its stem
-    for name in ("est_ate_topview.png", "est_ate_over_time.png", "est_rpe_over_time.png"):
-        png = tmp_path / name
+    # plots only when asked (as evo): none without --plot-dir
+    assert not list(tmp_path.rglob("*.png"))
+    # the names --help gives for one estimate
+    res = CliRunner().invoke(main, ["evaluate", str(gt_path), str(est_path), "--plot-dir", str(tmp_path / "p")])
+    assert res.exit_code == 0, _out(res)
+    assert sorted(p.name for p in (tmp_path / "p").iterdir()) == ["ate_over_time.png", "ate_topview.png",
+                                                                  "rpe_over_time.png"]
+    for png in (tmp_path / "p").iterdir():
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    # long paths are printed whole on their own lines, never folded into a table title
+    lines = res.stdout.splitlines()
+    assert f"estimate: {est_path}" in lines and f"ground truth: {gt_path}" in lines
 
 
 def test_cli_missing_file_one_line_error(tmp_path):
