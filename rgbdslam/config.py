@@ -51,9 +51,9 @@ class DatasetConfig:
     stride: int = 1  # use every n-th frame (--stride)
     groundtruth: str | None = None  # PUT: ground-truth TUM file (default groundtruth.txt or the one *.tum); bags: a TUM file
     # ROS bags: topics (None = found automatically when unambiguous; the error lists the candidates)
-    rgb_topic: str | None = None
-    depth_topic: str | None = None
-    camera_info_topic: str | None = None
+    rgb_topic: str | None = None  # ROS bags: colour image topic (None: found when unambiguous)
+    depth_topic: str | None = None  # ROS bags: depth image topic (None: found when unambiguous)
+    camera_info_topic: str | None = None  # ROS bags: CameraInfo topic of the colour camera (None: found)
     prefetch: int = 4  # frames read ahead by a background thread during `run` (0 = read in the loop)
 
 
@@ -256,7 +256,7 @@ class StereoConfig:
     map_depth: Literal["same", "sparse", "sgbm"] = "sgbm"  # what `fuse` re-reads for the map ("same" = depth)
     # disparity noise (pixels) each method implies: depth sigma = z^2 * sigma / (fx * baseline)
     sigma_disparity_sparse: float = 0.5
-    sigma_disparity_sgbm: float = 0.5
+    sigma_disparity_sgbm: float = 0.5  # disparity noise (px) of SGBM depth, for the depth noise model
     max_disparity: int = 128  # search range (pixels); SGBM rounds it up to a multiple of 16
     min_disparity: float = 0.5  # smaller disparities (farther than fx * B / this) give no depth
     row_tolerance: float = 2.0  # sparse: |v_left - v_right| allowed for a match (pixels)
@@ -265,8 +265,8 @@ class StereoConfig:
     right_features: int = 2  # sparse: ORB budget of the right image, times features.n_features (no grid)
     patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
     search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
-    sgbm_block_size: int = 5
-    sgbm_uniqueness: int = 10
+    sgbm_block_size: int = 5  # SGBM matching block size (odd, pixels)
+    sgbm_uniqueness: int = 10  # SGBM uniqueness ratio (%): the best match must win by this margin
     sgbm_scale: float = 1.0  # SGBM on an image resized by this factor (0.5: ~4x faster, coarser)
 
 

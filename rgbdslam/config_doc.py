@@ -3,7 +3,7 @@
 The description of a key is the comment written next to its field in ``rgbdslam/config.py``
 (the trailing ``# ...`` on the field's line, else the comment lines right above it), so the
 documentation lives beside the field and its range beside the rules (``SIGNED``, ``POSITIVE``,
-``BOUNDS``, ``ORDERED``) that :func:`rgbdslam.config.validate_section` enforces: nothing is
+``BOUNDS``, ``MAXIMA``, ``ORDERED``) that :func:`rgbdslam.config.validate_section` enforces: nothing is
 written twice. A test checks that every key has a description.
 """
 
@@ -71,17 +71,8 @@ def key_range(key: str, hint: Any) -> str:
     elif base is bool:
         rng = "true or false"
     elif base in (int, float):
-        lo, hi = C.BOUNDS.get(key, (None, None))
-        if lo is not None and hi is not None:
-            rng = f"{lo:.7g} to {hi:.7g}"
-        elif lo is not None:
-            rng = f">= {lo:.7g}"
-        elif key in C.POSITIVE:
-            rng = ">= 1" if base is int else "> 0"
-        elif key in C.SIGNED:
-            rng = "any"
-        else:
-            rng = ">= 0"
+        lo, lo_open, hi = C.value_range(key, base)  # what check_range enforces, upper bound included
+        rng = f"> {lo:.7g} and <= {hi:.7g}" if lo_open else f"{lo:.7g} to {hi:.7g}"
         for a, b in C.ORDERED:
             if key == a:
                 rng += f", < {b}"

@@ -276,13 +276,15 @@ def test_explained_ranges_are_the_ones_enforced():
     from rgbdslam.config_doc import explain_rows
 
     rows = {r["key"]: r for r in explain_rows()}
-    assert rows["registration.mp"]["range"] == ">= 1" and rows["registration.mp"]["type"] == "int"
-    assert rows["registration.beta"]["range"] == "any"
+    assert rows["registration.mp"]["range"] == "1 to 64" and rows["registration.mp"]["type"] == "int"
+    assert rows["registration.beta"]["range"] == "-100 to 100"
+    assert rows["registration.alpha"]["range"] == "> 0 and <= 100"
     assert rows["matching.ratio"]["range"] == "0 to 1, or null"
-    assert rows["mapping.depth_min"]["range"] == ">= 0, < mapping.depth_max"
+    assert rows["mapping.depth_min"]["range"] == "0 to 1000, < mapping.depth_max"
     assert rows["loop.index"]["range"] == "one of lsh, brute"
-    for key, bad in (("registration.mp", 0), ("matching.ratio", 1.5), ("registration.alpha", 0.0),
-                     ("features.n_levels", 17), ("mapping.voxel_size", 1e-4)):
+    for key, bad in (("registration.mp", 0), ("registration.mp", 65), ("matching.ratio", 1.5),
+                     ("registration.alpha", 0.0), ("registration.alpha", 101.0), ("features.n_levels", 17),
+                     ("mapping.voxel_size", 1e-4), ("mapping.depth_min", 1001.0)):
         with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
             load_config(None, [f"{key}={bad}"])
 
@@ -296,5 +298,5 @@ def test_config_explain_command_prints_every_key(tmp_path):
     for section, values in Config().to_dict().items():
         for name in values:
             assert f"\n{section}.{name}: " in "\n" + out, f"{section}.{name}"
-    assert "registration.mp: int, >= 1; default 4 (here 6)\n" in out
+    assert "registration.mp: int, 1 to 64; default 4 (here 6)\n" in out
     assert max(len(ln) for ln in out.splitlines() if ln.startswith("    ")) <= 80
