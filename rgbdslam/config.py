@@ -192,6 +192,51 @@ class BackendConfig:
 
 
 @dataclass
+class LandmarksConfig:
+    """Map-based tracking: a persistent landmark map (spec section 6, docs/slam.md 'Landmark map')."""
+
+    enabled: bool = False
+    # how the map pose combines with the frame-to-frame registration (registration.method):
+    # 'seed' = the registration's pose predicts, the map pose replaces it (kept when the map fails)
+    mode: Literal["seed"] = "seed"
+    search_radius: float = 10.0  # pixels around a landmark's projection
+    max_hamming: int = 50
+    max_depth: float = 5.0  # metres: landmarks further from the camera are not searched, features not mapped
+    ransac_threshold: float = 0.03  # metres
+    ransac_iterations: int = 100
+    min_inliers: int = 30  # fewer: the map pose is not used for this frame
+    max_correction: float = 0.03  # metres / degrees: a map pose further from the registration's is rejected
+    max_correction_deg: float = 2.0
+    sampling: Literal["old_first", "uniform"] = "old_first"
+    # after RANSAC + weighted 3-D refit: 'reprojection' = motion-only Gauss-Newton on pixel and
+    # inverse-depth residuals (whitened; Huber), inliers re-gated at chi_gate sigmas; 'rigid' = stop there
+    refine: Literal["reprojection", "rigid"] = "reprojection"
+    chi_gate: float = 3.0
+    old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
+    # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
+    # z sigma_px / f; process noise per step (m)
+    kalman: bool = True
+    depth_noise_a: float = 0.001
+    depth_noise_b: float = 0.002
+    sigma_px: float = 1.0
+    process_noise: float = 0.0002
+    min_seen: int = 3  # landmarks seen fewer times cull_after frames after they were made are culled
+    cull_after: int = 30
+    store: Literal["single", "multi"] = "multi"  # landmark store: one k-d tree or the logarithmic method
+    store_n1: int = 3500
+    store_q: float = 5.5
+    new_min_distance: float = 5.0  # pixels: a keyframe feature this close to a projected landmark makes no new one
+    old_age: int = 100  # frames: a matched landmark first seen this long ago counts as "old" (run.json)
+    # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
+    local_ba: bool = False
+    ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
+    ba_iterations: int = 5
+    ba_baseline: float = 0.08  # virtual stereo baseline (m) turning depth into a disparity
+    ba_huber: float = 1.345  # robust kernel width (whitened)
+    seed: int = 0
+
+
+@dataclass
 class MappingConfig:
     enabled: bool = True
     # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
@@ -245,6 +290,7 @@ class Config:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
+    landmarks: LandmarksConfig = field(default_factory=LandmarksConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
@@ -335,6 +381,10 @@ POSITIVE = {
     "mapping.grid_resolution", "mapping.floor_max_tilt_deg", "mapping.floor_distance",
     "mapping.floor_ransac_iterations", "mapping.floor_band", "mapping.obstacle_min_points",
     "output.rerun_image_width", "output.rerun_log_every",
+    "landmarks.search_radius", "landmarks.max_depth", "landmarks.ransac_threshold", "landmarks.ransac_iterations",
+    "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
+    "landmarks.ba_iterations", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
+    "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -342,6 +392,8 @@ BOUNDS = {
     "registration.min_agreement": (0.0, 1.0), "registration.min_points": (3, 10**9),
     "registration.predicted_min_inliers": (3, 10**9), "loop.lsh_bits": (1, 64), "loop.min_inliers": (3, 10**9),
     "mapping.floor_max_tilt_deg": (0.0, 90.0),
+    "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, None),
+    "landmarks.max_hamming": (0, 256),
     # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane (hi None: no upper bound)
     "mapping.voxel_size": (1e-3, None), "mapping.tsdf_voxel": (1e-3, None), "mapping.grid_resolution": (1e-3, None),
 }

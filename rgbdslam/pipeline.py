@@ -123,6 +123,11 @@ class SLAM:
             from rgbdslam.loop.detector import LoopCloser
 
             self.loop = LoopCloser(cfg, camera)
+        self.landmarks = None
+        if cfg.landmarks.enabled:
+            from rgbdslam.landmarks.stage import LandmarkTracker
+
+            self.landmarks = LandmarkTracker(cfg.landmarks, camera)
         self.graph = None
         if cfg.backend.enabled or cfg.loop.enabled:
             from rgbdslam.backend.slam_graph import PoseGraph
@@ -149,6 +154,14 @@ class SLAM:
             self._info_since_kf.append(result.information)
 
         restart = bool(getattr(result, "reset", False))
+        if self.landmarks is not None and not restart:  # the map places the frame (registration predicts)
+            t0 = time.perf_counter()
+            mpose = self.landmarks.track(frame.index, result.features, pose)
+            if mpose is not pose:
+                pose = mpose
+                result.pose = pose
+                self.frontend.correct_last(pose)
+            st.add_time("landmarks", time.perf_counter() - t0)
         depth = frame.depth
         if self.depth_filter is not None:
             if restart:  # the last depth maps' poses are unrelated to this one's: nothing to warp
@@ -180,6 +193,19 @@ class SLAM:
         if (loops or restart) and not is_kf:  # a loop edge / a segment's first pose needs a graph node
             self.keyframe_policy.force(frame.index, pose)
             is_kf = True
+        if is_kf and self.landmarks is not None:
+            t0 = time.perf_counter()
+            refined = self.landmarks.add_keyframe(frame.index, result.features, pose)
+            if refined is not None:  # local BA moved this keyframe: tracking continues from there
+                pose = refined
+                result.pose = pose
+                self.frontend.correct_last(pose)
+            st.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
+        if self.landmarks is not None:
+            self.landmarks.end_frame(frame.index)
+            if self.observer is not None and hasattr(self.observer, "log_landmarks") and \
+                    frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
+                self.landmarks.log(self.observer, frame.index, result.features, is_kf)
         if is_kf:
             self._add_keyframe(frame, result, pose, depth)
         rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
@@ -248,6 +274,8 @@ class SLAM:
         t0 = time.perf_counter()
         optimised = self.graph.optimize()
         self.optimised = optimised
+        if self.landmarks is not None:  # landmarks move with the keyframe that anchors them
+            self.landmarks.finish(optimised)
         self.state.add_time("pose_graph", time.perf_counter() - t0)
         kf_pose = {r.index: r.pose for r in self.state.records if r.index == r.keyframe}
         poses = []
@@ -352,6 +380,7 @@ def _summary(seq: Sequence, slam: SLAM, n_frames: int, wall: float, load_time: f
         "fps": n_frames / wall if wall > 0 else math.nan,
         "processing_fps": n_frames / proc,
         "timings": per_stage,
+        "landmarks": slam.landmarks.summary() if slam.landmarks is not None else {},
         "interrupted": interrupted,
         "status": "interrupted" if interrupted else "finished",  # "failed" when nothing could be tracked
     }
@@ -365,6 +394,8 @@ def _write_outputs(out_dir: Path, slam: SLAM, summary: dict, final: Trajectory |
         from rgbdslam.backend.graph_io import write_g2o
 
         write_g2o(out_dir / "posegraph.g2o", slam.graph.as_graph(slam.optimised))
+    if slam.landmarks is not None and slam.landmarks.map.size:  # the thesis' 2-D map: landmarks from above
+        slam.landmarks.top_view(out_dir / "map" / "landmarks_topview.png")
     atomic_write_text(out_dir / "run.json", json.dumps(summary, indent=2))
 
 

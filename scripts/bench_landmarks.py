@@ -1,0 +1,156 @@
+"""Accuracy suite for map-based tracking (issue 17): every sequence, several configurations, one run.
+
+Usage::
+
+    .venv/bin/python scripts/bench_landmarks.py [--work DIR] [--data DIR] [--sevenscenes DIR]
+        [--frames 150] [--seeds 0,1,2] [--motions loop,circle,xyz,rpy] [--no-open3d]
+        [--variant NAME=KEY=VALUE[,KEY=VALUE...]] ... [--json FILE] [--skip-real] [--skip-synthetic]
+
+Sequences: TUM fr1/rpy head200 (``--data``/tum), 7-Scenes redkitchen 0-299 as a TUM-layout folder
+(``--sevenscenes``; its depth in 1/5000 m and a camera.yaml with fx=fy=585, cx=320, cy=240), and the
+project's synthetic generator (every motion x seed, Kinect-like noise, exact ground truth). Every
+variant (``default`` always first) runs on every sequence through ``rgbdslam.pipeline.run_sequence``
+(map fusion off). Per run: ATE RMSE, 1-frame RPE RMSE (translation), frames/s, loops, and from
+``run.json['landmarks']`` (when landmark tracking ran) the share of matched landmarks first seen
+>= 100 frames earlier. On the loop-type synthetic sequences (loop, circle) Open3D's hybrid RGB-D
+odometry is measured in the same run as the reference the issue names. Speed: the machine is
+shared; compare frames/s only as ratios within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from rgbdslam.config import load_config  # noqa: E402
+
+LOOP_TYPE = ("loop", "circle")
+
+
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    name, sep, rest = text.partition("=")
+    if not sep or "=" not in rest:
+        raise SystemExit(f"--variant {text!r}: expected NAME=KEY=VALUE[,KEY=VALUE...]")
+    return name, rest.split(",")
+
+
+def _metrics(s: dict) -> dict:
+    ev = s.get("evaluation") or {}
+    ate = (ev.get("ate") or {}).get("rmse", float("nan"))
+    rpe = ((ev.get("rpe") or {}).get("trans") or {}).get("rmse", float("nan"))
+    lm = s.get("landmarks") or {}
+    return {"ate": ate, "rpe": rpe, "fps": s.get("processing_fps", float("nan")), "loops": len(s.get("loops", [])),
+            "lost": s.get("lost", 0), "old_share": lm.get("old_share"), "landmarks": lm.get("size")}
+
+
+def open3d_odometry(seq_dir: Path) -> dict:
+    """Open3D's hybrid RGB-D odometry (frame to frame, no loop closure) on a TUM-layout folder."""
+    import open3d as o3d
+
+    from rgbdslam.config import Config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.evaluation.report import evaluate_trajectories
+    from rgbdslam.io.trajectory import Trajectory
+
+    seq = open_sequence(seq_dir, Config().dataset)
+    cam = seq.camera
+    intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+    opt = o3d.pipelines.odometry.OdometryOption()
+    jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+    prev, pose, poses, stamps = None, np.eye(4), [], []
+    t0 = time.perf_counter()
+    for i in range(len(seq)):
+        f = seq[i]
+        img = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(f.rgb)), o3d.geometry.Image(f.depth.astype(np.float32)),
+            depth_scale=1.0, depth_trunc=4.0, convert_rgb_to_intensity=True)
+        if prev is not None:
+            ok, T, _ = o3d.pipelines.odometry.compute_rgbd_odometry(img, prev, intr, np.eye(4), jac, opt)
+            pose = pose @ (T if ok else np.eye(4))
+        prev = img
+        poses.append(pose.copy())
+        stamps.append(f.timestamp)
+    wall = time.perf_counter() - t0
+    rep = evaluate_trajectories(seq.groundtruth(), Trajectory(np.array(stamps), np.array(poses)))
+    return {"ate": rep.ate.rmse, "rpe": rep.rpe.trans.rmse, "fps": len(seq) / wall}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--work", type=Path, default=None)
+    ap.add_argument("--data", type=Path, default=Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data")))
+    ap.add_argument("--sevenscenes", type=Path, default=None, help="7-Scenes frames 0-299 as a TUM-layout folder")
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--motions", default="loop,circle,xyz,rpy")
+    ap.add_argument("--variant", action="append", default=[])
+    ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--skip-real", action="store_true")
+    ap.add_argument("--skip-synthetic", action="store_true")
+    ap.add_argument("--json", type=Path, default=None, help="write every row here")
+    a = ap.parse_args(argv)
+    from rgbdslam.datasets.synthetic import generate_sequence
+    from rgbdslam.pipeline import run_sequence
+
+    work = a.work or Path(tempfile.mkdtemp(prefix="bench_landmarks_"))
+    work.mkdir(parents=True, exist_ok=True)
+    variants = {"default": []}
+    variants.update(dict(parse_variant(v) for v in a.variant))
+    seqs: list[tuple[str, Path]] = []
+    if not a.skip_real:
+        rpy = a.data / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+        if rpy.is_dir():
+            seqs.append(("fr1/rpy head200", rpy))
+        if a.sevenscenes is not None and a.sevenscenes.is_dir():
+            seqs.append(("7-Scenes redkitchen 0-299", a.sevenscenes))
+    if not a.skip_synthetic:
+        for motion in a.motions.split(","):
+            for seed in [int(s) for s in a.seeds.split(",")]:
+                d = work / f"{motion}_s{seed}_{a.frames}"
+                if not (d / "groundtruth.txt").exists():
+                    generate_sequence(d, frames=a.frames, motion=motion, noise=True, seed=seed)
+                seqs.append((f"{motion} seed {seed}", d))
+    rows = []
+    for name, d in seqs:
+        for vname, sets in variants.items():
+            cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *sets])
+            s = run_sequence(d, work / "runs" / f"{name.replace('/', '_').replace(' ', '_')}__{vname.replace(' ', '_')}",
+                             cfg, progress=False)
+            row = {"sequence": name, "variant": vname, **_metrics(s)}
+            rows.append(row)
+            print(f"{name:28s} {vname:28s} ATE {row['ate']:.4f}  RPE {row['rpe']:.4f}  {row['fps']:5.1f} fps  "
+                  f"loops {row['loops']}  old {row['old_share']}", flush=True)
+        if not a.no_open3d and any(name.startswith(m) for m in LOOP_TYPE):
+            o = open3d_odometry(d)
+            rows.append({"sequence": name, "variant": "Open3D hybrid odometry", **o})
+            print(f"{name:28s} {'Open3D hybrid odometry':28s} ATE {o['ate']:.4f}  RPE {o['rpe']:.4f}  {o['fps']:5.1f} fps",
+                  flush=True)
+    # summary: medians over the synthetic sequences
+    print()
+    print(f"# {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+          f"{time.strftime('%Y-%m-%d %H:%M')}; command: python {' '.join(shlex.quote(x) for x in sys.argv)}")
+    for vname in variants:
+        syn = [r for r in rows if r["variant"] == vname and " seed " in r["sequence"]]
+        if syn:
+            print(f"{vname:28s} synthetic median ATE {np.median([r['ate'] for r in syn]):.4f}  median RPE "
+                  f"{np.median([r['rpe'] for r in syn]):.4f}  median fps {np.median([r['fps'] for r in syn]):.1f}")
+    if a.json is not None:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
