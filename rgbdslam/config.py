@@ -231,6 +231,7 @@ class LandmarksConfig:
     local_ba: bool = False
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
     ba_iterations: int = 5
+    ba_max_landmarks: int = 300  # landmarks in one local BA (those seen by most keyframes)
     ba_baseline: float = 0.08  # virtual stereo baseline (m) turning depth into a disparity
     ba_huber: float = 1.345  # robust kernel width (whitened)
     seed: int = 0
@@ -383,7 +384,7 @@ POSITIVE = {
     "output.rerun_image_width", "output.rerun_log_every",
     "landmarks.search_radius", "landmarks.max_depth", "landmarks.ransac_threshold", "landmarks.ransac_iterations",
     "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
-    "landmarks.ba_iterations", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
+    "landmarks.ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
     "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
 }
 BOUNDS = {

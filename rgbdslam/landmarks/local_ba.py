@@ -53,6 +53,8 @@ class LocalBA:
                 obs.append((k.index, k.lm[sel], k.uv[sel], k.z[sel]))
         counts = np.bincount(np.concatenate([o[1] for o in obs]), minlength=lmap.n)
         use = win_ids[counts[win_ids] >= 2]
+        if len(use) > c.ba_max_landmarks:  # the best-observed ones (the cost is Python-side factor building)
+            use = use[np.argsort(-counts[use], kind="stable")[: c.ba_max_landmarks]]
         if len(use) < 10:
             return {}
         win_idx = {k.index for k in window}
