@@ -163,7 +163,6 @@ class LoopConfig:
     consistency_rotation_deg: float = 15.0
     drift_ratio_translation: float = 0.1  # extra metres allowed per metre travelled since the keyframe
     drift_ratio_rotation: float = 0.1  # extra degrees allowed per degree turned since the keyframe
-    sigma_floor: float = 0.005  # metres: lower bound of the residual used for the edge information
     # relocalisation after a tracking loss (no estimate to agree with): a match into an older
     # segment links the segments only once relocalize_confirm matches (distinct frames or distinct
     # keyframes, within relocalize_window frames) put the camera at the same place in that segment,
@@ -373,7 +372,7 @@ POSITIVE = {
     "keyframes.max_gap",
     "loop.sharpness_factor", "loop.sharpness_window", "loop.lsh_tables", "loop.lsh_bits", "loop.min_votes",
     "loop.max_candidates", "loop.min_inliers", "loop.max_residual", "loop.max_loops_per_frame",
-    "loop.consistency_translation", "loop.consistency_rotation_deg", "loop.sigma_floor",
+    "loop.consistency_translation", "loop.consistency_rotation_deg",
     "loop.relocalize_confirm", "loop.relocalize_window", "loop.relocalize_translation",
     "loop.relocalize_rotation_deg",
     "backend.kernel_width", "backend.max_iterations", "backend.relative_error_tol", "backend.prior_sigma",
@@ -437,9 +436,17 @@ def validate(cfg: Config) -> Config:
     return cfg
 
 
+# keys that earlier versions had: still accepted (run folders keep their config.yaml) and ignored
+RETIRED = {
+    "loop.sigma_floor",  # loop edges carry their registration's information (one noise floor, in the front end)
+}
+
+
 def _apply(section_obj: Any, section: str, values: dict[str, Any], source: str) -> None:
     hints = get_type_hints(type(section_obj))
     for k, v in values.items():
+        if f"{section}.{k}" in RETIRED:
+            continue
         if k not in hints:
             known = ", ".join(hints)
             raise ConfigError(f"unknown config key '{section}.{k}' in {source}; known keys: {known}")

@@ -106,12 +106,14 @@ class SLAM:
                  keyframe_dir: Path | None = None):
         from rgbdslam.frontend.keyframes import KeyframePolicy
         from rgbdslam.frontend.odometry import build_frontend
+        from rgbdslam.frontend.pairwise import build_pair_registration
 
         self.cfg = cfg
         self.camera = camera
         self.observer = observer
         self.keyframe_dir = keyframe_dir
-        self.frontend = build_frontend(cfg, camera)
+        register = build_pair_registration(cfg)  # matching + the registration strategy, shared with loop closure
+        self.frontend = build_frontend(cfg, camera, register)
         self.keyframe_policy = KeyframePolicy(cfg.keyframes)
         self.depth_filter = None
         if cfg.depth_filter.enabled:
@@ -120,9 +122,9 @@ class SLAM:
             self.depth_filter = DepthFilter(cfg.depth_filter, camera)
         self.loop = None
         if cfg.loop.enabled:
-            from rgbdslam.loop.detector import LoopCloser
+            from rgbdslam.loop.detector import build_loop_closer
 
-            self.loop = LoopCloser(cfg, camera)
+            self.loop = build_loop_closer(cfg, register)
         self.landmarks = None
         if cfg.landmarks.enabled:
             from rgbdslam.landmarks.stage import LandmarkTracker
@@ -431,7 +433,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     from rgbdslam.frontend.features import with_detections
 
     # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
-    frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg))
+    frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg.features))
     try:
         with frame_progress(n, f"SLAM {seq.name}", enabled=progress) as advance:
             for i, pending in frames:

@@ -41,7 +41,8 @@ def reference_timing(reps: int = 20) -> str:
     import cv2
     import numpy as np
 
-    from rgbdslam.frontend.matching import descriptor_words, hamming_matrix
+    from rgbdslam.frontend.features import descriptor_words
+    from rgbdslam.frontend.matching import hamming_matrix
 
     rng = np.random.default_rng(0)
     img = cv2.GaussianBlur(rng.integers(0, 256, (480, 640), dtype=np.uint8), (0, 0), 1.5)

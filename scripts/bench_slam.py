@@ -306,7 +306,7 @@ def _orb_pool(data: Path) -> list[np.ndarray]:
         rng = np.random.default_rng(1)
         return [rng.integers(0, 256, (1000, 32), dtype=np.uint8) for _ in range(20)]
     seq = open_sequence(sp, cfg.dataset)
-    return [extract_features(seq.load(i), cfg).desc for i in range(0, len(seq), 10)]
+    return [extract_features(seq.load(i), cfg.features, cfg.matching).desc for i in range(0, len(seq), 10)]
 
 
 # ------------------------------------------------------------------------------ markdown

@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation, Slerp
 from rgbdslam.config import Config
 from rgbdslam.datasets import open_sequence
 from rgbdslam.frontend.features import count_detections, extract_features, lift
-from rgbdslam.frontend.odometry import build_frontend, register
+from rgbdslam.frontend.odometry import build_frontend
+from rgbdslam.frontend.pairwise import build_pair_registration
 from rgbdslam.geometry.se3 import inv, rotation_angle
 
 
@@ -44,8 +45,8 @@ def register_pair(desk, cfg: Config, i: int, j: int):
     seq, frames = desk
     gt = seq.groundtruth()
     a, b = frames[i], frames[j]
-    fa, fb = extract_features(a, cfg), extract_features(b, cfg)
-    res = register(fa, fb, cfg)
+    fa, fb = extract_features(a, cfg.features, cfg.matching), extract_features(b, cfg.features, cfg.matching)
+    res = build_pair_registration(cfg)(fa, fb)
     assert res is not None
     rel_gt = inv(gt_pose(gt, a.timestamp)) @ gt_pose(gt, b.timestamp)  # pose of b in a's frame
     assert np.linalg.norm(rel_gt[:3, 3]) > 0.015  # the pair really moved
@@ -100,7 +101,7 @@ def test_frontend_deterministic(desk):
 def test_lift_and_set_depth(desk):
     seq, frames = desk
     cfg = Config()
-    f = extract_features(frames[0], cfg)
+    f = extract_features(frames[0], cfg.features, cfg.matching)
     assert len(f.desc) > 300 and f.n_detected > 100
     assert f.valid.sum() > 0.5 * len(f.valid)
     assert np.isnan(f.pts[~f.valid]).all()
@@ -116,7 +117,7 @@ def test_lift_and_set_depth(desk):
     expect = (z2 >= cfg2.matching.min_depth) & (z2 <= 2.8)
     beyond = was_valid & (z2 > 2.8)
     assert expect.sum() > 0.2 * len(f.uv) and beyond.sum() > 0.2 * len(f.uv)  # both cases well populated
-    lift(f, frames[0].depth * 2, cam, cfg2)
+    lift(f, frames[0].depth * 2, cam, cfg2.matching)
     np.testing.assert_array_equal(f.valid, expect)
     assert not f.valid[beyond].any() and np.isnan(f.pts[beyond]).all()
     assert np.isnan(f.pts[~f.valid]).all()
@@ -137,7 +138,8 @@ def test_lift_and_set_depth(desk):
 def test_hamming_matrix_matches_opencv_norm():
     import cv2
 
-    from rgbdslam.frontend.matching import descriptor_words, hamming_matrix
+    from rgbdslam.frontend.features import descriptor_words
+    from rgbdslam.frontend.matching import hamming_matrix
 
     rng = np.random.default_rng(7)
     a = rng.integers(0, 256, (20, 32), dtype=np.uint8)
@@ -150,7 +152,7 @@ def test_hamming_matrix_matches_opencv_norm():
 
 
 def test_point_information_equals_jacobian_product():
-    from rgbdslam.frontend.odometry import point_information
+    from rgbdslam.frontend.registration import point_information
 
     rng = np.random.default_rng(8)
     P = rng.uniform(-1, 1, (10, 3)) + [0, 0, 2]
@@ -175,9 +177,9 @@ def test_guided_match_is_mutual_and_consistent(desk):
 
     seq, frames = desk
     cfg = Config()
-    fa, fb = extract_features(frames[0], cfg), extract_features(frames[2], cfg)
-    full = register(fa, fb, cfg)
-    ia, ib = guided_match(fa, fb, full.T, 0.05, cfg)
+    fa, fb = extract_features(frames[0], cfg.features, cfg.matching), extract_features(frames[2], cfg.features, cfg.matching)
+    full = build_pair_registration(cfg)(fa, fb)
+    ia, ib = guided_match(fa, fb, full.T, 0.05, cfg.matching)
     assert len(ia) >= full.n_inliers * 0.8
     assert len(np.unique(ia)) == len(ia) and len(np.unique(ib)) == len(ib)
     # every guided pair is within the radius under the prediction, and matches the descriptors
@@ -186,7 +188,7 @@ def test_guided_match_is_mutual_and_consistent(desk):
     # a registration guided by a wrong prediction (30 cm off) finds no consistent pairs
     off = full.T.copy()
     off[0, 3] += 0.3
-    assert len(guided_match(fa, fb, off, 0.05, cfg)[0]) < 0.2 * len(ia)
+    assert len(guided_match(fa, fb, off, 0.05, cfg.matching)[0]) < 0.2 * len(ia)
 
 
 def test_restart_after_max_lost_and_no_origin_without_depth(desk):
@@ -222,10 +224,10 @@ def test_ratio_test_and_grid_bucketing(desk):
 
     seq, frames = desk
     cfg = Config()
-    fa, fb = extract_features(frames[0], cfg), extract_features(frames[1], cfg)
-    ia, ib = match_descriptors(fa.desc, fb.desc, cfg)
+    fa, fb = extract_features(frames[0], cfg.features, cfg.matching), extract_features(frames[1], cfg.features, cfg.matching)
+    ia, ib = match_descriptors(fa.desc, fb.desc, cfg.matching)
     cfg.matching.ratio = 0.8
-    ra, rb = match_descriptors(fa.desc, fb.desc, cfg)
+    ra, rb = match_descriptors(fa.desc, fb.desc, cfg.matching)
     assert 0 < len(ra) < len(ia)
     assert set(zip(ra.tolist(), rb.tolist())) <= set(zip(ia.tolist(), ib.tolist()))  # cross-check + ratio
     # bucketing: at most n_features / cells strongest key points per cell
@@ -250,7 +252,7 @@ def test_detection_count_falls_with_blur_and_opens_the_gate(desk):
     counts, kept = [], []
     for sigma in (2.0, 1.5, 1.0, 0.0):
         rgb = cv2.GaussianBlur(sharp.rgb, (0, 0), sigma) if sigma else sharp.rgb
-        f = extract_features(dataclasses.replace(sharp, rgb=rgb), cfg)
+        f = extract_features(dataclasses.replace(sharp, rgb=rgb), cfg.features, cfg.matching)
         counts.append(f.n_detected)
         kept.append(len(f.desc))
     assert counts == sorted(counts) and counts[-1] > 2 * counts[0]  # monotone in blur, large effect
@@ -269,10 +271,10 @@ def test_detections_made_ahead_are_used_only_for_their_config(desk):
 
     seq, frames = desk
     cfg = Config()
-    plain = extract_features(frames[1], cfg)
-    ahead = with_detections(dataclasses.replace(frames[1]), cfg)
+    plain = extract_features(frames[1], cfg.features, cfg.matching)
+    ahead = with_detections(dataclasses.replace(frames[1]), cfg.features)
     assert ahead.detections is not None
-    f = extract_features(ahead, cfg)
+    f = extract_features(ahead, cfg.features, cfg.matching)
     for name in ("uv", "uv_raw", "desc", "response", "valid"):
         assert np.array_equal(getattr(f, name), getattr(plain, name)), name
     assert f.n_detected == plain.n_detected
@@ -280,12 +282,12 @@ def test_detections_made_ahead_are_used_only_for_their_config(desk):
     other = Config()
     other.features.n_features = 300
     stale = dataclasses.replace(frames[1], detections=detect(frames[1].rgb, other.features))
-    assert len(extract_features(stale, cfg).desc) == len(plain.desc) != 300
+    assert len(extract_features(stale, cfg.features, cfg.matching).desc) == len(plain.desc) != 300
     # nor are detections of another image (a frame copied with a new colour image)
     other_image = dataclasses.replace(ahead, rgb=frames[2].rgb)
     assert other_image.detections is ahead.detections
-    assert np.array_equal(extract_features(other_image, cfg).desc,
-                          extract_features(dataclasses.replace(frames[2]), cfg).desc)
+    assert np.array_equal(extract_features(other_image, cfg.features, cfg.matching).desc,
+                          extract_features(dataclasses.replace(frames[2]), cfg.features, cfg.matching).desc)
 
 
 def test_newest_reference_guided_by_a_good_prediction(rpy200):
@@ -314,3 +316,32 @@ def test_newest_reference_guided_by_a_good_prediction(rpy200):
     assert ate_guided < 1.1 * ate_brute
     guided3, n3, _ = track(Config(), 3)
     assert guided3 < 0.3 * n3  # 10 Hz: the previous prediction is rarely good enough
+
+
+def test_a_new_registration_strategy_plugs_in_without_touching_the_loop(desk):
+    """A strategy is one class with ``select``: here plain least squares on every pre-filtered
+    pair (no outlier loop). Given to the front end and the loop closer through the pairwise
+    registration, it tracks real frames; the per-frame loop is unchanged."""
+    from rgbdslam.frontend.pairwise import PairRegistration
+    from rgbdslam.frontend.registration import Registration
+
+    calls = []
+
+    class AllPairs(Registration):
+        name = "all_pairs"
+
+        def select(self, S, D, keep):
+            calls.append(int(keep.sum()))
+            return keep, None
+
+    seq, frames = desk
+    cfg = Config()
+    strategy = AllPairs(cfg.registration)
+    fe = build_frontend(cfg, seq.camera, PairRegistration(cfg.matching, strategy, cfg.registration.seed))
+    assert fe.mp == 1  # not multi_reference: the previous frame only
+    gt = seq.groundtruth()
+    poses = [fe.track(f).pose for f in frames[:4]]
+    assert len(calls) == 3 and min(calls) > 50
+    rel_gt = inv(gt_pose(gt, frames[0].timestamp)) @ gt_pose(gt, frames[3].timestamp)
+    dt, dr = rel_error(rel_gt, poses[3])
+    assert dt < 0.03 and dr < 2.0, (dt, dr)

@@ -6,9 +6,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.frontend.islam import chordal_mean, fuse_candidates, gate_threshold, inverse_mean_l1, islam_pair
-from rgbdslam.frontend.isvd import isvd
-from rgbdslam.frontend.ransac import ransac_rigid
+from rgbdslam.config import RegistrationConfig
+from rgbdslam.frontend.pose_fusion import chordal_mean, fuse_candidates
+from rgbdslam.frontend.registration import STRATEGIES, get_registration
+from rgbdslam.frontend.registration.base import pregate
+from rgbdslam.frontend.registration.islam import IslamRegistration, gate_threshold, inverse_mean_l1, islam_pair
+from rgbdslam.frontend.registration.isvd import IsvdRegistration
+from rgbdslam.geometry.ransac import ransac_rigid
 from rgbdslam.geometry.rigid import fit_rigid, fit_rigid_batch
 from rgbdslam.geometry.se3 import make_pose, rotation_angle, transform_points
 
@@ -82,7 +86,7 @@ def test_isvd_with_30_percent_outliers():
     rng, T, S, D = _known(seed=2, n=300)
     bad = rng.choice(len(S), size=90, replace=False)
     D[bad] += rng.uniform(-0.5, 0.5, size=(90, 3)) + np.sign(rng.uniform(-1, 1, size=(90, 3))) * 0.1
-    res = isvd(D, S, max_it=10, e_start=0.5, e_min=0.01)
+    res = IsvdRegistration(RegistrationConfig(max_iterations=10, e_start=0.5, e_min=0.01, min_points=3)).fit(S, D)
     assert res is not None
     assert np.abs(res.T - T).max() < 1e-6
     assert not res.inliers[bad].any()
@@ -93,7 +97,8 @@ def test_isvd_collapse_returns_none():
     rng = np.random.default_rng(3)
     S = rng.uniform(-1, 1, (30, 3))
     D = rng.uniform(-1, 1, (30, 3))  # no consistent transform
-    assert isvd(D, S, max_it=10, e_start=0.2, e_min=0.01, min_points=12) is None
+    rc = RegistrationConfig(max_iterations=10, e_start=0.2, e_min=0.01, min_points=12)
+    assert IsvdRegistration(rc).fit(S, D) is None
 
 
 def test_gate_schedule_and_weight_hand_checked():
@@ -110,11 +115,13 @@ def test_islam_pair_gates_outliers_and_weights():
     rng, T, S, D = _known(seed=4, n=100)
     D = D + rng.normal(0, 0.002, D.shape)
     D[:20] += 0.3  # 20 gross outliers
-    res = islam_pair(D, S, max_it=20, alpha=0.2, beta=-1.0, min_error=0.01, min_points=12)
+    rc = RegistrationConfig(max_iterations=20, alpha=0.2, beta=-1.0, min_error=0.01, min_points=12)
+    res = IslamRegistration(rc).fit(S, D)
     assert res is not None
     assert not res.inliers[:20].any()
     # gates 0.2, 0.1, ... ; th_j = 0.2/j < 0.01 first at j = 21 -> capped by max_it = 20
-    assert res.iterations == 20
+    keep, weight, iterations = islam_pair(S, D, np.ones(len(S), bool), 20, 0.2, -1.0, 0.01, 12)
+    assert iterations == 20 and np.array_equal(keep, res.inliers) and weight == res.weight
     assert rotation_angle(res.T[:3, :3].T @ T[:3, :3]) < 2e-3
     assert np.linalg.norm(res.T[:3, 3] - T[:3, 3]) < 3e-3
     # the weight is the inverse mean L1 residual of the pairs alive in the last iteration (~ 1/(3*0.0016))
@@ -159,3 +166,39 @@ def test_ransac_rigid_seeded():
     assert not mask[:50].any()
     assert mask[50:].all() and mask.sum() == 100
     assert np.array_equal(out2[1], mask)
+
+
+def test_strategies_share_the_pregate_and_the_refit():
+    """Every strategy: pairs far from the prediction T0 are gated away first (unless too few
+    would be left), and the pose is the least-squares refit on the inliers it selects."""
+    rng, T, S, D = _known(seed=6, n=120)
+    D = D + rng.normal(0, 0.001, D.shape)
+    D[:30] += rng.uniform(0.2, 0.4, (30, 3))  # outliers
+    keep = pregate(S, D, T, 0.05, 3)
+    assert not keep[:30].any() and keep[30:].all()
+    assert pregate(S, D, T, 0.05, 100).all()  # 90 pairs near T0 < 100 needed: all kept
+    assert pregate(S, D, None, 0.05, 3).all() and pregate(S, D, T, None, 3).all()
+    for method in ("ransac", "isvd", "islam"):
+        rc = RegistrationConfig(method=method, pregate=0.05, min_points=12, ransac_threshold=0.01)
+        strategy = get_registration(rc)
+        assert type(strategy) is STRATEGIES[method]
+        fit = strategy.fit(S, D, T)
+        assert fit is not None and not fit.inliers[:30].any() and fit.n_inliers > 80, method
+        np.testing.assert_allclose(fit.T, fit_rigid(S[fit.inliers], D[fit.inliers]), atol=1e-12)
+        assert np.abs(fit.T - T).max() < 5e-3
+        # information of the refit: the inliers' points, per-axis sigma from the RMS residual
+        from rgbdslam.frontend.registration import fit_information
+
+        np.testing.assert_allclose(fit.information, fit_information(D[fit.inliers], fit.residual_l2))
+
+
+def test_fit_information_has_one_noise_floor():
+    from rgbdslam.frontend.registration import fit_information, point_information
+    from rgbdslam.frontend.registration.base import SIGMA_FLOOR
+
+    P = np.array([[0.0, 0, 1], [1, 0, 2], [0, 1, 3], [1, 1, 1]])
+    # a residual below the floor (RMS 1 mm -> 0.58 mm per axis) is raised to it
+    np.testing.assert_allclose(fit_information(P, 0.001), point_information(P, SIGMA_FLOOR))
+    np.testing.assert_allclose(fit_information(P, 0.03), point_information(P, 0.03 / np.sqrt(3)))
+    # translation block: n / sigma^2 on the diagonal
+    assert fit_information(P, 0.03)[3, 3] == pytest.approx(4 / (0.03**2 / 3))

@@ -94,7 +94,7 @@ def test_map_culls_rarely_seen_landmarks_and_moves_with_anchors():
 
 
 def test_ransac_samples_old_landmarks_first():
-    from rgbdslam.frontend.ransac import ransac_rigid
+    from rgbdslam.geometry.ransac import ransac_rigid
 
     rng = np.random.default_rng(0)
     S = rng.uniform(-1, 1, size=(100, 3)) + [0, 0, 2]

@@ -10,7 +10,7 @@ from rgbdslam.config import Config
 from rgbdslam.frontend.features import FrameFeatures
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, make_pose, transform_points
-from rgbdslam.loop.detector import LoopCloser
+from rgbdslam.loop.detector import LoopCloser, build_loop_closer
 from rgbdslam.loop.gate import SharpnessGate
 from rgbdslam.loop.index import BruteIndex, LshIndex
 
@@ -88,7 +88,7 @@ def mapped():
     """A loop closer whose map holds place A (keyframe 0) and four other places."""
     rng = np.random.default_rng(7)
     cfg = loop_config()
-    lc = LoopCloser(cfg, CAM)
+    lc = build_loop_closer(cfg)
     places = [make_place(rng) for _ in range(5)]
     poses = [make_pose(np.eye(3), [0.5 * k, 0, 0]) for k in range(5)]
     for k, ((P, d), pose) in enumerate(zip(places, poses)):
@@ -259,12 +259,12 @@ def test_query_gap_makes_a_search_due():
 
     cfg = loop_config()
     cfg.loop.query_gap = 3
-    lc = LoopCloser(cfg, CAM, register=lambda *a: None)
+    lc = LoopCloser(cfg.loop, register=lambda *a: None)
     assert lc.due(3) and not lc.due(2)  # nothing searched yet: due from frame query_gap on
     lc.detect(SimpleNamespace(index=10, desc=np.zeros((0, 32), np.uint8)), np.eye(4))
     assert [lc.due(i) for i in (11, 12, 13, 20)] == [False, False, True, True]
     cfg.loop.query_gap = 0  # the thesis' gate alone: never due
-    assert not LoopCloser(cfg, CAM, register=lambda *a: None).due(1000)
+    assert not LoopCloser(cfg.loop, register=lambda *a: None).due(1000)
 
 
 def test_observe_uses_the_configured_measure():
@@ -277,11 +277,11 @@ def test_observe_uses_the_configured_measure():
         return SimpleNamespace(n_detected=n, desc=np.zeros((n, 32), np.uint8), response=np.full(n, resp))
 
     cfg.loop.sharpness_measure = "response"
-    lc = LoopCloser(cfg, CAM, register=lambda *a: None)
+    lc = LoopCloser(cfg.loop, register=lambda *a: None)
     # capped counts (all 100) but the responses of the 4th frame are 30 % stronger
     assert [lc.observe(feats(100, r)) for r in (0.010, 0.010, 0.010, 0.013)] == [False, False, False, True]
     cfg.loop.sharpness_measure = "n_detected"
-    lc = LoopCloser(cfg, CAM, register=lambda *a: None)
+    lc = LoopCloser(cfg.loop, register=lambda *a: None)
     assert [lc.observe(feats(100, r)) for r in (0.010, 0.010, 0.010, 0.013)] == [False] * 4
     assert lc.observe(feats(121, 0.01)) is True and lc.stats["n_sharp"] == 1
 
@@ -310,16 +310,16 @@ def test_real_revisit_accepted_and_other_room_rejected():
     def gt_pose(i):
         return gt.poses[int(np.argmin(np.abs(gt.timestamps - rpy.timestamps[i])))]
 
-    lc = LoopCloser(cfg, rpy.camera)
-    lc.add_keyframe(extract_features(rpy.load(0), cfg), gt_pose(0))
+    lc = build_loop_closer(cfg)
+    lc.add_keyframe(extract_features(rpy.load(0), cfg.features, cfg.matching), gt_pose(0))
     # frame 109 comes back to the view of frame 0 after the roll/pitch/yaw swings
-    edges = lc.detect(extract_features(rpy.load(109), cfg), gt_pose(109))
+    edges = lc.detect(extract_features(rpy.load(109), cfg.features, cfg.matching), gt_pose(109))
     assert len(edges) == 1 and (edges[0].i, edges[0].j) == (0, 109)
     err = inv(inv(gt_pose(0)) @ gt_pose(109)) @ edges[0].T_ij
     # (ground truth is the nearest mocap sample: a few ms off during fast rotation)
     assert np.linalg.norm(err[:3, 3]) < 0.03 and np.degrees(rotation_angle(err[:3, :3])) < 3.0
     # a frame of another room (fr1/desk) must not close a loop with it
-    assert lc.detect(extract_features(desk.load(4), cfg), gt_pose(109)) == []
+    assert lc.detect(extract_features(desk.load(4), cfg.features, cfg.matching), gt_pose(109)) == []
     assert lc.stats["n_accepted"] == 1
 
 

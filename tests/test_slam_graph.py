@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.backend.slam_graph import PoseGraph, information_from_registration
+from rgbdslam.backend.slam_graph import PoseGraph
 from rgbdslam.config import BackendConfig
 from rgbdslam.frontend.keyframes import KeyframePolicy
 from rgbdslam.config import KeyframeConfig
@@ -97,14 +97,6 @@ def test_robust_kernel_limits_false_loop_damage():
     assert robust < 0.5 * ate(odo, gt)
     errs = robust_g.loop_errors(robust_g.optimize())
     assert errs[1] > 10 * errs[0]  # the false loop stands out as an outlier
-
-
-def test_information_from_registration():
-    I = information_from_registration(100, 0.0173205, spread=2.0, sigma_floor=0.001)
-    sigma2 = (0.0173205 / np.sqrt(3)) ** 2
-    assert I[3, 3] == pytest.approx(100 / sigma2, rel=1e-6)
-    assert I[0, 0] == pytest.approx(400 / sigma2, rel=1e-6)
-    assert information_from_registration(10, 0.0, sigma_floor=0.01)[3, 3] == pytest.approx(10 / 1e-4)
 
 
 def test_keyframe_policy_thresholds():

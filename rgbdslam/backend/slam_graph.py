@@ -45,15 +45,6 @@ def _check_information(info: np.ndarray, what: str) -> np.ndarray:
     return info
 
 
-def information_from_registration(n_inliers: int, residual: float, spread: float = 1.0,
-                                  sigma_floor: float = 0.005) -> np.ndarray:
-    """A diagonal 6x6 information (rotation, translation) of a rigid fit of ``n_inliers``
-    points with RMS residual ``residual`` (m) and RMS distance ``spread`` (m) from their centroid."""
-    sigma = max(residual / np.sqrt(3.0), sigma_floor)
-    n = max(int(n_inliers), 1)
-    return np.diag([n * spread**2 / sigma**2] * 3 + [n / sigma**2] * 3)
-
-
 class PoseGraph:
     def __init__(self, cfg: BackendConfig):
         self.cfg = cfg

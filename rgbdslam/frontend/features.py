@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from rgbdslam.config import Config, FeaturesConfig
+from rgbdslam.config import FeaturesConfig, MatchingConfig
 from rgbdslam.datasets.base import Frame
 from rgbdslam.geometry.camera import Camera
 
@@ -53,13 +53,16 @@ class FrameFeatures:
     @property
     def words(self) -> np.ndarray:
         """Descriptors as (N, 4) uint64 words (a view, no copy) for popcount matching."""
-        from rgbdslam.frontend.matching import descriptor_words
-
         return descriptor_words(self.desc)
 
     @property
     def n_valid(self) -> int:
         return int(np.count_nonzero(self.valid))
+
+
+def descriptor_words(desc: np.ndarray) -> np.ndarray:
+    """ORB descriptors (N, 32) uint8 viewed as four 64-bit words (N, 4) for popcount matching."""
+    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64).reshape(-1, 4)
 
 
 _CACHE = threading.local()  # detectors per thread: an OpenCV detector object is not shared between threads
@@ -160,18 +163,18 @@ def detect(rgb: np.ndarray, fc: FeaturesConfig) -> Detections:
     return Detections(uv_raw, np.ascontiguousarray(desc), response, count_detections(gray, fc), fc, rgb)
 
 
-def with_detections(frame: Frame, cfg: Config) -> Frame:
+def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:
     """``frame`` with its :class:`Detections` attached (``Sequence.prefetched(then=...)``)."""
-    frame.detections = detect(frame.rgb, cfg.features)
+    frame.detections = detect(frame.rgb, fc)
     return frame
 
 
-def extract_features(frame: Frame, cfg: Config) -> FrameFeatures:
-    """ORB on the colour image of ``frame``, lifted to 3-D with its depth.
+def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig) -> FrameFeatures:
+    """ORB on the colour image of ``frame`` (``features`` section), lifted to 3-D with its depth
+    (within the ``matching`` section's depth range).
 
     Uses ``frame.detections`` when they were made ahead in this frame's image with the same
     features config."""
-    fc = cfg.features
     det = frame.detections
     if not isinstance(det, Detections) or det.image is not frame.rgb or det.config != fc:
         det = detect(frame.rgb, fc)
@@ -188,11 +191,11 @@ def extract_features(frame: Frame, cfg: Config) -> FrameFeatures:
         uv_raw=det.uv_raw,
         response=det.response,
     )
-    lift(feats, frame.depth, camera, cfg)
+    lift(feats, frame.depth, camera, mc)
     return feats
 
 
-def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, cfg: Config) -> None:
+def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: MatchingConfig) -> None:
     """(Re)compute ``features.pts`` / ``features.valid`` from a metric depth image, in place.
 
     Depth is read at the rounded distorted key-point location; points outside
@@ -204,7 +207,6 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, cfg: Config
     u = np.clip(np.rint(raw[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.rint(raw[:, 1]).astype(int), 0, h - 1)
     z = depth[v, u].astype(np.float64) if n else np.zeros(0)
-    mc = cfg.matching
     valid = np.isfinite(z) & (z >= mc.min_depth) & (z <= mc.max_depth)
     pts = np.full((n, 3), np.nan)
     if valid.any():

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from rgbdslam.config import KeyframeConfig
-from rgbdslam.geometry.se3 import inv, rotation_angle
+from rgbdslam.geometry.se3 import motion_between
 
 
 class KeyframePolicy:
@@ -22,19 +20,12 @@ class KeyframePolicy:
         self.last_index: int | None = None
         self.last_pose: np.ndarray | None = None
 
-    def motion(self, pose: np.ndarray) -> tuple[float, float]:
-        """(translation metres, rotation degrees) of ``pose`` relative to the last keyframe."""
-        if self.last_pose is None:
-            return math.inf, math.inf
-        rel = inv(self.last_pose) @ np.asarray(pose, dtype=np.float64)
-        return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(rotation_angle(rel[:3, :3])))
-
     def is_keyframe(self, index: int, pose: np.ndarray) -> bool:
         c = self.cfg
         if self.last_index is None:
             yes = True
         else:
-            dt, dr = self.motion(pose)
+            dt, dr = motion_between(self.last_pose, np.asarray(pose, dtype=np.float64))
             yes = dt >= c.min_translation or dr >= c.min_rotation_deg or index - self.last_index >= c.max_gap
         if yes:
             self.force(index, pose)

@@ -12,14 +12,10 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from rgbdslam.config import Config
-from rgbdslam.frontend.features import FrameFeatures
-from rgbdslam.frontend.ransac import ransac_rigid
+from rgbdslam.config import MatchingConfig
+from rgbdslam.frontend.features import FrameFeatures, descriptor_words
+from rgbdslam.geometry.ransac import ransac_rigid
 from rgbdslam.geometry.se3 import transform_points
-
-def descriptor_words(desc: np.ndarray) -> np.ndarray:
-    """ORB descriptors (N, 32) uint8 viewed as four 64-bit words (N, 4) for popcount matching."""
-    return np.ascontiguousarray(desc, dtype=np.uint8).view(np.uint64).reshape(-1, 4)
 
 
 def hamming_matrix(words_a: np.ndarray, words_b: np.ndarray) -> np.ndarray:
@@ -33,7 +29,7 @@ def hamming_matrix(words_a: np.ndarray, words_b: np.ndarray) -> np.ndarray:
 def match_descriptors(
     desc_a: np.ndarray,
     desc_b: np.ndarray,
-    cfg: Config,
+    mc: MatchingConfig,
     words_a: np.ndarray | None = None,
     words_b: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -44,7 +40,6 @@ def match_descriptors(
     on this machine, and it serves both directions of the cross-check at once); then
     mutual-nearest-neighbour cross-check and/or Lowe's ratio test, then a Hamming cap.
     """
-    mc = cfg.matching
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros(0, int), np.zeros(0, int)
     if words_a is None:
@@ -69,21 +64,22 @@ def prefilter(
     cur: FrameFeatures,
     ia: np.ndarray,
     ib: np.ndarray,
-    cfg: Config,
+    mc: MatchingConfig,
+    seed: int = 0,
     T0: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Boolean mask over the matches (ia into ref, ib into cur) that pass the geometric model."""
-    mc = cfg.matching
+    """Boolean mask over the matches (ia into ref, ib into cur) that pass the geometric model
+    (``matching.prefilter``; RANSAC seeded with ``seed``)."""
     n = len(ia)
     if mc.prefilter == "none" or n == 0:
         return np.ones(n, bool)
     if mc.prefilter == "rigid3d":
-        rng = np.random.default_rng(cfg.registration.seed)
+        rng = np.random.default_rng(seed)
         out = ransac_rigid(ref.pts[ia], cur.pts[ib], mc.prefilter_threshold, mc.prefilter_iterations, rng, T0=T0)
         return np.zeros(n, bool) if out is None else out[1]
     a = ref.uv[ia].astype(np.float32)
     b = cur.uv[ib].astype(np.float32)
-    cv2.setRNGSeed(cfg.registration.seed)
+    cv2.setRNGSeed(seed)
     if mc.prefilter == "homography":
         if n < 4:
             return np.zeros(n, bool)
@@ -97,14 +93,14 @@ def prefilter(
     return mask.reshape(-1).astype(bool)
 
 
-def match_pairs(ref: FrameFeatures, cur: FrameFeatures, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+def match_pairs(ref: FrameFeatures, cur: FrameFeatures, mc: MatchingConfig) -> tuple[np.ndarray, np.ndarray]:
     """Descriptor matches between the depth-valid features of ``ref`` and ``cur``.
 
     Returns (ia, ib): indices into ref's and cur's full feature arrays.
     """
     va = np.flatnonzero(ref.valid)
     vb = np.flatnonzero(cur.valid)
-    ia, ib = match_descriptors(ref.desc[va], cur.desc[vb], cfg, ref.words[va], cur.words[vb])
+    ia, ib = match_descriptors(ref.desc[va], cur.desc[vb], mc, ref.words[va], cur.words[vb])
     return va[ia], vb[ib]
 
 
@@ -119,7 +115,7 @@ def _first_per_group(group: np.ndarray, dist: np.ndarray) -> np.ndarray:
     return mask
 
 
-def guided_match(ref: FrameFeatures, cur: FrameFeatures, T0: np.ndarray, radius: float, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+def guided_match(ref: FrameFeatures, cur: FrameFeatures, T0: np.ndarray, radius: float, mc: MatchingConfig) -> tuple[np.ndarray, np.ndarray]:
     """Descriptor matching restricted to 3-D neighbours under a trusted prediction ``T0``.
 
     Each depth-valid ref point is moved into the current frame with ``T0``; only current
@@ -139,7 +135,7 @@ def guided_match(ref: FrameFeatures, cur: FrameFeatures, T0: np.ndarray, radius:
     j = pairs["j"].astype(int)
     ia, ib = va[i], cur.tree_index[j]
     ham = np.bitwise_count(ref.words[ia] ^ cur.words[ib]).sum(axis=1, dtype=np.int64)
-    close = ham <= cfg.matching.max_hamming  # most candidate pairs are unrelated: drop them first
+    close = ham <= mc.max_hamming  # most candidate pairs are unrelated: drop them first
     ia, ib, ham = ia[close], ib[close], ham[close]
     keep = _first_per_group(ia, ham) & _first_per_group(ib, ham)
     ia, ib = ia[keep], ib[keep]

@@ -1,19 +1,20 @@
-"""The front end: features -> matches -> per-reference registration -> fused pose (or "lost").
+"""The front end: features -> per-reference registration -> fused pose (or "lost").
 
 Conventions
 -----------
 * Poses are camera-to-world 4x4 matrices; the first tracked frame is the world origin.
-* :func:`register` returns ``RegistrationResult.T`` that maps **reference-frame points into
-  the current frame**: ``p_cur = T @ p_ref``. With camera-to-world poses this is
-  ``T = inv(P_cur) @ P_ref``; the current frame's pose chained from the reference is
-  ``P_cur = P_ref @ inv(T)``.
+* A pairwise registration (:class:`rgbdslam.frontend.pairwise.PairRegistration`) returns
+  ``T`` that maps **reference-frame points into the current frame**: ``p_cur = T @ p_ref``;
+  the current frame's pose chained from the reference is ``P_cur = P_ref @ inv(T)``.
 * ``TrackResult.relative = inv(P_prev) @ P_cur`` (prev = the last tracked frame) and
   ``TrackResult.information`` is its 6x6 information in GTSAM's Pose3 tangent order
   (rotation, translation), right perturbation ``relative * Exp(xi)``.
 
-Methods (``cfg.registration.method``): 'ransac' (frame-to-frame 3-D rigid RANSAC + refit),
-'isvd' (spec §1 against the previous frame), 'islam' (spec §2 against the last MP tracked
-frames, candidates fused).
+The registration strategy (``registration.method``: ransac, isvd, islam; see
+``rgbdslam/frontend/registration/``) is chosen by the factory; a strategy with
+``multi_reference`` (ISLAM) is registered against the last ``registration.mp`` tracked frames
+and the candidates are fused (:mod:`rgbdslam.frontend.pose_fusion`), the others against the
+previous frame only.
 """
 
 from __future__ import annotations
@@ -21,39 +22,19 @@ from __future__ import annotations
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rgbdslam.config import Config
+from rgbdslam.config import Config, FeaturesConfig, MatchingConfig, RegistrationConfig
 from rgbdslam.datasets.base import Frame
 from rgbdslam.frontend.features import FrameFeatures, extract_features, lift
-from rgbdslam.frontend.islam import fuse_candidates, islam_pair
-from rgbdslam.frontend.isvd import isvd
-from rgbdslam.frontend.matching import guided_match, match_pairs, prefilter
-from rgbdslam.frontend.ransac import ransac_rigid
+from rgbdslam.frontend.pairwise import PairRegistration, RegistrationResult, build_pair_registration
+from rgbdslam.frontend.pose_fusion import fuse_candidates
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.rigid import fit_rigid, fit_with_stats, residuals
+from rgbdslam.geometry.rigid import fit_rigid, residuals
 from rgbdslam.geometry.se3 import inv, rotation_angle, transform_points
-
-# Floor on the per-axis point noise used for the information matrix (metres).
-_SIGMA_FLOOR = 0.003
-
-
-@dataclass
-class RegistrationResult:
-    """Pairwise registration of ``cur`` against ``ref``: ``p_cur = T @ p_ref``."""
-
-    T: np.ndarray
-    n_matches: int  # descriptor matches between depth-valid features
-    n_inliers: int  # pairs surviving pre-filter and registration
-    residual_l1: float  # mean L1 residual of the inliers (m)
-    residual_l2: float  # RMS Euclidean residual of the inliers (m)
-    weight: float  # ISLAM weight: inverse mean L1 residual (1/m)
-    pairs: np.ndarray  # (n_inliers, 2) int: (index into ref features, index into cur features)
-    information: np.ndarray  # 6x6 information of inv(T) (rotation, translation), right perturbation
-    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -80,88 +61,6 @@ def _match_segments(ref, res: RegistrationResult, feats: FrameFeatures) -> np.nd
     return np.hstack([ref.features.uv[res.pairs[:, 0]], feats.uv[res.pairs[:, 1]]]).astype(np.float32)
 
 
-def point_information(P: np.ndarray, sigma: float) -> np.ndarray:
-    """Gauss–Newton information of a pose from points P (N,3) in its own frame, iid noise sigma/axis.
-
-    Residual Jacobian of ``X Exp(xi) p`` w.r.t. xi = (omega, v) is ``R_X [-[p]x, I]``.
-    """
-    P = np.asarray(P, dtype=np.float64)
-    n = len(P)
-    s = P.sum(axis=0)
-    # sum [p]x^T [p]x = sum (|p|^2 I - p p^T)
-    A = np.eye(3) * np.einsum("ij,ij->", P, P) - P.T @ P
-    sx = np.array([[0, -s[2], s[1]], [s[2], 0, -s[0]], [-s[1], s[0], 0]])
-    H = np.zeros((6, 6))
-    H[:3, :3] = A
-    H[:3, 3:] = sx  # (-[p]x)^T I summed = [s]x
-    H[3:, :3] = sx.T
-    H[3:, 3:] = n * np.eye(3)
-    return H / (sigma * sigma)
-
-
-def register(
-    ref: FrameFeatures,
-    cur: FrameFeatures,
-    cfg: Config,
-    T0: np.ndarray | None = None,
-    gate: float | None = None,
-) -> RegistrationResult | None:
-    """Match + pre-filter + registration of ``cur`` against ``ref`` (method from the config).
-
-    ``T0`` is a prediction of ``T`` (``p_cur = T0 @ p_ref``), e.g. from constant velocity.
-    With ``gate`` (metres) and a trusted ``T0``, matching is guided (only 3-D neighbours
-    within ``gate`` of the prediction are candidates) and the RANSAC pre-filter is skipped;
-    used for the older ISLAM references, whose ``T0`` comes from the newest reference.
-    Returns None when too few pairs are left (``registration.min_points``).
-    """
-    rc = cfg.registration
-    need = max(3, rc.min_points)
-    t0 = time.perf_counter()
-    guided = gate is not None and T0 is not None
-    ia, ib = guided_match(ref, cur, T0, gate, cfg) if guided else match_pairs(ref, cur, cfg)
-    n_matches = len(ia)
-    if n_matches < need:
-        return None
-    if not guided and not (rc.method == "ransac" and cfg.matching.prefilter == "rigid3d"):
-        m = prefilter(ref, cur, ia, ib, cfg, T0)
-        ia, ib = ia[m], ib[m]
-        if len(ia) < need:
-            return None
-    t1 = time.perf_counter()
-    S, D = ref.pts[ia], cur.pts[ib]
-    if rc.method == "ransac":
-        out = ransac_rigid(S, D, rc.ransac_threshold, rc.ransac_iterations, np.random.default_rng(rc.seed), need)
-        if out is None:
-            return None
-        keep = out[1]
-        T, l1, l2 = fit_with_stats(S[keep], D[keep])
-        weight = 1.0 / max(l1, 1e-12)
-    elif rc.method == "isvd":
-        res = isvd(D, S, rc.max_iterations, rc.e_start, rc.e_min, T0, need, pregate=rc.pregate is not None)
-        if res is None:
-            return None
-        T, keep, l1, l2 = res.T, res.inliers, res.residual_l1, res.residual_l2
-        weight = 1.0 / max(l1, 1e-12)
-    else:
-        res = islam_pair(D, S, rc.max_iterations, rc.alpha, rc.beta, rc.min_error, need, T0, rc.pregate)
-        if res is None:
-            return None
-        T, keep, l1, l2, weight = res.T, res.inliers, res.residual_l1, res.residual_l2, res.weight
-    t2 = time.perf_counter()
-    sigma = max(l2 / np.sqrt(3.0), _SIGMA_FLOOR)
-    return RegistrationResult(
-        T=T,
-        n_matches=n_matches,
-        n_inliers=int(keep.sum()),
-        residual_l1=l1,
-        residual_l2=l2,
-        weight=float(weight),
-        pairs=np.stack([ia[keep], ib[keep]], axis=1),
-        information=point_information(D[keep], sigma),
-        timings={"matching": t1 - t0, "registration": t2 - t1},
-    )
-
-
 @dataclass
 class _Ref:
     features: FrameFeatures
@@ -181,11 +80,14 @@ def _scale_motion(V: np.ndarray, factor: float) -> np.ndarray:
 class Frontend:
     """Tracks frames one by one; keeps the features of the last MP tracked frames as references."""
 
-    def __init__(self, cfg: Config, camera: Camera):
-        self.cfg = cfg
+    def __init__(self, rc: RegistrationConfig, fc: FeaturesConfig, mc: MatchingConfig, camera: Camera,
+                 register: PairRegistration):
+        self.rc = rc
+        self.fc = fc
+        self.mc = mc
         self.camera = camera
-        rc = cfg.registration
-        self.mp = max(1, rc.mp) if rc.method == "islam" else 1
+        self.register = register
+        self.mp = max(1, rc.mp) if register.strategy.multi_reference else 1
         self.refs: deque[_Ref] = deque(maxlen=self.mp)
         self._velocity: tuple[np.ndarray, int] | None = None  # (motion between last two tracked, index gap)
         self._n_lost = 0  # consecutive lost frames
@@ -206,7 +108,7 @@ class Frontend:
 
     def _predict(self, index: int) -> np.ndarray:
         last = self.refs[-1]
-        if not self.cfg.registration.constant_velocity or self._velocity is None:
+        if not self.rc.constant_velocity or self._velocity is None:
             return last.pose
         V, gap = self._velocity
         return last.pose @ _scale_motion(V, (index - last.features.index) / gap)
@@ -215,13 +117,13 @@ class Frontend:
         """Replace a kept reference frame's depth (e.g. DIF output) and re-lift its 3-D points."""
         for r in self.refs:
             if r.features.index == index:
-                lift(r.features, depth, self.camera, self.cfg)
+                lift(r.features, depth, self.camera, self.mc)
                 return
 
     def track(self, frame: Frame) -> TrackResult:
-        rc = self.cfg.registration
+        rc = self.rc
         t0 = time.perf_counter()
-        feats = extract_features(frame, self.cfg)
+        feats = extract_features(frame, self.fc, self.mc)
         timings = {"features": time.perf_counter() - t0, "matching": 0.0, "registration": 0.0, "fusion": 0.0}
         need = max(3, rc.min_points)
         if not self.refs:
@@ -294,29 +196,28 @@ class Frontend:
         and a cheap distance gate instead of RANSAC. Otherwise all are independent (and run
         in threads when ``registration.threads > 1``).
         """
-        cfg = self.cfg
-        gate = cfg.registration.guided_gate
+        gate = self.rc.guided_gate
         if gate is not None and len(refs) > 1:
             first = self._register_newest_guided(refs[0], feats, pred)
             if first is None:
-                first = register(refs[0].features, feats, cfg, inv(pred) @ refs[0].pose)
+                first = self.register(refs[0].features, feats, inv(pred) @ refs[0].pose)
             if first is not None:
                 P1 = refs[0].pose @ inv(first.T)
-                jobs = [(r.features, feats, cfg, inv(P1) @ r.pose, gate) for r in refs[1:]]
+                jobs = [(r.features, feats, inv(P1) @ r.pose, gate) for r in refs[1:]]
                 return [first] + self._map(jobs)
-            return [first] + self._map([(r.features, feats, cfg, inv(pred) @ r.pose) for r in refs[1:]])
-        return self._map([(r.features, feats, cfg, inv(pred) @ r.pose) for r in refs])
+            return [first] + self._map([(r.features, feats, inv(pred) @ r.pose) for r in refs[1:]])
+        return self._map([(r.features, feats, inv(pred) @ r.pose) for r in refs])
 
     def _register_newest_guided(self, ref: _Ref, feats: FrameFeatures, pred: np.ndarray) -> RegistrationResult | None:
         """The newest reference matched only around the prediction (``registration.predicted_gate``),
         when the last prediction was good; None = use brute force. At 30 Hz this is most frames
         and saves the Hamming matrix and RANSAC; after a jerk or at a low frame rate the previous
         prediction error is large and brute force is used (docs/frontend.md)."""
-        rc = self.cfg.registration
+        rc = self.rc
         pg = rc.predicted_gate
         if pg is None or self._velocity is None or not self._prediction_error < 0.5 * pg:
             return None
-        res = register(ref.features, feats, self.cfg, inv(pred) @ ref.pose, pg)
+        res = self.register(ref.features, feats, inv(pred) @ ref.pose, pg)
         if res is None or res.n_inliers < rc.predicted_min_inliers:
             return None
         self.n_newest_guided += 1
@@ -330,7 +231,7 @@ class Frontend:
         its weight, as in the fusion) and, optionally, by 1/z^2 (Kinect noise grows with z^2).
         Pairs further than ``joint_gate`` from the fused pose are dropped first.
         """
-        rc = self.cfg.registration
+        rc = self.rc
         W, C, w = [], [], []
         for r, res in pairs:
             W.append(transform_points(r.pose, r.features.pts[res.pairs[:, 0]]))
@@ -346,8 +247,8 @@ class Frontend:
 
     def _map(self, jobs: list[tuple]) -> list:
         if self._executor is not None and len(jobs) > 1:
-            return list(self._executor.map(lambda a: register(*a), jobs))
-        return [register(*a) for a in jobs]
+            return list(self._executor.map(lambda a: self.register(*a), jobs))
+        return [self.register(*a) for a in jobs]
 
     def _lost(self, frame: Frame, feats: FrameFeatures, timings: dict, n_matches: int, n_cand: int = 0) -> TrackResult:
         """A lost frame, or a restart once ``registration.max_lost`` frames in a row were lost.
@@ -360,7 +261,7 @@ class Frontend:
         """
         self._n_lost += 1
         self._prediction_error = np.inf  # the next prediction spans a gap: match it by brute force
-        rc = self.cfg.registration
+        rc = self.rc
         if self.refs and rc.max_lost > 0 and self._n_lost >= rc.max_lost \
                 and feats.n_valid >= max(3, rc.min_points):
             last = self.refs[-1].pose
@@ -394,6 +295,8 @@ class Frontend:
 RESTART_INFORMATION = np.diag([1.0 / np.pi**2] * 3 + [1.0 / 25.0] * 3)
 
 
-def build_frontend(cfg: Config, camera: Camera) -> Frontend:
-    """The front end for ``cfg.registration.method`` ('ransac', 'isvd' or 'islam')."""
-    return Frontend(cfg, camera)
+def build_frontend(cfg: Config, camera: Camera, register: PairRegistration | None = None) -> Frontend:
+    """The front end from the ``registration``, ``features`` and ``matching`` sections; the pairwise
+    registration (strategy ``registration.method``) from :func:`build_pair_registration` unless given."""
+    register = register or build_pair_registration(cfg)
+    return Frontend(cfg.registration, cfg.features, cfg.matching, camera, register)

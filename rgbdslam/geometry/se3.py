@@ -36,6 +36,12 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(c, -1.0, 1.0))
 
 
+def motion_between(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
+    """(translation metres, rotation degrees) of ``inv(A) @ B``: how far pose B is from pose A."""
+    rel = inv(A) @ B
+    return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(rotation_angle(rel[:3, :3])))
+
+
 def project_to_so3(M: np.ndarray) -> np.ndarray:
     """Closest rotation to a 3x3 matrix in the Frobenius norm (chordal projection)."""
     U, _, Vt = np.linalg.svd(M)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbdslam.frontend.matching import descriptor_words
+from rgbdslam.frontend.features import descriptor_words
 from rgbdslam.landmarks.kalman import kalman_update
 from rgbdslam.landmarks.store import make_store
 

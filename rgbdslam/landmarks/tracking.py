@@ -6,7 +6,7 @@
 2. Matching: every depth-valid frame feature is compared (Hamming) with the ``k`` projected
    landmarks nearest to it within ``search_radius`` pixels; the best under ``max_hamming`` wins,
    one frame feature per landmark (the closest descriptor).
-3. Pose: 3-D rigid RANSAC (:func:`rgbdslam.frontend.ransac.ransac_rigid`) of the frame's camera
+3. Pose: 3-D rigid RANSAC (:func:`rgbdslam.geometry.ransac.ransac_rigid`) of the frame's camera
    points onto the landmarks' world points, with minimal samples drawn from the **oldest**
    matched landmarks first (the thesis' rule; ``sampling='uniform'`` for the ablation), the
    prediction scored as one more hypothesis; then a weighted refit on the inliers (weights
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from rgbdslam.frontend.ransac import ransac_rigid
+from rgbdslam.geometry.ransac import ransac_rigid
 from rgbdslam.geometry.rigid import fit_rigid
 from rgbdslam.geometry.se3 import inv
 

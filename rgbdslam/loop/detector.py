@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from rgbdslam.config import Config
-from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.se3 import inv, rotation_angle
+from rgbdslam.config import Config, LoopConfig
+from rgbdslam.frontend.pairwise import PairRegistration, build_pair_registration
+from rgbdslam.geometry.se3 import inv, motion_between
 from rgbdslam.loop.gate import SharpnessGate
 from rgbdslam.loop.index import make_index
 
@@ -60,33 +60,17 @@ class _Keyframe:
     segment: int = 0  # tracking segment (a new one starts after each front-end restart)
 
 
-def motion_between(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
-    """(translation metres, rotation degrees) of inv(A) @ B."""
-    rel = inv(A) @ B
-    return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(rotation_angle(rel[:3, :3])))
-
-
-def fallback_information(pts: np.ndarray, sigma: float) -> np.ndarray:
-    """Information (rotation, translation) of a rigid fit of points ``pts`` with isotropic noise."""
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
-    n = max(len(pts), 1)
-    spread = float(np.sqrt(((pts - pts.mean(axis=0)) ** 2).sum(axis=1).mean())) if len(pts) > 1 else 1.0
-    s2 = sigma * sigma
-    return np.diag([n * spread**2 / s2] * 3 + [n / s2] * 3)
-
-
 class LoopCloser:
-    def __init__(self, cfg: Config, camera: Camera, register=None):
-        self.cfg = cfg
-        self.lc = cfg.loop
-        self.camera = camera
-        lc = self.lc
+    """Loop closure from the ``loop`` section; ``register(ref_features, cur_features)`` verifies a
+    candidate (the front end's :class:`~rgbdslam.frontend.pairwise.PairRegistration`);
+    ``max_hamming`` (``matching.max_hamming``) bounds the brute-force index's matches."""
+
+    def __init__(self, lc: LoopConfig, register: PairRegistration, max_hamming: int = 64):
+        self.lc = lc
         self.gate = SharpnessGate(lc.sharpness_factor, lc.sharpness_window, lc.sharpness_min_history)
-        self.index = make_index(lc.index, lc.lsh_tables, lc.lsh_bits, lc.seed, cfg.matching.max_hamming)
+        self.index = make_index(lc.index, lc.lsh_tables, lc.lsh_bits, lc.seed, max_hamming)
         self.keyframes: list[_Keyframe] = []
         self._by_index: dict[int, _Keyframe] = {}  # frame index -> keyframe (loop edges name frames)
-        if register is None:
-            from rgbdslam.frontend.odometry import register
         self._register = register
         self.query_times: list[tuple[int, float]] = []  # (keyframes in the map, seconds) per detect
         self.segment = 0  # the current tracking segment
@@ -200,11 +184,11 @@ class LoopCloser:
         """Register ``features`` against keyframe ``kf``; a LoopEdge if every check passes."""
         lc = self.lc
         self.stats["n_verified"] += 1
-        res = self._register(kf.features, features, self.cfg, None)
+        res = self._register(kf.features, features)
         if res is None:
             self.stats["n_rejected_geometry"] += 1
             return None
-        residual = float(getattr(res, "residual_l2", getattr(res, "residual", np.inf)))
+        residual = float(res.residual_l2)
         if res.n_inliers < lc.min_inliers or not residual <= lc.max_residual:
             self.stats["n_rejected_geometry"] += 1
             return None
@@ -220,12 +204,7 @@ class LoopCloser:
                     er > lc.consistency_rotation_deg + lc.drift_ratio_rotation * turn:
                 self.stats["n_rejected_consistency"] += 1
                 return None
-        info = getattr(res, "information", None)
-        if info is None or not np.all(np.isfinite(info)):
-            pairs = getattr(res, "pairs", None)
-            pts = features.pts[pairs[:, 1]] if pairs is not None else features.pts[features.valid]
-            info = fallback_information(pts, max(residual / np.sqrt(3.0), lc.sigma_floor))
-        return LoopEdge(kf.index, int(features.index), T_ij, np.asarray(info, dtype=np.float64),
+        return LoopEdge(kf.index, int(features.index), T_ij, np.asarray(res.information, dtype=np.float64),
                         int(res.n_inliers), residual, votes, et, er)
 
     def _expire(self, index: int | None) -> None:
@@ -316,3 +295,9 @@ class LoopCloser:
         self.stats["index_time_per_query_ms"] = 1e3 * self._index_time / q
         self.query_times.append((len(self.keyframes), t2 - t0))
         return edges
+
+
+def build_loop_closer(cfg: Config, register: PairRegistration | None = None) -> LoopCloser:
+    """The loop closer from the ``loop`` section; candidates are verified with ``register`` (default:
+    the pairwise registration of the ``matching`` and ``registration`` sections)."""
+    return LoopCloser(cfg.loop, register or build_pair_registration(cfg), cfg.matching.max_hamming)

@@ -1,0 +1,66 @@
+"""ISLAM — the per-reference registration of the weighted multi-frame method (thesis §2,
+docs/references.md).
+
+:func:`islam_pair` is the loop for one reference: SVD fit, gate ``th_j = alpha * j**beta``
+(shrinking for beta < 0), weight ``W = 1 / (mean L1 residual)``, stop when ``th < minError``
+or fewer than ``minPoint`` pairs survive. The front end registers against the last
+``registration.mp`` tracked frames (:attr:`IslamRegistration.multi_reference`) and fuses the
+candidates (:mod:`rgbdslam.frontend.pose_fusion`). The pre-gate (``registration.pregate``
+metres around the constant-velocity prediction) and the refit on the survivors are shared
+with every strategy (:class:`~rgbdslam.frontend.registration.base.Registration`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rgbdslam.frontend.registration.base import Registration
+from rgbdslam.geometry.rigid import fit_rigid, residuals
+
+
+def gate_threshold(alpha: float, beta: float, j: int) -> float:
+    """The gate of iteration ``j`` (1-based): ``alpha * j**beta``."""
+    return alpha * float(j) ** beta
+
+
+def inverse_mean_l1(r: np.ndarray) -> float:
+    """ISLAM weight of residual vectors r (N, 3): ``1 / (sum_i |r_i|_1 / N)``."""
+    e = float(np.abs(r).sum())
+    return len(r) / e if e > 0 else np.inf
+
+
+def islam_pair(S: np.ndarray, D: np.ndarray, keep: np.ndarray, max_it: int, alpha: float, beta: float,
+               min_error: float, min_points: int) -> tuple[np.ndarray, float, int] | None:
+    """The loop above from the pairs ``keep``: (surviving pairs, weight W, iterations), None when
+    fewer than ``min_points`` pairs survive."""
+    need = max(3, min_points)
+    W = 0.0
+    it = 0
+    for j in range(1, max_it + 1):
+        it = j
+        T = fit_rigid(S[keep], D[keep])
+        th = gate_threshold(alpha, beta, j)
+        r = residuals(T, S, D)
+        W = inverse_mean_l1(r[keep])
+        keep = keep & (np.linalg.norm(r, axis=1) <= th)
+        if th < min_error or keep.sum() < need:
+            break
+    if keep.sum() < need:
+        return None
+    return keep, W, it
+
+
+class IslamRegistration(Registration):
+    """``registration.method = islam`` (the default)."""
+
+    name = "islam"
+    multi_reference = True
+
+    @property
+    def pregate_radius(self) -> float | None:
+        return self.rc.pregate
+
+    def select(self, S, D, keep):
+        rc = self.rc
+        out = islam_pair(S, D, keep, rc.max_iterations, rc.alpha, rc.beta, rc.min_error, self.min_points)
+        return None if out is None else (out[0], out[1])

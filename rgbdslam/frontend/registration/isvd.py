@@ -1,0 +1,61 @@
+"""ISVD — iterative SVD registration with a shrinking outlier gate (thesis §1, docs/references.md).
+
+```
+T = T0 ; e = e_start
+for j = 0 .. maxIt:
+    T = SVD_FIT(D, S)  on the surviving pairs
+    remove pairs with ||d_i - T s_i|| > e
+    if e_min > e: stop
+    else: e = e / 2
+```
+
+Additions, both documented in docs/frontend.md and shared by every strategy
+(:class:`~rgbdslam.frontend.registration.base.Registration`): an optional pre-gate with ``T0``
+(with ``registration.pregate`` set, pairs further than ``e_start`` from the prediction are
+dropped before the first fit, which is how ``T0`` can matter at all, since the first fit
+overwrites it), and a final refit on the surviving pairs (the thesis' last fit was made before
+the last removal).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rgbdslam.frontend.registration.base import Registration
+from rgbdslam.geometry.rigid import fit_rigid, residuals
+
+
+def isvd(S: np.ndarray, D: np.ndarray, keep: np.ndarray, max_it: int, e_start: float, e_min: float,
+         min_points: int = 3) -> tuple[np.ndarray, int] | None:
+    """The loop above from the pairs ``keep``: (surviving pairs, iterations), None when fewer than
+    ``min_points`` pairs survive."""
+    need = max(3, min_points)
+    e = e_start
+    it = 0
+    for j in range(max_it + 1):
+        it = j + 1
+        T = fit_rigid(S[keep], D[keep])
+        err = np.linalg.norm(residuals(T, S, D), axis=1)
+        new = keep & (err <= e)
+        if new.sum() < need:
+            return None
+        keep = new
+        if e_min > e:
+            break
+        e = e / 2
+    return keep, it
+
+
+class IsvdRegistration(Registration):
+    """``registration.method = isvd``: against the previous frame only."""
+
+    name = "isvd"
+
+    @property
+    def pregate_radius(self) -> float | None:
+        return self.rc.e_start if self.rc.pregate is not None else None  # ISVD's first gate
+
+    def select(self, S, D, keep):
+        rc = self.rc
+        out = isvd(S, D, keep, rc.max_iterations, rc.e_start, rc.e_min, self.min_points)
+        return None if out is None else (out[0], None)
