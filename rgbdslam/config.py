@@ -196,8 +196,10 @@ class LandmarksConfig:
 
     enabled: bool = False
     # how the map pose combines with the frame-to-frame registration (registration.method):
-    # 'seed' = the registration's pose predicts, the map pose replaces it (kept when the map fails)
-    mode: Literal["seed"] = "seed"
+    # 'seed' = the registration's pose predicts, the map pose replaces it (kept when the map fails);
+    # 'fuse' = the information-weighted mean of both (the registration's per-frame information,
+    # the map pose's from its reprojection refine)
+    mode: Literal["seed", "fuse"] = "fuse"
     search_radius: float = 10.0  # pixels around a landmark's projection
     max_hamming: int = 50
     max_depth: float = 5.0  # metres: landmarks further from the camera are not searched, features not mapped

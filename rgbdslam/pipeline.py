@@ -158,7 +158,10 @@ class SLAM:
         restart = bool(getattr(result, "reset", False))
         if self.landmarks is not None and not restart:  # the map places the frame (registration predicts)
             t0 = time.perf_counter()
-            mpose = self.landmarks.track(frame.index, result.features, pose)
+            info = getattr(result, "information", None)
+            if info is not None and getattr(result, "n_fused", 0) > 1:  # the references share this frame's noise:
+                info = info / result.n_fused  # their summed information counts it n_fused times
+            mpose = self.landmarks.track(frame.index, result.features, pose, info)
             if mpose is not pose:
                 pose = mpose
                 result.pose = pose

@@ -46,6 +46,16 @@ class LandmarkStats:
     ba_ms: list[float] = field(default_factory=list)
 
 
+def fuse_poses(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -> np.ndarray:
+    """Information-weighted mean of two poses (right perturbations, (rotation, translation) order):
+    P1 · Exp((H1 + H2)⁻¹ H2 · Log(P1⁻¹ P2)) — one Gauss–Newton step, exact when the two agree closely."""
+    import gtsam
+
+    eta = gtsam.Pose3.Logmap(gtsam.Pose3(inv(P1) @ P2))
+    step = np.linalg.solve(H1 + H2, H2 @ eta)
+    return P1 @ gtsam.Pose3.Expmap(step).matrix()
+
+
 class LandmarkTracker:
     def __init__(self, cfg: LandmarksConfig, camera: Camera):
         self.cfg = cfg
@@ -75,7 +85,7 @@ class LandmarkTracker:
                                    self.cfg.depth_noise_b)
         self.map.observe(ids, zw, R, frame)
 
-    def track(self, index: int, feats, pose: np.ndarray) -> np.ndarray:
+    def track(self, index: int, feats, pose: np.ndarray, information: np.ndarray | None = None) -> np.ndarray:
         """The map pose of frame ``index`` given the registration's ``pose`` (returned unchanged if
         the map cannot place the frame); re-observes the matched landmarks."""
         c = self.cfg
@@ -98,6 +108,8 @@ class LandmarkTracker:
                 np.degrees(rotation_angle(d[:3, :3])) > c.max_correction_deg:
             self.stats.rejected += 1
             return pose
+        if c.mode == "fuse" and information is not None and res.information is not None:
+            res.pose = fuse_poses(pose, information, res.pose, res.information)
         self.stats.map_poses += 1
         self.stats.inliers.append(len(res.lm))
         self.stats.matched += len(res.lm)

@@ -41,6 +41,7 @@ class MapPose:
     n_matches: int
     n_candidates: int
     rms: float  # RMS 3-D residual of the inliers (m)
+    information: np.ndarray | None = None  # 6x6, right perturbation (rotation, translation); reprojection refine
 
 
 def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin: float = 0.2):
@@ -126,10 +127,11 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     if mask.sum() < max(3, min_inliers):
         return None
     T = fit_rigid(S[mask], D[mask], w[mask])
+    info = None
     if refine == "reprojection":  # motion-only GN on pixels + inverse depth, re-gated once
         uv, z, slm = feats.uv[feat], S[:, 2], np.sqrt(s_lm2)
         for _ in range(2):
-            T, e = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sigma_px, sig[mask], slm[mask])
+            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sigma_px, sig[mask], slm[mask])
             P = D @ inv(T)[:3, :3].T + inv(T)[:3, 3]
             pz = np.maximum(P[:, 2], 1e-3)
             s_pix = np.sqrt(sigma_px**2 + (camera.fx * slm / pz) ** 2)
@@ -141,12 +143,12 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
                 break
             mask = new
     r = np.linalg.norm(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]), axis=1)
-    return MapPose(T, feat[mask], lm[mask], m, match.n_candidates, float(np.sqrt(np.mean(r**2))))
+    return MapPose(T, feat[mask], lm[mask], m, match.n_candidates, float(np.sqrt(np.mean(r**2))), info)
 
 
 def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera, sigma_px: float,
                         sigma_z: np.ndarray, sigma_lm: np.ndarray, iterations: int = 5,
-                        huber: float = 1.345) -> tuple[np.ndarray, np.ndarray]:
+                        huber: float = 1.345) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Motion-only Gauss–Newton on pixel and inverse-depth residuals (vectorised, Huber-weighted).
 
     pose: camera-to-world start; X (N,3) landmark world points; uv (N,2) measured (undistorted)
@@ -154,13 +156,15 @@ def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.n
     (m, added to the pixel noise as f·σ/z). Residuals per point: (u, v) in pixels and 1/z in
     1/m with σ = σ_z / z² — the RGB-D analogue of a stereo reprojection error, so the depth's
     larger noise no longer pulls the pose as the 3-D point distance does. Returns (pose, whitened
-    error norm per point).
+    error norm per point, 6x6 information of the pose: right perturbation pose·Exp(η), η = (ω, v),
+    GTSAM's Pose3 order).
     """
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     Tcw = inv(pose)
     R, t = Tcw[:3, :3].copy(), Tcw[:3, 3].copy()
     s_inv = sigma_z / (z * z)
     e = np.zeros(len(X))
+    H = np.zeros((6, 6))
     for _ in range(iterations):
         P = X @ R.T + t
         pz = np.maximum(P[:, 2], 1e-3)
@@ -194,4 +198,5 @@ def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.n
             break
     out = np.eye(4)
     out[:3, :3], out[:3, 3] = R, t
-    return inv(out), e
+    # Tcw <- Exp(xi) Tcw is pose <- pose Exp(-xi): the same information for the pose's right perturbation
+    return inv(out), e, H
