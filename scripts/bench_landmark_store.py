@@ -35,25 +35,32 @@ sys.path.insert(0, str(ROOT))
 from rgbdslam.landmarks.store import MultiTreeStore, SingleTreeStore  # noqa: E402
 
 
-def run(store, n_max: int, batch: int, queries: int, dim: int, seed: int = 0) -> list[tuple[int, float, float]]:
-    """[(landmarks after the step, step seconds, insertion seconds)] for one store."""
+def run(stores: list, n_max: int, batch: int, queries: int, dim: int, seed: int = 0) -> list[list[tuple]]:
+    """Per store [(landmarks after the step, step seconds, insertion seconds)]. The stores take the
+    same steps in lock-step (one step of each in turn), so a load change on the shared machine hits
+    both alike; their answers are checked to agree (same nearest distances)."""
     rng = np.random.default_rng(seed)
     seen = np.zeros(n_max + batch, np.int64)
-    out = []
+    out: list[list[tuple]] = [[] for _ in stores]
     n = 0
     while n < n_max:
         pts = rng.random((batch, dim))
         ids = np.arange(n, n + batch)
         seen[ids] = rng.integers(1, 6, size=batch)
         q = rng.random((queries, dim))
-        t0 = time.perf_counter()
-        store.insert(ids, pts, seen[ids])
-        store.step(seen[: n + batch])
-        t1 = time.perf_counter()
-        d, i = store.nearest(q)
-        t2 = time.perf_counter()
+        answers = []
+        for k, store in enumerate(stores):
+            t0 = time.perf_counter()
+            store.insert(ids, pts, seen[ids])
+            store.step(seen[: n + batch])
+            t1 = time.perf_counter()
+            d, _ = store.nearest(q)
+            t2 = time.perf_counter()
+            out[k].append((n + batch, t2 - t0, t1 - t0))
+            answers.append(d)
+        if any(not np.allclose(a, answers[0]) for a in answers[1:]):
+            raise SystemExit(f"stores disagree at {n + batch} landmarks")
         n += batch
-        out.append((n, t2 - t0, t1 - t0))
     return out
 
 
@@ -84,8 +91,8 @@ def main(argv=None) -> int:
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args(argv)
     command = "python scripts/bench_landmark_store.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
-    single = run(SingleTreeStore(a.dim), a.max, a.batch, a.queries, a.dim)
-    multi = run(MultiTreeStore(a.dim, a.n1, a.q), a.max, a.batch, a.queries, a.dim)
+    single, multi = run([SingleTreeStore(a.dim), MultiTreeStore(a.dim, a.n1, a.q)], a.max, a.batch, a.queries,
+                        a.dim)
     bins = [0, 5000, 10000, 15000, 20000, 30000, 40000, 50000, 60000, 65000, a.max]
     L = ["## Landmark store", "",
          f"Command: `{command}`  ",
@@ -114,7 +121,7 @@ def main(argv=None) -> int:
         for q in (2.0, 3.5, 5.5, 8.0):
             row = []
             for n1 in (1000, 3500, 10000):
-                t = sum(r[1] for r in run(MultiTreeStore(a.dim, n1, q), a.max, a.batch, a.queries, a.dim))
+                t = sum(r[1] for r in run([MultiTreeStore(a.dim, n1, q)], a.max, a.batch, a.queries, a.dim)[0])
                 row.append(f"{t:.2f} s")
                 if t < best[0]:
                     best = (t, (q, n1))

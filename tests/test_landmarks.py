@@ -105,3 +105,95 @@ def test_ransac_samples_old_landmarks_first():
     # uniform sampling with few iterations rarely draws three good pairs; the old 30 % always do
     out = ransac_rigid(S, D, 0.01, 5, np.random.default_rng(3), 3, subset=100, sample_from=30)
     assert out is not None and np.allclose(out[0], T, atol=1e-9) and out[1].sum() == 30
+
+
+# ----------------------------------------------------------------------------- pose refine, fusion, local BA
+from rgbdslam.geometry.camera import Camera  # noqa: E402
+from rgbdslam.geometry.se3 import inv  # noqa: E402
+
+CAM = Camera(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
+def _pose(rotvec, t):
+    from scipy.spatial.transform import Rotation
+
+    P = np.eye(4)
+    P[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    P[:3, 3] = t
+    return P
+
+
+def _scene(n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(1.0, 4.0, n)])
+
+
+def _observe(P, X):
+    Tcw = inv(P)
+    Pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
+    return CAM.project(Pc), Pc[:, 2]
+
+
+def test_reprojection_refine_recovers_the_exact_pose():
+    from rgbdslam.landmarks.tracking import refine_reprojection
+
+    X = _scene()
+    P = _pose([0.05, -0.1, 0.02], [0.1, -0.05, 0.2])
+    uv, z = _observe(P, X)
+    start = P @ _pose([0.01, 0.01, -0.01], [0.02, -0.01, 0.01])
+    est, e, H = refine_reprojection(start, X, uv, z, CAM, 1.0, np.full(len(X), 0.01), np.zeros(len(X)), 10)
+    assert np.allclose(est, P, atol=1e-7) and e.max() < 1e-4
+    assert np.all(np.linalg.eigvalsh(H) > 0)  # a full-rank information
+
+
+def test_fuse_poses_equal_information_is_the_midpoint_and_zero_information_keeps_the_other():
+    from rgbdslam.landmarks.stage import fuse_poses
+
+    A = _pose([0, 0, 0], [0, 0, 0])
+    B = _pose([0, 0, 0.02], [0.1, 0, 0])
+    mid = fuse_poses(A, np.eye(6), B, np.eye(6))
+    assert np.allclose(mid[:3, 3], [0.05, 0.0005, 0], atol=1e-3)
+    assert np.isclose(np.arctan2(mid[1, 0], mid[0, 0]), 0.01)
+    assert np.allclose(fuse_poses(A, np.eye(6) * 1e-12, B, np.eye(6)), B, atol=1e-9)
+
+
+def test_local_ba_pulls_noisy_keyframes_back_to_the_truth():
+    from rgbdslam.config import LandmarksConfig
+    from rgbdslam.landmarks.local_ba import LocalBA
+    from rgbdslam.landmarks.stage import _KeyframeObs
+
+    rng = np.random.default_rng(4)
+    X = _scene(400, 1)
+    truth = [_pose([0, 0.03 * k, 0], [0.08 * k, 0, 0]) for k in range(4)]
+    cfg = LandmarksConfig(ba_window=3, ba_iterations=10, depth_noise_a=0.001, depth_noise_b=0.0, ba_max_landmarks=1000)
+    lmap = LandmarkMap(store="single")
+    ids = lmap.add(X + rng.normal(scale=0.01, size=X.shape), np.tile(np.eye(3) * 1e-4, (len(X), 1, 1)),
+                   np.zeros((len(X), 32), np.uint8), 0, 0)
+    kfs, poses = [], {}
+    for k, P in enumerate(truth):
+        uv, z = _observe(P, X)
+        kfs.append(_KeyframeObs(k, ids, uv + rng.normal(scale=0.5, size=uv.shape), z + rng.normal(scale=0.001, size=z.shape)))
+        poses[k] = P if k == 0 else P @ _pose(rng.normal(scale=0.01, size=3), rng.normal(scale=0.02, size=3))
+    before = [np.linalg.norm(poses[k][:3, 3] - truth[k][:3, 3]) for k in (1, 2, 3)]
+    out = LocalBA(cfg, CAM).run(lmap, kfs, poses)
+    assert sorted(out) == [1, 2, 3]  # keyframe 0 (older than the window) is held fixed
+    after = [np.linalg.norm(out[k][:3, 3] - truth[k][:3, 3]) for k in (1, 2, 3)]
+    assert max(after) < 0.003 < min(before)
+    err = np.linalg.norm(lmap.pos[ids] - X, axis=1)
+    assert np.median(err) < 0.004 < np.median(np.linalg.norm(rng.normal(scale=0.01, size=X.shape), axis=1))
+
+
+def test_run_with_landmarks_on_real_frames(desk9, tmp_path):
+    """fr1/desk, 9 frames, landmark tracking with local BA through the whole pipeline: the map
+    places the frames, run.json reports it, the top view is written, accuracy stays."""
+    from rgbdslam.config import load_config
+    from rgbdslam.pipeline import run_sequence
+
+    cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", "landmarks.enabled=true",
+                             "landmarks.local_ba=true", "keyframes.max_gap=3"])
+    s = run_sequence(desk9, tmp_path / "run", cfg, progress=False)
+    lm = s["landmarks"]
+    assert s["tracked"] == 9 and lm["map_poses"] >= 6 and lm["median_inliers"] >= 50
+    assert lm["local_ba_runs"] >= 2 and lm["size"] > 500
+    assert s["evaluation"]["ate"]["rmse"] < 0.03
+    assert (tmp_path / "run" / "map" / "landmarks_topview.png").stat().st_size > 10000
