@@ -87,6 +87,51 @@ def open3d_odometry(seq_dir: Path) -> dict:
     return {"ate": rep.ate.rmse, "rpe": rep.rpe.trans.rmse, "fps": len(seq) / wall}
 
 
+def _f(x, fmt="{:.4f}") -> str:
+    return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else fmt.format(x)
+
+
+def markdown(rows: list[dict], section: str, commands: list[str], machine: str) -> str:
+    """Per sequence x variant: ATE, 1-frame RPE, frames/s (+ ratio to the default in the same run),
+    old-landmark share; then medians over the synthetic sequences and their ratios to the default."""
+    seqs = list(dict.fromkeys(r["sequence"] for r in rows))
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    by = {(r["sequence"], r["variant"]): r for r in rows}
+    L = [section, ""] + [f"Command: `{c}`  " for c in commands]
+    L += [f"Machine: {machine}; shared with ~5 other jobs (load 10-25 on 2 cores), so frames/s are low and "
+          "noisy: compare them only as ratios to the default of the same sequence (run right before it).", "",
+          "ATE RMSE and 1-frame RPE RMSE (translation) in metres; fps = frames/s without waiting for images "
+          "(x default); old = share of the map-matched landmarks first seen >= 100 frames earlier.", "",
+          "| sequence | variant | ATE | RPE 1 frame | fps (x default) | loops | old |", "|---|---|---|---|---|---|---|"]
+    for q in seqs:
+        d = by.get((q, "default"))
+        for v in variants:
+            r = by.get((q, v))
+            if r is None:
+                continue
+            ratio = f" ({r['fps'] / d['fps']:.2f}x)" if d and v != "default" and d.get("fps") else ""
+            L.append(f"| {q} | {v} | {_f(r['ate'])} | {_f(r['rpe'])} | {_f(r.get('fps'), '{:.1f}')}{ratio} | "
+                     f"{r.get('loops', '-')} | {_f(r.get('old_share'), '{:.3f}')} |")
+    syn = [q for q in seqs if " seed " in q]
+    if syn:
+        L += ["", "Synthetic sequences (every motion x seed): medians and the median of the per-sequence ratio to "
+                  "the default.", "", "| variant | median ATE | median RPE | median ATE ratio | median RPE ratio | "
+                  "better / worse ATE by > 5 % |", "|---|---|---|---|---|---|"]
+        for v in variants:
+            rs = [(by[(q, v)], by.get((q, "default"))) for q in syn if (q, v) in by]
+            if not rs:
+                continue
+            ate = np.median([r["ate"] for r, _ in rs])
+            rpe = np.median([r["rpe"] for r, _ in rs])
+            pairs = [(r, d) for r, d in rs if d]
+            ra = np.median([r["ate"] / d["ate"] for r, d in pairs]) if pairs else float("nan")
+            rr = np.median([r["rpe"] / d["rpe"] for r, d in pairs]) if pairs else float("nan")
+            nb = sum(r["ate"] < 0.95 * d["ate"] for r, d in pairs)
+            nw = sum(r["ate"] > 1.05 * d["ate"] for r, d in pairs)
+            L.append(f"| {v} | {ate:.4f} | {rpe:.4f} | {ra:.2f} | {rr:.2f} | {nb} / {nw} |")
+    return "\n".join(L) + "\n"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--work", type=Path, default=None)
@@ -100,7 +145,19 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--skip-synthetic", action="store_true")
     ap.add_argument("--json", type=Path, default=None, help="write every row here")
+    ap.add_argument("--report", type=Path, nargs="+", default=None,
+                    help="only build the markdown from earlier --json files (several runs' rows joined)")
+    ap.add_argument("--section", default="## Landmark map", help="heading of the markdown section")
+    ap.add_argument("--write-docs", action="store_true", help="replace that section of docs/benchmarks.md")
     a = ap.parse_args(argv)
+    if a.report:
+        data = [json.loads(p.read_text()) for p in a.report]
+        rows = [r for d in data for r in d["rows"]]
+        text = markdown(rows, a.section, [d["command"] for d in data], data[0].get("machine", ""))
+        sys.path.insert(0, str(ROOT / "scripts"))
+        from _docs import publish
+
+        return publish(text, a.write_docs)
     from rgbdslam.datasets.synthetic import generate_sequence
     from rgbdslam.pipeline import run_sequence
 
@@ -148,7 +205,10 @@ def main(argv=None) -> int:
                   f"{np.median([r['rpe'] for r in syn]):.4f}  median fps {np.median([r['fps'] for r in syn]):.1f}")
     if a.json is not None:
         a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=1))
+        machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+                   f"{time.strftime('%Y-%m-%d')}")
+        a.json.write_text(json.dumps({"command": "python " + " ".join(shlex.quote(x) for x in sys.argv),
+                                      "machine": machine, "rows": rows}, indent=1))
     return 0
 
 
