@@ -146,6 +146,15 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     return MapPose(T, feat[mask], lm[mask], m, match.n_candidates, float(np.sqrt(np.mean(r**2))), info)
 
 
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: the rotation matrix of the rotation vector ``w``."""
+    th = float(np.linalg.norm(w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
+
+
 def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera, sigma_px: float,
                         sigma_z: np.ndarray, sigma_lm: np.ndarray, iterations: int = 5,
                         huber: float = 1.345) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -165,34 +174,31 @@ def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.n
     s_inv = sigma_z / (z * z)
     e = np.zeros(len(X))
     H = np.zeros((6, 6))
+    n = len(X)
     for _ in range(iterations):
         P = X @ R.T + t
-        pz = np.maximum(P[:, 2], 1e-3)
-        s_pix = np.sqrt(sigma_px**2 + (fx * sigma_lm / pz) ** 2)
-        r = np.stack([(uv[:, 0] - (fx * P[:, 0] / pz + cx)) / s_pix, (uv[:, 1] - (fy * P[:, 1] / pz + cy)) / s_pix,
-                      (1.0 / z - 1.0 / pz) / s_inv], axis=1)
+        x, y = P[:, 0], P[:, 1]
+        a = 1.0 / np.maximum(P[:, 2], 1e-3)  # inverse depth of the prediction
+        s_pix = np.sqrt(sigma_px**2 + (fx * sigma_lm * a) ** 2)
+        r = np.stack([(uv[:, 0] - (fx * x * a + cx)) / s_pix, (uv[:, 1] - (fy * y * a + cy)) / s_pix,
+                      (1.0 / z - a) / s_inv], axis=1)
         e = np.linalg.norm(r, axis=1)
         w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
-        # d(pred)/dp, then dp/dxi = [-[p]x, I] for the left perturbation Tcw <- Exp(xi) Tcw
-        Jp = np.zeros((len(X), 3, 3))
-        Jp[:, 0, 0] = fx / pz / s_pix
-        Jp[:, 0, 2] = -fx * P[:, 0] / pz**2 / s_pix
-        Jp[:, 1, 1] = fy / pz / s_pix
-        Jp[:, 1, 2] = -fy * P[:, 1] / pz**2 / s_pix
-        Jp[:, 2, 2] = -1.0 / pz**2 / s_inv  # d(1/pz)/dpz
-        Px = np.zeros((len(X), 3, 3))
-        Px[:, 0, 1], Px[:, 0, 2], Px[:, 1, 2] = P[:, 2], -P[:, 1], P[:, 0]
-        Px[:, 1, 0], Px[:, 2, 0], Px[:, 2, 1] = -P[:, 2], P[:, 1], -P[:, 0]  # -[p]x
-        J = np.concatenate([Jp @ Px, Jp], axis=2)  # (N, 3, 6): derivative of the prediction
-        H = np.einsum("n,nki,nkj->ij", w, J, J)
-        g = np.einsum("n,nki,nk->i", w, J, r)
+        # Jacobians of the predictions (u, v, 1/z) w.r.t. xi = (omega, v), left perturbation of Tcw
+        # (p <- p + omega x p + v), written out: no (N, 3, 3) products
+        J = np.empty((n, 3, 6))
+        xa, ya = x * a, y * a
+        J[:, 0] = np.stack([-xa * ya, 1 + xa * xa, -ya, a, np.zeros(n), -xa * a], axis=1) * (fx / s_pix)[:, None]
+        J[:, 1] = np.stack([-(1 + ya * ya), xa * ya, xa, np.zeros(n), a, -ya * a], axis=1) * (fy / s_pix)[:, None]
+        J[:, 2] = np.stack([-ya * a, xa * a, np.zeros(n), np.zeros(n), np.zeros(n), -a * a], axis=1) / s_inv[:, None]
+        Jw = J * w[:, None, None]
+        H = np.einsum("nki,nkj->ij", Jw, J)
+        g = np.einsum("nki,nk->i", Jw, r)
         try:
             xi = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             break
-        from scipy.spatial.transform import Rotation
-
-        dR = Rotation.from_rotvec(xi[:3]).as_matrix()
+        dR = _so3_exp(xi[:3])
         R, t = dR @ R, dR @ t + xi[3:]
         if np.linalg.norm(xi) < 1e-8:
             break
