@@ -108,6 +108,25 @@ def open3d_odometry(seq_dir: Path) -> dict:
     return {"ate": rep.ate.rmse, "rpe": rep.rpe.trans.rmse, "fps": len(seq) / wall}
 
 
+def parse_log(path: Path) -> dict:
+    """The rows of a (possibly unfinished) run from its printed lines (fixed-width name and variant)."""
+    import re
+
+    rows = []
+    num = r"([0-9.]+|nan)"
+    pat = re.compile(rf"ATE {num}\s+RPE {num}\s+{num} fps(?:\s+loops (\d+)\s+old (\S+))?")
+    for line in path.read_text().splitlines():
+        m = pat.search(line)
+        if not m or len(line) < 58:
+            continue
+        old = m.group(5)
+        rows.append({"sequence": line[:28].strip(), "variant": line[29:57].strip(), "ate": float(m.group(1)),
+                     "rpe": float(m.group(2)), "fps": float(m.group(3)),
+                     "loops": int(m.group(4)) if m.group(4) else "-",
+                     "old_share": None if old in (None, "None") else float(old)})
+    return {"command": f"(unfinished run, rows from its log {path.name})", "rows": rows}
+
+
 def _f(x, fmt="{:.4f}") -> str:
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else fmt.format(x)
 
@@ -180,7 +199,7 @@ def main(argv=None) -> int:
     ap.add_argument("--write-docs", action="store_true", help="replace that section of docs/benchmarks.md")
     a = ap.parse_args(argv)
     if a.report:
-        data = [json.loads(p.read_text()) for p in a.report]
+        data = [json.loads(p.read_text()) if p.suffix == ".json" else parse_log(p) for p in a.report]
         rows = [r for d in data for r in d["rows"]]
         if a.work is not None:  # first visit vs revisit on the loop-type sequences, from the run folders
             for r in rows:
