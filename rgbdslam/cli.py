@@ -48,8 +48,25 @@ def main() -> None:
 
 config_option = click.option(
     "--config", "-c", "config_path", default=None,
-    help="YAML config file or preset name from configs/ (e.g. tum_fr1).",
+    help="YAML config file or the name of a preset shipped with rgbdslam (default, tum_fr1, ...).",
 )
+camera_option = click.option(
+    "--camera", "camera_file", type=click.Path(path_type=Path), default=None, metavar="FILE",
+    help="Camera file (YAML: fx, fy, cx, cy, size, distortion, depth_scale; see README 'Your own data'). "
+         "Same as --set dataset.camera_file=FILE; wins over the camera a sequence or preset names.",
+)
+
+
+def load_cli_config(config_path, overrides, camera_file=None):
+    """The config of a command: preset/file, --set overrides, then --camera."""
+    from rgbdslam.config import load_config
+
+    cfg = load_config(config_path, overrides)
+    if camera_file is not None:
+        cfg.dataset.camera_file = str(camera_file)
+    return cfg
+
+
 set_option = click.option(
     "--set", "-s", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
     help="Override one config value; repeatable.",
@@ -63,6 +80,7 @@ set_option = click.option(
 @click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path), metavar="SEQUENCE...")
 @config_option
 @set_option
+@camera_option
 @click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
               help="Output folder (default: runs/<sequence name>); with several sequences the folder "
                    "that holds one subfolder per sequence and summary.md/.csv (default: runs).")
@@ -70,8 +88,9 @@ set_option = click.option(
 @click.option("--rerun", "rerun_spawn", is_flag=True, help="Stream the run to a Rerun viewer.")
 @click.option("--rerun-save", type=click.Path(path_type=Path), default=None, help="Record the run to an .rrd file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_save, quiet):
-    """Run SLAM on SEQUENCE (a TUM or PUT folder) and write trajectory.tum into --out.
+def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_spawn, rerun_save, quiet):
+    """Run SLAM on SEQUENCE (a TUM, ETH3D, ICL-NUIM, 7-Scenes or PUT folder, a ROS 1/2 bag or a
+    RealSense recording) and write trajectory.tum into --out.
 
     Several sequences run one after the other with the same config (camera "auto" is decided
     per sequence); a table of their results is printed and written to OUT/summary.md and .csv."""
@@ -81,7 +100,7 @@ def run(sequences, config_path, overrides, out_dir, no_map, rerun_spawn, rerun_s
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
-    cfg = load_config(config_path, overrides)
+    cfg = load_cli_config(config_path, overrides, camera_file)
     if no_map:
         cfg.mapping.enabled = False
     if rerun_spawn:
@@ -115,6 +134,56 @@ def demo(out_dir, frames, config_path, overrides):
     run_demo(out_dir, frames, cfg)
 
 
+@main.command()
+@config_option
+@set_option
+@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=Path("runs/live"), show_default=True,
+              help="Output folder of the run.")
+@click.option("--record", "record_dir", type=click.Path(path_type=Path), default=None,
+              help="Folder for the frames as they arrive, TUM layout (default: OUT/recording); "
+                   "`rgbdslam run` on it repeats the session.")
+@click.option("--playback", type=click.Path(path_type=Path), default=None,
+              help="Take the frames from a RealSense recording (.bag/.db3) through the SDK's playback "
+                   "instead of a camera.")
+@click.option("--size", type=(int, int), default=(640, 480), show_default=True, metavar="W H",
+              help="Stream size (colour and depth).")
+@click.option("--fps", type=int, default=30, show_default=True, help="Frame rate of the streams.")
+@click.option("--serial", default=None, help="Serial number of the camera to use (default: the first one).")
+@click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
+@click.option("--no-map", is_flag=True, help="Skip map fusion at the end of the run.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def live(config_path, overrides, out_dir, record_dir, playback, size, fps, serial, max_frames, no_map, quiet):
+    """Run SLAM on a live RealSense camera (colour + depth aligned to colour; needs the
+    [realsense] extra). Ctrl-C ends the session: the run then finishes and writes all its
+    outputs (a second Ctrl-C stops at once, keeping what was finished)."""
+    import signal
+
+    from rgbdslam.datasets.realsense import RealSenseSequence
+    from rgbdslam.pipeline import run_sequence
+    from rgbdslam.ui import console
+
+    cfg = load_cli_config(config_path, overrides)
+    if no_map:
+        cfg.mapping.enabled = False
+    if max_frames is not None and max_frames < 1:
+        raise click.UsageError("--max-frames must be at least 1")
+    record_dir = record_dir or out_dir / "recording"
+    seq = RealSenseSequence(record_dir, playback, size[0], size[1], fps, max_frames, serial)
+
+    def first_interrupt(signum, frame):  # the first Ctrl-C ends the stream; the run then finishes normally
+        console.print("[yellow]stopping: finishing the run (Ctrl-C again to stop at once)[/]")
+        seq.stop()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = signal.signal(signal.SIGINT, first_interrupt)
+    try:
+        run_sequence(seq, out_dir, cfg, progress=not quiet)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        seq.close()
+    console.print(f"frames recorded in {record_dir} (TUM layout): rgbdslam run {record_dir} repeats the session")
+
+
 @main.command("config")
 @config_option
 @set_option
@@ -129,12 +198,12 @@ def show_config(config_path, overrides):
 @click.argument("sequence", type=click.Path(path_type=Path))
 @config_option
 @set_option
-def info(sequence, config_path, overrides):
+@camera_option
+def info(sequence, config_path, overrides, camera_file):
     """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
-    from rgbdslam.config import load_config
     from rgbdslam.datasets import describe_sequence
 
-    click.echo(describe_sequence(sequence, load_config(config_path, overrides).dataset))
+    click.echo(describe_sequence(sequence, load_cli_config(config_path, overrides, camera_file).dataset))
 
 
 # ------------------------------------------------------------------ commands added by stages
@@ -155,18 +224,37 @@ def info(sequence, config_path, overrides):
               help="Folder for the PNG plots (default: EST's folder, files named <EST stem>_*.png).")
 @click.option("--no-plots", is_flag=True, help="Write no plots.")
 def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_path, plot_dir, no_plots):
-    """ATE and RPE of trajectory EST against ground truth GT (TUM format); prints a table.
+    """ATE and RPE of trajectory EST against ground truth GT (TUM format, or a sequence folder
+    with ground truth: TUM groundtruth.txt, 7-Scenes pose.txt files, ...); prints a table.
 
     Several ESTs are compared with the same settings: one table with a row each and
     comparison_topview.png (in --plot-dir, default the current folder) with all of them."""
+    import tempfile
+
     from rgbdslam.evaluation.report import compare_and_print, evaluate_and_print
 
     opts = dict(align=align, delta=delta, delta_unit=delta_unit, max_difference=max_difference, offset=offset,
                 json_path=json_path, plot_dir=plot_dir, plots=not no_plots)
-    if len(est) == 1:
-        evaluate_and_print(gt, est[0], **opts)
-    else:
-        compare_and_print(gt, list(est), **opts)
+    with tempfile.TemporaryDirectory(prefix="rgbdslam-gt-") as tmp:
+        if gt.is_dir():  # a sequence folder: its own ground truth (7-Scenes pose.txt files, groundtruth.txt, ...)
+            gt = _groundtruth_file(gt, Path(tmp))
+        if len(est) == 1:
+            evaluate_and_print(gt, est[0], **opts)
+        else:
+            compare_and_print(gt, list(est), **opts)
+
+
+def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
+    """The ground truth of a sequence folder as a TUM file (its own file when it has one)."""
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.io.trajectory import write_tum
+
+    gt = open_sequence(sequence).groundtruth()
+    if gt is None:
+        raise InputError(f"{sequence} is a folder without ground truth; give a TUM trajectory file as GT")
+    path = tmp / f"{sequence.resolve().name}_groundtruth.tum"
+    write_tum(gt, path)
+    return path
 
 
 @main.command()
@@ -211,7 +299,7 @@ def posegraph() -> None:
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="File format.")
 def posegraph_info(file, fmt):
     """Describe the pose graph in FILE (kind, vertices, edges, duplicates)."""
-    from rgbdslam.backend.graph_io import graph_info
+    from rgbdslam.posegraph.graph_io import graph_info
 
     click.echo(graph_info(file, fmt))
 
@@ -225,7 +313,7 @@ def posegraph_info(file, fmt):
 @click.option("--format", "fmt", type=_GRAPH_FORMATS, default="auto", show_default=True, help="Input format.")
 def posegraph_init(file, method, out, fmt):
     """Compute an initial guess for the pose graph in FILE and write it (with the edges) as g2o."""
-    from rgbdslam.backend.initializers import initialize_file
+    from rgbdslam.posegraph.commands import initialize_file
 
     click.echo(initialize_file(file, method, out, fmt))
 
@@ -244,7 +332,7 @@ def posegraph_init(file, method, out, fmt):
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer, quiet):
     """Initialise and optimise the pose graph in FILE (Gauss-Newton, or --optimizer lm); print the chi2 report."""
-    from rgbdslam.backend.optimize import optimize_file
+    from rgbdslam.posegraph.commands import optimize_file
 
     click.echo(optimize_file(file, init=init, out=out, max_iter=max_iter, tol=tol, criterion=criterion, fmt=fmt,
                              progress=not quiet, optimizer=optimizer))
@@ -254,7 +342,7 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--dataset", type=click.Choice(["m3500", "city10k", "m10000"]), default=None,
               help="Benchmark graph (required unless --merge-runs).")
 @click.option("--noise", default="0.2,0.2,0.2", show_default=True,
-              help="sx,sy,stheta (several separated by ';'), or 'all' for the spec's 8 levels.")
+              help="sx,sy,stheta (several separated by ';'), or 'all' for the MASAT paper's 8 levels.")
 @click.option("--instances", default=50, show_default=True, help="Noisy instances per noise level.")
 @click.option("--max-iter", default=50, show_default=True, help="Maximum iterations.")
 @click.option("--workers", default=1, show_default=True, help="Parallel worker processes.")
@@ -268,7 +356,7 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 @click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
               help="Folder for runs.csv, table1.csv, table2.csv, report.md.")
 @click.option("--data", "data_dir", type=click.Path(path_type=Path), default=None,
-              help="Data folder (default: $RGBDSLAM_DATA or <repo>/../shared/data).")
+              help="Data folder holding posegraph/ (default: $RGBDSLAM_DATA).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--timing-only", is_flag=True, help="Only time the initial guesses (best of 5) at each noise level.")
 @click.option("--merge-runs", "merge", type=click.Path(path_type=Path), multiple=True,
@@ -279,7 +367,7 @@ def posegraph_optimize(file, init, out, max_iter, tol, criterion, fmt, optimizer
 def posegraph_bench(dataset, noise, instances, max_iter, workers, seed, criterion, methods, out_dir, data_dir, quiet,
                     timing_only, merge, first_instance, optimizer):
     """The MASAT paper's protocol: noisy instances, initial guesses, Gauss-Newton; Tables 1 and 2."""
-    from rgbdslam.backend.posegraph_bench import bench_command
+    from rgbdslam.posegraph.bench import bench_command
 
     click.echo(bench_command(dataset, noise, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                              criterion=criterion, methods=methods, out_dir=out_dir, data_dir=data_dir,

@@ -1,7 +1,8 @@
 """Typed configuration.
 
 Every algorithm parameter lives here, grouped in one dataclass per stage. Presets are
-YAML files in ``configs/`` that override the defaults below; ``--set section.key=value``
+YAML files inside the package (``rgbdslam/presets/``, read with ``importlib.resources`` so an
+installed wheel has them) that override the defaults below; ``--set section.key=value``
 overrides a preset. Unknown keys and values of the wrong type are rejected with a
 message naming the key.
 """
@@ -9,6 +10,7 @@ message naming the key.
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import math
 import types
 import typing
@@ -21,25 +23,37 @@ import yaml
 from rgbdslam.io.text import read_text
 from rgbdslam.errors import ConfigError
 
-PRESET_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+def preset_files() -> dict[str, Any]:
+    """Name -> resource of every preset shipped inside the package (``rgbdslam/presets/*.yaml``)."""
+    root = importlib.resources.files("rgbdslam") / "presets"
+    return {e.name[:-5]: e for e in root.iterdir() if e.name.endswith(".yaml") and e.is_file()}
 
 
 @dataclass
 class DatasetConfig:
-    kind: Literal["auto", "tum", "put", "synthetic"] = "auto"
+    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag"] = "auto"
     # TUM association (semantics of TUM's associate.py)
     max_difference: float = 0.02
     offset: float = 0.0
     associations: str | None = None  # optional existing associations file
-    # Camera: "auto" = camera.yaml in the folder, else freiburg1/2/3 from the folder name
-    # (TUM; ros_default otherwise) or kinect1 (PUT); else the named model
+    # Camera file (YAML: fx fy cx cy size distortion depth_scale, optional depth_camera and
+    # depth_to_color; `--camera FILE`); wins over everything below (docs/formats.md "Camera file")
+    camera_file: str | None = None
+    # Camera: "auto" = camera.yaml in the folder, else what the source says (bag CameraInfo,
+    # 7-Scenes/ETH3D calibration, freiburg1/2/3 in a TUM folder name, kinect1 for PUT), else
+    # ros_default with a warning; or the named model
     camera: Literal["auto", "fr1", "fr2", "fr3", "kinect1", "ros_default"] = "auto"
-    depth_scale: float | None = None  # raw units per metre; None = source default (TUM 5000, PUT 1000)
+    depth_scale: float | None = None  # raw units per metre; None = camera file, else source default (TUM 5000, PUT 1000)
     depth_correction: float = 1.0  # multiply metric depth (off = 1.0)
     first_frame: int = 0
     max_frames: int | None = None
     stride: int = 1
-    groundtruth: str | None = None  # PUT: ground-truth TUM file (default groundtruth.txt or the one *.tum)
+    groundtruth: str | None = None  # PUT: ground-truth TUM file (default groundtruth.txt or the one *.tum); bags: a TUM file
+    # ROS bags: topics (None = found automatically when unambiguous; the error lists the candidates)
+    rgb_topic: str | None = None
+    depth_topic: str | None = None
+    camera_info_topic: str | None = None
     prefetch: int = 4  # frames read ahead by a background thread during `run` (0 = read in the loop)
 
 
@@ -74,11 +88,11 @@ class RegistrationConfig:
     # RANSAC baseline
     ransac_iterations: int = 200
     ransac_threshold: float = 0.03
-    # ISVD (spec section 1)
+    # ISVD (docs/references.md §1)
     max_iterations: int = 10
     e_start: float = 0.32  # halved each round: 0.32 .. 0.01, the last gate is the first below e_min
     e_min: float = 0.02
-    # ISLAM (spec section 2)
+    # ISLAM (docs/references.md §2)
     mp: int = 4
     alpha: float = 0.2
     beta: float = -1.0
@@ -109,7 +123,7 @@ class RegistrationConfig:
 
 @dataclass
 class DepthFilterConfig:
-    """DIF, the conditional averaging depth filter (spec section 3, docs/slam.md)."""
+    """DIF, the conditional averaging depth filter (docs/references.md §3, docs/slam.md)."""
 
     enabled: bool = False
     window: int = 2  # K previous filtered frames warped into the current one (0 = spatial only)
@@ -130,7 +144,7 @@ class KeyframeConfig:
 
 @dataclass
 class LoopConfig:
-    """Sharpness-gated loop closure (spec section 4, docs/slam.md)."""
+    """Sharpness-gated loop closure (docs/references.md §4, docs/slam.md)."""
 
     enabled: bool = True
     # sharpness gate: measure > factor * median(measure of the previous window frames).
@@ -259,7 +273,7 @@ class MappingConfig:
     sdf_trunc: float = 0.04  # metres
     mesh_min_frames: int = 2  # voxels seen by fewer frames are left out of the mesh
     tsdf_initial_blocks: int = 2000  # 8^3-voxel blocks preallocated (the hash map grows)
-    # 2-D occupancy map (spec section 6)
+    # 2-D occupancy map (docs/references.md §6)
     map2d: bool = True
     grid_resolution: float = 0.05  # metres per cell
     gravity: Literal["auto", "accelerometer", "camera"] = "auto"  # up direction hint for the floor
@@ -475,16 +489,17 @@ def merge(cfg: Config, data: dict[str, Any] | None, source: str = "config") -> C
     return cfg
 
 
-def resolve_preset(name_or_path: str | Path) -> Path:
-    """A path to a YAML file, or the name of a preset in ``configs/`` (``tum_fr1``)."""
+def resolve_preset(name_or_path: str | Path):
+    """A path to a YAML file, or the name of a preset shipped in the package (``tum_fr1``);
+    returns the file (a Path or an ``importlib.resources`` Traversable)."""
     p = Path(name_or_path)
     if p.is_file():
         return p
-    cand = PRESET_DIR / f"{name_or_path}.yaml"
-    if cand.is_file():
-        return cand
-    presets = ", ".join(sorted(x.stem for x in PRESET_DIR.glob("*.yaml")))
-    raise ConfigError(f"config file {name_or_path} not found; give a YAML path or one of the presets: {presets}")
+    presets = preset_files()
+    if str(name_or_path) in presets:
+        return presets[str(name_or_path)]
+    names = ", ".join(sorted(presets)) or "(none: the package's presets are missing; reinstall rgbdslam)"
+    raise ConfigError(f"config file {name_or_path} not found; give a YAML path or one of the presets: {names}")
 
 
 class _DuplicateKey(Exception):

@@ -21,7 +21,7 @@ class _RateColumn(ProgressColumn):
 
 
 @contextlib.contextmanager
-def frame_progress(total: int, description: str, enabled: bool = True) -> Iterator[Callable[..., None]]:
+def frame_progress(total: int | None, description: str, enabled: bool = True) -> Iterator[Callable[..., None]]:
     """Yield ``advance(status="")``; shows a bar with frames/s, the time left and the last status
     text (e.g. "24 loops, 0 lost") when enabled and stderr is a terminal."""
     if not enabled or not console.is_terminal:

@@ -27,7 +27,7 @@ fi
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 log=.venv/setup.log
 echo "setup: installing the pinned dependencies into .venv (a minute or two; log in $log)"
-if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[test]"; } >"$log" 2>&1; then
+if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[test,realsense]"; } >"$log" 2>&1; then
   tail -n 20 "$log" >&2
   echo "setup: pip install failed (see $log); check the network access to PyPI and run this script again" >&2
   exit 1

@@ -12,12 +12,30 @@ DATA = Path(os.environ.get("RGBDSLAM_DATA", REPO.parent / "shared" / "data"))
 TUM_DESK9 = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
 TUM_RPY200 = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 POSEGRAPH = DATA / "posegraph"
+# the library has no default data folder of its own (an installed package has no repository
+# beside it): the tests' library calls and subprocesses find it through the variable
+os.environ.setdefault("RGBDSLAM_DATA", str(DATA))
+
+
+_CURRENT_TEST: list = []  # the running test item (see _current_test)
+
+
+@pytest.fixture(autouse=True)
+def _current_test(request):
+    _CURRENT_TEST.append(request.node)
+    yield
+    _CURRENT_TEST.pop()
 
 
 def need(path: Path) -> Path:
     """``path`` if it exists. The shared data are part of the test set-up (CI has them beside the
     clone), so a missing folder fails the test: a wrong RGBDSLAM_DATA must not turn the run green
-    with skips. RGBDSLAM_ALLOW_MISSING_DATA=1 skips instead (a machine without the data)."""
+    with skips. RGBDSLAM_ALLOW_MISSING_DATA=1 skips instead (a machine without the data).
+
+    A test that needs the data must be marked ``@pytest.mark.data`` (``pytest -m "not data"`` is
+    the fast local pass without them); an unmarked one fails here."""
+    if _CURRENT_TEST and _CURRENT_TEST[-1].get_closest_marker("data") is None:
+        pytest.fail(f"{_CURRENT_TEST[-1].nodeid} reads the shared data: mark it @pytest.mark.data")
     if not path.exists():
         msg = f"data not found at {path}; set RGBDSLAM_DATA to the shared data folder"
         if os.environ.get("RGBDSLAM_ALLOW_MISSING_DATA") == "1":

@@ -3,7 +3,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from rgbdslam.config import PRESET_DIR, Config, load_config, save_config
+from rgbdslam.config import Config, preset_files, load_config, save_config
 from rgbdslam.errors import ConfigError
 
 
@@ -50,12 +50,12 @@ def test_non_default_roundtrip(tmp_path):
 
 
 def _presets():
-    return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
+    return sorted(preset_files())
 
 
 @pytest.mark.parametrize("preset", _presets())
 def test_every_preset_loads(preset):
-    data = yaml.safe_load((PRESET_DIR / f"{preset}.yaml").read_text())
+    data = yaml.safe_load(preset_files()[preset].read_text(encoding="utf-8"))
     assert isinstance(data, dict) and data, f"{preset}.yaml sets no keys"
     cfg = load_config(preset)
     # expected: the dataclass defaults with exactly the preset's keys replaced
@@ -71,7 +71,7 @@ def test_every_preset_loads(preset):
 
 
 def test_required_presets_exist():
-    names = {p.stem for p in PRESET_DIR.glob("*.yaml")}
+    names = set(preset_files())
     assert {"default", "tum_fr1", "tum_fr2", "tum_fr3", "put_kinect1"} <= names
 
 

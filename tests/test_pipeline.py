@@ -53,6 +53,7 @@ def test_run_is_reproducible(synth_clean, tmp_path):
     assert a == b
 
 
+@pytest.mark.data
 def test_run_folder_contents(desk9, tmp_path):
     out = tmp_path / "desk"
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(out), "--no-map", "-q",
@@ -70,6 +71,7 @@ def test_run_folder_contents(desk9, tmp_path):
     assert {k: v for k, v in saved.items() if k != "mapping"} == {k: v for k, v in used.items() if k != "mapping"}
 
 
+@pytest.mark.data
 def test_rpy200_accuracy(rpy200, tmp_path):
     """fr1/rpy head200 with the defaults: 0.0177 m ATE RMSE with 31 loops (benchmarks.md). The
     front end alone gives 0.027 m, so the bound fails if loop closure or the pose graph stops
@@ -169,6 +171,7 @@ def test_long_runs_write_their_trajectory_every_50_frames(synth_clean, tmp_path,
     assert pl.FLUSH_EVERY == 50 and wrapped.seen == 50
 
 
+@pytest.mark.data
 def test_corrupt_image_is_skipped_not_fatal(desk9, tmp_path):
     seq_dir = tmp_path / "desk"
     shutil.copytree(desk9, seq_dir)
@@ -181,6 +184,7 @@ def test_corrupt_image_is_skipped_not_fatal(desk9, tmp_path):
     assert len(stamps) == 8 and open_sequence(desk9).timestamps[4] not in stamps
 
 
+@pytest.mark.data
 def test_empty_depth_everywhere_is_a_clear_error(desk9, tmp_path):
     seq_dir = tmp_path / "desk"
     shutil.copytree(desk9, seq_dir)
@@ -208,6 +212,7 @@ def test_bad_override_is_one_line(tmp_path):
     assert len(res.output.strip().splitlines()) == 1
 
 
+@pytest.mark.data
 def test_evaluation_failure_does_not_fail_a_finished_run(desk9, tmp_path):
     """Ground truth of another time span: the run is written, evaluation is skipped with a warning."""
     seq_dir = tmp_path / "desk"
@@ -224,6 +229,7 @@ def test_evaluation_failure_does_not_fail_a_finished_run(desk9, tmp_path):
     assert len(read_tum(tmp_path / "run" / "trajectory.tum")) == 9
 
 
+@pytest.mark.data
 def test_info_and_config_commands(desk9):
     res = CliRunner().invoke(main, ["info", str(desk9)])
     assert res.exit_code == 0, res.output
@@ -236,12 +242,13 @@ def test_info_and_config_commands(desk9):
     assert d["dataset"]["camera"] == "fr2" and d["registration"]["mp"] == 6
 
 
+@pytest.mark.data
 def test_run_records_rerun_with_matches_and_trajectories(desk9, tmp_path):
     rrd = tmp_path / "run.rrd"
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "run"), "--no-map", "-q",
                                     "--rerun-save", str(rrd), "--set", "depth_filter.enabled=true"])
     assert res.exit_code == 0, res.output
-    from test_rerun import entity_paths
+    from tests.viz.test_rerun_log import entity_paths
 
     paths = entity_paths(rrd)
     for entity in ("world/camera/image/matches", "world/camera/image/keypoints", "world/trajectory/groundtruth",
@@ -250,13 +257,27 @@ def test_run_records_rerun_with_matches_and_trajectories(desk9, tmp_path):
         assert "/" + entity in paths, entity
 
 
-def test_reading_ahead_changes_nothing_but_speed(desk9, tmp_path):
-    """prefetch (a reader thread that also detects the key points) gives bit-identical poses."""
-    out = {}
+@pytest.mark.data
+def test_reading_ahead_changes_nothing_but_speed(desk9, tmp_path, monkeypatch):
+    """prefetch (a reader thread that also detects the key points) gives bit-identical poses, and
+    the tracking thread really uses those detections: it detects nothing itself (detect() is
+    deterministic, so only counting its calls shows whether the prefetched ones were ignored)."""
+    import threading
+
+    import rgbdslam.frontend.features as features
+
+    calls = []  # the thread of every ORB detection
+    detect = features.detect
+    monkeypatch.setattr(features, "detect", lambda *a, **k: calls.append(threading.current_thread()) or detect(*a, **k))
+    out, on_tracking_thread = {}, {}
     for ahead in (0, 3):
+        calls.clear()
         summary = run_sequence(desk9, tmp_path / f"p{ahead}", _fast_cfg(f"dataset.prefetch={ahead}"), progress=False)
         assert summary["tracked"] == 9
         out[ahead] = read_tum(tmp_path / f"p{ahead}" / "trajectory.tum")
+        on_tracking_thread[ahead] = sum(t is threading.current_thread() for t in calls)
+        assert len(calls) == 9  # one detection per frame, wherever it ran
+    assert on_tracking_thread == {0: 9, 3: 0}  # read in the loop: all on this thread; read ahead: none
     assert np.array_equal(out[0].timestamps, out[3].timestamps)
     assert np.array_equal(out[0].poses, out[3].poses)
 
@@ -276,7 +297,7 @@ def test_tracking_loss_is_relocalised(tmp_path):
     assert s["evaluation"]["ate"]["rmse"] < 0.02
     # the keyframe graph is written as g2o: a vertex per keyframe at its final pose, an odometry
     # edge between consecutive keyframes (the restart's too) and every loop edge
-    from rgbdslam.backend.graph_io import read_graph
+    from rgbdslam.posegraph.graph_io import read_graph
 
     g = read_graph(tmp_path / "run" / "posegraph.g2o")
     assert g.ids.tolist() == s["keyframes"]
@@ -285,7 +306,7 @@ def test_tracking_loss_is_relocalised(tmp_path):
     at = {round(t, 6): P for t, P in zip(final.timestamps, final.poses)}
     kf_poses = np.array([at[round(t, 6)] for t in s["timestamps_keyframes"]])
     assert np.allclose(g.poses, kf_poses, atol=1e-9)
-    from rgbdslam.backend.graph import info6_g2o_to_gtsam
+    from rgbdslam.posegraph.graph import info6_g2o_to_gtsam
     from rgbdslam.frontend.odometry import RESTART_INFORMATION
 
     restart_edge = g.ids[g.edges_j].tolist().index(85)  # carries no more than the restart's weak information
@@ -306,7 +327,7 @@ def test_tracking_loss_is_relocalised(tmp_path):
 
 
 def test_tracking_segments_hand_worked():
-    from rgbdslam.pipeline import tracking_segments
+    from rgbdslam.run_folder import tracking_segments
 
     frames = [*range(0, 10), *range(20, 30), *range(40, 45)]
     # a loop from segment 1 back to segment 0 joins them (20 frames); segment 2 (5 frames) is alone
@@ -373,6 +394,7 @@ def test_run_with_the_default_mapping_writes_the_map_from_the_filtered_depth(syn
     assert np.median(err) < 0.01  # occluded points (behind what frame 0 sees) are the tail
 
 
+@pytest.mark.data
 def test_several_sequences_in_one_run_command(desk9, tmp_path):
     """`rgbdslam run A B C`: each into OUT/<name> (a repeated name gets _2), a failing one is
     reported and skipped, the table on stdout and summary.csv hold each run's own numbers."""
@@ -394,11 +416,13 @@ def test_several_sequences_in_one_run_command(desk9, tmp_path):
     assert len(table) == 2 and (out / "summary.md").read_text().count("| ok |") == 2
 
 
+@pytest.mark.data
 def test_rerun_save_needs_a_single_sequence(desk9, tmp_path):
     res = CliRunner().invoke(main, ["run", str(desk9), str(desk9), "--rerun-save", str(tmp_path / "x.rrd")])
     assert res.exit_code == 2 and "single SEQUENCE" in res.output and not (tmp_path / "x.rrd").exists()
 
 
+@pytest.mark.data
 def test_a_new_run_into_a_run_folder_keeps_the_finished_one(desk9, tmp_path, monkeypatch):
     """Re-running into a folder that holds a finished run and stopping part-way (Ctrl-C) must not
     cost the finished run: it is moved to previous/ before the new run writes anything."""
@@ -417,6 +441,7 @@ def test_a_new_run_into_a_run_folder_keeps_the_finished_one(desk9, tmp_path, mon
     assert json.loads((out / "run.json").read_text())["interrupted"] is True
 
 
+@pytest.mark.data
 def test_only_the_first_frame_tracked_is_a_tracking_failure(desk9, tmp_path):
     """Frames 1-8 black: frame 0 is the origin and nothing registers after it. That is no
     trajectory (exit 3), not a one-pose 'success'; the five per-frame warnings cap the output."""
@@ -431,6 +456,7 @@ def test_only_the_first_frame_tracked_is_a_tracking_failure(desk9, tmp_path):
     assert run["tracked"] == 1 and run["lost"] == 8
 
 
+@pytest.mark.data
 def test_unreadable_frames_warn_five_times_then_are_counted(desk9, tmp_path):
     seq_dir = tmp_path / "desk"
     shutil.copytree(desk9, seq_dir)
@@ -442,6 +468,7 @@ def test_unreadable_frames_warn_five_times_then_are_counted(desk9, tmp_path):
     assert json.loads((tmp_path / "run" / "run.json").read_text())["skipped_frames"] == list(range(1, 8))
 
 
+@pytest.mark.data
 def test_an_output_path_under_a_file_is_one_line(desk9, tmp_path):
     (tmp_path / "afile").write_text("x")
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "afile" / "run"), "-q"])
@@ -457,6 +484,7 @@ def test_demo_with_too_few_frames_is_one_line_before_any_work(tmp_path):
     assert not (tmp_path / "demo").exists()
 
 
+@pytest.mark.data
 def test_a_foreign_previous_folder_is_never_deleted(desk9, tmp_path):
     out = tmp_path / "run"
     run_sequence(desk9, out, _fast_cfg(), progress=False)
@@ -474,6 +502,7 @@ def test_a_foreign_previous_folder_is_never_deleted(desk9, tmp_path):
         p.name for p in out.iterdir() if p.name != "previous")
 
 
+@pytest.mark.data
 def test_failed_runs_never_push_a_finished_run_out_of_previous(desk9, tmp_path):
     """Finished run, then two failing re-runs into the same folder: previous/ still holds the
     finished run (a failed run is replaced, not moved), and no failed run leaves a trajectory."""
@@ -503,6 +532,7 @@ def test_batch_folder_names_never_collide(tmp_path):
     assert [d.name for d in dirs] == ["seq", "seq_2", "seq_2_2", "SEQ_3"]  # seq_2 is taken, case aside
 
 
+@pytest.mark.data
 def test_mapping_problems_never_cost_the_run(desk9, tmp_path):
     """A mapping setting fusion refuses is reported before tracking starts; a map that turns
     out empty after a finished run is a warning, and the run's outputs stand."""

@@ -7,7 +7,7 @@
 * iSAM2: pending factors are pushed into an incremental solver whenever a loop arrives,
   so the current estimate (and the drift ``correction``) stays up to date during the run;
 * ``optimize``: a final batch Levenberg–Marquardt (or Gauss–Newton) over all factors, from
-  the initial values chosen by ``cfg.init``: MASAT (paper 000, spec section 5), weighted
+  the initial values chosen by ``cfg.init``: MASAT (docs/references.md §5), weighted
   MASAT, odometry chaining, BFS spanning tree, or the iSAM2 estimate.
 """
 
@@ -45,7 +45,7 @@ def _check_information(info: np.ndarray, what: str) -> np.ndarray:
     return info
 
 
-class PoseGraph:
+class KeyframeGraph:
     def __init__(self, cfg: BackendConfig):
         self.cfg = cfg
         self.order: list[int] = []  # keyframe indices in insertion order
@@ -179,15 +179,15 @@ class PoseGraph:
         return {i: self._estimate.get(i, c @ self.guess[i]) for i in self.order}
 
     def as_graph(self, poses: dict[int, np.ndarray] | None = None):
-        """The keyframe graph as a :class:`rgbdslam.backend.graph.PoseGraph` (SE(3), vertex ids =
+        """The keyframe graph as a :class:`rgbdslam.posegraph.graph.PoseGraphData` (SE(3), vertex ids =
         frame indices, information in g2o order) for ``write_g2o``; vertices at ``poses``
         (default: the front-end guesses). The robust kernel of loop edges is not part of it."""
-        from rgbdslam.backend.graph import PoseGraph as FileGraph, info6_g2o_to_gtsam
+        from rgbdslam.posegraph.graph import PoseGraphData, info6_g2o_to_gtsam
 
         pos = {n: k for k, n in enumerate(self.order)}
         edges = self._edges()
         poses = poses or self.guess
-        return FileGraph(
+        return PoseGraphData(
             dim=3,
             ids=np.array(self.order, dtype=np.int64),
             poses=np.array([poses.get(i, self.guess[i]) for i in self.order], float).reshape(-1, 4, 4),
@@ -241,7 +241,7 @@ class PoseGraph:
             sub = [(pos[i], pos[j], T, I) for i, j, T, I in edges if i in pos]
             anchor = self.guess[r]
             if method in ("masat", "weighted_masat"):
-                from rgbdslam.backend.masat import masat_initialize_pose3
+                from rgbdslam.posegraph.masat import masat_initialize_pose3
 
                 P = masat_initialize_pose3(len(nodes), sub, weighted=method == "weighted_masat", root=0)
             else:

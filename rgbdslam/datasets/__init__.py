@@ -1,40 +1,34 @@
-"""Sequence readers behind one interface, and a registry that picks the reader for a folder.
+"""Sequence readers behind one interface (``base.Sequence``), one module per source, and
+:func:`open_sequence`, which picks the reader for a folder.
 
-Each source lives in its own module and registers itself with :func:`register`:
-``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes) and ``put`` (POZNAN/PUT
-Kinect layout).
+Each source's module declares its reader with :func:`rgbdslam.datasets.registry.reader`:
+``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes, ETH3D SLAM and ICL-NUIM's
+TUM variant), ``put`` (POZNAN/PUT Kinect layout), ``7scenes`` (Microsoft 7-Scenes) and
+``rosbag`` (ROS 1 / ROS 2 bags and RealSense recordings).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from rgbdslam.datasets.base import Frame, Sequence
+from rgbdslam.datasets.registry import READERS
 from rgbdslam.errors import InputError
-
-# name -> (detector(path) -> bool, factory(path, dataset_config) -> Sequence)
-_REGISTRY: dict[str, tuple[Callable[[Path], bool], Callable[..., Sequence]]] = {}
-
-
-def register(name: str, detect: Callable[[Path], bool]):
-    def deco(factory: Callable[..., Sequence]):
-        _REGISTRY[name] = (detect, factory)
-        return factory
-
-    return deco
 
 
 def available() -> list[str]:
     _load_builtin()
-    return sorted(_REGISTRY)
+    return sorted(READERS)
 
 
 def _load_builtin() -> None:
-    # Importing the modules registers them.
-    from rgbdslam.datasets import put, tum  # noqa: F401
+    # Importing the modules declares their readers (tum first: it is tried first).
+    from rgbdslam.datasets import tum  # noqa: F401
+    from rgbdslam.datasets import put  # noqa: F401
+    from rgbdslam.datasets import sevenscenes  # noqa: F401
+    from rgbdslam.datasets import rosbag  # noqa: F401
 
 
 def open_sequence(path: str | Path, cfg=None) -> Sequence:
@@ -46,19 +40,21 @@ def open_sequence(path: str | Path, cfg=None) -> Sequence:
     path = Path(path)
     if not path.exists():
         raise InputError(f"sequence folder {path} does not exist; check the path (TUM data sets live under ../shared/data/tum)")
-    if not path.is_dir():
-        raise InputError(f"{path} is not a folder; give the sequence's folder (the one with rgb.txt or matched)")
+    if not path.is_dir() and not any(detect(path) for detect, _ in READERS.values()):
+        raise InputError(f"{path} is not a folder or a known recording (.bag, .db3, .mcap); give the sequence's "
+                         f"folder (the one with rgb.txt or matched) or a bag")
     kind = cfg.kind
     if kind in ("auto", "synthetic"):
-        kind = next((n for n, (detect, _) in _REGISTRY.items() if detect(path)), None)
+        kind = next((n for n, (detect, _) in READERS.items() if detect(path)), None)
         if kind is None:
             raise InputError(
                 f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
-                f"with time-stamp-named PNGs (TUM), or a 'matched' file (PUT)"
+                f"with time-stamp-named PNGs (TUM, ETH3D, ICL-NUIM), frame-NNNNNN.color.jpg (7-Scenes), "
+                f"a 'matched' file (PUT) or a ROS bag (metadata.yaml, .bag, .db3, .mcap)"
             )
-    if kind not in _REGISTRY:
+    if kind not in READERS:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
-    return _REGISTRY[kind][1](path, cfg)
+    return READERS[kind][1](path, cfg)
 
 
 def describe_sequence(path: str | Path, cfg=None) -> str:
@@ -68,11 +64,13 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
     cam = seq.camera
     gt = seq.groundtruth()
     span = float(ts[-1] - ts[0]) if len(ts) else 0.0
+    setup = getattr(seq, "camera_setup", None)
     lines = [
         f"sequence    {seq.root}",
         f"reader      {type(seq).__name__}",
         f"camera      {cam.name or 'custom'}: fx {cam.fx} fy {cam.fy} cx {cam.cx} cy {cam.cy}, "
-        f"{cam.width}x{cam.height}, distortion {' '.join(f'{d:g}' for d in cam.dist)}",
+        f"{cam.width}x{cam.height}, distortion {' '.join(f'{d:g}' for d in cam.dist)}"
+        + (f" (from {setup.source})" if setup is not None else ""),
         f"frames      {len(seq)} over {span:.2f} s ({len(seq) / span if span > 0 else 0:.1f} Hz)",
         f"groundtruth {f'{len(gt)} poses' if gt is not None else 'none'}",
     ]
@@ -86,7 +84,9 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
         warning = depth_warning(first)
         if warning:
             lines.append(f"warning     {warning}")
+    if setup is not None and setup.fallback_warning():
+        lines.append(f"warning     {setup.fallback_warning()}")
     return "\n".join(lines)
 
 
-__all__ = ["Frame", "Sequence", "open_sequence", "register", "available", "describe_sequence"]
+__all__ = ["Frame", "Sequence", "open_sequence", "available", "describe_sequence"]

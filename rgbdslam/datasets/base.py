@@ -71,6 +71,8 @@ class Sequence(ABC):
     name: str
     root: Path
     camera: Camera
+    camera_setup: Any = None  # datasets.camera_file.CameraSetup: the camera, where it came from, depth registration
+    streaming: bool = False  # a live stream: length unknown until it ends, frames only through prefetched()
 
     @property
     @abstractmethod

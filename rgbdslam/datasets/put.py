@@ -18,15 +18,9 @@ import cv2
 import numpy as np
 
 from rgbdslam.io.text import read_text
-from rgbdslam.datasets import register
-from rgbdslam.datasets.tum import (
-    CAMERA_FILE,
-    RgbdFileSequence,
-    TumSequence,
-    camera_from_yaml,
-    data_lines,
-    select_frames,
-)
+from rgbdslam.datasets.registry import reader
+from rgbdslam.datasets.camera_file import CAMERA_FILE, CameraSetup, resolve_camera
+from rgbdslam.datasets.tum import RgbdFileSequence, TumSequence, data_lines, pick_depth_scale, select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
@@ -70,7 +64,7 @@ def _is_put(path: Path) -> bool:
     return (path / MATCHED).is_file()
 
 
-@register("put", _is_put)
+@reader("put", _is_put)
 class PutSequence(RgbdFileSequence):
     """A PUT Kinect folder; see the module docstring."""
 
@@ -88,12 +82,7 @@ class PutSequence(RgbdFileSequence):
             img_dir = None
         rgb_files = [(root if img_dir else root / "rgb") / f"rgb_{k:05d}.png" for k in keep]
         depth_files = [(root if img_dir else root / "depth") / f"depth_{k:05d}.png" for k in keep]
-        if cfg.camera != "auto":
-            camera = CAMERAS[cfg.camera]
-        elif (root / CAMERA_FILE).is_file():
-            camera = camera_from_yaml(root / CAMERA_FILE)
-        else:
-            camera = CAMERAS["kinect1"]
+        camera = resolve_camera(cfg, root, CameraSetup(CAMERAS["kinect1"], "the PUT data set's Kinect v1"))
         super().__init__(
             root=root,
             name=root.resolve().name,
@@ -101,7 +90,7 @@ class PutSequence(RgbdFileSequence):
             timestamps=ts_rgb[keep],
             rgb_files=rgb_files,
             depth_files=depth_files,
-            depth_scale=cfg.depth_scale if cfg.depth_scale is not None else PUT_DEPTH_SCALE,
+            depth_scale=pick_depth_scale(cfg, camera, PUT_DEPTH_SCALE),
             depth_correction=cfg.depth_correction,
             depth_timestamps=ts_d[keep],
         )

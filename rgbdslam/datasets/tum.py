@@ -8,8 +8,13 @@ as TUM's and many bag-extraction tools write them) are read in time order. Colou
 paired with TUM ``associate.py`` semantics, or read from an associations file
 ('rgb_ts rgb_file depth_ts depth_file').
 
-Camera choice, first match wins: ``dataset.camera`` if not ``auto``; a ``camera.yaml`` in
-the folder; ``freiburg1/2/3`` in the folder name; else ``ros_default`` (TUM's default).
+Camera choice, first match wins (:func:`rgbdslam.datasets.camera_file.resolve_camera`):
+``--camera FILE`` / ``dataset.camera_file``; ``dataset.camera`` if not ``auto``; a ``camera.yaml``
+in the folder; what the folder says (ETH3D SLAM's ``calibration.txt``, ICL-NUIM's TUM variant,
+``freiburg1/2/3`` in the folder name); else ``ros_default`` (TUM's default), with a warning.
+
+Also read here: ETH3D SLAM data sets (TUM layout plus ``calibration.txt``, depth 5000 per metre)
+and ICL-NUIM's TUM variant (``*.gt.freiburg`` ground truth, depth 5000 per metre).
 
 The image loading here is shared with the PUT reader (:class:`RgbdFileSequence`).
 """
@@ -20,17 +25,17 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from rgbdslam.io.text import read_lines, read_text
-from rgbdslam.datasets import register
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
+from rgbdslam.datasets.camera_file import CAMERA_FILE, CameraSetup, read_camera_file, resolve_camera
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
+from rgbdslam.geometry.depth_registration import DepthRegistration
 from rgbdslam.io.trajectory import Trajectory, read_tum
 
 TUM_DEPTH_SCALE = 5000.0
-CAMERA_FILE = "camera.yaml"
 
 
 # ------------------------------------------------------------------ shared image loading
@@ -69,8 +74,9 @@ def read_rgb(path: Path, camera: Camera) -> np.ndarray:
     return cv2.cvtColor(img, code)
 
 
-def read_depth(path: Path, camera: Camera, metres_per_unit: float) -> np.ndarray:
-    """A 16-bit depth image as (H, W) float32 metres (0 = no measurement)."""
+def read_depth(path: Path, camera: Camera, metres_per_unit: float, invalid: int | None = None) -> np.ndarray:
+    """A 16-bit depth image as (H, W) float32 metres (0 = no measurement; so is the raw value
+    ``invalid``, e.g. 7-Scenes' 65535)."""
     if not path.is_file():
         raise InputError(f"depth image {path} is missing; restore it or remove its line from the list")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -81,7 +87,17 @@ def read_depth(path: Path, camera: Camera, metres_per_unit: float) -> np.ndarray
     if img.dtype != np.uint16:
         raise InputError(f"depth image {path} is {img.dtype}, expected 16-bit unsigned; save depth as 16-bit PNG")
     _check_size(path, img, camera)
-    return img.astype(np.float32) * np.float32(metres_per_unit)
+    out = img.astype(np.float32) * np.float32(metres_per_unit)
+    if invalid is not None:
+        out[img == invalid] = 0.0
+    return out
+
+
+def pick_depth_scale(cfg, setup: CameraSetup, default: float) -> float:
+    """Raw depth units per metre: ``dataset.depth_scale`` if set, else the camera file's, else ``default``."""
+    if cfg.depth_scale is not None:
+        return cfg.depth_scale
+    return setup.depth_scale if setup.depth_scale is not None else default
 
 
 def _check_size(path: Path, img: np.ndarray, camera: Camera) -> None:
@@ -89,7 +105,7 @@ def _check_size(path: Path, img: np.ndarray, camera: Camera) -> None:
     if (w, h) != (camera.width, camera.height):
         raise InputError(
             f"image {path} is {w}x{h} but camera '{camera.name}' is {camera.width}x{camera.height}; "
-            f"set dataset.camera or a {CAMERA_FILE} matching the images"
+            f"pass --camera FILE (or a {CAMERA_FILE} in the folder) with the intrinsics of these images"
         )
 
 
@@ -100,17 +116,23 @@ class RgbdFileSequence(Sequence):
         self,
         root: Path,
         name: str,
-        camera: Camera,
+        camera: Camera | CameraSetup,
         timestamps: np.ndarray,
         rgb_files: list[Path],
         depth_files: list[Path],
         depth_scale: float,
         depth_correction: float = 1.0,
         depth_timestamps: np.ndarray | None = None,
+        invalid_depth: int | None = None,
     ) -> None:
         self.root = Path(root)
         self.name = name
-        self.camera = camera
+        self.camera_setup = camera if isinstance(camera, CameraSetup) else CameraSetup(camera, "the reader")
+        self.camera = self.camera_setup.camera
+        setup = self.camera_setup
+        self.registration = (DepthRegistration(setup.depth_camera, setup.camera, setup.depth_to_color)
+                             if setup.depth_camera is not None else None)
+        self._depth_size_camera = setup.depth_camera or setup.camera
         self._timestamps = np.asarray(timestamps, dtype=np.float64)
         self.depth_timestamps = (
             self._timestamps.copy() if depth_timestamps is None else np.asarray(depth_timestamps, dtype=np.float64)
@@ -121,6 +143,17 @@ class RgbdFileSequence(Sequence):
             raise InputError(f"dataset.depth_scale must be positive (got {depth_scale}); TUM uses 5000, PUT 1000")
         self.depth_scale = float(depth_scale)
         self.depth_correction = float(depth_correction)
+        self.invalid_depth = invalid_depth
+        self._check_first_image()
+
+    def _check_first_image(self) -> None:
+        """Intrinsics for another image size are a mistake of the whole run, not of one frame:
+        say so before it starts (a first image that cannot be read is left to the frame loop)."""
+        if not self.rgb_files or not self.rgb_files[0].is_file():
+            return
+        img = cv2.imread(str(self.rgb_files[0]), cv2.IMREAD_UNCHANGED)
+        if img is not None:
+            _check_size(self.rgb_files[0], img, self.camera)
 
     @property
     def timestamps(self) -> np.ndarray:
@@ -129,7 +162,10 @@ class RgbdFileSequence(Sequence):
     def load(self, i: int) -> Frame:
         rgb_path, depth_path = self.rgb_files[i], self.depth_files[i]
         rgb = read_rgb(rgb_path, self.camera)
-        depth = read_depth(depth_path, self.camera, self.depth_correction / self.depth_scale)
+        depth = read_depth(depth_path, self._depth_size_camera, self.depth_correction / self.depth_scale,
+                           self.invalid_depth)
+        if self.registration is not None:
+            depth = self.registration(depth)
         try:
             name = str(rgb_path.relative_to(self.root))
         except ValueError:
@@ -236,62 +272,66 @@ def read_associations(path: Path) -> tuple[np.ndarray, list[str], np.ndarray, li
 
 
 def camera_from_yaml(path: Path) -> Camera:
-    """A camera from ``camera.yaml``: ``camera: <known name>`` and/or explicit intrinsics
-    ``fx fy cx cy width height dist`` (explicit values override the named camera's)."""
+    """The colour camera of a camera file (``camera.yaml``; :mod:`rgbdslam.datasets.camera_file`)."""
+    return read_camera_file(path).camera
+
+
+ICL_NUIM = Camera(481.20, 480.00, 319.5, 239.5, 640, 480, (0.0,) * 5, "icl_nuim")
+
+
+def _eth3d_camera(root: Path) -> CameraSetup | None:
+    """ETH3D SLAM: ``calibration.txt`` holds 'fx fy cx cy'; the size is the first colour image's."""
+    p = root / "calibration.txt"
+    if not p.is_file():
+        return None
+    rows = [f for _, f in data_lines(p)]
     try:
-        data = yaml.safe_load(read_text(path, "camera file"))
-    except yaml.YAMLError:
-        raise InputError(f"{path} is not valid YAML; fix it or delete it to use the default camera") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{path} must be a mapping with 'camera: <name>' or fx, fy, cx, cy, width, height, dist")
-    known = {"camera", "fx", "fy", "cx", "cy", "width", "height", "dist"}
-    unknown = set(data) - known
-    if unknown:
-        raise InputError(f"{path}: unknown key(s) {', '.join(sorted(map(str, unknown)))}; allowed: {', '.join(sorted(known))}")
-    name = data.get("camera")
-    base: dict = {}
-    if name is not None:
-        if name not in CAMERAS:
-            raise InputError(f"{path}: unknown camera '{name}'; choose one of {', '.join(CAMERAS)} or give fx, fy, cx, cy")
-        c = CAMERAS[name]
-        base = dict(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy, width=c.width, height=c.height, dist=c.dist)
-    for k in ("fx", "fy", "cx", "cy", "width", "height", "dist"):
-        if k in data:
-            base[k] = data[k]
-    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in base]
-    if missing:
-        raise InputError(f"{path}: missing {', '.join(missing)}; give 'camera: <name>' or all of fx, fy, cx, cy")
+        fx, fy, cx, cy = (float(x) for x in rows[0])
+    except (IndexError, ValueError):
+        raise InputError(f"{p}: expected one line 'fx fy cx cy' (ETH3D SLAM calibration)") from None
+    w, h = 640, 480
     try:
-        dist = tuple(float(x) for x in base.get("dist", (0.0,) * 5))
-        cam = Camera(
-            float(base["fx"]), float(base["fy"]), float(base["cx"]), float(base["cy"]),
-            int(base.get("width", 640)), int(base.get("height", 480)), dist, str(name or "custom"),
-        )
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: intrinsics must be numbers (dist a list of 5 numbers)") from None
-    if len(dist) not in (4, 5, 8):
-        raise InputError(f"{path}: dist must have 4, 5 or 8 coefficients (k1 k2 p1 p2 [k3 ...]); got {len(dist)}")
-    if not (np.isfinite([cam.fx, cam.fy, cam.cx, cam.cy, *dist]).all() and cam.fx > 0 and cam.fy > 0
-            and cam.width > 0 and cam.height > 0):
-        raise InputError(f"{path}: fx and fy must be positive, width and height at least 1, and every value "
-                         f"finite; got fx {cam.fx}, fy {cam.fy}, cx {cam.cx}, cy {cam.cy}, "
-                         f"{cam.width}x{cam.height}")
-    return cam
+        first = root / _image_list(root, "rgb")[1][0]
+        img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+        if img is not None:
+            h, w = img.shape[:2]
+    except InputError:
+        pass
+    return CameraSetup(Camera(fx, fy, cx, cy, w, h, (0.0,) * 5, "eth3d"), f"{p.name} (ETH3D SLAM)",
+                       depth_scale=TUM_DEPTH_SCALE)
+
+
+def _icl_groundtruth(root: Path) -> Path | None:
+    found = sorted(root.glob("*.gt.freiburg"))
+    return found[0] if found else None
+
+
+def _own_camera(root: Path) -> CameraSetup | None:
+    """What a TUM-like folder says about its camera: ETH3D's calibration.txt, ICL-NUIM's
+    ``*.gt.freiburg`` (its TUM variant; intrinsics from the data set's page, fy taken positive as
+    its TUM-format images are stored), or freiburg1/2/3 in the folder name (TUM)."""
+    eth = _eth3d_camera(root)
+    if eth is not None:
+        return eth
+    name = root.resolve().name.lower()
+    if _icl_groundtruth(root) is not None or ("living_room" in name or "office_room" in name) and "frei" in name:
+        return CameraSetup(ICL_NUIM, "ICL-NUIM (TUM variant: *.gt.freiburg / folder name)", depth_scale=TUM_DEPTH_SCALE)
+    for k in ("1", "2", "3"):
+        if f"freiburg{k}" in name or f"fr{k}_" in name:
+            return CameraSetup(CAMERAS[f"fr{k}"], f"'freiburg{k}' in the folder name")
+    return None
+
+
+def tum_camera_setup(root: Path, cfg) -> CameraSetup:
+    """The camera for a TUM-layout folder (see the module docstring for the order)."""
+    return resolve_camera(cfg, root, _own_camera(root))
 
 
 def choose_camera(root: Path, camera: str = "auto") -> Camera:
-    """The camera for a TUM-layout folder (see the module docstring for the order)."""
-    if camera != "auto":
-        if camera not in CAMERAS:
-            raise InputError(f"unknown camera '{camera}'; choose one of {', '.join(CAMERAS)}")
-        return CAMERAS[camera]
-    if (root / CAMERA_FILE).is_file():
-        return camera_from_yaml(root / CAMERA_FILE)
-    name = root.resolve().name.lower()
-    for k in ("1", "2", "3"):
-        if f"freiburg{k}" in name or f"fr{k}_" in name:
-            return CAMERAS[f"fr{k}"]
-    return CAMERAS["ros_default"]
+    """The camera for a TUM-layout folder chosen by name (``camera``) or found in the folder."""
+    from rgbdslam.config import DatasetConfig
+
+    return tum_camera_setup(Path(root), DatasetConfig(camera=camera)).camera
 
 
 def _is_tum(path: Path) -> bool:
@@ -304,7 +344,7 @@ def _is_tum(path: Path) -> bool:
     return listed("rgb") and listed("depth")
 
 
-@register("tum", _is_tum)
+@reader("tum", _is_tum)
 class TumSequence(RgbdFileSequence):
     """A TUM RGB-D folder; see the module docstring."""
 
@@ -334,18 +374,21 @@ class TumSequence(RgbdFileSequence):
                 )
         keep = select_frames(len(ia), cfg, root)
         ia, ib = ia[keep], ib[keep]
+        setup = tum_camera_setup(root, cfg)
         super().__init__(
             root=root,
             name=root.resolve().name,
-            camera=choose_camera(root, cfg.camera),
+            camera=setup,
             timestamps=ts_rgb[ia],
             rgb_files=[root / f_rgb[i] for i in ia],
             depth_files=[root / f_d[j] for j in ib],
-            depth_scale=cfg.depth_scale if cfg.depth_scale is not None else TUM_DEPTH_SCALE,
+            depth_scale=pick_depth_scale(cfg, setup, TUM_DEPTH_SCALE),
             depth_correction=cfg.depth_correction,
             depth_timestamps=ts_d[ib],
         )
 
     def groundtruth(self) -> Trajectory | None:
         p = self.root / "groundtruth.txt"
-        return read_tum(p) if p.is_file() else None
+        if not p.is_file():
+            p = _icl_groundtruth(self.root)  # ICL-NUIM's TUM variant
+        return read_tum(p) if p is not None and p.is_file() else None

@@ -72,7 +72,7 @@ class AteResult(ErrorStats):
     align: str = "se3"
 
 
-def align(model: np.ndarray, data: np.ndarray, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, float]:
+def umeyama_alignment(model: np.ndarray, data: np.ndarray, mode: str = "se3") -> tuple[np.ndarray, np.ndarray, float]:
     """Closed-form alignment of ``model`` onto ``data`` (both (3, N)): ``data ~ s R model + t``.
 
     ``mode``: ``'se3'`` rigid (Horn 1987 / Umeyama 1991 without scale, like TUM's
@@ -128,9 +128,6 @@ def align(model: np.ndarray, data: np.ndarray, mode: str = "se3") -> tuple[np.nd
             )
     t = (mu_d - s * R @ mu_m).reshape(3)
     return R, t, s
-
-
-_align = align  # ``ate`` below has a parameter named ``align``
 
 
 def apply_alignment(traj: Trajectory, R: np.ndarray, t: np.ndarray, s: float = 1.0) -> Trajectory:
@@ -198,7 +195,7 @@ def ate(
     """
     mode = align
     g, e = associate_trajectories(gt, est, max_difference, offset)
-    R, t, s = _align(e.positions.T, g.positions.T, mode)
+    R, t, s = umeyama_alignment(e.positions.T, g.positions.T, mode)
     aligned = apply_alignment(e, R, t, s)
     errors = np.linalg.norm(g.positions - aligned.positions, axis=1)
     T = np.eye(4)

@@ -1,4 +1,4 @@
-"""DIF — the conditional averaging depth filter (spec section 3, docs/slam.md).
+"""DIF — the conditional averaging depth filter (docs/references.md §3, docs/slam.md).
 
 Runs after registration, once the current frame's camera-to-world pose is known:
 

@@ -82,7 +82,7 @@ def count_detections(gray: np.ndarray, fc: FeaturesConfig) -> int:
     FAST (with non-maximum suppression) at ORB's ``fast_threshold`` on the full-resolution
     image, inside ORB's ``edge_threshold`` border. ORB's own count is not exposed by OpenCV and
     is capped by its retention; this one is not capped, so it falls when the image is blurred
-    (the loop-closure sharpness gate, spec section 4). About 0.3 ms at 640x480; its rank
+    (the loop-closure sharpness gate, docs/references.md §4). About 0.3 ms at 640x480; its rank
     correlation with the count over the whole 8-level pyramid is 0.98 on fr1/rpy.
     """
     cache = _cache("fast")

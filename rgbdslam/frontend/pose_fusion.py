@@ -1,5 +1,5 @@
-"""Fusion of the candidate poses of a multi-reference registration (ISLAM, thesis §2,
-docs/references.md).
+"""Fusion of the candidate poses of a multi-reference registration (ISLAM,
+docs/references.md §2).
 
 The candidates (one camera-to-world pose per reference frame, each the reference's pose chained
 with its registration) are fused into one pose: ``'thesis'`` weighted mean of translations,

@@ -1,4 +1,4 @@
-"""Seeded 3-D rigid RANSAC on matched point pairs (spec §6), fully vectorised.
+"""Seeded 3-D rigid RANSAC on matched point pairs (docs/references.md §6), fully vectorised.
 
 All minimal 3-point samples are drawn and fitted at once (batched SVD); the hypothesis with
 the most inliers (ties: smallest summed inlier error) wins and is refitted on its inliers

@@ -15,8 +15,9 @@ def read_lines(path: str | Path, what: str = "text file") -> list[str]:
 
 
 def read_text(path: str | Path, what: str = "text file") -> str:
-    """The UTF-8 text of ``path``; an :class:`InputError` naming the file when it is not text."""
-    path = Path(path)
+    """The UTF-8 text of ``path`` (a path, or a package resource from ``importlib.resources``);
+    an :class:`InputError` naming the file when it is not text."""
+    path = Path(path) if isinstance(path, str) else path
     try:
         return path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:

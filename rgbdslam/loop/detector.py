@@ -1,4 +1,4 @@
-"""Sharpness-gated loop closure (spec section 4, docs/slam.md).
+"""Sharpness-gated loop closure (docs/references.md §4, docs/slam.md).
 
 Per tracked frame the pipeline calls ``observe`` (sharpness gate); on sharp frames it calls
 ``detect``: candidate keyframes come from the descriptor index (LSH by default), the most

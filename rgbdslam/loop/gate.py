@@ -1,4 +1,4 @@
-"""The sharpness gate of loop closure (spec section 4).
+"""The sharpness gate of loop closure (docs/references.md §4).
 
 A frame is *sharp* when its number of detected descriptors is more than ``factor`` times
 the median count of the previous ``window`` frames (thesis: 1.2 x the median of 20). Only

@@ -5,7 +5,7 @@ each of ``n_tables`` tables keys a descriptor on ``n_bits`` randomly chosen bits
 sampling is locality sensitive for the Hamming distance). A keyframe's vote is the number
 of query descriptors that share a bucket with one of its descriptors in at least one table.
 
-Storage uses the logarithmic method (spec section 6, the "multi-kd-tree" idea applied to
+Storage uses the logarithmic method (docs/references.md §6, the "multi-kd-tree" idea applied to
 sorted hash arrays): runs of sorted ``(key, keyframe)`` arrays whose sizes roughly double;
 a new keyframe becomes a small run and equal-sized runs are merged. Insertion is amortised
 O(log n) per entry and a query costs one binary search per key per run (O(log² n)) plus the

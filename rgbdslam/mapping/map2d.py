@@ -1,4 +1,4 @@
-"""Top-down 2-D occupancy map of the fused cloud (the stereo thesis' 2-D map, spec section 6).
+"""Top-down 2-D occupancy map of the fused cloud (the stereo thesis' 2-D map, docs/references.md §6).
 
 1. "Up": from TUM's ``accelerometer.txt`` when present, else from the camera poses (a
    hand-held or robot camera is held roughly upright, so the mean of the cameras' image-down

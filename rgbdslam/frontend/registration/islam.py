@@ -1,5 +1,5 @@
-"""ISLAM — the per-reference registration of the weighted multi-frame method (thesis §2,
-docs/references.md).
+"""ISLAM — the per-reference registration of the weighted multi-frame method
+(docs/references.md §2).
 
 :func:`islam_pair` is the loop for one reference: SVD fit, gate ``th_j = alpha * j**beta``
 (shrinking for beta < 0), weight ``W = 1 / (mean L1 residual)``, stop when ``th < minError``

@@ -1,4 +1,4 @@
-"""ISVD — iterative SVD registration with a shrinking outlier gate (thesis §1, docs/references.md).
+"""ISVD — iterative SVD registration with a shrinking outlier gate (docs/references.md §1).
 
 ```
 T = T0 ; e = e_start

@@ -1,0 +1,270 @@
+"""The SLAM per-frame chain: one frame's way through the stages (docs/architecture.md).
+
+``SLAM`` composes the stage objects, each built from its own config section::
+
+    Frame ─▶ frontend.track   (ORB features, registration against the reference frames → pose or lost)
+          ─▶ landmarks        (landmarks.enabled: the pose checked against the landmark map, the map updated)
+          ─▶ depth_filter     (DIF, needs the pose; the filtered depth goes back to the front end)
+          ─▶ loop.observe     (sharpness gate) ─▶ loop.detect (sharp or due frames only)
+          ─▶ keyframes        (motion policy; loops and restarts force a keyframe)
+          ─▶ graph            (GTSAM pose graph over keyframes, initial values from MASAT)
+
+The run driver (:mod:`rgbdslam.pipeline`) feeds the frames and writes the run folder.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rgbdslam.config import Config
+from rgbdslam.datasets import Frame
+from rgbdslam.frontend.keyframes import KeyframePolicy
+from rgbdslam.frontend.odometry import TrackResult, build_frontend
+from rgbdslam.frontend.pairwise import build_pair_registration
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv
+from rgbdslam.io.atomic import atomic_path
+from rgbdslam.io.trajectory import Trajectory
+from rgbdslam.viz.observer import NullObserver
+
+
+@dataclass
+class FrameRecord:
+    """What the chain keeps of a tracked frame (small: no images)."""
+
+    index: int
+    timestamp: float
+    pose: np.ndarray  # front-end (odometry) pose, camera-to-world
+    keyframe: int  # frame index of the keyframe this frame hangs from
+
+
+@dataclass
+class SlamState:
+    records: list[FrameRecord] = field(default_factory=list)
+    keyframes: list[int] = field(default_factory=list)
+    loops: list[tuple[int, int]] = field(default_factory=list)
+    lost: list[int] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
+    restarts: list[int] = field(default_factory=list)  # frames where tracking restarted after a loss
+    timings: dict[str, list[float]] = field(default_factory=dict)
+    sharp: int = 0
+
+    def add_time(self, stage: str, seconds: float) -> None:
+        self.timings.setdefault(stage, []).append(seconds)
+
+
+class SLAM:
+    """The stages built from a typed config; :meth:`track` takes one frame through them."""
+
+    def __init__(self, cfg: Config, camera: Camera, observer=None, keyframe_dir: Path | None = None):
+        self.cfg = cfg
+        self.observer = observer if observer is not None else NullObserver()
+        self.keyframe_dir = keyframe_dir
+        register = build_pair_registration(cfg)  # matching + the registration strategy, shared with loop closure
+        self.frontend = build_frontend(cfg, camera, register)
+        self.keyframe_policy = KeyframePolicy(cfg.keyframes)
+        self.depth_filter = None
+        if cfg.depth_filter.enabled:
+            from rgbdslam.frontend.depth_filter import DepthFilter
+
+            self.depth_filter = DepthFilter(cfg.depth_filter, camera)
+        self.loop = None
+        if cfg.loop.enabled:
+            from rgbdslam.loop.detector import build_loop_closer
+
+            self.loop = build_loop_closer(cfg, register)
+        self.landmarks = None
+        if cfg.landmarks.enabled:
+            from rgbdslam.landmarks.stage import LandmarkTracker
+
+            self.landmarks = LandmarkTracker(cfg.landmarks, camera)
+        self.graph = None
+        if cfg.backend.enabled or cfg.loop.enabled:
+            from rgbdslam.backend.slam_graph import KeyframeGraph
+
+            self.graph = KeyframeGraph(cfg.backend)
+        self.state = SlamState()
+        self._last_kf: FrameRecord | None = None
+        self._info_since_kf: list[np.ndarray] = []
+        self.optimised: dict[int, np.ndarray] | None = None  # keyframe poses after finish()
+
+    # ------------------------------------------------------------------ one frame
+    def track(self, frame: Frame) -> TrackResult:
+        st = self.state
+        # 1. front end: the frame's pose from its registrations against the reference frames
+        result = self.frontend.track(frame)
+        for k, v in result.timings.items():
+            st.add_time(k, v)
+        if result.lost or result.pose is None:
+            st.lost.append(frame.index)
+            self.observer.log_frame(frame, result)
+            return result
+        pose, restart = result.pose, bool(result.reset)
+        if result.information is not None:
+            self._info_since_kf.append(result.information)
+        # 1b. the landmark map: the pose checked against it (fused with the registration's), the map updated
+        if self.landmarks is not None and not restart:
+            pose = self._track_map(frame, result, pose)
+        # 2. DIF: filtered depth for the map and the front end's references
+        depth = self._filter_depth(frame, pose, restart)
+        # 3. a restart after a tracking loss begins a new segment, to be relocalised
+        if restart:
+            st.restarts.append(frame.index)
+            if self.loop is not None:
+                self.loop.new_segment()
+        # 4. loop closure on sharp (or due) frames
+        loops = self._detect_loops(frame, result, pose)
+        # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node)
+        is_kf = self.keyframe_policy.is_keyframe(frame.index, pose)
+        if (loops or restart) and not is_kf:
+            self.keyframe_policy.force(frame.index, pose)
+            is_kf = True
+        if self.landmarks is not None:
+            pose = self._update_map(frame, result, pose, is_kf)
+        if is_kf:
+            self._add_keyframe(frame, result, pose, depth)
+        rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
+        st.records.append(rec)
+        if is_kf:
+            self._last_kf = rec
+        # 6. loop edges into the pose graph (iSAM2 updates)
+        self._add_loops(loops, pose)
+        self.observer.log_frame(frame, result)
+        if result.matches is not None:
+            self.observer.log_inlier_matches(frame.index, result.matches[:, :2], result.matches[:, 2:])
+        return result
+
+    def _track_map(self, frame: Frame, result: TrackResult, pose: np.ndarray) -> np.ndarray:
+        t0 = time.perf_counter()
+        info = result.information
+        if info is not None and result.n_fused > 1:  # the references share this frame's noise:
+            info = info / result.n_fused  # their summed information counts it n_fused times
+        mpose = self.landmarks.track(frame.index, result.features, pose, info)
+        if mpose is not pose:
+            pose = mpose
+            result.pose = pose
+            self.frontend.correct_last(pose)
+        self.state.add_time("landmarks", time.perf_counter() - t0)
+        return pose
+
+    def _update_map(self, frame: Frame, result: TrackResult, pose: np.ndarray, is_kf: bool) -> np.ndarray:
+        """New landmarks and local BA on a keyframe; the end of the map's step; Rerun."""
+        if is_kf:
+            t0 = time.perf_counter()
+            refined = self.landmarks.add_keyframe(frame.index, result.features, pose)
+            if refined is not None:  # local BA moved this keyframe: tracking continues from there
+                pose = refined
+                result.pose = pose
+                self.frontend.correct_last(pose)
+            self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
+        self.landmarks.end_frame(frame.index)
+        if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
+            self.landmarks.log(self.observer, frame.index, result.features, is_kf)
+        return pose
+
+    def _filter_depth(self, frame: Frame, pose: np.ndarray, restart: bool) -> np.ndarray:
+        if self.depth_filter is None:
+            return frame.depth
+        if restart:  # the last depth maps' poses are unrelated to this one's: nothing to warp
+            self.depth_filter.reset()
+        t0 = time.perf_counter()
+        depth = self.depth_filter(frame.depth, pose)
+        self.frontend.set_depth(frame.index, depth)
+        self.state.add_time("depth_filter", time.perf_counter() - t0)
+        self.observer.log_filtered_depth(frame.index, frame.timestamp, depth)
+        return depth
+
+    def _detect_loops(self, frame: Frame, result: TrackResult, pose: np.ndarray) -> list:
+        if self.loop is None:
+            return []
+        t0 = time.perf_counter()
+        sharp = self.loop.observe(result.features)
+        self.state.sharp += int(sharp)
+        self.observer.log_gate(frame.index, frame.timestamp, *self.loop.gate.last, sharp)
+        loops = []
+        # relocalising: every frame searches the older segments; due: none searched for query_gap frames
+        if sharp or self.loop.relocalizing or self.loop.due(frame.index):
+            loops = self.loop.detect(result.features, pose)
+        self.state.add_time("loop_closure", time.perf_counter() - t0)
+        return loops
+
+    def _add_loops(self, loops: list, pose: np.ndarray) -> None:
+        if not loops or self.graph is None:
+            return
+        t0 = time.perf_counter()
+        for e in loops:
+            self.graph.add_loop(e)
+            self.state.loops.append((int(e.i), int(e.j)))
+            self.observer.log_loop(e.i, e.j, self._pose_of(e.i), pose)
+        self.state.add_time("pose_graph", time.perf_counter() - t0)
+
+    def _pose_of(self, index: int) -> np.ndarray | None:
+        for r in reversed(self.state.records):
+            if r.index == index:
+                return r.pose
+        return None
+
+    def _add_keyframe(self, frame: Frame, result: TrackResult, pose: np.ndarray, depth: np.ndarray) -> None:
+        self.state.keyframes.append(frame.index)
+        if self.graph is not None:
+            self.graph.add_node(frame.index, pose)
+            if self._last_kf is not None:
+                T_ij = inv(self._last_kf.pose) @ pose
+                self.graph.add_odometry(self._last_kf.index, frame.index, T_ij, self._keyframe_information())
+        self._info_since_kf = []
+        if self.loop is not None:
+            self.loop.add_keyframe(result.features, pose)
+        if self.keyframe_dir is not None and self.depth_filter is not None:
+            _write_depth_png(self.keyframe_dir / f"depth_{frame.index:06d}.png", depth)
+
+    def _keyframe_information(self) -> np.ndarray:
+        """Information of the chained relative pose between two keyframes.
+
+        Covariances of the chained frame-to-frame registrations add up (to first order,
+        ignoring the rotation of the frames), so the information is the inverse of the sum
+        of the per-frame covariances.
+        """
+        infos = self._info_since_kf or [np.eye(6) * 1e4]
+        cov = sum(np.linalg.inv(I) for I in infos)
+        return np.linalg.inv(cov)
+
+    # ---------------------------------------------------------------- trajectories
+    def odometry(self) -> Trajectory:
+        recs = self.state.records
+        return Trajectory(np.array([r.timestamp for r in recs]), np.array([r.pose for r in recs]).reshape(-1, 4, 4))
+
+    def finish(self) -> Trajectory:
+        """Optimise the pose graph (if any) and return every tracked frame's final pose.
+
+        Non-keyframes follow their keyframe: final = optimised(kf) · odo(kf)⁻¹ · odo(frame).
+        """
+        odo = self.odometry()
+        if self.graph is None or not self.state.keyframes:
+            return odo
+        t0 = time.perf_counter()
+        optimised = self.graph.optimize()
+        self.optimised = optimised
+        if self.landmarks is not None:  # landmarks move with the keyframe that anchors them
+            self.landmarks.finish(optimised)
+        self.state.add_time("pose_graph", time.perf_counter() - t0)
+        kf_pose = {r.index: r.pose for r in self.state.records if r.index == r.keyframe}
+        poses = []
+        for r in self.state.records:
+            if r.keyframe in optimised:
+                poses.append(optimised[r.keyframe] @ inv(kf_pose[r.keyframe]) @ r.pose)
+            else:
+                poses.append(r.pose)
+        return Trajectory(odo.timestamps, np.array(poses).reshape(-1, 4, 4))
+
+
+def _write_depth_png(path: Path, depth: np.ndarray, scale: float = 5000.0) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    d = np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16)
+    with atomic_path(path) as tmp:  # the temporary name keeps the .png suffix cv2 needs
+        cv2.imwrite(str(tmp), d)

@@ -1,0 +1,97 @@
+"""Camera files (--camera, dataset.camera_file), the one camera order every reader follows, what
+`run` says about the camera, and the TUM-like layouts recognised by their own files (ETH3D
+SLAM's calibration.txt, ICL-NUIM's TUM variant)."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import yaml
+
+from tests.conftest import TUM_DESK9, cli, need
+from rgbdslam.config import DatasetConfig
+from rgbdslam.datasets import open_sequence
+from rgbdslam.datasets.camera_file import read_camera_file
+from rgbdslam.errors import InputError
+
+
+def _write(path, data):
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_camera_file_keys(tmp_path):
+    f = _write(tmp_path / "cam.yaml", {"fx": 600, "fy": 601, "cx": 330.5, "cy": 250.5, "size": [640, 480],
+                                       "distortion": [0.1, -0.2, 0, 0, 0], "depth_scale": 1000,
+                                       "depth_camera": {"fx": 580, "fy": 580, "cx": 320, "cy": 240},
+                                       "depth_to_color": [0.025, 0, 0]})
+    s = read_camera_file(f)
+    c = s.camera
+    assert (c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.dist) == (600, 601, 330.5, 250.5, 640, 480, (0.1, -0.2, 0, 0, 0))
+    assert s.depth_scale == 1000 and s.depth_camera.fx == 580 and s.depth_camera.dist == (0.0,) * 5
+    assert s.depth_to_color[:3, 3].tolist() == [0.025, 0, 0] and np.array_equal(s.depth_to_color[:3, :3], np.eye(3))
+    assert s.source == str(f) and not s.fallback
+    for bad, msg in [({"fx": 1, "fy": 1, "cx": 1, "cy": 1, "lens": 3}, "unknown key"),
+                     ({"fx": 1, "fy": 1, "cx": 1, "cy": 1, "size": [640]}, "size must be"),
+                     ({"fx": 1, "fy": 1, "cx": 1, "cy": 1, "depth_scale": -5}, "depth_scale must be a positive"),
+                     ({"fx": 1, "fy": 1, "cx": 1, "cy": 1, "depth_to_color": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]},
+                      "not a rotation"),
+                     ({"fx": 1, "fy": 1, "cx": 1}, "missing cy")]:
+        with pytest.raises(InputError, match=msg):
+            read_camera_file(_write(tmp_path / "bad.yaml", bad))
+
+
+@pytest.mark.data
+def test_camera_order_and_what_run_says(tmp_path):
+    """A copy of a freiburg1 folder under another name: ros_default with a warning naming the
+    fix; --camera wins over everything; run prints the camera and where it came from."""
+    copy = tmp_path / "my_desk"
+    shutil.copytree(need(TUM_DESK9), copy)
+    res = cli(["info", copy])
+    assert "from the default 'ros_default'" in res.stdout and "pass --camera FILE" in res.stdout
+    cam = _write(tmp_path / "fr1.yaml", {"camera": "fr1"})
+    res = cli(["run", copy, "--camera", cam, "-o", tmp_path / "run", "--no-map", "-q", "--set", "dataset.max_frames=3"])
+    assert res.exit_code == 0, res.output
+    text = " ".join(res.stderr.split())
+    assert f"camera fr1: fx 517.3 fy 516.5 cx 318.6 cy 255.3, 640x480, with distortion (from --camera {cam})" in text
+    assert "warning" not in text
+    res = cli(["run", copy, "-o", tmp_path / "run2", "--no-map", "-q", "--set", "dataset.max_frames=3"])
+    assert "warning: no camera given for this sequence: assuming 'ros_default'" in " ".join(res.stderr.split())
+    # a named camera in the config wins over the folder's camera.yaml; --camera over both
+    (copy / "camera.yaml").write_text("camera: fr2\n")
+    assert open_sequence(copy).camera.name == "fr2"
+    assert open_sequence(copy, DatasetConfig(camera="fr3")).camera.name == "fr3"
+    assert open_sequence(copy, DatasetConfig(camera="fr3", camera_file=str(cam))).camera.name == "fr1"
+    # intrinsics that do not fit the images: one error line, exit 2
+    small = _write(tmp_path / "small.yaml", {"fx": 300, "fy": 300, "cx": 160, "cy": 120, "size": [320, 240]})
+    res = cli(["run", copy, "--camera", small, "-o", tmp_path / "run3", "--no-map", "-q"])
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.output
+    assert "is 640x480 but camera 'custom' is 320x240" in res.stderr
+    # the camera file's depth scale is used (and dataset.depth_scale wins over it)
+    (copy / "camera.yaml").write_text("camera: fr1\ndepth_scale: 1000\n")
+    d_file = open_sequence(copy).load(0).depth
+    d_tum = open_sequence(TUM_DESK9).load(0).depth
+    np.testing.assert_allclose(d_file, d_tum * 5, rtol=1e-6)
+    assert np.array_equal(open_sequence(copy, DatasetConfig(depth_scale=5000)).load(0).depth, d_tum)
+
+
+@pytest.mark.data
+def test_eth3d_and_icl_nuim_layouts(tmp_path):
+    eth = tmp_path / "eth3d_sofa"
+    shutil.copytree(need(TUM_DESK9), eth)
+    (eth / "calibration.txt").write_text("726.28 726.28 354.65 186.47\n")
+    seq = open_sequence(eth)
+    c = seq.camera
+    assert (c.name, c.fx, c.cy, c.width, c.height) == ("eth3d", 726.28, 186.47, 640, 480)  # size from the images
+    assert seq.camera_setup.source == "calibration.txt (ETH3D SLAM)" and seq.depth_scale == 5000
+    (eth / "calibration.txt").write_text("726.28 726.28\n")
+    with pytest.raises(InputError, match="expected one line 'fx fy cx cy'"):
+        open_sequence(eth)
+    icl = tmp_path / "living_room_traj0_frei_png"
+    shutil.copytree(need(TUM_DESK9), icl)
+    (icl / "groundtruth.txt").rename(icl / "livingRoom0.gt.freiburg")
+    seq = open_sequence(icl)
+    assert seq.camera.name == "icl_nuim" and (seq.camera.fx, seq.camera.fy) == (481.2, 480.0)
+    assert len(seq.groundtruth()) > 1000  # read from the .gt.freiburg file

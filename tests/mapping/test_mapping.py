@@ -1,0 +1,434 @@
+"""Map fusion and the 2-D map on hand-made scenes with exact geometry, and on real TUM frames."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from rgbdslam.config import Config, MappingConfig, save_config
+from rgbdslam.datasets import open_sequence
+from rgbdslam.geometry.se3 import make_pose
+from rgbdslam.io.trajectory import Trajectory, write_tum
+from rgbdslam.mapping.fusion import VoxelCloud, fuse, fuse_run, match_frames, select_by_motion
+from rgbdslam.mapping.map2d import FREE, OCCUPIED, UNKNOWN, build_map2d, up_from_accelerometer, write_map2d
+
+from tests.conftest import DATA
+RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+
+W, H, F = 160, 120, 100.0  # a small ideal pinhole camera
+PLANE_Z = 1.0
+
+
+def _pose(yaw_deg: float, t) -> np.ndarray:
+    return make_pose(Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix(), t)
+
+
+POSES = [_pose(0, [0, 0, 0]), _pose(0, [0.10, 0.0, 0.0]), _pose(6, [0.05, 0.05, 0.10])]
+
+
+def _render_plane(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact depth (metres along the optical axis) and a checkerboard colour of the plane world z = 1."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    rays = np.stack([(u - W / 2) / F, (v - H / 2) / F, np.ones_like(u)], -1)  # camera z = 1
+    d_w = rays @ pose[:3, :3].T
+    s = (PLANE_Z - pose[2, 3]) / d_w[..., 2]  # ray parameter = depth, since the ray's camera z is 1
+    X = pose[:3, 3] + s[..., None] * d_w
+    check = ((np.floor(X[..., 0] / 0.1) + np.floor(X[..., 1] / 0.1)) % 2).astype(np.uint8)
+    rgb = np.stack([check * 200 + 30, 80 + 0 * check, 255 - check * 200], -1).astype(np.uint8)
+    return s.astype(np.float32), rgb
+
+
+def _write_tum_folder(root: Path, poses, stamps) -> None:
+    """A TUM-layout sequence (rgb.txt, depth.txt, PNGs, camera.yaml) of the rendered plane."""
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    (root / "camera.yaml").write_text(yaml.safe_dump({"fx": F, "fy": F, "cx": W / 2, "cy": H / 2,
+                                                      "width": W, "height": H, "dist": [0.0] * 5}))
+    rgb_lines, depth_lines = [], []
+    for t, p in zip(stamps, poses):
+        depth, rgb = _render_plane(p)
+        cv2.imwrite(str(root / "rgb" / f"{t:.6f}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(root / "depth" / f"{t:.6f}.png"), np.round(depth * 5000).astype(np.uint16))
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+    (root / "rgb.txt").write_text("# rgb\n" + "\n".join(rgb_lines) + "\n")
+    (root / "depth.txt").write_text("# depth\n" + "\n".join(depth_lines) + "\n")
+
+
+@pytest.fixture
+def plane_run(tmp_path):
+    seq_dir, run = tmp_path / "seq", tmp_path / "run"
+    stamps = [100.0, 100.5, 101.0]
+    _write_tum_folder(seq_dir, POSES, stamps)
+    run.mkdir()
+    write_tum(Trajectory(stamps, np.array(POSES)), run / "trajectory.tum")
+    (run / "run.json").write_text(json.dumps({"sequence": str(seq_dir), "keyframes": [0, 1, 2]}))
+    save_config(Config(), run / "config.yaml")  # as every run folder has (else fuse warns)
+    return seq_dir, run
+
+
+def _cfg(**kw) -> MappingConfig:
+    base = dict(depth_min=0.1, depth_max=3.0, voxel_size=0.01, cloud_pixel_stride=1, outlier_neighbors=10,
+                map2d=False, mesh_min_frames=1)
+    base.update(kw)
+    return MappingConfig(**base)
+
+
+# ----------------------------------------------------------------------------- fusion
+
+
+def test_fused_plane_lies_on_plane_and_outputs_are_valid_ply(plane_run):
+    seq_dir, run = plane_run
+    res = fuse_run(run, _cfg(), progress=False)
+    assert res.frames == [0, 1, 2]
+    cloud = o3d.io.read_point_cloud(str(run / "map" / "cloud.ply"))
+    pts = np.asarray(cloud.points)
+    assert len(pts) == res.n_points > 5000
+    # voxel means of exact plane points: on the plane to float precision, and all within a voxel
+    assert np.abs(pts[:, 2] - PLANE_Z).max() < 1e-4
+    # the union of the three footprints: wider than one frame (0.8 m at 1 m), shifted by the 0.1 m moves
+    assert pts[:, 0].max() - pts[:, 0].min() > 0.85
+    assert cloud.has_colors() and np.asarray(cloud.colors).max() > 0.5
+    mesh = o3d.io.read_triangle_mesh(str(run / "map" / "mesh.ply"))
+    assert len(mesh.triangles) == res.n_triangles > 1000
+    v = np.asarray(mesh.vertices)
+    assert np.abs(v[:, 2] - PLANE_Z).max() < 0.01  # the zero crossing of an exact plane, within a TSDF voxel
+    assert res.peak_rss_mb > 0 and res.seconds > 0
+    assert not list((run / "map").glob(".*"))  # no temporary files left behind
+
+
+def test_keyframe_depth_png_replaces_raw_depth(plane_run):
+    """run/keyframes/depth_<i>.png (the DIF output) is what fusion uses: a depth of 0 there removes the frame."""
+    seq_dir, run = plane_run
+    (run / "keyframes").mkdir()
+    for i in range(3):  # frames 0 and 1 filtered away entirely, frame 2 kept
+        d = np.zeros((H, W), np.uint16) if i < 2 else np.round(_render_plane(POSES[2])[0] * 5000).astype(np.uint16)
+        cv2.imwrite(str(run / "keyframes" / f"depth_{i:06d}.png"), d)
+    res = fuse_run(run, _cfg(mesh=False, outlier_neighbors=0), progress=False)
+    pts = res.cloud_points
+    # only frame 2's footprint: its left image edge (ray (-0.8, y, 1) yawed by 6 deg from
+    # (0.05, *, 0.1)) meets the plane at x = -0.527; frames 0 and 1 reach x = -0.8 and -0.7
+    c, s = np.cos(np.deg2rad(6)), np.sin(np.deg2rad(6))
+    x_lo = 0.05 + 0.9 / (0.8 * s + c) * (-0.8 * c + s)
+    assert abs(pts[:, 0].min() - x_lo) < 0.011
+    assert res.mesh_path is None
+
+
+def test_fuse_skips_frames_without_pose_and_rejects_no_pose(plane_run):
+    seq_dir, run = plane_run
+    seq = open_sequence(seq_dir)
+    traj = Trajectory([100.0, 101.0], np.array([POSES[0], POSES[2]]))  # frame 1 untracked
+    res = fuse(seq, traj, [0, 1, 2], _cfg(mesh=False), run / "m", progress=False)
+    assert res.frames == [0, 2]
+    from rgbdslam.errors import InputError
+
+    with pytest.raises(InputError, match="has a pose"):
+        fuse(seq, Trajectory([5.0], np.eye(4)[None]), [0, 1], _cfg(), run / "m2", progress=False)
+
+
+def test_mesh_min_frames_counts_frames(plane_run):
+    """Voxels seen by fewer than mesh_min_frames frames are left out (clamped to the frames fused)."""
+    seq_dir, run = plane_run
+    n = [fuse_run(run, _cfg(mesh_min_frames=k, outlier_neighbors=0), progress=False).n_triangles for k in (1, 2, 3, 4)]
+    assert n[0] > n[1] > n[2] > 1000  # the overlap of all three footprints is the smallest
+    assert n[3] == n[2]  # only 3 frames: 4 is clamped to 3
+    # frames 0 and 1 filtered to nothing: no voxel is seen twice -> no mesh, and no stale mesh.ply
+    (run / "keyframes").mkdir()
+    for i in range(2):
+        cv2.imwrite(str(run / "keyframes" / f"depth_{i:06d}.png"), np.zeros((H, W), np.uint16))
+    res = fuse_run(run, _cfg(mesh_min_frames=2, outlier_neighbors=0), progress=False)
+    assert res.n_triangles == 0 and res.mesh_path is None and not (run / "map" / "mesh.ply").exists()
+    assert res.n_points > 1000  # the cloud is still made from frame 2
+
+
+def test_match_frames_and_motion_selection():
+    traj = Trajectory([1.0, 2.0, 3.0], np.tile(np.eye(4), (3, 1, 1)))
+    assert match_frames(np.array([0.5, 1.0004, 2.0, 2.5, 3.0]), traj).tolist() == [-1, 0, 1, -1, 2]
+    poses = [np.eye(4), make_pose(np.eye(3), [0.03, 0, 0]), make_pose(np.eye(3), [0.051, 0, 0]),
+             make_pose(Rotation.from_euler("z", 4, degrees=True).as_matrix(), [0.06, 0, 0]),
+             make_pose(Rotation.from_euler("z", 5.5, degrees=True).as_matrix(), [0.06, 0, 0])]
+    # 0.051 m from the first; then 4 deg (+0.009 m) is too little; 5.5 deg is enough
+    assert select_by_motion(np.array(poses), 0.05, 5.0) == [0, 2, 4]
+
+
+def test_voxel_cloud_averages_exactly_across_merges():
+    vc = VoxelCloud(0.1)
+    vc.add(np.array([[0.01, 0.01, 0.01], [0.05, 0.05, 0.05]]), np.array([[0, 0, 0], [100, 100, 100]]))
+    vc._merge()
+    vc.add(np.array([[0.09, 0.09, 0.09], [0.25, 0.0, 0.0]]), np.array([[200, 200, 200], [7, 8, 9]]))
+    pts, cols = vc.result()
+    order = np.argsort(pts[:, 0])
+    assert np.allclose(pts[order], [[0.05, 0.05, 0.05], [0.25, 0.0, 0.0]])
+    assert cols[order].tolist() == [[100, 100, 100], [7, 8, 9]]
+
+
+# ----------------------------------------------------------------------------- 2-D map
+
+
+def _box_scene():
+    """Floor z = 0 over [0, 4] x [0, 3] (2 cm spacing) and a 0.4 x 0.4 x 1.0 m box at x, y in [1, 1.4]."""
+    g = np.arange(0, 4, 0.02)
+    X, Y = np.meshgrid(g, np.arange(0, 3, 0.02))
+    floor = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
+    floor = floor[~((floor[:, 0] >= 1.0) & (floor[:, 0] <= 1.4) & (floor[:, 1] >= 1.0) & (floor[:, 1] <= 1.4))]
+    s = np.arange(0, 0.4001, 0.02)
+    Z = np.arange(0.02, 1.0001, 0.02)
+    sides = []
+    for a in s:
+        for z in Z:
+            sides += [[1.0 + a, 1.0, z], [1.0 + a, 1.4, z], [1.0, 1.0 + a, z], [1.4, 1.0 + a, z]]
+    top = np.stack(np.meshgrid(1.0 + s, 1.0 + s), -1).reshape(-1, 2)
+    box = np.vstack([np.array(sides), np.c_[top, np.ones(len(top))]])
+    return np.vstack([floor, box])
+
+
+def _level_camera(x, y) -> np.ndarray:
+    """A camera 1.2 m up looking along world +x, image-down = world -z."""
+    R = np.stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]], 1).astype(float)  # columns: cam x, y, z in world
+    return make_pose(R, [x, y, 1.2])
+
+
+def test_map2d_marks_box_occupied_floor_free(tmp_path):
+    pts = _box_scene()
+    traj = Trajectory([0.0, 1.0], np.array([_level_camera(0.2, 2.5), _level_camera(3.0, 2.5)]))
+    cfg = MappingConfig(grid_resolution=0.1)
+    grid = build_map2d(pts, traj, cfg)
+    assert grid.floor_source == "ransac" and grid.up_source == "camera"
+    assert np.allclose(grid.world_to_map[2, :3], [0, 0, 1], atol=1e-3)  # < 0.06 deg
+    assert abs(grid.world_to_map[2, 3]) < 2e-3  # the floor is at height 0 (box feet bias the fit a little)
+    r, c = grid.cells(np.array([[1.2, 1.2, 0.5], [3.0, 0.5, 0.0], [0.5, 2.0, 0.0], [10.0, 10.0, 0.0]]))
+    assert grid.image[r[0], c[0]] == OCCUPIED
+    assert grid.image[r[1], c[1]] == FREE
+    assert grid.image[r[2], c[2]] == FREE
+    assert not (0 <= r[3] < grid.image.shape[0] and 0 <= c[3] < grid.image.shape[1])
+    # every cell is one of the three ROS values, and exactly the box's 4x4-5x5 footprint is occupied
+    assert set(np.unique(grid.image)) <= {OCCUPIED, FREE, UNKNOWN}
+    assert 16 <= (grid.image == OCCUPIED).sum() <= 25
+
+    png = write_map2d(grid, tmp_path, traj)
+    meta = yaml.safe_load((tmp_path / "map2d.yaml").read_text())
+    assert {"image", "resolution", "origin", "negate", "occupied_thresh", "free_thresh"} <= set(meta)
+    assert meta["image"] == "map2d.png" and meta["resolution"] == 0.1 and meta["negate"] == 0
+    assert meta["occupied_thresh"] == 0.65 and meta["free_thresh"] == 0.196 and len(meta["origin"]) == 3
+    img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+    assert img.dtype == np.uint8 and np.array_equal(img, grid.image)
+    # ROS: the origin is the lower-left pixel, so world (1.2, 1.2) lands where map_server would put it
+    col = int((1.2 - meta["origin"][0]) / 0.1)
+    row = img.shape[0] - 1 - int((1.2 - meta["origin"][1]) / 0.1)
+    assert img[row, col] == OCCUPIED
+    prev = cv2.imread(str(tmp_path / "map2d_preview.png"))
+    assert prev.shape[2] == 3 and (prev[..., 2] > 200).any() and ((prev[..., 2] > 200) & (prev[..., 1] < 60)).any()
+
+
+def test_map2d_picks_lowest_horizontal_plane_not_the_desk():
+    pts = _box_scene()
+    g = np.arange(2.0, 3.5, 0.02)
+    desk = np.stack(np.meshgrid(g, g[:40]), -1).reshape(-1, 2)  # a big horizontal desk top at 0.75 m
+    pts = np.vstack([pts, np.c_[desk, np.full(len(desk), 0.75)]])
+    traj = Trajectory([0.0], _level_camera(0.2, 2.5)[None])
+    grid = build_map2d(pts, traj, MappingConfig(grid_resolution=0.1))
+    assert abs(grid.world_to_map[2, 3]) < 2e-3
+    r, c = grid.cells(np.array([[2.5, 2.2, 0.75]]))
+    assert grid.image[r[0], c[0]] == OCCUPIED
+
+
+def test_accelerometer_gravity_convention():
+    """Kinect (ax, ay, -az) is image-down in the optical frame: a camera looking along world +x
+    with image-down = world -z must give up = +z."""
+    pose = _level_camera(0, 0)
+    acc = np.array([[0.0, 0.0, 9.81, 0.0], [1.0, 0.0, 9.81, 0.0]])  # gravity along camera +y
+    up = up_from_accelerometer(acc, Trajectory([0.5], pose[None]))
+    assert np.allclose(up, [0, 0, 1])
+
+
+# ----------------------------------------------------------------------------- real frames
+
+
+@pytest.mark.data
+@pytest.mark.usefixtures("rpy200")
+def test_rpy_groundtruth_fusion_finds_floor_and_desk(tmp_path):
+    """20 keyframes of fr1/rpy fused with the ground truth: the floor found by RANSAC is the
+    motion-capture floor (z = 0 up to a few cm), and the desk in front of the camera is occupied."""
+    seq = open_sequence(RPY)
+    gt = seq.groundtruth()
+    idx = np.arange(0, 200, 10)
+    stamps = seq.timestamps[idx]
+    rows = np.searchsorted(gt.timestamps, stamps).clip(0, len(gt) - 1)
+    traj = Trajectory(stamps, gt.poses[rows])  # nearest mocap sample (<= 5 ms): good enough here
+    cfg = MappingConfig(cloud_pixel_stride=4, voxel_size=0.02, tsdf_voxel=0.02, sdf_trunc=0.06)
+    res = fuse(seq, traj, idx, cfg, tmp_path, progress=False)
+    assert res.frames == idx.tolist()
+    assert res.n_points > 20000 and res.n_triangles > 20000
+    grid = res.map2d
+    assert grid.up_source == "accelerometer" and grid.floor_source == "ransac"
+    assert np.degrees(np.arccos(grid.world_to_map[2, 2])) < 5  # floor normal ~ mocap z
+    assert abs(grid.world_to_map[2, 3]) < 0.08  # floor height ~ 0
+    assert (grid.image == OCCUPIED).sum() > 50 and (grid.image == FREE).sum() > 50
+
+
+# ----------------------------------------------------------------------------- bad settings / run.json
+
+
+def _map_state(run: Path) -> dict[str, bytes]:
+    """Every file in run/map (hidden ones too) with its bytes."""
+    return {p.name: p.read_bytes() for p in sorted((run / "map").iterdir())}
+
+
+def _fuse_cli(run: Path, *sets: str):
+    from click.testing import CliRunner
+
+    from rgbdslam.cli import main
+
+    args = ["fuse", str(run), "-q"]
+    for s in sets:
+        args += ["--set", s]
+    return CliRunner().invoke(main, args)
+
+
+def _one_line_error(res) -> str:
+    assert isinstance(res.exception, SystemExit) and res.exit_code == 2, (res.exception, res.output)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
+    return lines[0]
+
+
+def test_fuse_empty_depth_range_names_the_settings_and_keeps_the_map(plane_run):
+    """No depth in [depth_min, depth_max] used to end in "could not write cloud.ply; check that the
+    folder is writable" (after an Open3D warning); now one line names the settings, before any write."""
+    seq_dir, run = plane_run
+    assert _fuse_cli(run, "mapping.map2d=false").exit_code == 0
+    before = _map_state(run)
+    res = _fuse_cli(run, "mapping.map2d=false", "mapping.depth_min=2", "mapping.depth_max=3")
+    assert _one_line_error(res) == (
+        "error: the map would be empty: no depth of the 3 frames to fuse lies between mapping.depth_min=2 and "
+        "mapping.depth_max=3 m; widen that range (defaults 0.3 and 3.0)")
+    assert "Open3D" not in res.output
+    assert _map_state(run) == before
+
+
+@pytest.mark.parametrize("key, value, message", [  # the config's own rules (config.validate_section)
+    ("grid_resolution", 0.0, "config key 'mapping.grid_resolution' must be at least 0.001; got 0.0"),
+    ("cloud_pixel_stride", 0, "config key 'mapping.cloud_pixel_stride' must be at least 1; got 0"),
+    ("outlier_std", 0.0, "config key 'mapping.outlier_std' must be positive; got 0.0"),
+    ("tsdf_voxel", 0.0, "config key 'mapping.tsdf_voxel' must be at least 0.001; got 0.0"),
+    ("voxel_size", -0.01, "config key 'mapping.voxel_size' must be at least 0.001; got -0.01"),
+    ("voxel_size", float("nan"), "config key 'mapping.voxel_size' must be a finite number; got nan"),
+    ("mesh_min_frames", 1.5, "config key 'mapping.mesh_min_frames' expects int; got 1.5"),
+    ("depth_min", 3.0, "config key 'mapping.depth_min' (3.0) must be smaller than 'mapping.depth_max' (3.0)"),
+    ("gravity", "down", "config key 'mapping.gravity' must be one of auto, accelerometer, camera; got 'down'"),
+])
+def test_bad_mapping_settings_are_rejected_before_anything_is_written(plane_run, key, value, message):
+    """fuse/fuse_run check the settings first (a MappingConfig made in Python skips load_config's
+    checks): grid_resolution=0 used to crash in the 2-D map after cloud.ply and mesh.ply were replaced."""
+    from rgbdslam.errors import ConfigError
+
+    seq_dir, run = plane_run
+    fuse_run(run, _cfg(), progress=False)
+    before = _map_state(run)
+    with pytest.raises(ConfigError) as e:
+        fuse_run(run, _cfg(**{key: value, "map2d": True}), progress=False)
+    assert str(e.value) == message
+    assert _map_state(run) == before
+
+
+def test_cli_grid_resolution_zero_is_one_line_and_keeps_the_map(plane_run):
+    seq_dir, run = plane_run
+    assert _fuse_cli(run, "mapping.map2d=false").exit_code == 0
+    before = _map_state(run)
+    line = _one_line_error(_fuse_cli(run, "mapping.grid_resolution=0"))
+    assert "mapping.grid_resolution" in line  # (load_config or validate_mapping: whichever checks first)
+    assert _map_state(run) == before
+
+
+def test_failure_part_way_leaves_the_earlier_map_whole(plane_run):
+    """A fusion that fails after the cloud and mesh are made (here: the 2-D map wants an
+    accelerometer the sequence does not have) changes no file: everything is written into a
+    temporary folder that replaces the map files only when all are complete."""
+    from rgbdslam.errors import InputError
+
+    seq_dir, run = plane_run
+    fuse_run(run, _cfg(), progress=False)
+    before = _map_state(run)
+    with pytest.raises(InputError) as e:
+        fuse_run(run, _cfg(voxel_size=0.02, map2d=True, gravity="accelerometer"), progress=False)
+    assert str(e.value) == ("mapping.gravity is 'accelerometer' but the sequence has no usable accelerometer.txt; "
+                            "set mapping.gravity=auto")
+    assert _map_state(run) == before  # no new cloud beside an old mesh, no temporary folder
+
+
+def test_a_finished_fusion_leaves_no_files_of_an_earlier_one(plane_run):
+    seq_dir, run = plane_run
+    fuse_run(run, _cfg(), progress=False)
+    (run / "map" / "map2d.png").write_bytes(b"from an older fusion")
+    res = fuse_run(run, _cfg(mesh=False), progress=False)
+    assert sorted(_map_state(run)) == ["cloud.ply"] and res.cloud_path == run / "map" / "cloud.ply"
+
+
+def test_map2d_refuses_a_huge_grid(monkeypatch):
+    from rgbdslam.errors import InputError
+    from rgbdslam.mapping import map2d
+
+    monkeypatch.setattr(map2d, "MAX_CELLS", 1000)
+    traj = Trajectory([0.0], _level_camera(0.2, 2.5)[None])
+    with pytest.raises(InputError) as e:
+        build_map2d(_box_scene(), traj, MappingConfig(grid_resolution=0.1))
+    assert re.fullmatch(r"the 2-D map would have \d+ x \d+ cells at mapping\.grid_resolution=0\.1 m \(at most 1000 "
+                        r"allowed\); raise mapping\.grid_resolution \(e\.g\. [0-9.]+\) or set mapping\.map2d=false",
+                        str(e.value)), str(e.value)
+
+
+FIX = "re-run `rgbdslam run` to rewrite it, or correct the field"
+
+
+@pytest.mark.parametrize("edit, message", [
+    ({"keyframes": ["a"]}, f"'keyframes' must be a list of frame numbers (whole numbers); found 'a'; {FIX}"),
+    ({"keyframes": 3}, f"'keyframes' must be a list of frame numbers (whole numbers); found 3; {FIX}"),
+    ({"segments": "x"}, "'segments' must be a list of objects with whole numbers 'first' and 'last' (and true/false "
+                        f"'map'); got 'x'; {FIX}"),
+    ({"sequence": 5}, f"'sequence' must be the path of the sequence folder as a string; got 5; {FIX}"),
+])
+def test_hand_edited_run_json_is_one_line(plane_run, edit, message):
+    seq_dir, run = plane_run
+    info = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**info, **edit}))
+    assert _one_line_error(_fuse_cli(run)) == f"error: {run / 'run.json'}: {message}"
+    assert not (run / "map").exists()
+
+
+def test_run_json_keyframe_outside_the_sequence_is_an_error(plane_run):
+    """It used to be dropped silently; a frame number the sequence does not have means run.json
+    is not of this sequence (as it is now), so the map would not be the run's."""
+    seq_dir, run = plane_run
+    (run / "run.json").write_text(json.dumps({"sequence": str(seq_dir), "keyframes": [0, 2, 7]}))
+    assert _one_line_error(_fuse_cli(run)) == (
+        f"error: {run / 'run.json'}: frame 7 is not in the sequence {seq_dir} (frames 0..2); run.json does not "
+        f"belong to this sequence as it is now: re-run `rgbdslam run`")
+
+
+def test_run_json_not_utf8_or_not_an_object(plane_run):
+    seq_dir, run = plane_run
+    (run / "run.json").write_bytes(b"\xff\xfe{}")
+    assert _one_line_error(_fuse_cli(run)) == (
+        f"error: run file {run / 'run.json'} is not UTF-8 text (byte 0); give the text file itself, not a binary or "
+        f"compressed copy")
+    (run / "run.json").write_text("[1, 2]")
+    assert _one_line_error(_fuse_cli(run)) == f"error: {run / 'run.json'} must hold a JSON object (the run summary), not list; {FIX}"
+
+
+def test_a_run_folder_without_config_warns_that_defaults_are_used(plane_run, capsys):
+    from rgbdslam.mapping.fusion import read_run
+
+    _, run = plane_run
+    (run / "config.yaml").unlink(missing_ok=True)
+    info, cfg, traj = read_run(run)
+    err = capsys.readouterr().err
+    assert f"{run / 'config.yaml'} is missing; the default config is used" in " ".join(err.split())
+    assert cfg.to_dict() == Config().to_dict() and len(traj) == 3
