@@ -183,6 +183,7 @@ def test_local_ba_pulls_noisy_keyframes_back_to_the_truth():
     assert np.median(err) < 0.004 < np.median(np.linalg.norm(rng.normal(scale=0.01, size=X.shape), axis=1))
 
 
+@pytest.mark.data
 def test_run_with_landmarks_on_real_frames(desk9, tmp_path):
     """fr1/desk, 9 frames, landmark tracking with local BA through the whole pipeline: the map
     places the frames, run.json reports it, the top view is written, accuracy stays."""
