@@ -191,10 +191,14 @@ def test_run_with_landmarks_on_real_frames(desk9, tmp_path):
     from rgbdslam.pipeline import run_sequence
 
     cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", "landmarks.enabled=true",
-                             "landmarks.local_ba=true", "keyframes.max_gap=3"])
+                             "landmarks.local_ba=true", "keyframes.max_gap=3", f"output.rerun_save={tmp_path / 'r.rrd'}"])
     s = run_sequence(desk9, tmp_path / "run", cfg, progress=False)
     lm = s["landmarks"]
     assert s["tracked"] == 9 and lm["map_poses"] >= 6 and lm["median_inliers"] >= 50
     assert lm["local_ba_runs"] >= 2 and lm["size"] > 500
     assert s["evaluation"]["ate"]["rmse"] < 0.03
     assert (tmp_path / "run" / "map" / "landmarks_topview.png").stat().st_size > 10000
+    from tests.viz.test_rerun_log import entity_paths
+
+    paths = entity_paths(tmp_path / "r.rrd")
+    assert "/world/landmarks" in paths and "/world/camera/image/map_matches" in paths
