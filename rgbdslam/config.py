@@ -210,6 +210,54 @@ class BackendConfig:
 
 
 @dataclass
+class LandmarksConfig:
+    """Map-based tracking: a persistent landmark map (spec section 6, docs/slam.md 'Landmark map')."""
+
+    enabled: bool = False  # track against the persistent landmark map (docs/slam.md, "Landmark map")
+    # how the map pose combines with the frame-to-frame registration (registration.method):
+    # 'seed' = the registration's pose predicts, the map pose replaces it (kept when the map fails);
+    # 'fuse' = the information-weighted mean of both (the registration's per-frame information,
+    # the map pose's from its reprojection refine)
+    mode: Literal["seed", "fuse"] = "fuse"
+    search_radius: float = 10.0  # pixels around a landmark's projection
+    max_hamming: int = 50  # largest Hamming distance of a landmark-to-feature descriptor match
+    max_depth: float = 5.0  # metres: landmarks further from the camera are not searched, features not mapped
+    ransac_threshold: float = 0.03  # metres: inlier distance of the map pose RANSAC
+    ransac_iterations: int = 100  # minimal samples drawn by the map pose RANSAC (stops early)
+    min_inliers: int = 30  # fewer: the map pose is not used for this frame
+    max_correction: float = 0.03  # metres / degrees: a map pose further from the registration's is rejected
+    max_correction_deg: float = 2.0  # degrees: see max_correction
+    sampling: Literal["old_first", "uniform"] = "old_first"  # RANSAC samples: oldest landmarks first (thesis) or uniform
+    # after RANSAC + weighted 3-D refit: 'reprojection' = motion-only Gauss-Newton on pixel and
+    # inverse-depth residuals (whitened; Huber), inliers re-gated at chi_gate sigmas; 'rigid' = stop there
+    refine: Literal["reprojection", "rigid"] = "reprojection"  # after RANSAC: reprojection Gauss-Newton or rigid refit
+    chi_gate: float = 3.0  # sigmas: inliers re-gated after the reprojection refine
+    old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
+    # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
+    # z sigma_px / f; process noise per step (m)
+    kalman: bool = True  # smooth landmark positions with the static Kalman filter
+    depth_noise_a: float = 0.001  # metres: constant term of the depth noise along the ray
+    depth_noise_b: float = 0.002  # per metre: z^2 term of the depth noise along the ray
+    sigma_px: float = 1.0  # pixels: key point noise across the ray
+    process_noise: float = 0.0002  # metres per step: Kalman process noise of a landmark position
+    min_seen: int = 3  # landmarks seen fewer times cull_after frames after they were made are culled
+    cull_after: int = 30  # frames after its creation a rarely seen landmark is culled (see min_seen)
+    store: Literal["single", "multi"] = "multi"  # landmark store: one k-d tree or the logarithmic method
+    store_n1: int = 3500  # multi-tree store: size of the smallest tree
+    store_q: float = 5.5  # multi-tree store: size ratio of consecutive trees
+    new_min_distance: float = 5.0  # pixels: a keyframe feature this close to a projected landmark makes no new one
+    old_age: int = 100  # frames: a matched landmark first seen this long ago counts as "old" (run.json)
+    # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
+    local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
+    ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
+    ba_iterations: int = 5  # Levenberg-Marquardt iterations of one local BA
+    ba_max_landmarks: int = 300  # landmarks in one local BA (those seen by most keyframes)
+    ba_baseline: float = 0.08  # virtual stereo baseline (m) turning depth into a disparity
+    ba_huber: float = 1.345  # robust kernel width (whitened)
+    seed: int = 0  # RANSAC seed of the map pose
+
+
+@dataclass
 class MappingConfig:
     enabled: bool = True  # fuse the map at the end of a run
     # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
@@ -289,6 +337,7 @@ class Config:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
+    landmarks: LandmarksConfig = field(default_factory=LandmarksConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
@@ -387,6 +436,10 @@ POSITIVE = {
     "output.rerun_image_width", "output.rerun_log_every",
     "stereo.sigma_disparity_sparse", "stereo.sigma_disparity_sgbm", "stereo.max_disparity", "stereo.min_disparity",
     "stereo.row_tolerance", "stereo.right_features", "stereo.patch_radius", "stereo.search_radius", "stereo.sgbm_block_size",
+    "landmarks.search_radius", "landmarks.max_depth", "landmarks.ransac_threshold", "landmarks.ransac_iterations",
+    "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
+    "landmarks.ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
+    "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -405,6 +458,8 @@ BOUNDS = {
     "dataset.offset": (-2e9, 2e9),  # seconds: Unix time stamps are ~1.8e9 (2026)
     "registration.beta": (-100.0, 100.0),
     "mapping.obstacle_min_height": (-1e3, 1e3), "mapping.obstacle_max_height": (-1e3, 1e3),
+    "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
+    "landmarks.max_hamming": (0, 256),
 }
 # Upper bounds of the keys whose range is not in BOUNDS (closed: the value itself is accepted).
 MAXIMA = {
@@ -455,6 +510,15 @@ MAXIMA = {
     "stereo.min_disparity": 1000.0, "stereo.row_tolerance": 100.0,
     "stereo.right_features": 4, "stereo.patch_radius": 64, "stereo.search_radius": 64,
     "stereo.sgbm_uniqueness": 100,
+    # landmark map: pixels, metres and counts of one frame's search; BA sizes bound its GTSAM problem
+    "landmarks.search_radius": 1000.0, "landmarks.max_depth": 1e3, "landmarks.ransac_threshold": 10.0,
+    "landmarks.ransac_iterations": 20_000, "landmarks.max_correction": 100.0, "landmarks.max_correction_deg": 360.0,
+    "landmarks.chi_gate": 100.0, "landmarks.depth_noise_a": 10.0, "landmarks.depth_noise_b": 10.0,
+    "landmarks.sigma_px": 100.0, "landmarks.process_noise": 10.0, "landmarks.min_seen": 10**6,
+    "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,
+    "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,
+    "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
+    "landmarks.seed": C_INT_MAX,
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)
 ORDERED = [("matching.min_depth", "matching.max_depth"), ("depth_filter.min_depth", "depth_filter.max_depth"),

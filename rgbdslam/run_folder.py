@@ -214,6 +214,7 @@ def run_summary(seq: Sequence, slam, n_frames: int, wall: float, load_time: floa
         "fps": n_frames / wall if wall > 0 else math.nan,
         "processing_fps": n_frames / proc,
         "timings": per_stage,
+        "landmarks": slam.landmarks.summary() if getattr(slam, "landmarks", None) is not None else {},
         "interrupted": interrupted,
         "status": "interrupted" if interrupted else "finished",  # "failed" when nothing could be tracked
     }
@@ -237,6 +238,8 @@ def write_outputs(out_dir: Path, slam, summary: dict, final: Trajectory | None) 
         from rgbdslam.posegraph.graph_io import write_g2o
 
         write_g2o(out_dir / "posegraph.g2o", slam.graph.as_graph(slam.optimised))
+    if getattr(slam, "landmarks", None) is not None and slam.landmarks.map.size:  # the thesis' 2-D map
+        slam.landmarks.top_view(out_dir / "map" / "landmarks_topview.png")
 
 
 def summary_lines(s: dict[str, Any]) -> list[tuple[str, str]]:

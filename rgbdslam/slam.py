@@ -3,6 +3,7 @@
 ``SLAM`` composes the stage objects, each built from its own config section::
 
     Frame ─▶ frontend.track   (ORB features, registration against the reference frames → pose or lost)
+          ─▶ landmarks        (landmarks.enabled: the pose checked against the landmark map, the map updated)
           ─▶ depth_filter     (DIF, needs the pose; the filtered depth goes back to the front end)
           ─▶ loop.observe     (sharpness gate) ─▶ loop.detect (sharp or due frames only)
           ─▶ keyframes        (motion policy; loops and restarts force a keyframe)
@@ -61,6 +62,7 @@ class SLAM:
 
     def __init__(self, cfg: Config, camera: Camera, observer=None, keyframe_dir: Path | None = None,
                  mapper=None):
+        self.cfg = cfg
         self.observer = observer if observer is not None else NullObserver()
         self.keyframe_dir = keyframe_dir
         self.mapper = mapper  # rgbdslam.mapping.live.LiveMap: keyframes fused while tracking
@@ -77,6 +79,11 @@ class SLAM:
             from rgbdslam.loop.detector import build_loop_closer
 
             self.loop = build_loop_closer(cfg, register)
+        self.landmarks = None
+        if cfg.landmarks.enabled:
+            from rgbdslam.landmarks.stage import LandmarkTracker
+
+            self.landmarks = LandmarkTracker(cfg.landmarks, camera)
         self.graph = None
         if cfg.backend.enabled or cfg.loop.enabled:
             from rgbdslam.backend.slam_graph import KeyframeGraph
@@ -102,6 +109,9 @@ class SLAM:
         pose, restart = result.pose, bool(result.reset)
         if result.information is not None:
             self._info_since_kf.append(result.information)
+        # 1b. the landmark map: the pose checked against it (fused with the registration's), the map updated
+        if self.landmarks is not None and not restart:
+            pose = self._track_map(frame, result, pose)
         # 2. DIF: filtered depth for the map and the front end's references
         depth = self._filter_depth(frame, pose, restart)
         # 3. a restart after a tracking loss begins a new segment, to be relocalised
@@ -116,6 +126,8 @@ class SLAM:
         if (loops or restart) and not is_kf:
             self.keyframe_policy.force(frame.index, pose)
             is_kf = True
+        if self.landmarks is not None:
+            pose = self._update_map(frame, result, pose, is_kf)
         if is_kf:
             self._add_keyframe(frame, result, pose, depth)
         rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
@@ -128,6 +140,34 @@ class SLAM:
         if result.matches is not None:
             self.observer.log_inlier_matches(frame.index, result.matches[:, :2], result.matches[:, 2:])
         return result
+
+    def _track_map(self, frame: Frame, result: TrackResult, pose: np.ndarray) -> np.ndarray:
+        t0 = time.perf_counter()
+        info = result.information
+        if info is not None and result.n_fused > 1:  # the references share this frame's noise:
+            info = info / result.n_fused  # their summed information counts it n_fused times
+        mpose = self.landmarks.track(frame.index, result.features, pose, info)
+        if mpose is not pose:
+            pose = mpose
+            result.pose = pose
+            self.frontend.correct_last(pose)
+        self.state.add_time("landmarks", time.perf_counter() - t0)
+        return pose
+
+    def _update_map(self, frame: Frame, result: TrackResult, pose: np.ndarray, is_kf: bool) -> np.ndarray:
+        """New landmarks and local BA on a keyframe; the end of the map's step; Rerun."""
+        if is_kf:
+            t0 = time.perf_counter()
+            refined = self.landmarks.add_keyframe(frame.index, result.features, pose)
+            if refined is not None:  # local BA moved this keyframe: tracking continues from there
+                pose = refined
+                result.pose = pose
+                self.frontend.correct_last(pose)
+            self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
+        self.landmarks.end_frame(frame.index)
+        if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
+            self.landmarks.log(self.observer, frame.index, result.features, is_kf)
+        return pose
 
     def _filter_depth(self, frame: Frame, pose: np.ndarray, restart: bool) -> np.ndarray:
         if self.depth_filter is None:
@@ -217,6 +257,8 @@ class SLAM:
         t0 = time.perf_counter()
         optimised = self.graph.optimize()
         self.optimised = optimised
+        if self.landmarks is not None:  # landmarks move with the keyframe that anchors them
+            self.landmarks.finish(optimised)
         self.state.add_time("pose_graph", time.perf_counter() - t0)
         kf_pose = {r.index: r.pose for r in self.state.records if r.index == r.keyframe}
         poses = []

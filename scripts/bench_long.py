@@ -70,7 +70,7 @@ class TimedSequence:
         return self._seq.load(i)
 
 
-def run(frames: int, motion: str, seed: int, window: int, work: Path) -> dict:
+def run(frames: int, motion: str, seed: int, window: int, work: Path, sets: list[str] | None = None) -> dict:
     import rgbdslam.pipeline as pipeline
     from rgbdslam.datasets import open_sequence
     from rgbdslam.datasets.synthetic import generate_sequence
@@ -79,10 +79,11 @@ def run(frames: int, motion: str, seed: int, window: int, work: Path) -> dict:
     if not (seq_dir / "synthetic.yaml").is_file():
         print(f"rendering {frames} frames into {seq_dir}", flush=True)
         generate_sequence(seq_dir, frames=frames, motion=motion, noise=True, seed=seed, progress=False)
-    cfg = load_config(None, ["mapping.enabled=false", "output.plots=false"])
+    cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *(sets or [])])
     timed = TimedSequence(open_sequence(seq_dir, cfg.dataset), window)
     pipeline.open_sequence = lambda *a, **k: timed  # run_sequence opens the sequence through this name
-    s = pipeline.run_sequence(seq_dir, work / "run", cfg, progress=False)
+    s = pipeline.run_sequence(seq_dir, work / ("run" if not sets else "run_" + "_".join(sets).replace("/", "_")), cfg,
+                              progress=False)
     t = np.array([timed.read_at[i] for i in range(frames)])
     rows = []
     for a in range(0, frames, window):
@@ -94,17 +95,18 @@ def run(frames: int, motion: str, seed: int, window: int, work: Path) -> dict:
     return {"frames": frames, "motion": motion, "seed": seed, "ate": s["evaluation"]["ate"]["rmse"],
             "fps": s["fps"], "keyframes": len(s["keyframes"]), "loops": len(s["loops"]),
             "queries": lc["n_queries"], "verified": lc["n_verified"], "lc_ms": lc["time_per_query_ms"],
-            "windows": rows}
+            "windows": rows, "sets": sets or [], "landmarks": s.get("landmarks") or {}}
 
 
-def markdown(r: dict, command: str, reference: str) -> str:
-    L = ["## Long sequences", "",
+def markdown(r: dict, command: str, reference: str, section: str = "## Long sequences") -> str:
+    L = [section, "",
          f"Command: `{command}`  ",
          f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
          f"{time.strftime('%Y-%m-%d')}; shared with other jobs, so frames/s are noisy.  ",
          f"Speed of the machine: {reference}", "",
          f"A synthetic `{r['motion']}` sequence of {r['frames']} frames (seed {r['seed']}, Kinect-like noise, "
-         "exact ground truth), default configuration, map fusion off. Whole run: "
+         "exact ground truth), " + (", ".join(f"`{x}`" for x in r["sets"]) if r["sets"] else "default configuration")
+         + ", map fusion off. Whole run: "
          f"ATE RMSE {r['ate']:.4f} m, {r['fps']:.1f} frames/s, {r['keyframes']} keyframes, {r['loops']} loops; "
          f"{r['queries']} loop searches verified {r['verified']} candidates at {r['lc_ms']:.1f} ms per search. "
          "Per window of frames (frames/s from the times the reader thread read them; memory = the "
@@ -112,6 +114,10 @@ def markdown(r: dict, command: str, reference: str) -> str:
          "| frames | frames/s | resident MB |", "|---|---|---|"]
     for w in r["windows"]:
         L.append(f"| {w['frames']} | {w['fps']:.1f} | {w['rss']:.0f} |")
+    if r["landmarks"]:
+        lm = r["landmarks"]
+        L += ["", f"Landmark map at the end: {lm['size']} live landmarks ({lm['made']} made, {lm['culled']} culled), "
+                  f"store trees {lm['store_trees']}."]
     return "\n".join(L) + "\n"
 
 
@@ -122,6 +128,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--window", type=int, default=300)
     ap.add_argument("--work", default=None, help="folder for the sequence and the run (default: temporary)")
+    ap.add_argument("--set", action="append", default=[], help="config override SECTION.KEY=VALUE (repeatable)")
+    ap.add_argument("--section", default="## Long sequences", help="heading of the docs section")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args(argv)
     command = "python scripts/bench_long.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
@@ -130,8 +138,8 @@ def main(argv=None) -> int:
     from _docs import publish, reference_timing
 
     reference = reference_timing()
-    r = run(a.frames, a.motion, a.seed, a.window, work)
-    return publish(markdown(r, command, reference), a.write_docs)
+    r = run(a.frames, a.motion, a.seed, a.window, work, a.set)
+    return publish(markdown(r, command, reference, a.section), a.write_docs)
 
 
 if __name__ == "__main__":

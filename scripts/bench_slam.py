@@ -13,6 +13,9 @@ For each available TUM sequence (``$RGBDSLAM_DATA/tum/*``, default ``../shared/d
 * ``ISVD+LC+DIF``   + the DIF depth filter;
 * ``ISLAM``, ``best (ISLAM+LC)``, ``ISLAM+LC+DIF``: this project's default registration
   (ISLAM, MP=4) alone, with loop closure (the best measured), and with DIF too;
+* ``ISLAM+LC+landmarks`` and its ablations: the landmark map (``landmarks.enabled``) fused with
+  ISLAM; the map pose alone (seed mode); + local BA; Kalman off; uniform RANSAC sampling; one
+  k-d tree instead of the multi-tree;
 
 and prints ATE RMSE, frames/s, loops and false loops (a loop edge whose relative pose
 disagrees with the ground truth by more than 0.10 m or 5 degrees) as markdown. Then:
@@ -64,6 +67,18 @@ def configs() -> dict[str, Config]:
         cfg.depth_filter.enabled = dif
         cfg.mapping.enabled = False
         cfg.output.plots = False
+        out[name] = cfg
+    # the landmark map (issue 17) on top of the best: fused with ISLAM, alone (seed mode), with local BA,
+    # and its ablations (Kalman off, uniform RANSAC sampling, single k-d tree); docs/slam.md "Landmark map"
+    for name, sets in [("ISLAM+LC+landmarks", {}), ("… seed mode", {"mode": "seed"}),
+                       ("… + local BA", {"local_ba": True}), ("… Kalman off", {"kalman": False}),
+                       ("… uniform sampling", {"sampling": "uniform"}), ("… single k-d tree", {"store": "single"})]:
+        cfg = Config()
+        cfg.mapping.enabled = False
+        cfg.output.plots = False
+        cfg.landmarks.enabled = True
+        for k, v in sets.items():
+            setattr(cfg.landmarks, k, v)
         out[name] = cfg
     return out
 

@@ -23,6 +23,7 @@ NON_DEFAULT = {
     "keyframes.min_rotation_deg": 7.5,
     "loop.min_votes": 7,
     "backend.init": "odometry",
+    "landmarks.sampling": "uniform",
     "mapping.gravity": "camera",
     "mapping.mesh": False,
     "stereo.depth": "sgbm",

@@ -304,6 +304,17 @@ class Frontend:
         return TrackResult(frame.index, frame.timestamp, None, True, feats, None, None, n_matches, 0, 0.0,
                            timings, n_candidates=n_cand)
 
+    def correct_last(self, pose: np.ndarray) -> None:
+        """Replace the last tracked frame's pose (e.g. by the landmark map's pose): the next frame's
+        references and constant-velocity prediction continue from it."""
+        if not self.refs:
+            return
+        last = self.refs[-1]
+        last.pose = np.array(pose, dtype=np.float64)
+        if len(self.refs) > 1:
+            prev = self.refs[-2]
+            self._velocity = (inv(prev.pose) @ last.pose, last.features.index - prev.features.index)
+
     def predict_pose(self, index: int) -> np.ndarray | None:
         """Constant-velocity prediction of frame ``index``'s pose (for writing lost frames)."""
         return self._predict(index) if self.refs else None

@@ -33,17 +33,20 @@ def ransac_rigid(
     T0: np.ndarray | None = None,
     subset: int = 64,
     keep_best: int = 8,
+    sample_from: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Robust ``T`` with ``D ~ T * S`` and the inlier mask, or None if no consensus.
 
     S, D: (N, 3) matched points; threshold: inlier distance (m); iterations: samples drawn;
     T0: an optional predicted transform, scored as one more hypothesis;
     subset/keep_best: preemptive scoring (all hypotheses on ``subset`` pairs, the best
-    ``keep_best`` on all pairs).
+    ``keep_best`` on all pairs); sample_from: draw the minimal samples from the first
+    ``sample_from`` pairs only (the caller orders them, e.g. oldest landmarks first), score on all.
     """
-    n = len(S)
-    if n < max(3, min_inliers):
+    n_all = len(S)
+    if n_all < max(3, min_inliers):
         return None
+    n = n_all if sample_from is None else max(3, min(int(sample_from), n_all))
     # Three distinct indices per sample (vectorised rejection of repeats).
     idx = rng.integers(0, n, size=(iterations, 3))
     idx[:, 1] = (idx[:, 0] + 1 + rng.integers(0, n - 1, size=iterations)) % n
@@ -64,6 +67,7 @@ def ransac_rigid(
         Ts = np.concatenate([np.asarray(T0, dtype=np.float64)[None], Ts])
     th2 = threshold * threshold
     # Preemptive scoring: every hypothesis on a fixed random subset, the best few on all pairs.
+    n = n_all
     sub = rng.choice(n, size=min(n, subset), replace=False) if n > subset else np.arange(n)
     counts_sub = _count_inliers(Ts, S[sub], D[sub], th2)
     top = np.argsort(-counts_sub, kind="stable")[:keep_best]

@@ -30,6 +30,10 @@ class NullObserver:
     def log_trajectory(self, name: str, traj) -> None:
         pass
 
+    def log_landmarks(self, index: int, pos: np.ndarray, age: np.ndarray, uv_matched: np.ndarray | None,
+                      ba_moved: list[int] | None = None) -> None:
+        pass
+
     def log_map(self, points: np.ndarray, colors: np.ndarray) -> None:
         pass
 

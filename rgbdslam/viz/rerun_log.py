@@ -247,6 +247,22 @@ class RerunLogger:
         self.rec.set_time("frame", sequence=int(index))
         self.rec.log("world/camera/image/matches", self.rr.LineStrips2D(seg, colors=[(255, 220, 0)], radii=0.5))
 
+    def log_landmarks(self, index: int, pos: np.ndarray, age: np.ndarray, uv_matched: np.ndarray | None,
+                      ba_moved: list[int] | None = None) -> None:
+        """The landmark map (coloured by age: young red -> old blue), this frame's pixels matched to
+        the map, and the keyframes the last local BA moved (a text line)."""
+        self.rec.set_time("frame", sequence=int(index))
+        if len(pos):
+            a = np.clip(np.asarray(age, np.float64) / 300.0, 0.0, 1.0)[:, None]
+            colors = ((1 - a) * np.array([230, 50, 40]) + a * np.array([40, 90, 230])).astype(np.uint8)
+            self.rec.log("world/landmarks", self.rr.Points3D(np.asarray(pos, np.float32), colors=colors, radii=0.006))
+        if uv_matched is not None and len(uv_matched):
+            self.rec.log("world/camera/image/map_matches",
+                         self.rr.Points2D(np.asarray(uv_matched, np.float32) * self.scale, colors=[(40, 90, 230)],
+                                          radii=2.0))
+        if ba_moved:
+            self.rec.log("log", self.rr.TextLog(f"local BA moved keyframes {ba_moved}", level="DEBUG"))
+
     def log_loop(self, i: int, j: int, pose_i: np.ndarray, pose_j: np.ndarray) -> None:
         """A loop edge between frames i and j (drawn between their camera centres; all loops so far)."""
         self.loops.append([np.asarray(pose_i)[:3, 3], np.asarray(pose_j)[:3, 3]])

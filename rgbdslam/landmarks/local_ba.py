@@ -1,0 +1,102 @@
+"""Windowed local bundle adjustment over the landmark map (issue 17, beyond the sources).
+
+On each new keyframe: the last ``ba_window`` keyframes and every landmark they observe (seen by
+at least two keyframes in the graph) are optimised; the older keyframes (among those kept) that
+observe the same landmarks enter as fixed poses, which also fixes the gauge (with none, the
+oldest keyframe of the window is held fixed). Each observation is a GTSAM
+``GenericStereoFactor3D``: the RGB-D depth becomes a virtual disparity ``d = f b / z`` for a
+virtual baseline ``b`` (as ORB-SLAM's RGB-D mode does), so the factor measures
+``(u_left, u_left − d, v)``. Noise: σ_px on u and v; the right column carries the left one's
+pixel noise (a full covariance, correlated) plus the disparity noise ``f b σ_z / z²`` with
+σ_z = a + b_z z² (for a Kinect nearly a constant ``f b b_z``). Independent σ on both columns, as
+for a real stereo pair, would make the depth ~15x weaker than the sensor's and let the window
+slide along the rays. Huber kernel; Levenberg–Marquardt, ``ba_iterations`` iterations.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import gtsam
+from rgbdslam.config import LandmarksConfig
+from rgbdslam.geometry.camera import Camera
+
+X = lambda i: gtsam.symbol("x", int(i))  # noqa: E731
+L = lambda i: gtsam.symbol("l", int(i))  # noqa: E731
+
+
+class LocalBA:
+    def __init__(self, cfg: LandmarksConfig, camera: Camera):
+        self.cfg = cfg
+        self.camera = camera
+        self.K = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, cfg.ba_baseline)
+        self.last_moved: list[int] = []
+        self.last_error: tuple[float, float] = (0.0, 0.0)
+
+    def run(self, lmap, keyframes: list, kf_pose: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Optimise; writes landmark positions into ``lmap`` and returns ``{keyframe: refined pose}``
+        for the window's keyframes (empty when there was nothing to optimise)."""
+        c = self.cfg
+        if len(keyframes) < 2:
+            return {}
+        window = keyframes[-c.ba_window:]
+        older = keyframes[:-c.ba_window]
+        win_ids = np.unique(np.concatenate([k.lm for k in window]))
+        win_ids = win_ids[lmap.alive[win_ids]]
+        if not len(win_ids):
+            return {}
+        # observations: (keyframe, landmark id, u, v, z) of window + older keyframes on those landmarks
+        obs = []
+        for k in window + older:
+            sel = np.isin(k.lm, win_ids)
+            if sel.any():
+                obs.append((k.index, k.lm[sel], k.uv[sel], k.z[sel]))
+        counts = np.bincount(np.concatenate([o[1] for o in obs]), minlength=lmap.n)
+        use = win_ids[counts[win_ids] >= 2]
+        if len(use) > c.ba_max_landmarks:  # the best-observed ones (the cost is Python-side factor building)
+            use = use[np.argsort(-counts[use], kind="stable")[: c.ba_max_landmarks]]
+        if len(use) < 10:
+            return {}
+        win_idx = {k.index for k in window}
+        fixed = {o[0] for o in obs if o[0] not in win_idx and np.isin(o[1], use).any()}
+        if not fixed:
+            fixed = {window[0].index}
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        fb = self.camera.fx * c.ba_baseline
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(c.ba_huber)
+        poses_used = set()
+        for kf, lm, uv, z in obs:
+            sel = np.isin(lm, use)
+            if not sel.any():
+                continue
+            lm, uv, z = lm[sel], uv[sel], z[sel]
+            poses_used.add(kf)
+            sz = c.depth_noise_a + c.depth_noise_b * z * z
+            sd = fb * sz / (z * z)  # disparity noise (px)
+            s2 = c.sigma_px**2
+            for j in range(len(lm)):
+                # u_right = u_left - d: it carries u_left's pixel noise (correlated) plus the disparity's
+                C = np.array([[s2, s2, 0.0], [s2, s2 + sd[j] ** 2, 0.0], [0.0, 0.0, s2]])
+                nm = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(C))
+                meas = gtsam.StereoPoint2(uv[j, 0], uv[j, 0] - fb / z[j], uv[j, 1])
+                graph.add(gtsam.GenericStereoFactor3D(meas, nm, X(kf), L(lm[j]), self.K, False, False))
+        for kf in poses_used:
+            values.insert(X(kf), gtsam.Pose3(kf_pose[kf]))
+            if kf in fixed:
+                graph.add(gtsam.NonlinearEqualityPose3(X(kf), gtsam.Pose3(kf_pose[kf])))
+        for i in use:
+            values.insert(L(i), lmap.pos[i].astype(np.float64))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(c.ba_iterations)
+        try:
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+            result = opt.optimize()
+        except RuntimeError:  # an indeterminate system: keep the map as it is
+            return {}
+        self.last_error = (graph.error(values), graph.error(result))
+        for i in use:
+            lmap.pos[i] = result.atPoint3(L(i))
+        out = {kf: result.atPose3(X(kf)).matrix() for kf in poses_used if kf in win_idx and kf not in fixed}
+        self.last_moved = sorted(out)
+        return out

@@ -1,0 +1,198 @@
+"""The landmark stage of the per-frame chain: track against the map, update it, grow it at keyframes.
+
+``LandmarkTracker.track`` takes the frame-to-frame registration's pose (``landmarks.mode='seed'``:
+it predicts where the landmarks project) and returns the map pose (or the given pose when the map
+cannot place the frame); the matched landmarks are then re-observed (static Kalman update).
+``add_keyframe`` makes new landmarks from the keyframe's depth-valid features that matched no
+landmark, and runs the windowed local bundle adjustment (``landmarks.local_ba``). ``finish`` moves
+the landmarks with their anchor keyframes after the pose graph, and ``summary`` goes to run.json.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from rgbdslam.config import LandmarksConfig
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv, rotation_angle
+from rgbdslam.landmarks.kalman import observation_covariance
+from rgbdslam.landmarks.map import LandmarkMap
+from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
+
+
+@dataclass
+class _KeyframeObs:
+    """A keyframe's observations of landmarks (for local BA): ids, pixels (undistorted), depth."""
+
+    index: int
+    lm: np.ndarray
+    uv: np.ndarray
+    z: np.ndarray
+
+
+@dataclass
+class LandmarkStats:
+    frames: int = 0
+    map_poses: int = 0  # frames placed by the map
+    rejected: int = 0  # map poses too far from the registration's
+    inliers: list[int] = field(default_factory=list)
+    matched: int = 0
+    matched_old: int = 0  # inliers first seen >= old_age frames earlier
+    ba_runs: int = 0
+    ba_ms: list[float] = field(default_factory=list)
+
+
+def fuse_poses(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -> np.ndarray:
+    """Information-weighted mean of two poses (right perturbations, (rotation, translation) order):
+    P1 · Exp((H1 + H2)⁻¹ H2 · Log(P1⁻¹ P2)) — one Gauss–Newton step, exact when the two agree closely."""
+    import gtsam
+
+    eta = gtsam.Pose3.Logmap(gtsam.Pose3(inv(P1) @ P2))
+    step = np.linalg.solve(H1 + H2, H2 @ eta)
+    return P1 @ gtsam.Pose3.Expmap(step).matrix()
+
+
+class LandmarkTracker:
+    def __init__(self, cfg: LandmarksConfig, camera: Camera):
+        self.cfg = cfg
+        self.camera = camera
+        self.map = LandmarkMap(cfg.store, cfg.kalman, cfg.process_noise, cfg.min_seen, cfg.cull_after,
+                               cfg.store_n1, cfg.store_q)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.stats = LandmarkStats()
+        self.keyframes: list[_KeyframeObs] = []  # the last ones (bounded: what local BA can use)
+        self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
+        self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
+        self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
+        self.last_ba_moved: list[int] = []
+        self.ba = None
+        if cfg.local_ba:
+            from rgbdslam.landmarks.local_ba import LocalBA
+
+            self.ba = LocalBA(cfg, camera)
+
+    def _sigma(self, z: np.ndarray) -> np.ndarray:
+        return self.cfg.depth_noise_a + self.cfg.depth_noise_b * z * z
+
+    def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int) -> None:
+        P = feats.pts[idx]
+        zw = P @ pose[:3, :3].T + pose[:3, 3]
+        R = observation_covariance(P, pose[:3, :3], self.camera.fx, self.cfg.sigma_px, self.cfg.depth_noise_a,
+                                   self.cfg.depth_noise_b)
+        self.map.observe(ids, zw, R, frame)
+
+    def track(self, index: int, feats, pose: np.ndarray, information: np.ndarray | None = None) -> np.ndarray:
+        """The map pose of frame ``index`` given the registration's ``pose`` (returned unchanged if
+        the map cannot place the frame); re-observes the matched landmarks."""
+        c = self.cfg
+        self.stats.frames += 1
+        self._last = None
+        self._last_matches = None
+        if self.map.size == 0:
+            return pose
+        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
+        self._last_matches = m
+        if len(m.lm) < c.min_inliers:
+            return pose
+        res = estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
+                            c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
+                            c.refine, self.camera, c.sigma_px, c.chi_gate)
+        if res is None:
+            return pose
+        d = inv(pose) @ res.pose  # a map pose far from the registration's is a wrong map match
+        if np.linalg.norm(d[:3, 3]) > c.max_correction or \
+                np.degrees(rotation_angle(d[:3, :3])) > c.max_correction_deg:
+            self.stats.rejected += 1
+            return pose
+        if c.mode == "fuse" and information is not None and res.information is not None:
+            res.pose = fuse_poses(pose, information, res.pose, res.information)
+        self.stats.map_poses += 1
+        self.stats.inliers.append(len(res.lm))
+        self.stats.matched += len(res.lm)
+        self.stats.matched_old += int((index - self.map.first[res.lm] >= c.old_age).sum())
+        self._observe(feats, res.feat, res.lm, res.pose, index)
+        self._last = (index, res.feat, res.lm)
+        return res.pose
+
+    def end_frame(self, index: int) -> None:
+        self.map.end_step(index)
+
+    def add_keyframe(self, index: int, feats, pose: np.ndarray) -> np.ndarray | None:
+        """New landmarks from the keyframe's unmatched depth-valid features; local BA. Returns the
+        keyframe's refined pose when local BA moved it (else None)."""
+        c = self.cfg
+        matched_feat = np.zeros(len(feats.valid), bool)
+        lm_idx, lm_ids = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        if self._last is not None and self._last[0] == index:
+            lm_idx, lm_ids = self._last[1], self._last[2]
+            matched_feat[lm_idx] = True
+        m = self._last_matches
+        if m is not None and len(m.feat):  # every descriptor match (inlier or not) keeps its feature out
+            matched_feat[m.feat] = True
+        new = np.flatnonzero(feats.valid & ~matched_feat & (np.nan_to_num(feats.pts[:, 2]) < c.max_depth))
+        if len(new) and m is not None and m.cand_uv is not None and len(m.cand_uv) and c.new_min_distance > 0:
+            # where a landmark already projects, no second one is made (it would compete with the old one)
+            d, _ = cKDTree(m.cand_uv).query(feats.uv[new], k=1, distance_upper_bound=c.new_min_distance)
+            new = new[~np.isfinite(d)]
+        if len(new):
+            P = feats.pts[new]
+            zw = P @ pose[:3, :3].T + pose[:3, 3]
+            R = observation_covariance(P, pose[:3, :3], self.camera.fx, c.sigma_px, c.depth_noise_a, c.depth_noise_b)
+            ids = self.map.add(zw, R, feats.desc[new], index, index)
+            lm_idx = np.concatenate([lm_idx, new])
+            lm_ids = np.concatenate([lm_ids, ids])
+        self.kf_pose[index] = pose.copy()
+        self.keyframes.append(_KeyframeObs(index, lm_ids, feats.uv[lm_idx].copy(), feats.pts[lm_idx, 2].copy()))
+        keep = max(3 * c.ba_window, 10)
+        if len(self.keyframes) > keep:
+            del self.keyframes[: len(self.keyframes) - keep]
+        self._last_matches = None
+        if self.ba is None:
+            return None
+        t0 = time.perf_counter()
+        refined = self.ba.run(self.map, self.keyframes, self.kf_pose)
+        self.stats.ba_ms.append(1e3 * (time.perf_counter() - t0))
+        self.stats.ba_runs += 1
+        self.last_ba_moved = sorted(refined) if refined else []
+        if refined:
+            for k, P in refined.items():
+                self.kf_pose[k] = P
+            return refined.get(index)
+        return None
+
+    def log(self, observer, index: int, feats, is_kf: bool) -> None:
+        """Send the map to a Rerun observer (landmarks by age, this frame's map matches, BA moves)."""
+        ids = self.map.live_ids()
+        uv = feats.uv_raw[self._last[1]] if self._last is not None and len(feats.uv_raw) else None
+        observer.log_landmarks(index, self.map.pos[ids], index - self.map.first[ids], uv,
+                               self.last_ba_moved if is_kf else None)
+
+    def top_view(self, path, title: str = "landmarks (top view)") -> None:
+        """The thesis' 2-D map: landmarks seen from above (x-y of the world), coloured by times seen."""
+        from rgbdslam.landmarks.topview import plot_top_view
+
+        ids = self.map.live_ids()
+        plot_top_view(path, self.map.pos[ids], self.map.seen[ids], list(self.kf_pose.values()), title)
+
+    def finish(self, optimised: dict[int, np.ndarray] | None) -> int:
+        """Move landmarks with their anchor keyframes' pose-graph corrections. Returns how many moved."""
+        if not optimised:
+            return 0
+        corr = {k: optimised[k] @ inv(P) for k, P in self.kf_pose.items() if k in optimised}
+        return self.map.move_with_anchors(corr)
+
+    def summary(self) -> dict:
+        s = self.stats
+        return {
+            "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
+            "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected,
+            "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
+            "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,
+            "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),
+            "local_ba_runs": s.ba_runs,
+            "local_ba_median_ms": float(np.median(s.ba_ms)) if s.ba_ms else 0.0,
+        }

@@ -1,0 +1,208 @@
+"""Tracking a frame against the landmark map (spec §6, issue 17).
+
+1. Candidates: the landmarks the store returns within ``max_depth / 2`` (+ margin) of the point
+   ``max_depth / 2`` ahead of the predicted camera, kept when they project into the image in
+   front of the camera.
+2. Matching: every depth-valid frame feature is compared (Hamming) with the ``k`` projected
+   landmarks nearest to it within ``search_radius`` pixels; the best under ``max_hamming`` wins,
+   one frame feature per landmark (the closest descriptor).
+3. Pose: 3-D rigid RANSAC (:func:`rgbdslam.geometry.ransac.ransac_rigid`) of the frame's camera
+   points onto the landmarks' world points, with minimal samples drawn from the **oldest**
+   matched landmarks first (the thesis' rule; ``sampling='uniform'`` for the ablation), the
+   prediction scored as one more hypothesis; then a weighted refit on the inliers (weights
+   1 / (σ²_observation + σ²_landmark), re-gated twice).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from rgbdslam.geometry.ransac import ransac_rigid
+from rgbdslam.geometry.rigid import fit_rigid
+from rgbdslam.geometry.se3 import inv
+
+
+@dataclass
+class MapMatch:
+    feat: np.ndarray  # (M,) frame feature indices
+    lm: np.ndarray  # (M,) landmark ids
+    n_candidates: int  # landmarks projected into the frame
+    cand_uv: np.ndarray | None = None  # (K, 2) pixels of the projected candidates
+
+
+@dataclass
+class MapPose:
+    pose: np.ndarray  # camera-to-world
+    feat: np.ndarray  # inlier frame feature indices
+    lm: np.ndarray  # inlier landmark ids
+    n_matches: int
+    n_candidates: int
+    rms: float  # RMS 3-D residual of the inliers (m)
+    information: np.ndarray | None = None  # 6x6, right perturbation (rotation, translation); reprojection refine
+
+
+def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin: float = 0.2):
+    """(ids, uv (K,2), depth (K,)) of live landmarks in front of the camera and inside the image."""
+    c = pose[:3, 3]
+    ahead = c + pose[:3, 2] * (0.5 * max_depth)
+    ids = lmap.near(ahead, 0.5 * max_depth + margin)
+    if not len(ids):
+        return ids, np.zeros((0, 2)), np.zeros(0)
+    Tcw = inv(pose)
+    P = lmap.pos[ids] @ Tcw[:3, :3].T + Tcw[:3, 3]
+    z = P[:, 2]
+    ok = (z > 0.1) & (z < max_depth)
+    ids, P, z = ids[ok], P[ok], z[ok]
+    uv = np.stack([camera.fx * P[:, 0] / z + camera.cx, camera.fy * P[:, 1] / z + camera.cy], axis=1)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    return ids[inside], uv[inside], z[inside]
+
+
+def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, max_hamming: int,
+                 max_depth: float, k: int = 6) -> MapMatch:
+    """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px."""
+    ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
+    fi = np.flatnonzero(feats.valid)
+    empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv)
+    if len(ids) == 0 or len(fi) == 0:
+        return empty
+    kk = min(k, len(ids))
+    d, nn = cKDTree(uv).query(feats.uv[fi], k=kk, distance_upper_bound=search_radius)
+    if kk == 1:
+        d, nn = d[:, None], nn[:, None]
+    has = np.isfinite(d)
+    nn_safe = np.where(has, nn, 0)
+    fw = feats.words[fi]  # (F, 4)
+    lw = lmap.words(ids)  # (K, 4)
+    ham = np.zeros(nn.shape, np.int32)
+    for w in range(4):
+        ham += np.bitwise_count(fw[:, None, w] ^ lw[nn_safe, w]).astype(np.int32)
+    ham = np.where(has, ham, 1 << 20)
+    best = ham.argmin(axis=1)
+    hb = ham[np.arange(len(fi)), best]
+    ok = hb <= max_hamming
+    f_idx, l_idx, hb = fi[ok], nn_safe[np.arange(len(fi)), best][ok], hb[ok]
+    # one feature per landmark: the smallest Hamming distance wins
+    order = np.lexsort((f_idx, hb))
+    _, first = np.unique(l_idx[order], return_index=True)
+    sel = order[first]
+    return MapMatch(f_idx[sel], ids[l_idx[sel]], len(ids), uv)
+
+
+def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.ndarray, threshold: float,
+                  iterations: int, min_inliers: int, sampling: str, old_fraction: float,
+                  rng: np.random.Generator, refine: str = "rigid", camera=None, sigma_px: float = 1.0,
+                  chi2_gate: float = 3.0) -> MapPose | None:
+    """Pose from the matches: RANSAC (old landmarks first) + weighted refit on the inliers.
+
+    ``sigma_obs`` (M,) is each frame point's noise (m); the landmark's own is sqrt(trace(P)/3).
+    """
+    m = len(match.lm)
+    if m < max(3, min_inliers):
+        return None
+    S = feats.pts[match.feat]
+    D = lmap.pos[match.lm]
+    if sampling == "old_first":  # sort by first sighting: the minimal samples come from the oldest part
+        order = np.argsort(lmap.first[match.lm], kind="stable")
+        S, D, feat, lm, sig = S[order], D[order], match.feat[order], match.lm[order], sigma_obs[order]
+        n_sample = max(min(m, 12), int(np.ceil(old_fraction * m)))
+    else:
+        feat, lm, sig = match.feat, match.lm, sigma_obs
+        n_sample = m
+    out = ransac_rigid(S, D, threshold, iterations, rng, min_inliers, T0=pred, sample_from=n_sample)
+    if out is None:
+        return None
+    T, mask = out
+    s_lm2 = np.trace(lmap.cov[lm], axis1=1, axis2=2) / 3.0
+    w = 1.0 / (sig**2 + s_lm2)
+    for _ in range(2):
+        if mask.sum() < max(3, min_inliers):
+            return None
+        T = fit_rigid(S[mask], D[mask], w[mask])
+        r = np.linalg.norm(D - (S @ T[:3, :3].T + T[:3, 3]), axis=1)
+        mask = r < threshold
+    if mask.sum() < max(3, min_inliers):
+        return None
+    T = fit_rigid(S[mask], D[mask], w[mask])
+    info = None
+    if refine == "reprojection":  # motion-only GN on pixels + inverse depth, re-gated once
+        uv, z, slm = feats.uv[feat], S[:, 2], np.sqrt(s_lm2)
+        for _ in range(2):
+            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sigma_px, sig[mask], slm[mask])
+            P = D @ inv(T)[:3, :3].T + inv(T)[:3, 3]
+            pz = np.maximum(P[:, 2], 1e-3)
+            s_pix = np.sqrt(sigma_px**2 + (camera.fx * slm / pz) ** 2)
+            eu = (uv[:, 0] - (camera.fx * P[:, 0] / pz + camera.cx)) / s_pix
+            ev = (uv[:, 1] - (camera.fy * P[:, 1] / pz + camera.cy)) / s_pix
+            ez = (1.0 / z - 1.0 / pz) / (sig / (z * z))
+            new = np.sqrt(eu**2 + ev**2 + ez**2) < chi2_gate
+            if new.sum() < max(3, min_inliers):
+                break
+            mask = new
+    r = np.linalg.norm(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]), axis=1)
+    return MapPose(T, feat[mask], lm[mask], m, match.n_candidates, float(np.sqrt(np.mean(r**2))), info)
+
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: the rotation matrix of the rotation vector ``w``."""
+    th = float(np.linalg.norm(w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
+
+
+def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera, sigma_px: float,
+                        sigma_z: np.ndarray, sigma_lm: np.ndarray, iterations: int = 5,
+                        huber: float = 1.345) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Motion-only Gauss–Newton on pixel and inverse-depth residuals (vectorised, Huber-weighted).
+
+    pose: camera-to-world start; X (N,3) landmark world points; uv (N,2) measured (undistorted)
+    pixels; z (N,) measured depths with noise sigma_z (N,); sigma_lm (N,) landmark position sigma
+    (m, added to the pixel noise as f·σ/z). Residuals per point: (u, v) in pixels and 1/z in
+    1/m with σ = σ_z / z² — the RGB-D analogue of a stereo reprojection error, so the depth's
+    larger noise no longer pulls the pose as the 3-D point distance does. Returns (pose, whitened
+    error norm per point, 6x6 information of the pose: right perturbation pose·Exp(η), η = (ω, v),
+    GTSAM's Pose3 order).
+    """
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    Tcw = inv(pose)
+    R, t = Tcw[:3, :3].copy(), Tcw[:3, 3].copy()
+    s_inv = sigma_z / (z * z)
+    e = np.zeros(len(X))
+    H = np.zeros((6, 6))
+    n = len(X)
+    for _ in range(iterations):
+        P = X @ R.T + t
+        x, y = P[:, 0], P[:, 1]
+        a = 1.0 / np.maximum(P[:, 2], 1e-3)  # inverse depth of the prediction
+        s_pix = np.sqrt(sigma_px**2 + (fx * sigma_lm * a) ** 2)
+        r = np.stack([(uv[:, 0] - (fx * x * a + cx)) / s_pix, (uv[:, 1] - (fy * y * a + cy)) / s_pix,
+                      (1.0 / z - a) / s_inv], axis=1)
+        e = np.linalg.norm(r, axis=1)
+        w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
+        # Jacobians of the predictions (u, v, 1/z) w.r.t. xi = (omega, v), left perturbation of Tcw
+        # (p <- p + omega x p + v), written out: no (N, 3, 3) products
+        J = np.empty((n, 3, 6))
+        xa, ya = x * a, y * a
+        J[:, 0] = np.stack([-xa * ya, 1 + xa * xa, -ya, a, np.zeros(n), -xa * a], axis=1) * (fx / s_pix)[:, None]
+        J[:, 1] = np.stack([-(1 + ya * ya), xa * ya, xa, np.zeros(n), a, -ya * a], axis=1) * (fy / s_pix)[:, None]
+        J[:, 2] = np.stack([-ya * a, xa * a, np.zeros(n), np.zeros(n), np.zeros(n), -a * a], axis=1) / s_inv[:, None]
+        Jw = J * w[:, None, None]
+        H = np.einsum("nki,nkj->ij", Jw, J)
+        g = np.einsum("nki,nk->i", Jw, r)
+        try:
+            xi = np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            break
+        dR = _so3_exp(xi[:3])
+        R, t = dR @ R, dR @ t + xi[3:]
+        if np.linalg.norm(xi) < 1e-8:
+            break
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = R, t
+    # Tcw <- Exp(xi) Tcw is pose <- pose Exp(-xi): the same information for the pose's right perturbation
+    return inv(out), e, H
