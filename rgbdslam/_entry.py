@@ -15,6 +15,19 @@ from rgbdslam import errors
 def main() -> None:
     signal.signal(signal.SIGINT, errors.on_sigint)
     try:
+        _command()
+    finally:
+        # The command is over (finished, failed or interrupted; run.json says which). What is left
+        # is Python's shutdown: multiprocessing's atexit finalizers (the live map's queue feeder
+        # threads), then module teardown with SIGINT reset to its default by Python itself. A
+        # Ctrl-C there used to raise KeyboardInterrupt inside those finalizers (a hang or a wrong
+        # exit code) or kill the process by the signal (exit -2, after a finished run). There is
+        # nothing left to stop: it is ignored, and the process exits with the command's code.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _command() -> None:
+    try:
         # a Ctrl-C that arrived while the interpreter started, with SIGINT blocked, is taken now
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         from rgbdslam.cli import main as cli_main

@@ -286,6 +286,7 @@ class LiveMap:
             if self._proc.is_alive():
                 self._proc.terminate()
                 self._proc.join()
+                self._jobs.cancel_join_thread()  # its reader is gone: exit must not wait to flush the queue
 
 
 def add_cloud(dst, src, sign: int) -> None:
