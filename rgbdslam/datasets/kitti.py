@@ -13,20 +13,18 @@ from __future__ import annotations
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from rgbdslam.datasets.registry import reader
-from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline
+from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline, frame_times, image_files
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.stereo import StereoRig
-from rgbdslam.io.kitti import read_kitti_calib, read_kitti_poses, read_kitti_times
+from rgbdslam.io.kitti import read_kitti_calib, read_kitti_poses
 from rgbdslam.io.trajectory import Trajectory
 
 KITTI_HZ = 10.0
 PAIRS = (("image_0", "image_1", "P0", "P1"), ("image_2", "image_3", "P2", "P3"))
-IMAGE_EXT = (".png", ".jpg", ".jpeg")
 
 
 def _sequence_dir(path: Path) -> Path | None:
@@ -46,10 +44,6 @@ def _sequence_dir_direct(p: Path) -> bool:
 
 def _is_kitti(path: Path) -> bool:
     return _sequence_dir(path) is not None
-
-
-def _images(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXT)
 
 
 @reader("kitti", _is_kitti)
@@ -77,19 +71,14 @@ class KittiSequence(StereoSequence):
         if not fx > 0:
             raise InputError(f"{seq / 'calib.txt'}: {pa} has fx = {fx:g}; expected a positive focal length")
         baseline = check_baseline(-(P1[0, 3] - P0[0, 3]) / P1[0, 0], seq / "calib.txt")
-        left, right = _images(seq / a), _images(seq / b)
+        left, right = image_files(seq / a), image_files(seq / b)
         if len(left) != len(right):
             raise InputError(f"{seq} has {len(left)} left images ({a}/) and {len(right)} right images ({b}/); "
                              f"a stereo sequence needs one right image per left image")
         if not left:
             raise InputError(f"{seq / a} holds no images")
         n = len(left)
-        if (seq / "times.txt").is_file():
-            ts = read_kitti_times(seq / "times.txt")
-            if len(ts) != n:
-                raise InputError(f"{seq / 'times.txt'} has {len(ts)} time stamps for {n} frames; they must match")
-        else:
-            ts = np.arange(n) / KITTI_HZ
+        ts = frame_times(seq / "times.txt", n, KITTI_HZ)
         gt_all = None
         gt_path = seq.parent.parent / "poses" / f"{seq.name}.txt"
         if gt_path.is_file():

@@ -19,6 +19,7 @@ import numpy as np
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.stereo import StereoRig
+from rgbdslam.io.kitti import read_kitti_times
 from rgbdslam.io.trajectory import Trajectory
 
 
@@ -46,6 +47,25 @@ def check_pair_lists(left: list[Path], right: list[Path], where: Path) -> None:
                          f"right image per left image")
     if not left:
         raise InputError(f"{where} has no stereo images; check the image folders")
+
+
+IMAGE_EXT = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
+
+
+def image_files(folder: Path) -> list[Path]:
+    """The images of one camera's folder, in name order."""
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXT)
+
+
+def frame_times(times_file: Path, n: int, hz: float) -> np.ndarray:
+    """Time stamps of ``n`` pairs: ``times_file`` (KITTI's times.txt, one per line) when it exists,
+    else a constant rate ``hz``."""
+    if not times_file.is_file():
+        return np.arange(n) / hz
+    ts = read_kitti_times(times_file)
+    if len(ts) != n:
+        raise InputError(f"{times_file} has {len(ts)} time stamps for {n} frames; they must match")
+    return ts
 
 
 def check_baseline(baseline: float, source: Path) -> float:

@@ -18,29 +18,22 @@ from __future__ import annotations
 from pathlib import Path
 
 import cv2
-import numpy as np
 import yaml
 
 from rgbdslam.datasets.registry import reader
-from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline
+from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline, frame_times, image_files
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.stereo import StereoRig
-from rgbdslam.io.kitti import read_kitti_times
 from rgbdslam.io.text import read_text
 from rgbdslam.io.trajectory import read_tum
 
 CAMERA_FILE = "stereo.yaml"
-IMAGE_EXT = (".png", ".jpg", ".jpeg", ".pgm", ".bmp")
 
 
 def _is_stereo_folder(path: Path) -> bool:
     return (path / "left").is_dir() and (path / "right").is_dir()
-
-
-def _images(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXT)
 
 
 def read_stereo_yaml(path: Path) -> dict:
@@ -79,19 +72,14 @@ class StereoFolderSequence(StereoSequence):
         root = Path(root)
         c = read_stereo_yaml(root / CAMERA_FILE)
         baseline = check_baseline(c["baseline"], root / CAMERA_FILE)
-        left, right = _images(root / "left"), _images(root / "right")
+        left, right = image_files(root / "left"), image_files(root / "right")
         if len(left) != len(right):
             raise InputError(f"{root} has {len(left)} left and {len(right)} right images; a stereo sequence needs "
                              f"one right image per left image")
         if not left:
             raise InputError(f"{root / 'left'} holds no images")
         n = len(left)
-        if (root / "times.txt").is_file():
-            ts = read_kitti_times(root / "times.txt")
-            if len(ts) != n:
-                raise InputError(f"{root / 'times.txt'} has {len(ts)} time stamps for {n} frames; they must match")
-        else:
-            ts = np.arange(n) / c.get("fps", 30.0)
+        ts = frame_times(root / "times.txt", n, c.get("fps", 30.0))
         first = cv2.imread(str(left[0]), cv2.IMREAD_UNCHANGED)
         if first is None:
             raise InputError(f"left image {left[0]} cannot be decoded; replace it with a valid image")
