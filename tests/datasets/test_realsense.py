@@ -42,17 +42,21 @@ def test_live_playback_runs_records_and_repeats(tmp_path, recording):
     assert res.exit_code == 0, res.output
     assert "from the recording" in " ".join(res.stderr.split())
     est = read_tum(out / "trajectory.tum")
-    assert len(est) == FRAMES
+    # the SDK plays the first frames in real time until set_real_time(False) takes effect just after
+    # pipe.start(): on a loaded machine its first frame can be dropped (seen once in CI); never more
+    assert FRAMES - 1 <= len(est) <= FRAMES
     assert (out / "map" / "cloud.ply").is_file()  # the same outputs as a recorded run, map included
     rec = out / "recording"
     lines = [x for x in (rec / "rgb.txt").read_text().splitlines() if not x.startswith("#")]
-    assert len(lines) == FRAMES
-    # the recorded colour is the camera's colour, unchanged
+    assert len(lines) == len(est)
+    # the recorded colour is the camera's colour, unchanged (the TUM frame of the same time stamp)
     from rgbdslam.datasets.tum import TumSequence
 
     tum = TumSequence(TUM_RPY200)
-    name = lines[3].split()[1]
-    assert np.array_equal(cv2.imread(str(rec / name))[..., ::-1], tum.load(3).rgb)
+    stamp, name = lines[3].split()[:2]
+    k = int(np.argmin(np.abs(tum.timestamps - float(stamp))))
+    assert abs(tum.timestamps[k] - float(stamp)) < 1e-3
+    assert np.array_equal(cv2.imread(str(rec / name))[..., ::-1], tum.load(k).rgb)
     # the recorded folder repeats the session exactly
     cfg = load_config(None, ["mapping.enabled=false", "output.plots=false"])
     run_sequence(rec, tmp_path / "again", cfg, progress=False)
