@@ -55,6 +55,7 @@ class DatasetConfig:
     depth_topic: str | None = None  # ROS bags: depth image topic (None: found when unambiguous)
     camera_info_topic: str | None = None  # ROS bags: CameraInfo topic of the colour camera (None: found)
     prefetch: int = 4  # frames read ahead by a background thread during `run` (0 = read in the loop)
+    reader_threads: int = 2  # threads preparing frames ahead at once where the reader allows it (stereo pairs)
 
 
 @dataclass
@@ -465,7 +466,7 @@ BOUNDS = {
 MAXIMA = {
     # dataset: frame counts and indices fit a C int; prefetched frames are held in memory
     "dataset.max_difference": 1e4, "dataset.first_frame": 10**9, "dataset.max_frames": 10**9,
-    "dataset.stride": 10**6, "dataset.prefetch": 64,
+    "dataset.stride": 10**6, "dataset.prefetch": 64, "dataset.reader_threads": 64,
     # features: OpenCV's ORB takes C ints; n_features x n_features Hamming matrices (~1 GB at 10000)
     "features.n_features": 10_000, "features.fast_threshold": 255, "features.grid_rows": 64,
     "features.grid_cols": 64,

@@ -98,6 +98,8 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--skip-synthetic", action="store_true")
+    ap.add_argument("--parts", default="depth,kitti,synthetic",
+                    help="comma list of the parts to run: depth (accuracy), kitti (+ fr1/rpy), synthetic")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_stereo_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -106,20 +108,24 @@ def main() -> None:
 
     report: dict = {"machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPUs, load average "
                                f"{os.getloadavg()[0]:.1f} at start", "command": " ".join(sys.argv)}
-    report["depth_accuracy"] = depth_accuracy(work)
+    parts = set(args.parts.split(","))
+    if args.skip_synthetic:
+        parts.discard("synthetic")
+    report["depth_accuracy"] = depth_accuracy(work) if "depth" in parts else {}
     print("depth accuracy", json.dumps(report["depth_accuracy"]), flush=True)
 
     # KITTI with both methods, and fr1/rpy (RGB-D) in between for the speed ratio
     kitti = {}
-    for method in ("sparse", "sgbm"):
-        kitti[method] = run(KITTI, "kitti", [f"stereo.depth={method}"], work / f"kitti_{method}")
-        print("kitti", method, kitti[method], flush=True)
-    kitti["rgbd_fr1_rpy"] = run(RPY, "tum_fr1", [], work / "rpy")
-    print("fr1/rpy", kitti["rgbd_fr1_rpy"], flush=True)
+    if "kitti" in parts:
+        for method in ("sparse", "sgbm"):
+            kitti[method] = run(KITTI, "kitti", [f"stereo.depth={method}"], work / f"kitti_{method}")
+            print("kitti", method, kitti[method], flush=True)
+        kitti["rgbd_fr1_rpy"] = run(RPY, "tum_fr1", [], work / "rpy")
+        print("fr1/rpy", kitti["rgbd_fr1_rpy"], flush=True)
     report["kitti"] = kitti
 
     synth = []
-    if not args.skip_synthetic:
+    if "synthetic" in parts:
         for motion in args.motions.split(","):
             for seed in [int(s) for s in args.seeds.split(",")]:
                 rg, st = work / f"{motion}_s{seed}_rgbd", work / f"{motion}_s{seed}_stereo"
@@ -146,30 +152,40 @@ def main() -> None:
 
 def print_markdown(r: dict) -> None:
     print(f"\nmachine: {r['machine']}; load average at the end {r['load_average_end']:.1f}\n")
-    print("| method | disparity bias (px) | sigma (px) | errors > 1 px | pixels with depth | read + depth ms |")
-    print("|---|---|---|---|---|---|")
-    for m, d in r["depth_accuracy"].items():
-        print(f"| {m} | {d['bias_px']:+.3f} | {d['sigma_px']:.3f} | {100 * d['gross_share']:.1f} % | "
-              f"{d['depth_pixels_median']:.0f} | {d['load_ms_median']:.0f} |")
+    if r["depth_accuracy"]:
+        print("| method | disparity bias (px) | sigma (px) | errors > 1 px | pixels with depth | read + depth ms |")
+        print("|---|---|---|---|---|---|")
+        for m, d in r["depth_accuracy"].items():
+            print(f"| {m} | {d['bias_px']:+.3f} | {d['sigma_px']:.3f} | {100 * d['gross_share']:.1f} % | "
+                  f"{d['depth_pixels_median']:.0f} | {d['load_ms_median']:.0f} |")
+    if r["kitti"]:
+        print_kitti(r["kitti"])
+    if r["synthetic"]:
+        print_synthetic(r["synthetic"])
+
+
+def print_kitti(kitti: dict) -> None:
     print("\n| KITTI 06 0-50 | ATE (m) | t_err (%) | r_err (deg/m) | end drift (%) | lost | frames/s | "
           "frames/s / fr1-rpy frames/s |")
     print("|---|---|---|---|---|---|---|---|")
-    ref = r["kitti"]["rgbd_fr1_rpy"]["fps"]
+    ref = kitti["rgbd_fr1_rpy"]["fps"]
     for m in ("sparse", "sgbm"):
-        d = r["kitti"][m]
+        d = kitti[m]
         print(f"| {m} | {d['ate']:.4f} | {d['t_err_pct']:.3f} | {d['r_err_deg_per_m']:.4f} | {d['end_drift_pct']:.3f} | "
               f"{d['lost']} | {d['fps']:.1f} | {d['fps'] / ref:.2f} |")
-    d = r["kitti"]["rgbd_fr1_rpy"]
+    d = kitti["rgbd_fr1_rpy"]
     print(f"| (RGB-D fr1/rpy 200, tum_fr1) | {d['ate']:.4f} | | | | {d['lost']} | {d['fps']:.1f} | 1.00 |")
-    if r["synthetic"]:
-        print("\n| sequence | RGB-D ATE (m) | stereo sparse ATE (m) | ratio | stereo SGBM ATE (m) | ratio |")
-        print("|---|---|---|---|---|---|")
-        for s in r["synthetic"]:
-            print(f"| {s['motion']} seed {s['seed']} | {s['rgbd']:.4f} | {s['sparse']:.4f} | {s['sparse_ratio']:.2f} | "
-                  f"{s['sgbm']:.4f} | {s['sgbm_ratio']:.2f} |")
-        for m in ("sparse", "sgbm"):
-            ratios = [s[f"{m}_ratio"] for s in r["synthetic"]]
-            print(f"\n{m}: median ratio {np.median(ratios):.2f}, worst {max(ratios):.2f}")
+
+
+def print_synthetic(synth: list[dict]) -> None:
+    print("\n| sequence | RGB-D ATE (m) | stereo sparse ATE (m) (lost) | ratio | stereo SGBM ATE (m) (lost) | ratio |")
+    print("|---|---|---|---|---|---|")
+    for s in synth:
+        print(f"| {s['motion']} seed {s['seed']} | {s['rgbd']:.4f} | {s['sparse']:.4f} ({s['sparse_lost']}) | "
+              f"{s['sparse_ratio']:.2f} | {s['sgbm']:.4f} ({s['sgbm_lost']}) | {s['sgbm_ratio']:.2f} |")
+    for m in ("sparse", "sgbm"):
+        ratios = [s[f"{m}_ratio"] for s in synth]
+        print(f"\n{m}: median ratio {np.median(ratios):.2f}, worst {max(ratios):.2f}")
 
 
 if __name__ == "__main__":

@@ -139,7 +139,8 @@ def _detect_right(right: np.ndarray, fc: FeaturesConfig, factor: int = 2):
 
     from rgbdslam.frontend.features import detect
 
-    return detect(right, dataclasses.replace(fc, n_features=factor * fc.n_features, grid_rows=1, grid_cols=1))
+    return detect(right, dataclasses.replace(fc, n_features=factor * fc.n_features, grid_rows=1, grid_cols=1),
+                  count=False)
 
 
 def sparse_matches(left: np.ndarray, right: np.ndarray, rig: StereoRig, uv_l: np.ndarray, desc_l: np.ndarray,

@@ -313,3 +313,44 @@ def test_stereo_map_uses_dense_map_depth(tmp_path, stereo_kitti_layout):
     s = run_sequence(stereo_kitti_layout, tmp_path / "run", cfg, progress=False)
     sparse_points_per_frame = 1000
     assert s["map"]["cloud_points"] > 20 * sparse_points_per_frame, s["map"]
+
+
+def test_stereo_pairs_are_prepared_in_two_threads_in_order(tmp_path, stereo_kitti_layout):
+    """Stereo pairs (parallel_load) are read and matched by up to ``workers`` threads at once, and
+    still come in frame order with exactly what ``load`` gives; an RGB-D folder keeps one reader."""
+    import threading
+    import time
+
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.datasets.synthetic import generate_sequence
+
+    def overlaps(seq, workers):
+        active, most, lock = [0], [0], threading.Lock()
+        real = seq.load
+
+        def load(i):
+            with lock:
+                active[0] += 1
+                most[0] = max(most[0], active[0])
+            time.sleep(0.05)  # long enough that the next read starts meanwhile when a second thread exists
+            try:
+                return real(i)
+            finally:
+                with lock:
+                    active[0] -= 1
+
+        seq.load = load
+        frames = [(i, p.result()) for i, p in seq.prefetched(4, workers=workers)]
+        seq.load = real
+        return most[0], frames
+
+    stereo = open_sequence(stereo_kitti_layout)
+    most, frames = overlaps(stereo, 2)
+    assert most == 2
+    assert [i for i, _ in frames] == [f.index for _, f in frames] == list(range(len(stereo)))
+    for i in (0, 17, 39):
+        ref = stereo.load(i)
+        assert np.array_equal(frames[i][1].depth, ref.depth) and np.array_equal(frames[i][1].rgb, ref.rgb)
+    assert overlaps(stereo, 1)[0] == 1
+    generate_sequence(tmp_path / "rgbd", frames=6, motion="loop", seed=3)
+    assert overlaps(open_sequence(tmp_path / "rgbd"), 2)[0] == 1
