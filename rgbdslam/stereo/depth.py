@@ -71,7 +71,7 @@ def match_rows(uv_l: np.ndarray, desc_l: np.ndarray, uv_r: np.ndarray, desc_r: n
     wr = np.ascontiguousarray(desc_r).view(np.uint64).reshape(-1, 4)
     x = wl[i] ^ wr[j]
     ham = np.bitwise_count(x).sum(axis=1).astype(np.int32)
-    order = np.lexsort((ham, i))  # by left point, best first
+    order = np.argsort(i.astype(np.int64) * 512 + ham, kind="stable")  # by left point, best first (ham <= 256)
     i, j, ham = i[order], j[order], ham[order]
     first = np.r_[True, i[1:] != i[:-1]]
     idx_first = np.flatnonzero(first)
@@ -107,14 +107,17 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, ul: np.ndarray, vl: np
     if not ok.any():
         return out, ok
     idx = np.flatnonzero(ok)
-    dy, dx = np.mgrid[-r:r + 1, -r:r + 1]
-    L = left[vl[idx, None, None] + dy, ul[idx, None, None] + dx].astype(np.float32)
+    n = 2 * r + 1
+    dy = np.arange(-r, r + 1)
+    rows = vl[idx, None, None] + dy[None, :, None]
+    L = left[rows, ul[idx, None, None] + dy[None, None, :]].astype(np.int16)  # (M, n, n)
     L -= L[:, r:r + 1, r:r + 1]
+    # one strip of the right row band per point, the 2s+1 shifted patches are views of it
+    strip = right[rows, ur0[idx, None, None] + np.arange(-r - s, r + s + 1)[None, None, :]].astype(np.int16)
+    R = np.lib.stride_tricks.sliding_window_view(strip, n, axis=2)  # (M, n, 2s+1, n)
+    R = R - strip[:, r:r + 1, r:r + 2 * s + 1, None]  # minus each patch's centre value
+    sad = np.abs(R - L[:, :, None, :]).sum(axis=(1, 3), dtype=np.int32)
     offs = np.arange(-s, s + 1)
-    cols = ur0[idx, None, None, None] + offs[None, :, None, None] + dx[None]
-    R = right[vl[idx, None, None, None] + dy[None], cols].astype(np.float32)
-    R -= R[:, :, r:r + 1, r:r + 1]
-    sad = np.abs(L[:, None] - R).sum(axis=(2, 3))
     best = sad.argmin(axis=1)
     inner = (best > 0) & (best < 2 * s)
     k = np.arange(len(idx))
