@@ -4,7 +4,7 @@ stereo with exact ground truth.
 Usage::
 
     .venv/bin/python scripts/bench_stereo.py [--seeds 0,1,2] [--frames 150] [--motions loop,circle]
-        [--work DIR] [--json FILE]
+        [--work DIR] [--json FILE] [--parts depth,kitti,synthetic,speed] [--repeats 3]
 
 1. Depth accuracy: synthetic stereo pairs (0.12 m baseline, 640x480, image noise) against the
    exact rendered depth: disparity error (median = bias, 1.4826 * MAD = sigma, share > 1 px) and
@@ -18,6 +18,9 @@ Usage::
 4. Speed: the whole pipeline on KITTI-sized pairs (1226x370) with each depth method, next to the
    RGB-D pipeline on TUM fr1/rpy (640x480) in the same process, so that a ratio survives a
    shared machine: frames/s are quoted with the fr1/rpy frames/s measured in the same run.
+   The ``speed`` part interleaves KITTI (sparse) with one and two reader threads and fr1/rpy for
+   ``--repeats`` rounds (frames/s, frames/s without waiting for images, CPU ms per frame of the
+   whole process) and times each step of preparing a pair in one thread.
 
 Prints a Markdown report (and writes JSON with ``--json``). All runs are seeded.
 """
@@ -81,13 +84,70 @@ def run(seq, cfg_name: str | None, sets: list[str], out: Path) -> dict:
     from rgbdslam.pipeline import run_sequence
 
     cfg = load_config(cfg_name, ["mapping.enabled=false", "output.plots=false", *sets])
+    cpu = time.process_time()
     s = run_sequence(seq, out, cfg, progress=False)
+    cpu = time.process_time() - cpu  # every thread of the process, evaluation included
     ev = s.get("evaluation") or {}
     k = ev.get("kitti") or {}
     return {"ate": (ev.get("ate") or {}).get("rmse"), "fps": s["fps"], "processing_fps": s["processing_fps"],
+            "cpu_ms_per_frame": 1e3 * cpu / max(1, s["frames"]), "load_time_s": s["load_time_s"],
             "frames": s["frames"], "lost": s["lost"], "t_err_pct": k.get("t_err_pct"),
             "r_err_deg_per_m": k.get("r_err_deg_per_m"), "end_drift_pct": k.get("end_drift_pct"),
             "kitti_note": k.get("note")}
+
+
+def reader_breakdown(frames: int = 51) -> dict:
+    """CPU time (thread_time, medians over the pairs) of each step of preparing a KITTI pair with
+    sparse depth, in this thread: reading both PNGs, left ORB (the front end's key points), right ORB,
+    row matching, SAD refinement + triangulation."""
+    import cv2
+
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.frontend.features import detect
+    from rgbdslam.stereo import depth as sd
+
+    cfg = load_config("kitti", [])
+    seq = open_sequence(KITTI, cfg)
+    sc, fc = cfg.stereo, cfg.features
+    steps: dict[str, list[float]] = {k: [] for k in ("read", "left_orb", "right_orb", "match_rows", "refine")}
+    for i in range(min(frames, len(seq))):
+        t = time.thread_time()
+        left, right = seq.rectified_pair(i)
+        t1 = time.thread_time()
+        det = detect(left, fc)
+        t2 = time.thread_time()
+        det_r = sd._detect_right(right, fc, sc.right_features)
+        t3 = time.thread_time()
+        il, ir = sd.match_rows(det.uv_raw, det.desc, det_r.uv_raw, det_r.desc, sc)
+        t4 = time.thread_time()
+        u0, v0 = np.rint(det.uv_raw[il, 0]), np.rint(det.uv_raw[il, 1])
+        sd.refine_disparity(left, right, u0, v0, det_r.uv_raw[ir, 0] + (u0 - det.uv_raw[il, 0]), sc.patch_radius,
+                            sc.search_radius)
+        t5 = time.thread_time()
+        for k, v in zip(steps, (t1 - t, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+            steps[k].append(v)
+    out = {k: 1e3 * float(np.median(v)) for k, v in steps.items()}
+    out["total"] = sum(out.values())
+    out["opencv_threads"] = cv2.getNumThreads()
+    return out
+
+
+def speed(work: Path, repeats: int) -> dict:
+    """Whole pipeline (mapping off) on KITTI 06 0-50 with sparse depth, one and two reader threads,
+    and fr1/rpy 200 (RGB-D, tum_fr1) as the machine's reference, interleaved ``repeats`` times so
+    that the ratios of one round share the load; plus the reader's per-step CPU breakdown."""
+    run(KITTI, "kitti", [], work / "speed_warmup")  # imports, caches
+    rounds = []
+    for k in range(repeats):
+        row = {"load_average": os.getloadavg()[0]}
+        for threads in (1, 2):
+            row[f"kitti_threads{threads}"] = run(KITTI, "kitti", [f"dataset.reader_threads={threads}"],
+                                                 work / f"speed_k{threads}_{k}")
+        row["rpy"] = run(RPY, "tum_fr1", [], work / f"speed_rpy_{k}")
+        rounds.append(row)
+        print("speed round", k, json.dumps(row), flush=True)
+    return {"rounds": rounds, "reader_breakdown_ms": reader_breakdown()}
 
 
 def main() -> None:
@@ -98,8 +158,9 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--skip-synthetic", action="store_true")
-    ap.add_argument("--parts", default="depth,kitti,synthetic",
-                    help="comma list of the parts to run: depth (accuracy), kitti (+ fr1/rpy), synthetic")
+    ap.add_argument("--parts", default="depth,kitti,synthetic,speed",
+                    help="comma list of the parts to run: depth (accuracy), kitti (+ fr1/rpy), synthetic, speed")
+    ap.add_argument("--repeats", type=int, default=3, help="rounds of the speed part")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_stereo_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -144,6 +205,7 @@ def main() -> None:
                 synth.append(row)
                 print("synthetic", row, flush=True)
     report["synthetic"] = synth
+    report["speed"] = speed(work, args.repeats) if "speed" in parts else {}
     report["load_average_end"] = os.getloadavg()[0]
     print_markdown(report)
     if args.json:
@@ -162,6 +224,25 @@ def print_markdown(r: dict) -> None:
         print_kitti(r["kitti"])
     if r["synthetic"]:
         print_synthetic(r["synthetic"])
+    if r["speed"]:
+        print_speed(r["speed"])
+
+
+def print_speed(sp: dict) -> None:
+    print("\n| round | load avg | KITTI 1 reader thread: fps / w/o waiting / CPU ms per frame | KITTI 2 reader threads | "
+          "fr1/rpy (tum_fr1) | 2 threads / 1 thread | KITTI 2 threads / fr1-rpy |")
+    print("|---|---|---|---|---|---|---|")
+    for k, r in enumerate(sp["rounds"]):
+        a, b, c = r["kitti_threads1"], r["kitti_threads2"], r["rpy"]
+        cells = [f"{d['fps']:.1f} / {d['processing_fps']:.1f} / {d['cpu_ms_per_frame']:.0f}" for d in (a, b, c)]
+        print(f"| {k} | {r['load_average']:.1f} | {' | '.join(cells)} | {b['fps'] / a['fps']:.2f} | "
+              f"{b['fps'] / c['fps']:.2f} |")
+    med = {key: float(np.median([r[key]["fps"] for r in sp["rounds"]])) for key in ("kitti_threads1", "kitti_threads2", "rpy")}
+    print(f"\nmedians: KITTI 1 thread {med['kitti_threads1']:.1f}, 2 threads {med['kitti_threads2']:.1f}, fr1/rpy "
+          f"{med['rpy']:.1f} frames/s; ATE {sp['rounds'][0]['kitti_threads2']['ate']:.4f} m")
+    b = sp["reader_breakdown_ms"]
+    print("\nreader CPU per KITTI pair (ms, medians): " + ", ".join(f"{k} {v:.1f}" for k, v in b.items()
+                                                             if k != "opencv_threads"))
 
 
 def print_kitti(kitti: dict) -> None:

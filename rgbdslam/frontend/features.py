@@ -168,7 +168,7 @@ def orb_features(gray: np.ndarray, fc: FeaturesConfig, n_features: int | None = 
     if bucketing:
         kps = orb.detect(gray, None)
         if kps:
-            uv = np.array([k.pt for k in kps], dtype=np.float64)
+            uv = cv2.KeyPoint_convert(kps).astype(np.float64)  # C++: ~50x faster than a list of k.pt
             keep = _bucket(uv, np.array([k.response for k in kps], dtype=np.float32), fc, gray.shape[:2])
             kps = [kps[i] for i in keep]
         kps, desc = orb.compute(gray, kps) if kps else ((), None)
@@ -176,7 +176,7 @@ def orb_features(gray: np.ndarray, fc: FeaturesConfig, n_features: int | None = 
         kps, desc = orb.detectAndCompute(gray, None)
     if desc is None or len(kps) == 0:
         return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
-    uv_raw = np.array([k.pt for k in kps], dtype=np.float64)
+    uv_raw = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)
     response = np.array([k.response for k in kps], dtype=np.float32)
     return uv_raw, np.ascontiguousarray(desc), response
 
