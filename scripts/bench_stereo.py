@@ -144,6 +144,7 @@ def speed(work: Path, repeats: int) -> dict:
         for threads in (1, 2):
             row[f"kitti_threads{threads}"] = run(KITTI, "kitti", [f"dataset.reader_threads={threads}"],
                                                  work / f"speed_k{threads}_{k}")
+        row["kitti_row"] = run(KITTI, "kitti", ["stereo.sparse_search=row"], work / f"speed_krow_{k}")
         row["rpy"] = run(RPY, "tum_fr1", [], work / f"speed_rpy_{k}")
         rounds.append(row)
         print("speed round", k, json.dumps(row), flush=True)
@@ -229,17 +230,21 @@ def print_markdown(r: dict) -> None:
 
 
 def print_speed(sp: dict) -> None:
-    print("\n| round | load avg | KITTI 1 reader thread: fps / w/o waiting / CPU ms per frame | KITTI 2 reader threads | "
-          "fr1/rpy (tum_fr1) | 2 threads / 1 thread | KITTI 2 threads / fr1-rpy |")
-    print("|---|---|---|---|---|---|---|")
+    keys = ("kitti_threads1", "kitti_threads2", "kitti_row", "rpy")
+    print("\n(each cell: frames/s / frames/s without waiting for images / CPU ms per frame of the process)\n")
+    print("| round | load avg | KITTI, 1 reader thread | KITTI, 2 reader threads | KITTI, 2 threads, "
+          "sparse_search=row | fr1/rpy (tum_fr1) | 2 threads / 1 thread | row / orb (2 threads) | "
+          "KITTI 2 threads / fr1-rpy |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for k, r in enumerate(sp["rounds"]):
-        a, b, c = r["kitti_threads1"], r["kitti_threads2"], r["rpy"]
-        cells = [f"{d['fps']:.1f} / {d['processing_fps']:.1f} / {d['cpu_ms_per_frame']:.0f}" for d in (a, b, c)]
+        a, b, w, c = (r[key] for key in keys)
+        cells = [f"{d['fps']:.1f} / {d['processing_fps']:.1f} / {d['cpu_ms_per_frame']:.0f}" for d in (a, b, w, c)]
         print(f"| {k} | {r['load_average']:.1f} | {' | '.join(cells)} | {b['fps'] / a['fps']:.2f} | "
-              f"{b['fps'] / c['fps']:.2f} |")
-    med = {key: float(np.median([r[key]["fps"] for r in sp["rounds"]])) for key in ("kitti_threads1", "kitti_threads2", "rpy")}
-    print(f"\nmedians: KITTI 1 thread {med['kitti_threads1']:.1f}, 2 threads {med['kitti_threads2']:.1f}, fr1/rpy "
-          f"{med['rpy']:.1f} frames/s; ATE {sp['rounds'][0]['kitti_threads2']['ate']:.4f} m")
+              f"{w['fps'] / b['fps']:.2f} | {b['fps'] / c['fps']:.2f} |")
+    med = {key: float(np.median([r[key]["fps"] for r in sp["rounds"]])) for key in keys}
+    r0 = sp["rounds"][0]
+    print(f"\nmedians (frames/s): " + ", ".join(f"{key} {v:.1f}" for key, v in med.items())
+          + f"; ATE orb {r0['kitti_threads2']['ate']:.4f} m, row {r0['kitti_row']['ate']:.4f} m")
     b = sp["reader_breakdown_ms"]
     print("\nreader CPU per KITTI pair (ms, medians): " + ", ".join(f"{k} {v:.1f}" for k, v in b.items()
                                                              if k != "opencv_threads"))

@@ -98,8 +98,11 @@ def test_sparse_and_sgbm_depth_against_exact_depth(stereo_kitti_layout):
     from rgbdslam.datasets.synthetic import Rays, Scene, make_trajectory
 
     world = make_trajectory("loop", 40)  # the KITTI layout's poses start at the identity: render from the world's
-    for method, max_bias, max_sigma, min_pixels in (("sparse", 0.1, 0.3, 200), ("sgbm", 0.15, 0.6, 50000)):
-        seq = open_sequence(stereo_kitti_layout, load_config(None, [f"stereo.depth={method}"]))
+    for method, search, max_bias, max_sigma, min_pixels, max_gross in (("sparse", "orb", 0.1, 0.3, 200, 0.02),
+                                                                       ("sparse", "row", 0.1, 0.3, 300, 0.04),
+                                                                       ("sgbm", "orb", 0.15, 0.6, 50000, 0.2)):
+        seq = open_sequence(stereo_kitti_layout, load_config(None, [f"stereo.depth={method}",
+                                                                    f"stereo.sparse_search={search}"]))
         fb = seq.camera.fx * seq.rig.baseline
         frame = seq.load(20)
         assert frame.rgb.ndim == 2 and frame.right.shape == frame.rgb.shape  # grey camera
@@ -110,6 +113,7 @@ def test_sparse_and_sgbm_depth_against_exact_depth(stereo_kitti_layout):
         assert ok.sum() >= min_pixels, method
         assert abs(med) < max_bias, method
         assert 1.4826 * np.median(np.abs(e - med)) < max_sigma, method
+        assert np.mean(np.abs(e) > 1.0) < max_gross, (method, search, np.mean(np.abs(e) > 1.0))
         assert frame.depth_noise.sigma(2.0) == pytest.approx(
             4.0 * getattr(seq.stereo_cfg, f"sigma_disparity_{method}") / fb)
 
@@ -446,3 +450,37 @@ def test_euroc_distortion_k3_round_trip_and_depth(tmp_path):
     e = fb / frame.depth[ok] - fb / true[ok]
     assert ok.sum() >= 150
     assert abs(np.median(e)) < 0.15 and np.mean(np.abs(e) > 1.0) < 0.05, (np.median(e), np.mean(np.abs(e) > 1.0))
+
+
+def test_row_search_finds_a_known_shift_without_right_key_points():
+    """sparse_search=row on a textured pair shifted by exactly 37.25 pixels: every accepted left point
+    gets disparity 37.25 (sub-pixel from the refinement), the left-most points (partner outside the
+    right image) get none; the ORB search agrees where both give depth."""
+    from rgbdslam.config import FeaturesConfig, StereoConfig
+    from rgbdslam.frontend.features import detect
+    from rgbdslam.stereo.depth import sparse_matches
+
+    rng = np.random.default_rng(5)
+    big = cv2.GaussianBlur(rng.integers(0, 256, (240, 1400)).astype(np.float32), (0, 0), 2.0)
+    big = cv2.normalize(big, None, 0, 255, cv2.NORM_MINMAX)
+    # right(x) = left(x + 37.25): resample a 4x finer image with an integer shift of 149 samples
+    fine = cv2.resize(big, (big.shape[1] * 4, big.shape[0]), interpolation=cv2.INTER_CUBIC)
+    left = np.ascontiguousarray(cv2.resize(fine[:, 400:400 + 2400], (600, 240), interpolation=cv2.INTER_AREA))
+    right = np.ascontiguousarray(cv2.resize(fine[:, 400 + 149:400 + 149 + 2400], (600, 240),
+                                            interpolation=cv2.INTER_AREA))
+    left, right = left.astype(np.uint8), right.astype(np.uint8)
+    rig = StereoRig(Camera(500.0, 500.0, 300.0, 120.0, 600, 240, (0.0,) * 5, "t"), 0.1)
+    fc = FeaturesConfig(n_features=600)
+    det = detect(left, fc)
+    out = {}
+    for search in ("row", "orb"):
+        sc = StereoConfig(sparse_search=search, min_disparity=4.0, max_disparity=96)
+        m = sparse_matches(left, right, rig, det.uv_raw, det.desc, sc, fc)
+        assert len(m.left_index) > 150, search
+        assert np.median(np.abs(m.disparity - 37.25)) < 0.1, search
+        assert np.mean(np.abs(m.disparity - 37.25) > 1.0) < 0.02, search
+        assert np.allclose(m.points[:, 2], 500.0 * 0.1 / m.disparity)
+        assert m.uv[:, 0].min() >= 37 + 5  # no partner (with its patch) left of the right image's border
+        out[search] = dict(zip(m.left_index.tolist(), m.disparity))
+    both = sorted(set(out["row"]) & set(out["orb"]))
+    assert len(both) > 50 and max(abs(out["row"][k] - out["orb"][k]) for k in both) < 0.05
