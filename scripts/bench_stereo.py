@@ -14,7 +14,8 @@ Usage::
    end-point drift, frames/s of the whole run (mapping off).
 3. Synthetic loop-type sequences (``--motions``, ``--seeds``): the same trajectory rendered as
    RGB-D (``rgbdslam synth``) and as stereo (``--stereo 0.12``, KITTI layout), both run with the
-   default config: ATE of each and the ratio stereo / RGB-D (target <= 1.5).
+   default config: ATE of each and the ratio stereo / RGB-D (target <= 1.5), for each stereo
+   variant of ``--methods`` (sparse with the ORB or the row search, SGBM).
 4. Speed: the whole pipeline on KITTI-sized pairs (1226x370) with each depth method, next to the
    RGB-D pipeline on TUM fr1/rpy (640x480) in the same process, so that a ratio survives a
    shared machine: frames/s are quoted with the fr1/rpy frames/s measured in the same run.
@@ -44,6 +45,9 @@ sys.path.insert(0, str(ROOT))
 DATA = Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
 KITTI = DATA / "kitti" / "odometry_06_head51"
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+# stereo depth variants of the synthetic comparison
+METHODS = {"sparse": ["stereo.depth=sparse"], "row": ["stereo.depth=sparse", "stereo.sparse_search=row"],
+           "sgbm": ["stereo.depth=sgbm"]}
 
 
 def depth_accuracy(work: Path, seed: int = 0, frames: int = 30) -> dict:
@@ -162,6 +166,8 @@ def main() -> None:
     ap.add_argument("--parts", default="depth,kitti,synthetic,speed",
                     help="comma list of the parts to run: depth (accuracy), kitti (+ fr1/rpy), synthetic, speed")
     ap.add_argument("--repeats", type=int, default=3, help="rounds of the speed part")
+    ap.add_argument("--methods", default="sparse,row,sgbm", help="stereo depth variants of the synthetic part: "
+                    + ", ".join(f"{k} ({' '.join(v)})" for k, v in METHODS.items()))
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_stereo_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -198,8 +204,8 @@ def main() -> None:
                                              seed=seed)
                 a = run(rg, None, [], work / f"run_{motion}_{seed}_rgbd")
                 row = {"motion": motion, "seed": seed, "rgbd": a["ate"]}
-                for method in ("sparse", "sgbm"):
-                    b = run(st, None, [f"stereo.depth={method}"], work / f"run_{motion}_{seed}_{method}")
+                for method in args.methods.split(","):
+                    b = run(st, None, METHODS[method], work / f"run_{motion}_{seed}_{method}")
                     row[method] = b["ate"]
                     row[f"{method}_lost"] = b["lost"]
                     row[f"{method}_ratio"] = b["ate"] / a["ate"] if a["ate"] and b["ate"] is not None else None
@@ -264,12 +270,13 @@ def print_kitti(kitti: dict) -> None:
 
 
 def print_synthetic(synth: list[dict]) -> None:
-    print("\n| sequence | RGB-D ATE (m) | stereo sparse ATE (m) (lost) | ratio | stereo SGBM ATE (m) (lost) | ratio |")
-    print("|---|---|---|---|---|---|")
+    methods = [m for m in METHODS if m in synth[0]]
+    print("\n| sequence | RGB-D ATE (m) | " + " | ".join(f"stereo {m} ATE (m) (lost) | ratio" for m in methods) + " |")
+    print("|---|---|" + "---|---|" * len(methods))
     for s in synth:
-        print(f"| {s['motion']} seed {s['seed']} | {s['rgbd']:.4f} | {s['sparse']:.4f} ({s['sparse_lost']}) | "
-              f"{s['sparse_ratio']:.2f} | {s['sgbm']:.4f} ({s['sgbm_lost']}) | {s['sgbm_ratio']:.2f} |")
-    for m in ("sparse", "sgbm"):
+        print(f"| {s['motion']} seed {s['seed']} | {s['rgbd']:.4f} | " + " | ".join(
+            f"{s[m]:.4f} ({s[f'{m}_lost']}) | {s[f'{m}_ratio']:.2f}" for m in methods) + " |")
+    for m in methods:
         ratios = [s[f"{m}_ratio"] for s in synth]
         print(f"\n{m}: median ratio {np.median(ratios):.2f}, worst {max(ratios):.2f}")
 

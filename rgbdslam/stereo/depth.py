@@ -10,6 +10,8 @@ later stage (registration, loop closure, pose graph, maps, evaluation) runs unch
   and a one-to-one check; each match is refined to sub-pixel disparity by a SAD patch search
   along the row with a parabola through the best three costs, and triangulated as the
   midpoint of the two viewing rays. Depth is written at the key point's rounded pixel only.
+  With ``stereo.sparse_search = row`` the right image gets no ORB: a coarse SAD search along
+  the row (:func:`coarse_row_search`) gives the column the refinement starts from.
 * ``sgbm``: OpenCV's semi-global block matching (3-way), optionally on a resized pair.
 """
 
