@@ -356,6 +356,12 @@ def test_stereo_pairs_are_prepared_in_two_threads_in_order(tmp_path, stereo_kitt
         ref = stereo.load(i)
         assert np.array_equal(frames[i][1].depth, ref.depth) and np.array_equal(frames[i][1].rgb, ref.rgb)
     assert overlaps(stereo, 1)[0] == 1
+    # the front end takes the reader's left key points (those that have depth) as they are: no second ORB
+    from rgbdslam.frontend.features import with_detections
+
+    f = stereo.load(5)
+    det = f.detections
+    assert with_detections(f, load_config(None, []).features).detections is det
     generate_sequence(tmp_path / "rgbd", frames=6, motion="loop", seed=3)
     assert overlaps(open_sequence(tmp_path / "rgbd"), 2)[0] == 1
 
