@@ -142,13 +142,18 @@ class LoopCloser:
         self.stats["map_keyframes"] = len(self.keyframes)
         self.stats["map_entries"] = int(self.index.size)
 
-    def add_map_keyframe(self, features, pose: np.ndarray, path: float, turn: float, segment: int) -> None:
-        """A keyframe of a loaded map (:mod:`rgbdslam.session`), with its travel and segment as saved."""
-        self.index.add(len(self.keyframes), features.desc)
-        kf = _Keyframe(int(features.index), features, np.array(pose, dtype=np.float64), float(path), float(turn),
-                       int(segment))
-        self.keyframes.append(kf)
-        self._by_index[kf.index] = kf
+    def add_map_keyframes(self, keyframes: list[tuple], desc: np.ndarray, starts: np.ndarray) -> None:
+        """The keyframes of a loaded map (:mod:`rgbdslam.session`): ``(features, pose, path, turn,
+        segment)`` each, with their travel and segment as saved; their descriptors are rows
+        ``starts[k]:starts[k + 1]`` of ``desc``, indexed in one pass (``index.add_many``)."""
+        if len(self.keyframes) != self.index.n_keyframes:
+            raise RuntimeError("the descriptor index and the keyframes disagree")
+        self.index.add_many(desc, starts)
+        for features, pose, path, turn, segment in keyframes:
+            kf = _Keyframe(int(features.index), features, np.array(pose, dtype=np.float64), float(path), float(turn),
+                           int(segment))
+            self.keyframes.append(kf)
+            self._by_index[kf.index] = kf
 
     def begin_session(self, map_only: bool) -> None:
         """The keyframes so far are a loaded map, its segments older ones: the new session is a new
