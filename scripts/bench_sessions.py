@@ -23,7 +23,7 @@ over both sequences one after the other (the jump between them is a tracking los
 relocalises with the loop closer, like any run after a loss).
 
     .venv/bin/python scripts/bench_sessions.py [--cases fr1_rpy,redkitchen,synth_half,synth_circle]
-        [--work /tmp/rgbdslam_bench_sessions] [--json out.json] [--reuse]
+        [--work /tmp/rgbdslam_bench_sessions] [--json out.json] [--reuse] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -75,6 +75,7 @@ def synth_pair(work: Path, second: str) -> tuple[Path, Path, Path]:
 
 # ----------------------------------------------------------------------------- runs
 REUSE = False  # --reuse: read finished run folders instead of running again (metrics only)
+EXTRA: list[str] = []  # --set KEY=VALUE: config overrides of every run
 
 
 def run(seq: Path, out: Path, config: str | None, overrides: list[str], **kw) -> dict:
@@ -86,7 +87,7 @@ def run(seq: Path, out: Path, config: str | None, overrides: list[str], **kw) ->
         if info.get("status") == "finished":
             return info
 
-    cfg = load_config(config, [*overrides, "mapping.enabled=false", "output.plots=false"])
+    cfg = load_config(config, [*overrides, "mapping.enabled=false", "output.plots=false", *EXTRA])
     return run_sequence(seq, out, cfg, progress=False, **kw)
 
 
@@ -204,6 +205,8 @@ def case(name: str, work: Path) -> dict:
                      "first_localized_frame": ss["first_localized_frame"],
                      "not_localized": sum(b - a + 1 for a, b in ss["not_localized"]), "frames": s["frames"],
                      "map_loops": len(s.get("map_loops", [])), "loops": len(s["loops"]),
+                     "map_tracking": s.get("map_tracking"), "processing_fps": s.get("processing_fps"),
+                     "keyframes": len(s["keyframes"]),
                      "session2_ate_own_alignment": s.get("evaluation", {}).get("ate", {}).get("rmse"),
                      "map_file": s.get("map_file")}
     # the full run's errors over the same two parts (its own alignment)
@@ -251,9 +254,10 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/rgbdslam_bench_sessions"))
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--reuse", action="store_true", help="read finished run folders in --work instead of re-running")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override of every run")
     args = ap.parse_args()
-    global REUSE
-    REUSE = args.reuse
+    global REUSE, EXTRA
+    REUSE, EXTRA = args.reuse, args.set
     args.work.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in args.cases.split(","):

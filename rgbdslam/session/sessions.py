@@ -88,6 +88,10 @@ class MapSession:
         if self.localize:  # a fixed map: every keyframe held where the map has it; loops keep the plain kernel
             for k in range(n):
                 graph.add_prior(MAP_ID_BASE + k, a["kf_pose"][k], FIXED_SIGMA)
+            if slam.cfg.loop.map_track_every > 0:  # tracked against the map between relocalisations
+                from rgbdslam.session.tracking import MapTracker
+
+                slam.map_tracker = MapTracker(lc, slam.cfg.loop)
             return
         # extending: the map's edges; loops get chain-aware kernels (slam_graph.kernel_scale) from the map's
         # covariance chains (each starts at a keyframe without an incoming odometry edge), this session's
@@ -150,6 +154,8 @@ class MapSession:
         for g in summary.get("segments", []):
             g["localized_from"] = since.get(g["first"])
             g["map"] = g["first"] in since if since else g["map"]
+        if slam.map_tracker is not None:
+            summary["map_tracking"] = dict(slam.map_tracker.stats)
         summary["session"] = {
             "map": str(self.path.resolve()), "mode": "localize" if self.localize else "extend",
             "session": self.session, "map_keyframes": self.data.n_keyframes, "load_time_s": round(self.load_time_s, 4),

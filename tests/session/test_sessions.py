@@ -158,6 +158,12 @@ def test_second_session_lands_in_the_map(session1, tmp_path, localize):
     assert _joint_ate(session1 / "trajectory.tum", out / "trajectory.tum") < 0.035
     if localize:
         assert s["map_file"] is None and not (out / "map.npz").exists()
+        # tracked against the map: most frames registered to a map keyframe near their predicted pose
+        mt = s["map_tracking"]
+        assert mt["frames_tried"] == s["tracked"] - ss["first_localized_frame"]  # every frame from the first localised
+        assert mt["frames_anchored"] >= 0.6 * mt["frames_tried"] and mt["edges"] >= mt["frames_anchored"]
+        assert mt["rejected_prediction"] <= 2
+        assert len(s["map_loops"]) >= mt["edges"]
         return
     m = load_map(out / "map.npz")
     assert [x["session"] for x in m.sessions] == [0, 1]
@@ -278,3 +284,46 @@ def test_a_bad_landmark_section_is_one_line(landmark_runs, tmp_path, kind, messa
     # the keyframes' own checksum does not cover the section: a reader that ignores it still loads the map
     h0 = read_header(src)
     assert h0["sha256"] == read_header(bad)["sha256"]
+
+
+def test_map_tracking_off_leaves_loops_only(session1, tmp_path):
+    """``loop.map_track_every=0``: between relocalisations only the loop closer's matches tie the
+    session to the map (far fewer edges into it than with map tracking, the default)."""
+    cfg = _cfg("dataset.first_frame=50", "dataset.max_frames=40", "loop.map_track_every=0")
+    s = run_sequence(TUM_RPY200, tmp_path / "off", cfg, progress=False, map_dir=session1, localize=True)
+    assert "map_tracking" not in s and s["session"]["relocalized"]
+    # with map tracking (test_second_session_lands_in_the_map) at least 0.6 x 40 frames have an edge into the map
+    assert 0 < len(s["map_loops"]) < 20
+
+
+def test_map_tracker_picks_the_nearest_map_keyframes():
+    """Neighbours by predicted pose: camera centres within map_track_distance, viewing directions
+    within map_track_angle_deg, nearest first (distance + 0.25 m per radian)."""
+    from rgbdslam.frontend.features import FrameFeatures
+    from rgbdslam.geometry.se3 import make_pose
+    from rgbdslam.loop.detector import build_loop_closer
+    from rgbdslam.session.sessions import MAP_ID_BASE
+    from rgbdslam.session.tracking import MapTracker
+    from scipy.spatial.transform import Rotation
+
+    cfg = load_config(None, ["loop.map_track_neighbours=3"])
+    lc = build_loop_closer(cfg)
+    rng = np.random.default_rng(0)
+    # map keyframes along x every 0.3 m looking along +z; keyframe 5 at x = 0.6 turned 90 degrees
+    poses = [make_pose(np.eye(3), np.array([0.3 * k, 0.0, 0.0])) for k in range(5)]
+    poses.append(make_pose(Rotation.from_euler("y", 90, degrees=True).as_matrix(), np.array([0.6, 0.0, 0.0])))
+    kfs = []
+    for k, P in enumerate(poses):
+        f = FrameFeatures(MAP_ID_BASE + k, float(k), np.zeros((10, 2)), rng.integers(0, 256, (10, 32), dtype=np.uint8),
+                          np.ones((10, 3)), np.ones(10, bool), 10)
+        kfs.append((f, P, 0.3 * k, 0.0, 0))
+    lc.add_map_keyframes(kfs, np.concatenate([f.desc for f, *_ in kfs]), np.arange(0, 61, 10))
+    lc.begin_session(map_only=True)
+    mt = MapTracker(lc, cfg.loop)
+    pred = make_pose(np.eye(3), np.array([0.62, 0.1, 0.0]))
+    # distances 0.63, 0.33, 0.11, 0.33, 0.57 (k = 0..4); keyframe 5 is 0.10 away but looks sideways
+    assert mt.neighbours(pred, set()) == [2, 3, 1]
+    assert mt.neighbours(pred, {MAP_ID_BASE + 2}) == [3, 1, 4]
+    tilted = make_pose(Rotation.from_euler("y", 80, degrees=True).as_matrix(), pred[:3, 3])
+    assert mt.neighbours(tilted, set()) == [5]  # only the sideways keyframe looks within 45 degrees of it
+    assert mt.neighbours(make_pose(np.eye(3), np.array([5.0, 0, 0])), set()) == []
