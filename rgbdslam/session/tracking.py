@@ -40,6 +40,10 @@ class MapTracker:
         self.centres = poses[:, :3, 3]
         self.axes = poses[:, :3, 2]  # viewing directions (camera z in the map)
         self.map_ids = {kf.index for kf in self.map_kfs}
+        # a map's segments (pose-graph components) each have their own coordinates: neighbours
+        # come from the segment of the last anchoring only
+        self.segments = np.array([kf.segment for kf in self.map_kfs], np.int64)
+        self.map_segment: int | None = None
         self.to_map: np.ndarray | None = None  # current segment's coordinates -> map, at the last anchoring
         self._segment = None
         self._anchor_travel = (0.0, 0.0)  # (m, deg) of the segment at the last anchoring
@@ -50,12 +54,15 @@ class MapTracker:
     def predicted(self, pose: np.ndarray) -> np.ndarray | None:
         return None if self.to_map is None else self.to_map @ pose
 
-    def neighbours(self, pred: np.ndarray, exclude: set[int]) -> list[int]:
-        """Positions of the map keyframes nearest ``pred`` (see the module doc), nearest first."""
+    def neighbours(self, pred: np.ndarray, exclude: set[int], segment: int | None = None) -> list[int]:
+        """Positions of the map keyframes nearest ``pred`` (see the module doc), nearest first; only
+        those of map segment ``segment`` when given."""
         d = np.linalg.norm(self.centres - pred[:3, 3], axis=1)
         cosang = np.clip(self.axes @ pred[:3, 2], -1.0, 1.0)
         ang = np.arccos(cosang)
         ok = (d <= self.cfg.map_track_distance) & (np.degrees(ang) <= self.cfg.map_track_angle_deg)
+        if segment is not None:
+            ok &= self.segments == segment
         cand = np.flatnonzero(ok)
         cand = cand[np.argsort(d[cand] + 0.25 * ang[cand], kind="stable")]
         return [int(k) for k in cand if self.map_kfs[k].index not in exclude][: self.cfg.map_track_neighbours]
@@ -87,6 +94,7 @@ class MapTracker:
         best = max(edges, key=lambda e: e.n_inliers)
         kf = self.loop._by_index[best.i]
         self.to_map = kf.pose @ best.T_ij @ inv(pose)
+        self.map_segment = kf.segment
         self._anchor_travel = self.loop._travel(pose)
 
     def track(self, features, pose: np.ndarray, loops: list) -> list:
@@ -103,7 +111,7 @@ class MapTracker:
             return []
         self.stats["frames_tried"] += 1
         pred = self.to_map @ pose
-        cand = self.neighbours(pred, {e.i for e in into_map})
+        cand = self.neighbours(pred, {e.i for e in into_map}, self.map_segment)
         if not cand:
             self.stats["no_neighbour"] += 1
             return []

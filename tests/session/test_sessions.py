@@ -327,3 +327,6 @@ def test_map_tracker_picks_the_nearest_map_keyframes():
     tilted = make_pose(Rotation.from_euler("y", 80, degrees=True).as_matrix(), pred[:3, 3])
     assert mt.neighbours(tilted, set()) == [5]  # only the sideways keyframe looks within 45 degrees of it
     assert mt.neighbours(make_pose(np.eye(3), np.array([5.0, 0, 0])), set()) == []
+    # another segment of the map (its own coordinates) is never a neighbour of this one's
+    lc.keyframes[3].segment = mt.segments[3] = 1
+    assert mt.neighbours(pred, set(), segment=0) == [2, 1, 4] and mt.neighbours(pred, set(), segment=1) == [3]
