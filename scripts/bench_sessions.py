@@ -13,14 +13,16 @@ SE(3) alignment for both, against the full run's ATE (target: ratio <= 1.2); ses
 localised frame (target: within 10 frames of its start); frames left out as not localised;
 load time (map file + descriptor index rebuilt) and size of session 1's map per 100 keyframes.
 
+Also: the same alignment's errors over each session's poses alone, and what a fixed map allows
+(session 1's own errors at the map keyframes session 2 is registered to, ``map_limit``).
+
 Cases: fr1/rpy head200 (0-99 / 100-199, one TUM folder, ``dataset.first_frame`` /
-``max_frames``); 7-Scenes redkitchen 0-149 / 150-299 (converted once into a TUM-layout folder in
-``--work``: colour as is, depth mm -> 1/5000 m PNG with 65535 -> 0, fx = fy = 585, cx 320,
-cy 240, ground truth = pose.txt at 30 Hz; colour and depth are not registered in this data
-set); synthetic scenes where session 2 starts elsewhere: ``loop`` (phase 0) then ``loop``
-(phase 0.5, the far side of the room), and ``loop`` then ``circle``; their reference run goes
-over both sequences one after the other (the jump between them is a tracking loss, the run
-relocalises with the loop closer, like any run after a loss).
+``max_frames``); 7-Scenes redkitchen 0-149 / 150-299 (the 7-Scenes reader on the data set's own
+folder; colour and depth are not registered in this data set); synthetic scenes where session 2
+starts elsewhere: ``loop`` (phase 0) then ``loop`` (phase 0.5, the far side of the room), and
+``loop`` then ``circle``; their reference run goes over both sequences one after the other (the
+jump between them is a tracking loss, the run relocalises with the loop closer, like any run
+after a loss).
 
     .venv/bin/python scripts/bench_sessions.py [--cases fr1_rpy,redkitchen,synth_half,synth_circle]
         [--work /tmp/rgbdslam_bench_sessions] [--json out.json] [--reuse] [--set KEY=VALUE ...]
