@@ -168,6 +168,19 @@ class LoopCloser:
         if map_only:
             self.searchable = n
 
+    def keyframe(self, index: int) -> _Keyframe:
+        """The keyframe with frame index (or map id) ``index``."""
+        return self._by_index[index]
+
+    def register(self, ref_features, features, T0: np.ndarray | None = None, gate: float | None = None):
+        """The pair registration that verifies loops (``T0`` and ``gate``: guided matching)."""
+        return self._register(ref_features, features, T0, gate) if gate is not None else \
+            self._register(ref_features, features)
+
+    def travel(self, pose: np.ndarray) -> tuple[float, float]:
+        """(metres, degrees) travelled in the current segment up to ``pose``."""
+        return self._travel(pose)
+
     def _travel(self, pose: np.ndarray) -> tuple[float, float]:
         """(metres, degrees) travelled in the current segment up to ``pose``."""
         last = self.keyframes[-1]

@@ -76,8 +76,7 @@ class MapTracker:
         self.stats["registrations"] += 1
         self.stats["guided" if gate is not None else "unguided"] += 1
         T_pred = inv(pred) @ kf.pose  # maps keyframe points into the frame, as predicted
-        res = self.loop._register(kf.features, features, T_pred, gate) if gate is not None else \
-            self.loop._register(kf.features, features)
+        res = self.loop.register(kf.features, features, T_pred, gate)
         if res is None or res.n_inliers < c.min_inliers or not float(res.residual_l2) <= c.max_residual:
             self.stats["rejected_geometry"] += 1
             return None
@@ -92,10 +91,10 @@ class MapTracker:
     def _anchor(self, edges: list, pose: np.ndarray) -> None:
         """The best map edge of this frame (most inliers) sets the prediction's offset."""
         best = max(edges, key=lambda e: e.n_inliers)
-        kf = self.loop._by_index[best.i]
+        kf = self.loop.keyframe(best.i)
         self.to_map = kf.pose @ best.T_ij @ inv(pose)
         self.map_segment = kf.segment
-        self._anchor_travel = self.loop._travel(pose)
+        self._anchor_travel = self.loop.travel(pose)
 
     def track(self, features, pose: np.ndarray, loops: list) -> list:
         """Edges from map keyframes to this frame (``LoopEdge``), besides the loop closer's ``loops``."""
@@ -115,7 +114,7 @@ class MapTracker:
         if not cand:
             self.stats["no_neighbour"] += 1
             return []
-        path, turn = lc._travel(pose)
+        path, turn = lc.travel(pose)
         drift_t = abs(path - self._anchor_travel[0]) * c.drift_ratio_translation
         drift_r = abs(turn - self._anchor_travel[1]) * c.drift_ratio_rotation
         out = []
