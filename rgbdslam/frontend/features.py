@@ -155,16 +155,14 @@ def detect(rgb: np.ndarray, fc: FeaturesConfig, count: bool = True) -> Detection
     return Detections(uv_raw, desc, response, count_detections(gray, fc) if count else -1, fc, rgb)
 
 
-def orb_features(gray: np.ndarray, fc: FeaturesConfig, n_features: int | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def orb_features(gray: np.ndarray, fc: FeaturesConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ORB key points (N, 2), descriptors (N, 32) and responses (N,) of a grey image.
 
     With grid bucketing ORB finds twice the budget, the strongest per cell are kept, and only
     those get descriptors (``detect`` then ``compute``: the same descriptors as
     ``detectAndCompute`` on all of them, ~20 % less time on KITTI-sized images)."""
-    n = fc.n_features if n_features is None else n_features
     bucketing = fc.grid_rows * fc.grid_cols > 1
-    orb = _orb(fc, n * 2 if bucketing else n)
+    orb = _orb(fc, fc.n_features * 2 if bucketing else fc.n_features)
     if bucketing:
         kps = orb.detect(gray, None)
         if kps:
