@@ -203,6 +203,14 @@ class LoopConfig:
     # metres: matching guided by the prediction (3-D neighbours within this gate, no RANSAC pre-filter;
     # an unguided registration with the nearest neighbour when no guided one agrees); 0 = unguided only
     map_track_gate: float = 0.05
+    # a frame with map edges becomes a keyframe only every map_track_keyframe_every-th anchored frame
+    # (or when the keyframe policy wants one); the other frames' map edges go to the last keyframe,
+    # composed with the odometry since it (its covariance added). 1 = every anchored frame a keyframe
+    map_track_keyframe_every: int = 0  # 0 = never forced: map edges always go to the last keyframe
+    # a tracked frame's map edges re-anchor the prediction only when map_track_confirm of them (distinct
+    # map keyframes) agree on its map pose, or its best edge agrees with the previous tracked frame's
+    # (within relocalize_translation / _rotation_deg); 1 = every anchored frame re-anchors
+    map_track_confirm: int = 2
 
 
 @dataclass
@@ -513,7 +521,9 @@ MAXIMA = {
     "loop.max_loops_per_frame": 100, "loop.consistency_translation": 1e4, "loop.consistency_rotation_deg": 360.0,
     "loop.drift_ratio_translation": 100.0, "loop.drift_ratio_rotation": 100.0,
     "loop.relocalize_confirm": 100, "loop.relocalize_window": 10**5, "loop.relocalize_translation": 1e4,
-    "loop.relocalize_rotation_deg": 360.0, "loop.map_track_every": 10**6, "loop.map_track_neighbours": 100,
+    "loop.relocalize_rotation_deg": 360.0, "loop.map_track_every": 10**6, "loop.map_track_keyframe_every": 10**6,
+    "loop.map_track_confirm": 100,
+    "loop.map_track_neighbours": 100,
     "loop.map_track_distance": 1e4, "loop.map_track_angle_deg": 180.0, "loop.map_track_gate": 100.0,
     # back end: GTSAM takes C ints for iteration counts
     "backend.kernel_width": 1e6, "backend.isam2_extra_updates": 1000, "backend.max_iterations": 100_000,

@@ -16,7 +16,7 @@ The run driver (:mod:`rgbdslam.pipeline`) feeds the frames and writes the run fo
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +93,7 @@ class SLAM:
         self.state = SlamState()
         self._last_kf: FrameRecord | None = None
         self._info_since_kf: list[np.ndarray] = []
+        self._anchored_since_kf = 0  # frames with map-tracking edges since the last keyframe
         self.optimised: dict[int, np.ndarray] | None = None  # keyframe poses after finish()
         self.map_poses: dict[int, np.ndarray] = {}  # keyframes of a loaded map (rgbdslam.session), by id
         self.map_tracker = None  # rgbdslam.session.tracking.MapTracker when localising in a fixed map
@@ -122,9 +123,19 @@ class SLAM:
             if self.loop is not None:
                 self.loop.new_segment()
         # 4. loop closure on sharp (or due) frames
-        loops = self._detect_loops(frame, result, pose)
-        # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node)
+        loops, map_edges = self._detect_loops(frame, result, pose)
+        # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node);
+        # map-tracking edges force one only every loop.map_track_keyframe_every-th anchored frame
         is_kf = self.keyframe_policy.is_keyframe(frame.index, pose)
+        if map_edges and not (is_kf or loops or restart or self._last_kf is None):
+            every = self.cfg.loop.map_track_keyframe_every
+            self._anchored_since_kf += 1
+            if every > 0 and self._anchored_since_kf >= every:
+                loops = loops + map_edges
+            else:  # to the last keyframe: the graph keeps one node per keyframe, not per anchored frame
+                loops = loops + [self._to_last_keyframe(e, pose) for e in map_edges]
+        else:
+            loops = loops + map_edges
         if (loops or restart) and not is_kf:
             self.keyframe_policy.force(frame.index, pose)
             is_kf = True
@@ -137,7 +148,7 @@ class SLAM:
         if is_kf:
             self._last_kf = rec
         # 6. loop edges into the pose graph (iSAM2 updates)
-        self._add_loops(loops, pose)
+        self._add_loops(loops)
         self.observer.log_frame(frame, result)
         if result.matches is not None:
             self.observer.log_inlier_matches(frame.index, result.matches[:, :2], result.matches[:, 2:])
@@ -183,9 +194,10 @@ class SLAM:
         self.observer.log_filtered_depth(frame.index, frame.timestamp, depth)
         return depth
 
-    def _detect_loops(self, frame: Frame, result: TrackResult, pose: np.ndarray) -> list:
+    def _detect_loops(self, frame: Frame, result: TrackResult, pose: np.ndarray) -> tuple[list, list]:
+        """The loop closer's edges, and (localising) the map tracker's."""
         if self.loop is None:
-            return []
+            return [], []
         t0 = time.perf_counter()
         sharp = self.loop.observe(result.features)
         self.state.sharp += int(sharp)
@@ -195,20 +207,30 @@ class SLAM:
         if sharp or self.loop.relocalizing or self.loop.due(frame.index):
             loops = self.loop.detect(result.features, pose)
         self.state.add_time("loop_closure", time.perf_counter() - t0)
+        map_edges = []
         if self.map_tracker is not None:  # localising: the frame registered against the nearest map keyframes
             t0 = time.perf_counter()
-            loops = loops + self.map_tracker.track(result.features, pose, loops)
+            map_edges = self.map_tracker.track(result.features, pose, loops)
             self.state.add_time("map_tracking", time.perf_counter() - t0)
-        return loops
+        return loops, map_edges
 
-    def _add_loops(self, loops: list, pose: np.ndarray) -> None:
+    def _to_last_keyframe(self, e, pose: np.ndarray):
+        """Map edge ``e`` (map keyframe i -> this frame) re-expressed as i -> the last keyframe k:
+        T_ik = T_ij · (odometry k -> j)⁻¹; covariance = the edge's + the odometry's since k (first
+        order, as :meth:`_keyframe_information`)."""
+        k = self._last_kf
+        T_kj = inv(k.pose) @ pose
+        cov = np.linalg.inv(e.information) + sum((np.linalg.inv(I) for I in self._info_since_kf), np.zeros((6, 6)))
+        return replace(e, j=k.index, T_ij=e.T_ij @ inv(T_kj), information=np.linalg.inv(cov))
+
+    def _add_loops(self, loops: list) -> None:
         if not loops or self.graph is None:
             return
         t0 = time.perf_counter()
         for e in loops:
             self.graph.add_loop(e)
             self.state.loops.append((int(e.i), int(e.j)))
-            self.observer.log_loop(e.i, e.j, self._pose_of(e.i), pose)
+            self.observer.log_loop(e.i, e.j, self._pose_of(e.i), self._pose_of(e.j))
         if self.mapper is not None:  # the loop moved the keyframes: their submaps are fused again
             self.mapper.update_poses(self.graph.estimate())
         self.state.add_time("pose_graph", time.perf_counter() - t0)
@@ -227,6 +249,7 @@ class SLAM:
                 T_ij = inv(self._last_kf.pose) @ pose
                 self.graph.add_odometry(self._last_kf.index, frame.index, T_ij, self._keyframe_information())
         self._info_since_kf = []
+        self._anchored_since_kf = 0
         if self.loop is not None:
             self.loop.add_keyframe(result.features, pose)
         if self.keyframe_dir is not None and self.depth_filter is not None:
