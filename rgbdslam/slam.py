@@ -127,18 +127,18 @@ class SLAM:
         # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node);
         # map-tracking edges force one only every loop.map_track_keyframe_every-th anchored frame
         is_kf = self.keyframe_policy.is_keyframe(frame.index, pose)
+        to_last = False  # this frame's map edges re-expressed to the last keyframe (no new graph node)
         if map_edges and not (is_kf or loops or restart or self._last_kf is None):
             every = self.cfg.loop.map_track_keyframe_every
             self._anchored_since_kf += 1
-            if every > 0 and self._anchored_since_kf >= every:
-                loops = loops + map_edges
-            else:  # to the last keyframe: the graph keeps one node per keyframe, not per anchored frame
-                loops = loops + [self._to_last_keyframe(e, pose) for e in map_edges]
+            to_last = every <= 0 or self._anchored_since_kf < every
+        if to_last:
+            loops = [self._to_last_keyframe(e, pose) for e in map_edges]
         else:
             loops = loops + map_edges
-        if (loops or restart) and not is_kf:
-            self.keyframe_policy.force(frame.index, pose)
-            is_kf = True
+            if (loops or restart) and not is_kf:
+                self.keyframe_policy.force(frame.index, pose)
+                is_kf = True
         if self.landmarks is not None:
             pose = self._update_map(frame, result, pose, is_kf)
         if is_kf:
