@@ -209,8 +209,9 @@ class LoopConfig:
     map_track_keyframe_every: int = 0  # 0 = never forced: map edges always go to the last keyframe
     # a tracked frame's map edges re-anchor the prediction only when map_track_confirm of them (distinct
     # map keyframes) agree on its map pose, or its best edge agrees with the previous tracked frame's
-    # (within relocalize_translation / _rotation_deg); 1 = every anchored frame re-anchors
-    map_track_confirm: int = 2
+    # (within relocalize_translation / _rotation_deg); 1 (default) = every anchored frame re-anchors
+    # (2 measured worse on fr1/rpy: docs/benchmarks.md "Saved maps")
+    map_track_confirm: int = 1
 
 
 @dataclass

@@ -12,8 +12,9 @@ when it passes the loop closer's geometry checks (``loop.min_inliers``, ``loop.m
 and puts the camera where the prediction does, within ``loop.relocalize_translation`` /
 ``loop.relocalize_rotation_deg`` plus the drift ratios times the travel since the last anchoring.
 Each kept registration is an edge from the (fixed) map keyframe to the frame, which the SLAM
-chain makes a keyframe: the pose graph then holds the session to the map wherever the map
-sees it, and odometry carries the pose between (frames with no agreeing neighbour, parts of
+chain attaches to its last keyframe (composed with the odometry since it) unless the frame is a
+keyframe anyway (``loop.map_track_keyframe_every``): the pose graph then holds the session to
+the map wherever the map sees it, and odometry carries the pose between (frames with no agreeing neighbour, parts of
 the scene the map does not cover).
 
 The prediction is the odometry pose mapped by the latest anchoring (the best edge into the map

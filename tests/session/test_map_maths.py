@@ -1,5 +1,6 @@
-"""The map file's landmark section when a session moves the loaded map's keyframes
-(rgbdslam.session.sessions._landmarks): a hand-worked case, exact to rounding."""
+"""Hand-worked maths of saved maps, exact to rounding: the map file's landmark section when a
+session moves the loaded map's keyframes (rgbdslam.session.sessions._landmarks), and a
+localised frame's map edge re-expressed to the last keyframe (rgbdslam.slam)."""
 
 from __future__ import annotations
 
@@ -63,3 +64,23 @@ def test_a_keyframe_left_out_of_the_new_map_unanchors_its_landmarks():
     out = _landmarks(SimpleNamespace(), {MAP_ID_BASE + 1: 3}, 1, old, {})
     np.testing.assert_array_equal(out["lm_anchor"], [-1, 3])
     np.testing.assert_array_equal(out["lm_pos"], lm["lm_pos"])
+
+
+def test_a_map_edge_of_a_non_keyframe_goes_to_the_last_keyframe():
+    """slam.SLAM._to_last_keyframe, hand-worked: the map puts frame j 1 m further along x than the
+    odometry does; re-expressed to keyframe k the edge says the same of k; covariances add."""
+    from rgbdslam.config import load_config
+    from rgbdslam.loop.detector import LoopEdge
+    from rgbdslam.slam import SLAM, FrameRecord
+
+    slam = SLAM(load_config(None, []), CAMERAS["fr1"])
+    Rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    P_k, P_j = _pose(t=(1, 0, 0)), _pose(Rz, (1, 1, 0))  # odometry poses of keyframe k (frame 3) and frame j (7)
+    slam._last_kf = FrameRecord(3, 0.0, P_k, 3)
+    slam._info_since_kf = [np.eye(6) * 1e6, np.eye(6) * 2.5e5]  # covariances 1e-6 and 4e-6
+    e = LoopEdge(MAP_ID_BASE + 4, 7, _pose(Rz, (2, 1, 0)), np.eye(6) * 1e4, 50, 0.01)  # map keyframe 4 at the origin
+    out = slam._to_last_keyframe(e, P_j)
+    assert (out.i, out.j, out.n_inliers) == (MAP_ID_BASE + 4, 3, 50)
+    np.testing.assert_allclose(out.T_ij, _pose(t=(2, 0, 0)), atol=1e-12)  # k, 1 m further along x
+    np.testing.assert_allclose(out.information, np.eye(6) / (1e-4 + 1e-6 + 4e-6), rtol=1e-12)
+    assert e.j == 7 and e.T_ij[0, 3] == 2  # the tracker's edge is left as it was
