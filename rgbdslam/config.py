@@ -254,6 +254,10 @@ class LandmarksConfig:
     ba_max_landmarks: int = 300  # landmarks in one local BA (those seen by most keyframes)
     ba_baseline: float = 0.08  # virtual stereo baseline (m) turning depth into a disparity
     ba_huber: float = 1.345  # robust kernel width (whitened)
+    ba_landmark_prior: bool = True  # each landmark's Kalman position and covariance as a prior in local BA
+    ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
+    ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
+    ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
     seed: int = 0  # RANSAC seed of the map pose
 
 
@@ -440,6 +444,7 @@ POSITIVE = {
     "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
     "landmarks.ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
     "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
+    "landmarks.ba_max_move", "landmarks.ba_max_move_deg",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -518,6 +523,7 @@ MAXIMA = {
     "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,
     "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
+    "landmarks.ba_min_observations": 10**6, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
     "landmarks.seed": C_INT_MAX,
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)

@@ -121,9 +121,9 @@ class LandmarkTracker:
     def end_frame(self, index: int) -> None:
         self.map.end_step(index)
 
-    def add_keyframe(self, index: int, feats, pose: np.ndarray) -> np.ndarray | None:
+    def add_keyframe(self, index: int, feats, pose: np.ndarray) -> dict[int, np.ndarray]:
         """New landmarks from the keyframe's unmatched depth-valid features; local BA. Returns the
-        keyframe's refined pose when local BA moved it (else None)."""
+        window keyframes' refined poses ``{keyframe: pose}`` (empty without local BA or when it did not run)."""
         c = self.cfg
         matched_feat = np.zeros(len(feats.valid), bool)
         lm_idx, lm_ids = np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -152,17 +152,15 @@ class LandmarkTracker:
             del self.keyframes[: len(self.keyframes) - keep]
         self._last_matches = None
         if self.ba is None:
-            return None
+            return {}
         t0 = time.perf_counter()
         refined = self.ba.run(self.map, self.keyframes, self.kf_pose)
         self.stats.ba_ms.append(1e3 * (time.perf_counter() - t0))
         self.stats.ba_runs += 1
         self.last_ba_moved = sorted(refined) if refined else []
-        if refined:
-            for k, P in refined.items():
-                self.kf_pose[k] = P
-            return refined.get(index)
-        return None
+        for k, P in refined.items():
+            self.kf_pose[k] = P
+        return refined
 
     def log(self, observer, index: int, feats, is_kf: bool) -> None:
         """Send the map to a Rerun observer (landmarks by age, this frame's map matches, BA moves)."""
