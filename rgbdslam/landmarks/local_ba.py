@@ -99,6 +99,10 @@ class LocalBA:
                                                   gtsam.noiseModel.Gaussian.Covariance(lmap.cov[i] + 1e-12 * np.eye(3))))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(c.ba_iterations)
+        params.setRelativeErrorTol(1e-4)
+        # landmarks eliminated first, poses last (the Schur complement of BA): ~10x faster than plain COLAMD
+        poses = gtsam.KeyVector([X(kf) for kf in sorted(poses_used)])
+        params.setOrdering(gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, poses))
         try:
             opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
             result = opt.optimize()
