@@ -5,10 +5,11 @@ Usage::
     .venv/bin/python scripts/bench_landmarks.py [--work DIR] [--data DIR] [--sevenscenes DIR]
         [--frames 150] [--seeds 0,1,2] [--motions loop,circle,xyz,rpy] [--no-open3d]
         [--variant NAME=KEY=VALUE[,KEY=VALUE...]] ... [--json FILE] [--skip-real] [--skip-synthetic]
+        [--open3d-only]
 
-Sequences: TUM fr1/rpy head200 (``--data``/tum), 7-Scenes redkitchen 0-299 as a TUM-layout folder
-(``--sevenscenes``; its depth in 1/5000 m and a camera.yaml with fx=fy=585, cx=320, cy=240), and the
-project's synthetic generator (every motion x seed, Kinect-like noise, exact ground truth). Every
+Sequences: TUM fr1/rpy head200 (``--data``/tum), 7-Scenes redkitchen 0-299 through the 7-Scenes
+reader with ``configs/7scenes_camera.yaml`` (``--data``/7scenes/frames_0000_0299, or ``--sevenscenes``:
+another folder; a TUM-layout copy runs with its own camera.yaml), and the project's synthetic generator (every motion x seed, Kinect-like noise, exact ground truth). Every
 variant (``default`` always first) runs on every sequence through ``rgbdslam.pipeline.run_sequence``
 (map fusion off). Per run: ATE RMSE, 1-frame RPE RMSE (translation), frames/s, loops, and from
 ``run.json['landmarks']`` (when landmark tracking ran) the share of matched landmarks first seen
@@ -194,6 +195,8 @@ def main(argv=None) -> int:
     ap.add_argument("--motions", default="loop,circle,xyz,rpy")
     ap.add_argument("--variant", action="append", default=[])
     ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--open3d-only", action="store_true",
+                    help="only Open3D's odometry on the loop-type sequences (its rows join a run's with --report)")
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--skip-synthetic", action="store_true")
     ap.add_argument("--json", type=Path, default=None, help="write every row here")
@@ -246,7 +249,7 @@ def main(argv=None) -> int:
                 seqs.append((f"{motion} seed {seed}", d))
     rows = []
     for name, d in seqs:
-        for vname, sets in variants.items():
+        for vname, sets in ({} if a.open3d_only else variants).items():
             extra = [f"dataset.camera_file={ROOT / 'configs' / '7scenes_camera.yaml'}"] if name.startswith("7-Scenes") \
                 and not (d / "rgb.txt").exists() else []
             cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *extra, *sets])
