@@ -190,6 +190,18 @@ class LoopConfig:
     relocalize_window: int = 15  # frames a match waits for its confirmation
     relocalize_translation: float = 0.1  # metres: two relocalisation matches agree within this
     relocalize_rotation_deg: float = 5.0  # degrees: see relocalize_translation
+    # tracking against a fixed map (--localize; rgbdslam/session/tracking.py): once relocalised,
+    # every map_track_every-th frame is registered against the map_track_neighbours map keyframes
+    # nearest its predicted map pose; a registration that agrees with the prediction (within
+    # relocalize_translation / _rotation_deg plus the drift ratios times the travel since the last
+    # anchoring) is an edge to the map; odometry carries the pose between. 0 = off (loops only)
+    map_track_every: int = 1
+    map_track_neighbours: int = 2  # map keyframes registered per tracked frame
+    map_track_distance: float = 1.0  # metres: largest distance between camera centres of a neighbour
+    map_track_angle_deg: float = 45.0  # degrees: largest angle between the viewing directions of a neighbour
+    # metres: matching guided by the prediction (3-D neighbours within this gate, no RANSAC pre-filter;
+    # an unguided registration with the nearest neighbour when no guided one agrees); 0 = unguided only
+    map_track_gate: float = 0.05
 
 
 @dataclass
@@ -437,7 +449,8 @@ POSITIVE = {
     "loop.max_candidates", "loop.min_inliers", "loop.max_residual", "loop.max_loops_per_frame",
     "loop.consistency_translation", "loop.consistency_rotation_deg",
     "loop.relocalize_confirm", "loop.relocalize_window", "loop.relocalize_translation",
-    "loop.relocalize_rotation_deg",
+    "loop.relocalize_rotation_deg", "loop.map_track_neighbours", "loop.map_track_distance",
+    "loop.map_track_angle_deg",
     "backend.kernel_width", "backend.max_iterations", "backend.relative_error_tol", "backend.prior_sigma",
     "mapping.depth_max", "mapping.voxel_size", "mapping.cloud_pixel_stride", "mapping.outlier_std",
     "mapping.tsdf_voxel", "mapping.sdf_trunc", "mapping.mesh_min_frames", "mapping.tsdf_initial_blocks",
@@ -504,7 +517,8 @@ MAXIMA = {
     "loop.max_loops_per_frame": 100, "loop.consistency_translation": 1e4, "loop.consistency_rotation_deg": 360.0,
     "loop.drift_ratio_translation": 100.0, "loop.drift_ratio_rotation": 100.0,
     "loop.relocalize_confirm": 100, "loop.relocalize_window": 10**5, "loop.relocalize_translation": 1e4,
-    "loop.relocalize_rotation_deg": 360.0,
+    "loop.relocalize_rotation_deg": 360.0, "loop.map_track_every": 10**6, "loop.map_track_neighbours": 100,
+    "loop.map_track_distance": 1e4, "loop.map_track_angle_deg": 180.0, "loop.map_track_gate": 100.0,
     # back end: GTSAM takes C ints for iteration counts
     "backend.kernel_width": 1e6, "backend.isam2_extra_updates": 1000, "backend.max_iterations": 100_000,
     "backend.relative_error_tol": 1.0, "backend.prior_sigma": 1e3,
