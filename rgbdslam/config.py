@@ -55,6 +55,7 @@ class DatasetConfig:
     depth_topic: str | None = None  # ROS bags: depth image topic (None: found when unambiguous)
     camera_info_topic: str | None = None  # ROS bags: CameraInfo topic of the colour camera (None: found)
     prefetch: int = 4  # frames read ahead by a background thread during `run` (0 = read in the loop)
+    reader_threads: int = 2  # threads preparing frames ahead at once where the reader allows it (stereo pairs)
 
 
 @dataclass
@@ -332,7 +333,13 @@ class StereoConfig:
     row_tolerance: float = 2.0  # sparse: |v_left - v_right| allowed for a match (pixels)
     max_hamming: int = 50  # sparse: descriptor distance cap
     ratio: float = 0.9  # sparse: best / second-best Hamming distance along the row band
-    right_features: int = 2  # sparse: ORB budget of the right image, times features.n_features (no grid)
+    # sparse: how a left key point finds its partner in the right image: "orb" = ORB key points of the right
+    # image matched along the row by descriptor; "row" = no right ORB: zero-mean SAD along the row on a
+    # 1/row_scale image (OpenCV cost volume), unique best (row_ratio), then the sub-pixel refinement
+    sparse_search: Literal["orb", "row"] = "orb"
+    right_features: int = 2  # sparse orb: ORB budget of the right image, times features.n_features (no grid)
+    row_scale: int = 4  # sparse row: the coarse search runs on images reduced by this factor
+    row_ratio: float = 0.8  # sparse row: best coarse cost < this x the best one >1 coarse pixel away
     patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
     search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
     sgbm_block_size: int = 5  # SGBM matching block size (odd, pixels)
@@ -485,12 +492,13 @@ BOUNDS = {
     "mapping.obstacle_min_height": (-1e3, 1e3), "mapping.obstacle_max_height": (-1e3, 1e3),
     "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
     "landmarks.max_hamming": (0, 256),
+    "stereo.row_ratio": (0.0, 1.0), "stereo.row_scale": (1, 16),
 }
 # Upper bounds of the keys whose range is not in BOUNDS (closed: the value itself is accepted).
 MAXIMA = {
     # dataset: frame counts and indices fit a C int; prefetched frames are held in memory
     "dataset.max_difference": 1e4, "dataset.first_frame": 10**9, "dataset.max_frames": 10**9,
-    "dataset.stride": 10**6, "dataset.prefetch": 64,
+    "dataset.stride": 10**6, "dataset.prefetch": 64, "dataset.reader_threads": 64,
     # features: OpenCV's ORB takes C ints; n_features x n_features Hamming matrices (~1 GB at 10000)
     "features.n_features": 10_000, "features.fast_threshold": 255, "features.grid_rows": 64,
     "features.grid_cols": 64,
