@@ -212,6 +212,8 @@ class LoopConfig:
     # (within relocalize_translation / _rotation_deg); 1 (default) = every anchored frame re-anchors
     # (2 measured worse on fr1/rpy: docs/benchmarks.md "Saved maps")
     map_track_confirm: int = 1
+    # re-anchor only when an unguided registration with the best edge's map keyframe agrees with it
+    map_track_unguided_check: bool = False
 
 
 @dataclass

@@ -107,6 +107,16 @@ class MapTracker:
         et, er = motion_between(a, b)
         return et <= self.cfg.relocalize_translation and er <= self.cfg.relocalize_rotation_deg
 
+    def _unguided_agrees(self, edges: list, features, pred: np.ndarray) -> bool:
+        """``loop.map_track_unguided_check``: an unguided registration with the best edge's map
+        keyframe puts the frame where that (guided) edge does."""
+        best = max(edges, key=lambda e: e.n_inliers)
+        e = self._register(self.loop.keyframe(best.i), features, pred, None, np.inf, np.inf)
+        ok = e is not None and self._agree(self._map_pose(e), self._map_pose(best))
+        if not ok:
+            self.stats["unconfirmed"] += 1
+        return ok
+
     def _confirmed(self, edges: list, pose: np.ndarray) -> bool:
         """Whether this frame's map edges may re-anchor the prediction (``loop.map_track_confirm``):
         that many of them (distinct map keyframes) put the frame at the same map pose, or the best of
@@ -154,6 +164,7 @@ class MapTracker:
             e = self._register(self.map_kfs[k], features, pred, gate, drift_t, drift_r)
             if e is not None:
                 out.append(e)
+        guided = bool(out) and gate is not None
         if not out and gate is not None:  # the prediction may be off by more than the gate: unguided
             e = self._register(self.map_kfs[cand[0]], features, pred, None, drift_t, drift_r)
             if e is not None:
@@ -161,6 +172,7 @@ class MapTracker:
         if out:
             self.stats["frames_anchored"] += 1
             self.stats["edges"] += len(out)
-            if self._confirmed(out, pose):
+            if self._confirmed(out, pose) and \
+                    (not (guided and c.map_track_unguided_check) or self._unguided_agrees(out, features, pred)):
                 self._anchor(out, pose)
         return out
