@@ -207,13 +207,6 @@ class LoopConfig:
     # (or when the keyframe policy wants one); the other frames' map edges go to the last keyframe,
     # composed with the odometry since it (its covariance added). 1 = every anchored frame a keyframe
     map_track_keyframe_every: int = 0  # 0 = never forced: map edges always go to the last keyframe
-    # a tracked frame's map edges re-anchor the prediction only when map_track_confirm of them (distinct
-    # map keyframes) agree on its map pose, or its best edge agrees with the previous tracked frame's
-    # (within relocalize_translation / _rotation_deg); 1 (default) = every anchored frame re-anchors
-    # (2 measured worse on fr1/rpy: docs/benchmarks.md "Saved maps")
-    map_track_confirm: int = 1
-    # re-anchor only when an unguided registration with the best edge's map keyframe agrees with it
-    map_track_unguided_check: bool = False
 
 
 @dataclass
@@ -537,7 +530,6 @@ MAXIMA = {
     "loop.drift_ratio_translation": 100.0, "loop.drift_ratio_rotation": 100.0,
     "loop.relocalize_confirm": 100, "loop.relocalize_window": 10**5, "loop.relocalize_translation": 1e4,
     "loop.relocalize_rotation_deg": 360.0, "loop.map_track_every": 10**6, "loop.map_track_keyframe_every": 10**6,
-    "loop.map_track_confirm": 100,
     "loop.map_track_neighbours": 100,
     "loop.map_track_distance": 1e4, "loop.map_track_angle_deg": 180.0, "loop.map_track_gate": 100.0,
     # back end: GTSAM takes C ints for iteration counts

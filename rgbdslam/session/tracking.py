@@ -14,8 +14,8 @@ and puts the camera where the prediction does, within ``loop.relocalize_translat
 Each kept registration is an edge from the (fixed) map keyframe to the frame, which the SLAM
 chain attaches to its last keyframe (composed with the odometry since it) unless the frame is a
 keyframe anyway (``loop.map_track_keyframe_every``): the pose graph then holds the session to
-the map wherever the map sees it, and odometry carries the pose between (frames with no agreeing neighbour, parts of
-the scene the map does not cover).
+the map wherever the map sees it, and odometry carries the pose between (frames with no
+agreeing neighbour, parts of the scene the map does not cover).
 
 The prediction is the odometry pose mapped by the latest anchoring (the best edge into the map
 of the last frame that had one, relocalisation included): between anchorings it drifts as
@@ -48,11 +48,9 @@ class MapTracker:
         self.to_map: np.ndarray | None = None  # current segment's coordinates -> map, at the last anchoring
         self._segment = None
         self._anchor_travel = (0.0, 0.0)  # (m, deg) of the segment at the last anchoring
-        self._pending: np.ndarray | None = None  # offset from the last frame whose edges did not re-anchor
         self.stats = {"frames_tried": 0, "frames_anchored": 0, "registrations": 0, "edges": 0,
                       "guided": 0, "unguided": 0,
-                      "rejected_geometry": 0, "rejected_prediction": 0, "no_neighbour": 0,
-                      "unconfirmed": 0}
+                      "rejected_geometry": 0, "rejected_prediction": 0, "no_neighbour": 0}
 
     def predicted(self, pose: np.ndarray) -> np.ndarray | None:
         return None if self.to_map is None else self.to_map @ pose
@@ -98,51 +96,13 @@ class MapTracker:
         self.to_map = kf.pose @ best.T_ij @ inv(pose)
         self.map_segment = kf.segment
         self._anchor_travel = self.loop.travel(pose)
-        self._pending = None
-
-    def _map_pose(self, e) -> np.ndarray:
-        return self.loop.keyframe(e.i).pose @ e.T_ij
-
-    def _agree(self, a: np.ndarray, b: np.ndarray) -> bool:
-        et, er = motion_between(a, b)
-        return et <= self.cfg.relocalize_translation and er <= self.cfg.relocalize_rotation_deg
-
-    def _unguided_agrees(self, edges: list, features, pred: np.ndarray) -> bool:
-        """``loop.map_track_unguided_check``: an unguided registration with the best edge's map
-        keyframe puts the frame where that (guided) edge does."""
-        best = max(edges, key=lambda e: e.n_inliers)
-        e = self._register(self.loop.keyframe(best.i), features, pred, None, np.inf, np.inf)
-        ok = e is not None and self._agree(self._map_pose(e), self._map_pose(best))
-        if not ok:
-            self.stats["unconfirmed"] += 1
-        return ok
-
-    def _confirmed(self, edges: list, pose: np.ndarray) -> bool:
-        """Whether this frame's map edges may re-anchor the prediction (``loop.map_track_confirm``):
-        that many of them (distinct map keyframes) put the frame at the same map pose, or the best of
-        them agrees with the best edge of the last tracked frame that could not re-anchor (the two
-        frames' map poses mapped through each other's offset). Edges checked only against the
-        prediction they were guided by would otherwise confirm a wrong anchoring themselves."""
-        need = self.cfg.map_track_confirm
-        if need <= 1:
-            return True
-        best = max(edges, key=lambda e: e.n_inliers)
-        ref = self._map_pose(best)
-        if 1 + sum(self._agree(ref, self._map_pose(e)) for e in edges if e is not best) >= need:
-            return True
-        offset = ref @ inv(pose)  # this frame's candidate prediction offset
-        ok = self._pending is not None and self._agree(self._pending @ pose, ref)
-        self._pending = offset
-        if not ok:
-            self.stats["unconfirmed"] += 1
-        return ok
 
     def track(self, features, pose: np.ndarray, loops: list) -> list:
         """Edges from map keyframes to this frame (``LoopEdge``), besides the loop closer's ``loops``."""
         lc, c = self.loop, self.cfg
         pose = np.asarray(pose, dtype=np.float64)
         if lc.segment != self._segment:  # a new segment (the session's start, or after a loss)
-            self._segment, self.to_map, self._pending = lc.segment, None, None
+            self._segment, self.to_map = lc.segment, None
         into_map = [e for e in loops if e.i in self.map_ids]
         if into_map:  # relocalisation or a loop: a fresh anchoring
             self._anchor(into_map, pose)
@@ -164,7 +124,6 @@ class MapTracker:
             e = self._register(self.map_kfs[k], features, pred, gate, drift_t, drift_r)
             if e is not None:
                 out.append(e)
-        guided = bool(out) and gate is not None
         if not out and gate is not None:  # the prediction may be off by more than the gate: unguided
             e = self._register(self.map_kfs[cand[0]], features, pred, None, drift_t, drift_r)
             if e is not None:
@@ -172,7 +131,5 @@ class MapTracker:
         if out:
             self.stats["frames_anchored"] += 1
             self.stats["edges"] += len(out)
-            if self._confirmed(out, pose) and \
-                    (not (guided and c.map_track_unguided_check) or self._unguided_agrees(out, features, pred)):
-                self._anchor(out, pose)
+            self._anchor(out, pose)
         return out
