@@ -135,3 +135,27 @@ def test_run_writes_the_live_map_and_it_matches_fusing_afterwards(tmp_path, desk
     # keyframes the final optimisation moved by less than a quarter voxel (2.5 mm, and 2.5 mm at
     # depth_max by rotation) stay where they were integrated: a voxel mean moves at most that much
     assert d.max() <= 0.005 and np.median(d) == 0
+
+
+@pytest.mark.parametrize("cache_mb", [0, 64])
+def test_reintegration_takes_the_cached_images_or_reads_them_again(synth, cache_mb):
+    cfg = MappingConfig()
+    gt = synth.groundtruth()
+    reads = []
+
+    def load(i):
+        reads.append(i)
+        return synth.load(i).rgb, synth.load(i).depth
+
+    live = MapState(cfg, synth.camera, load, cache_mb=cache_mb)
+    shift = np.eye(4)
+    shift[1, 3] = 0.02
+    for i in (0, 4, 8):
+        f = synth.load(i)
+        live.add(i, f.rgb, f.depth, gt.poses[i] @ shift)
+    assert live.cache_bytes == (0 if cache_mb == 0 else sum(a.nbytes + b.nbytes for a, b in live.cache.values()))
+    if cache_mb:  # the synthetic depth is in 1/5000 m steps: kept as 2-byte steps, lossless
+        assert all(d.dtype == np.uint16 for _, d in live.cache.values())
+    live.refresh({i: gt.poses[i] for i in (0, 4, 8)})
+    assert reads == ([] if cache_mb else [0, 4, 8]) and live.stats["reloaded"] == len(reads)
+    _same_map(_fresh(synth, cfg, {i: gt.poses[i] for i in (0, 4, 8)}), live.result()[:2], synth, cfg)
