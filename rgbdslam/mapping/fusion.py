@@ -81,7 +81,7 @@ class FuseResult:
             "seconds": round(self.seconds, 3),
             "peak_rss_mb": round(self.peak_rss_mb, 1),
             "rss_growth_mb": round(self.rss_growth_mb, 1),
-            "timings": {k: round(v, 3) for k, v in self.timings.items()},
+            "timings": {k: round(v, 3) if isinstance(v, float) else v for k, v in self.timings.items()},
             "cloud": str(self.cloud_path) if self.cloud_path else None,
             "mesh": str(self.mesh_path) if self.mesh_path else None,
             "map2d": str(self.map2d_path) if self.map2d_path else None,

@@ -32,7 +32,8 @@ from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 
 CACHE_MB = 512  # keyframe images kept for re-integration (640x480: ~1.5 MB each); beyond, they are read again
-REBUILD_FRACTION = 0.5  # more keyframes than this moved: rebuild the map instead of de-/re-integrating
+REBUILD_FRACTION = 0.5
+SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)  # more keyframes than this moved: rebuild the map instead of de-/re-integrating
 
 
 def moved(a: np.ndarray, b: np.ndarray, tol_m: float, tol_rad: float) -> bool:
@@ -70,6 +71,19 @@ class MapState:
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
                       "pose_updates_skipped": 0, "reloaded": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
                       "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0}
+
+    def sizes(self) -> dict:
+        """What the map holds (docs/benchmarks.md "Memory"): TSDF blocks in use and allocated (8^3
+        voxels of 12 bytes; Open3D's hash map doubles its capacity when full), cloud voxels (64 bytes
+        each while summing), cached keyframe images."""
+        out = {"cache_mb": self.cache_bytes / 2**20, "cached_keyframes": len(self.cache)}
+        if self.cloud is not None:
+            out["cloud_voxels"] = len(self.cloud)
+        if self.tsdf is not None:
+            hm = self.tsdf.vol.hashmap()
+            out.update(tsdf_blocks=int(hm.size()), tsdf_capacity_blocks=int(hm.capacity()),
+                       tsdf_mb=hm.capacity() * 512 * 12 / 2**20)
+        return out
 
     def shift_mm(self, poses: dict[int, np.ndarray]) -> np.ndarray:
         """How far each keyframe in the map would move to ``poses``: translation plus the rotation
@@ -128,6 +142,12 @@ class MapState:
         self._integrate(self.tsdf, self.cloud, index, pose, rgb, depth)
         self.used[index] = pose
         self.stats["integrated"] += 1
+        if self.stats["integrated"] % SIZE_LOG_EVERY == 0:  # how the map grows (docs/benchmarks.md "Memory")
+            from rgbdslam.mapping.fusion import _rss_mb
+
+            self.stats.setdefault("size_log", []).append(
+                {"keyframes": self.stats["integrated"], "rss_mb": round(_rss_mb(), 1),
+                 **{k: round(v, 1) if isinstance(v, float) else v for k, v in self.sizes().items()}})
 
     def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None) -> int:
         """Bring the map to ``poses`` (keyframes without one stay where they are; only the keyframes
@@ -282,6 +302,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
         raise InputError("no keyframe of the run is in a tracking segment that belongs to the map; "
                          "re-run with loop closure on (loop.enabled=true)")
     check_depth(n_depth, fused, state.cfg, filtered_depth)
+    state.stats.update(state.sizes())
     state.cache.clear()  # the images are not needed any more
     t0 = time.perf_counter()
     points, colors = cloud_points(cloud, state.cfg)
