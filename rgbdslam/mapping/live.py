@@ -36,9 +36,11 @@ REBUILD_FRACTION = 0.5
 SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)  # more keyframes than this moved: rebuild the map instead of de-/re-integrating
 
 
-def moved(a: np.ndarray, b: np.ndarray, tol_m: float, tol_rad: float) -> bool:
+def moved(a: np.ndarray, b: np.ndarray, tol_m: float, depth_max: float) -> bool:
+    """Whether a keyframe's points (up to ``depth_max`` away) move more than ``tol_m`` from pose
+    ``a`` to ``b``: translation plus the rotation angle times ``depth_max`` (a bound)."""
     rel = inv(a) @ b
-    return bool(np.linalg.norm(rel[:3, 3]) > tol_m or rotation_angle(rel[:3, :3]) > tol_rad)
+    return bool(np.linalg.norm(rel[:3, 3]) + rotation_angle(rel[:3, :3]) * depth_max > tol_m)
 
 
 class MapState:
@@ -56,10 +58,9 @@ class MapState:
         self.camera = camera
         self.load = load
         self.undistort = _Undistorter(camera, cfg.undistort)
-        # live_tolerance voxels (a quarter by default): the translation, and the rotation that moves a
-        # point at depth_max that far
+        # live_tolerance voxels (a quarter by default): how far a keyframe's points may be from where
+        # its final pose puts them (translation + rotation angle x depth_max)
         self.tol_m = min(cfg.voxel_size, cfg.tsdf_voxel) * cfg.live_tolerance
-        self.tol_rad = self.tol_m / max(cfg.depth_max, 1e-3)
         self.tsdf = None
         self.cloud = None
         self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
@@ -154,7 +155,7 @@ class MapState:
         in ``keep``, if given); returns how many keyframes moved or left."""
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
-        move = [i for i in want if moved(self.used[i], want[i], self.tol_m, self.tol_rad)]
+        move = [i for i in want if moved(self.used[i], want[i], self.tol_m, max(self.cfg.depth_max, 1e-3))]
         if not drop and not move:
             return 0
         self.stats["refreshes"] += 1
