@@ -131,16 +131,15 @@ class MapState:
         if hit is not None:
             self.cache_bytes -= hit[0].nbytes + hit[1].nbytes
 
-    def _integrate(self, tsdf, cloud, index: int, pose, rgb=None, depth=None) -> None:
+    def _integrate(self, tsdf, cloud, pose, prepared: tuple[np.ndarray, np.ndarray]) -> None:
         from rgbdslam.mapping.fusion import integrate_frame
 
-        rgb, depth = self._prepared(index, rgb, depth)
-        integrate_frame(tsdf, cloud, rgb, depth, pose, self.camera, self.cfg)
+        integrate_frame(tsdf, cloud, *prepared, pose, self.camera, self.cfg)
 
     def add(self, index: int, rgb, depth, pose) -> None:
         if self.cloud is None:
             self.tsdf, self.cloud = self._volume()
-        self._integrate(self.tsdf, self.cloud, index, pose, rgb, depth)
+        self._integrate(self.tsdf, self.cloud, pose, self._prepared(index, rgb, depth))
         self.used[index] = pose
         self.stats["integrated"] += 1
         if self.stats["integrated"] % SIZE_LOG_EVERY == 0:  # how the map grows (docs/benchmarks.md "Memory")
@@ -162,7 +161,7 @@ class MapState:
         if len(drop) + len(move) > REBUILD_FRACTION * len(self.used):
             self.tsdf, self.cloud = self._volume()
             for i, pose in want.items():
-                self._integrate(self.tsdf, self.cloud, i, pose)
+                self._integrate(self.tsdf, self.cloud, pose, self._prepared(i))
             self.used = dict(want)
             self.stats["rebuilds"] += 1
             self.stats["reintegrated"] += len(want)
@@ -170,10 +169,10 @@ class MapState:
         old_t, old_c = self._volume()
         new_t, new_c = self._volume()
         for i in drop + move:
-            rgb, depth = self._prepared(i)
-            self._integrate(old_t, old_c, i, self.used[i], rgb, depth)
+            prepared = self._prepared(i)
+            self._integrate(old_t, old_c, self.used[i], prepared)
             if i in want:
-                self._integrate(new_t, new_c, i, want[i], rgb, depth)
+                self._integrate(new_t, new_c, want[i], prepared)
         if self.tsdf is not None:
             merge_tsdf(self.tsdf.vol, old_t.vol, sign=-1)
             merge_tsdf(self.tsdf.vol, new_t.vol, sign=+1)
