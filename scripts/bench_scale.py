@@ -296,6 +296,12 @@ def part_memory(work: Path, frames: int) -> list[str]:
         if at:
             n, a, b = at[0]
             lines.append(f"| {mark} | {a:.0f} | {b:.0f} | {a + b:.0f} |")
+    sizes = ((info.get("map") or {}).get("timings") or {}).get("size_log") or []
+    if sizes:  # what the map process holds, every 100 keyframes (rgbdslam.mapping.live.MapState.sizes)
+        lines += ["", "| keyframes in the map | map process MB | TSDF blocks used / allocated | TSDF MB (allocated) "
+                  "| cloud voxels | cached keyframe images MB |", "|---|---|---|---|---|---|"]
+        lines += [f"| {e['keyframes']} | {e['rss_mb']:.0f} | {e.get('tsdf_blocks', 0)} / {e.get('tsdf_capacity_blocks', 0)} "
+                  f"| {e.get('tsdf_mb', 0):.0f} | {e.get('cloud_voxels', 0)} | {e['cache_mb']:.0f} |" for e in sizes]
     peak = max(samples, key=lambda s: s[1] + s[2]) if samples else (0, 0, 0)
     lines += ["", f"{frames} frames in {wall:.0f} s (tracking {info['fps']:.1f} frames/s), "
               f"{len(info['keyframes'])} keyframes, {len(info['loops'])} loops, ATE "
