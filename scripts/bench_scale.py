@@ -139,7 +139,7 @@ def part_run(work: Path) -> list[str]:
         "After the last frame (run.json `after_tracking_s`; the map's own steps from its timings), seconds:",
         "",
         "| run | tracking | final pose graph | outputs | evaluation + plots | waiting for the map | Rerun | total "
-        "| start-up before the first frame's end and exit (the rest of the wall) | map: bring to final poses "
+        "| wall − first frame − tracking − total (the exit, less the first frame's own tracking time) | map: bring to final poses "
         "| map: cloud | map: mesh | map: 2-D map |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *after_rows,
