@@ -55,6 +55,7 @@ class DatasetConfig:
     depth_topic: str | None = None  # ROS bags: depth image topic (None: found when unambiguous)
     camera_info_topic: str | None = None  # ROS bags: CameraInfo topic of the colour camera (None: found)
     prefetch: int = 4  # frames read ahead by a background thread during `run` (0 = read in the loop)
+    reader_threads: int = 2  # threads preparing frames ahead at once where the reader allows it (stereo pairs)
 
 
 @dataclass
@@ -190,6 +191,18 @@ class LoopConfig:
     relocalize_window: int = 15  # frames a match waits for its confirmation
     relocalize_translation: float = 0.1  # metres: two relocalisation matches agree within this
     relocalize_rotation_deg: float = 5.0  # degrees: see relocalize_translation
+    # tracking against a fixed map (--localize; rgbdslam/session/tracking.py): once relocalised,
+    # every map_track_every-th frame is registered against the map_track_neighbours map keyframes
+    # nearest its predicted map pose; a registration that agrees with the prediction (within
+    # relocalize_translation / _rotation_deg plus the drift ratios times the travel since the last
+    # anchoring) is an edge to the map; odometry carries the pose between. 0 = off (loops only)
+    map_track_every: int = 1
+    map_track_neighbours: int = 2  # map keyframes registered per tracked frame
+    map_track_distance: float = 1.0  # metres: largest distance between camera centres of a neighbour
+    map_track_angle_deg: float = 45.0  # degrees: largest angle between the viewing directions of a neighbour
+    # metres: matching guided by the prediction (3-D neighbours within this gate, no RANSAC pre-filter;
+    # an unguided registration with the nearest neighbour when no guided one agrees); 0 = unguided only
+    map_track_gate: float = 0.05
 
 
 @dataclass
@@ -310,7 +323,13 @@ class StereoConfig:
     row_tolerance: float = 2.0  # sparse: |v_left - v_right| allowed for a match (pixels)
     max_hamming: int = 50  # sparse: descriptor distance cap
     ratio: float = 0.9  # sparse: best / second-best Hamming distance along the row band
-    right_features: int = 2  # sparse: ORB budget of the right image, times features.n_features (no grid)
+    # sparse: how a left key point finds its partner in the right image: "orb" = ORB key points of the right
+    # image matched along the row by descriptor; "row" = no right ORB: zero-mean SAD along the row on a
+    # 1/row_scale image (OpenCV cost volume), unique best (row_ratio), then the sub-pixel refinement
+    sparse_search: Literal["orb", "row"] = "orb"
+    right_features: int = 2  # sparse orb: ORB budget of the right image, times features.n_features (no grid)
+    row_scale: int = 4  # sparse row: the coarse search runs on images reduced by this factor
+    row_ratio: float = 0.8  # sparse row: best coarse cost < this x the best one >1 coarse pixel away
     patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
     search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
     sgbm_block_size: int = 5  # SGBM matching block size (odd, pixels)
@@ -427,7 +446,8 @@ POSITIVE = {
     "loop.max_candidates", "loop.min_inliers", "loop.max_residual", "loop.max_loops_per_frame",
     "loop.consistency_translation", "loop.consistency_rotation_deg",
     "loop.relocalize_confirm", "loop.relocalize_window", "loop.relocalize_translation",
-    "loop.relocalize_rotation_deg",
+    "loop.relocalize_rotation_deg", "loop.map_track_neighbours", "loop.map_track_distance",
+    "loop.map_track_angle_deg",
     "backend.kernel_width", "backend.max_iterations", "backend.relative_error_tol", "backend.prior_sigma",
     "mapping.depth_max", "mapping.voxel_size", "mapping.cloud_pixel_stride", "mapping.outlier_std",
     "mapping.tsdf_voxel", "mapping.sdf_trunc", "mapping.mesh_min_frames", "mapping.tsdf_initial_blocks",
@@ -460,12 +480,13 @@ BOUNDS = {
     "mapping.obstacle_min_height": (-1e3, 1e3), "mapping.obstacle_max_height": (-1e3, 1e3),
     "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
     "landmarks.max_hamming": (0, 256),
+    "stereo.row_ratio": (0.0, 1.0), "stereo.row_scale": (1, 16),
 }
 # Upper bounds of the keys whose range is not in BOUNDS (closed: the value itself is accepted).
 MAXIMA = {
     # dataset: frame counts and indices fit a C int; prefetched frames are held in memory
     "dataset.max_difference": 1e4, "dataset.first_frame": 10**9, "dataset.max_frames": 10**9,
-    "dataset.stride": 10**6, "dataset.prefetch": 64,
+    "dataset.stride": 10**6, "dataset.prefetch": 64, "dataset.reader_threads": 64,
     # features: OpenCV's ORB takes C ints; n_features x n_features Hamming matrices (~1 GB at 10000)
     "features.n_features": 10_000, "features.fast_threshold": 255, "features.grid_rows": 64,
     "features.grid_cols": 64,
@@ -492,7 +513,8 @@ MAXIMA = {
     "loop.max_loops_per_frame": 100, "loop.consistency_translation": 1e4, "loop.consistency_rotation_deg": 360.0,
     "loop.drift_ratio_translation": 100.0, "loop.drift_ratio_rotation": 100.0,
     "loop.relocalize_confirm": 100, "loop.relocalize_window": 10**5, "loop.relocalize_translation": 1e4,
-    "loop.relocalize_rotation_deg": 360.0,
+    "loop.relocalize_rotation_deg": 360.0, "loop.map_track_every": 10**6, "loop.map_track_neighbours": 100,
+    "loop.map_track_distance": 1e4, "loop.map_track_angle_deg": 180.0, "loop.map_track_gate": 100.0,
     # back end: GTSAM takes C ints for iteration counts
     "backend.kernel_width": 1e6, "backend.isam2_extra_updates": 1000, "backend.max_iterations": 100_000,
     "backend.relative_error_tol": 1.0, "backend.prior_sigma": 1e3,

@@ -221,7 +221,8 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     first_frame_s = None
     t_start = time.perf_counter()
     # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
-    frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg.features))
+    frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg.features),
+                            workers=cfg.dataset.reader_threads)
     try:
         with frame_progress(None if seq.streaming else len(seq), f"SLAM {seq.name}", enabled=progress) as advance:
             for i, pending in frames:

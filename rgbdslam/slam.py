@@ -6,6 +6,7 @@
           ─▶ landmarks        (landmarks.enabled: the pose checked against the landmark map, the map updated)
           ─▶ depth_filter     (DIF, needs the pose; the filtered depth goes back to the front end)
           ─▶ loop.observe     (sharpness gate) ─▶ loop.detect (sharp or due frames only)
+          ─▶ map_tracker      (--localize: registration against the nearest keyframes of the fixed map)
           ─▶ keyframes        (motion policy; loops and restarts force a keyframe)
           ─▶ graph            (GTSAM pose graph over keyframes, initial values from MASAT)
 
@@ -102,6 +103,7 @@ class SLAM:
         self._map_fix: np.ndarray | None = None
         self._map_stale = False
         self._map_next_batch = 0.0
+        self.map_tracker = None  # rgbdslam.session.tracking.MapTracker when localising in a fixed map
 
     # ------------------------------------------------------------------ one frame
     def track(self, frame: Frame) -> TrackResult:
@@ -203,6 +205,10 @@ class SLAM:
         if sharp or self.loop.relocalizing or self.loop.due(frame.index):
             loops = self.loop.detect(result.features, pose)
         self.state.add_time("loop_closure", time.perf_counter() - t0)
+        if self.map_tracker is not None:  # localising: the frame registered against the nearest map keyframes
+            t0 = time.perf_counter()
+            loops = loops + self.map_tracker.track(result.features, pose, loops)
+            self.state.add_time("map_tracking", time.perf_counter() - t0)
         return loops
 
     def _add_loops(self, loops: list, pose: np.ndarray) -> None:

@@ -4,7 +4,7 @@ stereo with exact ground truth.
 Usage::
 
     .venv/bin/python scripts/bench_stereo.py [--seeds 0,1,2] [--frames 150] [--motions loop,circle]
-        [--work DIR] [--json FILE]
+        [--work DIR] [--json FILE] [--parts depth,kitti,synthetic,speed] [--repeats 3]
 
 1. Depth accuracy: synthetic stereo pairs (0.12 m baseline, 640x480, image noise) against the
    exact rendered depth: disparity error (median = bias, 1.4826 * MAD = sigma, share > 1 px) and
@@ -14,10 +14,14 @@ Usage::
    end-point drift, frames/s of the whole run (mapping off).
 3. Synthetic loop-type sequences (``--motions``, ``--seeds``): the same trajectory rendered as
    RGB-D (``rgbdslam synth``) and as stereo (``--stereo 0.12``, KITTI layout), both run with the
-   default config: ATE of each and the ratio stereo / RGB-D (target <= 1.5).
+   default config: ATE of each and the ratio stereo / RGB-D (target <= 1.5), for each stereo
+   variant of ``--methods`` (sparse with the ORB or the row search, SGBM).
 4. Speed: the whole pipeline on KITTI-sized pairs (1226x370) with each depth method, next to the
    RGB-D pipeline on TUM fr1/rpy (640x480) in the same process, so that a ratio survives a
    shared machine: frames/s are quoted with the fr1/rpy frames/s measured in the same run.
+   The ``speed`` part interleaves KITTI (sparse) with one and two reader threads and fr1/rpy for
+   ``--repeats`` rounds (frames/s, frames/s without waiting for images, CPU ms per frame of the
+   whole process) and times each step of preparing a pair in one thread.
 
 Prints a Markdown report (and writes JSON with ``--json``). All runs are seeded.
 """
@@ -41,6 +45,9 @@ sys.path.insert(0, str(ROOT))
 DATA = Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
 KITTI = DATA / "kitti" / "odometry_06_head51"
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+# stereo depth variants of the synthetic comparison
+METHODS = {"sparse": ["stereo.depth=sparse"], "row": ["stereo.depth=sparse", "stereo.sparse_search=row"],
+           "sgbm": ["stereo.depth=sgbm"]}
 
 
 def depth_accuracy(work: Path, seed: int = 0, frames: int = 30) -> dict:
@@ -81,13 +88,73 @@ def run(seq, cfg_name: str | None, sets: list[str], out: Path) -> dict:
     from rgbdslam.pipeline import run_sequence
 
     cfg = load_config(cfg_name, ["mapping.enabled=false", "output.plots=false", *sets])
+    cpu, main = time.process_time(), time.thread_time()
     s = run_sequence(seq, out, cfg, progress=False)
+    cpu = time.process_time() - cpu  # every thread of the process, evaluation included
+    main = time.thread_time() - main  # this thread: tracking, pose graph, evaluation
     ev = s.get("evaluation") or {}
     k = ev.get("kitti") or {}
     return {"ate": (ev.get("ate") or {}).get("rmse"), "fps": s["fps"], "processing_fps": s["processing_fps"],
+            "cpu_ms_per_frame": 1e3 * cpu / max(1, s["frames"]), "load_time_s": s["load_time_s"],
+            "main_thread_cpu_ms_per_frame": 1e3 * main / max(1, s["frames"]),
             "frames": s["frames"], "lost": s["lost"], "t_err_pct": k.get("t_err_pct"),
             "r_err_deg_per_m": k.get("r_err_deg_per_m"), "end_drift_pct": k.get("end_drift_pct"),
             "kitti_note": k.get("note")}
+
+
+def reader_breakdown(frames: int = 51) -> dict:
+    """CPU time (thread_time, medians over the pairs) of each step of preparing a KITTI pair with
+    sparse depth, in this thread: reading both PNGs, left ORB (the front end's key points), right ORB,
+    row matching, SAD refinement + triangulation."""
+    import cv2
+
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.frontend.features import detect
+    from rgbdslam.stereo import depth as sd
+
+    cfg = load_config("kitti", [])
+    seq = open_sequence(KITTI, cfg)
+    sc, fc = cfg.stereo, cfg.features
+    steps: dict[str, list[float]] = {k: [] for k in ("read", "left_orb", "right_orb", "match_rows", "refine")}
+    for i in range(min(frames, len(seq))):
+        t = time.thread_time()
+        left, right = seq.rectified_pair(i)
+        t1 = time.thread_time()
+        det = detect(left, fc)
+        t2 = time.thread_time()
+        det_r = sd._detect_right(right, fc, sc.right_features)
+        t3 = time.thread_time()
+        il, ir = sd.match_rows(det.uv_raw, det.desc, det_r.uv_raw, det_r.desc, sc)
+        t4 = time.thread_time()
+        u0, v0 = np.rint(det.uv_raw[il, 0]), np.rint(det.uv_raw[il, 1])
+        sd.refine_disparity(left, right, u0, v0, det_r.uv_raw[ir, 0] + (u0 - det.uv_raw[il, 0]), sc.patch_radius,
+                            sc.search_radius)
+        t5 = time.thread_time()
+        for k, v in zip(steps, (t1 - t, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+            steps[k].append(v)
+    out = {k: 1e3 * float(np.median(v)) for k, v in steps.items()}
+    out["total"] = sum(out.values())
+    out["opencv_threads"] = cv2.getNumThreads()
+    return out
+
+
+def speed(work: Path, repeats: int) -> dict:
+    """Whole pipeline (mapping off) on KITTI 06 0-50 with sparse depth, one and two reader threads,
+    and fr1/rpy 200 (RGB-D, tum_fr1) as the machine's reference, interleaved ``repeats`` times so
+    that the ratios of one round share the load; plus the reader's per-step CPU breakdown."""
+    run(KITTI, "kitti", [], work / "speed_warmup")  # imports, caches
+    rounds = []
+    for k in range(repeats):
+        row = {"load_average": os.getloadavg()[0]}
+        for threads in (1, 2):
+            row[f"kitti_threads{threads}"] = run(KITTI, "kitti", [f"dataset.reader_threads={threads}"],
+                                                 work / f"speed_k{threads}_{k}")
+        row["kitti_row"] = run(KITTI, "kitti", ["stereo.sparse_search=row"], work / f"speed_krow_{k}")
+        row["rpy"] = run(RPY, "tum_fr1", [], work / f"speed_rpy_{k}")
+        rounds.append(row)
+        print("speed round", k, json.dumps(row), flush=True)
+    return {"rounds": rounds, "reader_breakdown_ms": reader_breakdown()}
 
 
 def main() -> None:
@@ -98,6 +165,11 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--skip-synthetic", action="store_true")
+    ap.add_argument("--parts", default="depth,kitti,synthetic,speed",
+                    help="comma list of the parts to run: depth (accuracy), kitti (+ fr1/rpy), synthetic, speed")
+    ap.add_argument("--repeats", type=int, default=3, help="rounds of the speed part")
+    ap.add_argument("--methods", default="sparse,row,sgbm", help="stereo depth variants of the synthetic part: "
+                    + ", ".join(f"{k} ({' '.join(v)})" for k, v in METHODS.items()))
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_stereo_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -106,20 +178,24 @@ def main() -> None:
 
     report: dict = {"machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPUs, load average "
                                f"{os.getloadavg()[0]:.1f} at start", "command": " ".join(sys.argv)}
-    report["depth_accuracy"] = depth_accuracy(work)
+    parts = set(args.parts.split(","))
+    if args.skip_synthetic:
+        parts.discard("synthetic")
+    report["depth_accuracy"] = depth_accuracy(work) if "depth" in parts else {}
     print("depth accuracy", json.dumps(report["depth_accuracy"]), flush=True)
 
     # KITTI with both methods, and fr1/rpy (RGB-D) in between for the speed ratio
     kitti = {}
-    for method in ("sparse", "sgbm"):
-        kitti[method] = run(KITTI, "kitti", [f"stereo.depth={method}"], work / f"kitti_{method}")
-        print("kitti", method, kitti[method], flush=True)
-    kitti["rgbd_fr1_rpy"] = run(RPY, "tum_fr1", [], work / "rpy")
-    print("fr1/rpy", kitti["rgbd_fr1_rpy"], flush=True)
+    if "kitti" in parts:
+        for method in ("sparse", "sgbm"):
+            kitti[method] = run(KITTI, "kitti", [f"stereo.depth={method}"], work / f"kitti_{method}")
+            print("kitti", method, kitti[method], flush=True)
+        kitti["rgbd_fr1_rpy"] = run(RPY, "tum_fr1", [], work / "rpy")
+        print("fr1/rpy", kitti["rgbd_fr1_rpy"], flush=True)
     report["kitti"] = kitti
 
     synth = []
-    if not args.skip_synthetic:
+    if "synthetic" in parts:
         for motion in args.motions.split(","):
             for seed in [int(s) for s in args.seeds.split(",")]:
                 rg, st = work / f"{motion}_s{seed}_rgbd", work / f"{motion}_s{seed}_stereo"
@@ -130,14 +206,15 @@ def main() -> None:
                                              seed=seed)
                 a = run(rg, None, [], work / f"run_{motion}_{seed}_rgbd")
                 row = {"motion": motion, "seed": seed, "rgbd": a["ate"]}
-                for method in ("sparse", "sgbm"):
-                    b = run(st, None, [f"stereo.depth={method}"], work / f"run_{motion}_{seed}_{method}")
+                for method in args.methods.split(","):
+                    b = run(st, None, METHODS[method], work / f"run_{motion}_{seed}_{method}")
                     row[method] = b["ate"]
                     row[f"{method}_lost"] = b["lost"]
                     row[f"{method}_ratio"] = b["ate"] / a["ate"] if a["ate"] and b["ate"] is not None else None
                 synth.append(row)
                 print("synthetic", row, flush=True)
     report["synthetic"] = synth
+    report["speed"] = speed(work, args.repeats) if "speed" in parts else {}
     report["load_average_end"] = os.getloadavg()[0]
     print_markdown(report)
     if args.json:
@@ -146,30 +223,69 @@ def main() -> None:
 
 def print_markdown(r: dict) -> None:
     print(f"\nmachine: {r['machine']}; load average at the end {r['load_average_end']:.1f}\n")
-    print("| method | disparity bias (px) | sigma (px) | errors > 1 px | pixels with depth | read + depth ms |")
-    print("|---|---|---|---|---|---|")
-    for m, d in r["depth_accuracy"].items():
-        print(f"| {m} | {d['bias_px']:+.3f} | {d['sigma_px']:.3f} | {100 * d['gross_share']:.1f} % | "
-              f"{d['depth_pixels_median']:.0f} | {d['load_ms_median']:.0f} |")
+    if r["depth_accuracy"]:
+        print("| method | disparity bias (px) | sigma (px) | errors > 1 px | pixels with depth | read + depth ms |")
+        print("|---|---|---|---|---|---|")
+        for m, d in r["depth_accuracy"].items():
+            print(f"| {m} | {d['bias_px']:+.3f} | {d['sigma_px']:.3f} | {100 * d['gross_share']:.1f} % | "
+                  f"{d['depth_pixels_median']:.0f} | {d['load_ms_median']:.0f} |")
+    if r["kitti"]:
+        print_kitti(r["kitti"])
+    if r["synthetic"]:
+        print_synthetic(r["synthetic"])
+    if r["speed"]:
+        print_speed(r["speed"])
+
+
+def print_speed(sp: dict) -> None:
+    keys = ("kitti_threads1", "kitti_threads2", "kitti_row", "rpy")
+    print("\n(each cell: frames/s / frames/s without waiting for images / CPU ms per frame of the process)\n")
+    print("| round | load avg | KITTI, 1 reader thread | KITTI, 2 reader threads | KITTI, 2 threads, "
+          "sparse_search=row | fr1/rpy (tum_fr1) | 2 threads / 1 thread | row / orb (2 threads) | "
+          "KITTI 2 threads / fr1-rpy |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for k, r in enumerate(sp["rounds"]):
+        a, b, w, c = (r[key] for key in keys)
+        cells = [f"{d['fps']:.1f} / {d['processing_fps']:.1f} / {d['cpu_ms_per_frame']:.0f}" for d in (a, b, w, c)]
+        print(f"| {k} | {r['load_average']:.1f} | {' | '.join(cells)} | {b['fps'] / a['fps']:.2f} | "
+              f"{w['fps'] / b['fps']:.2f} | {b['fps'] / c['fps']:.2f} |")
+    med = {key: float(np.median([r[key]["fps"] for r in sp["rounds"]])) for key in keys}
+    r0 = sp["rounds"][0]
+    print(f"\nmedians (frames/s): " + ", ".join(f"{key} {v:.1f}" for key, v in med.items())
+          + f"; ATE orb {r0['kitti_threads2']['ate']:.4f} m, row {r0['kitti_row']['ate']:.4f} m")
+    print("\nCPU ms per frame, medians over the rounds: main thread (tracking, pose graph, evaluation) / other "
+          "threads (frame readers): " + ", ".join(
+              f"{key} {np.median([r[key]['main_thread_cpu_ms_per_frame'] for r in sp['rounds']]):.0f} / "
+              f"{np.median([r[key]['cpu_ms_per_frame'] - r[key]['main_thread_cpu_ms_per_frame'] for r in sp['rounds']]):.0f}"
+              for key in keys))
+    b = sp["reader_breakdown_ms"]
+    print("\nreader CPU per KITTI pair (ms, medians): " + ", ".join(f"{k} {v:.1f}" for k, v in b.items()
+                                                             if k != "opencv_threads"))
+
+
+def print_kitti(kitti: dict) -> None:
     print("\n| KITTI 06 0-50 | ATE (m) | t_err (%) | r_err (deg/m) | end drift (%) | lost | frames/s | "
           "frames/s / fr1-rpy frames/s |")
     print("|---|---|---|---|---|---|---|---|")
-    ref = r["kitti"]["rgbd_fr1_rpy"]["fps"]
+    ref = kitti["rgbd_fr1_rpy"]["fps"]
     for m in ("sparse", "sgbm"):
-        d = r["kitti"][m]
+        d = kitti[m]
         print(f"| {m} | {d['ate']:.4f} | {d['t_err_pct']:.3f} | {d['r_err_deg_per_m']:.4f} | {d['end_drift_pct']:.3f} | "
               f"{d['lost']} | {d['fps']:.1f} | {d['fps'] / ref:.2f} |")
-    d = r["kitti"]["rgbd_fr1_rpy"]
+    d = kitti["rgbd_fr1_rpy"]
     print(f"| (RGB-D fr1/rpy 200, tum_fr1) | {d['ate']:.4f} | | | | {d['lost']} | {d['fps']:.1f} | 1.00 |")
-    if r["synthetic"]:
-        print("\n| sequence | RGB-D ATE (m) | stereo sparse ATE (m) | ratio | stereo SGBM ATE (m) | ratio |")
-        print("|---|---|---|---|---|---|")
-        for s in r["synthetic"]:
-            print(f"| {s['motion']} seed {s['seed']} | {s['rgbd']:.4f} | {s['sparse']:.4f} | {s['sparse_ratio']:.2f} | "
-                  f"{s['sgbm']:.4f} | {s['sgbm_ratio']:.2f} |")
-        for m in ("sparse", "sgbm"):
-            ratios = [s[f"{m}_ratio"] for s in r["synthetic"]]
-            print(f"\n{m}: median ratio {np.median(ratios):.2f}, worst {max(ratios):.2f}")
+
+
+def print_synthetic(synth: list[dict]) -> None:
+    methods = [m for m in METHODS if m in synth[0]]
+    print("\n| sequence | RGB-D ATE (m) | " + " | ".join(f"stereo {m} ATE (m) (lost) | ratio" for m in methods) + " |")
+    print("|---|---|" + "---|---|" * len(methods))
+    for s in synth:
+        print(f"| {s['motion']} seed {s['seed']} | {s['rgbd']:.4f} | " + " | ".join(
+            f"{s[m]:.4f} ({s[f'{m}_lost']}) | {s[f'{m}_ratio']:.2f}" for m in methods) + " |")
+    for m in methods:
+        ratios = [s[f"{m}_ratio"] for s in synth]
+        print(f"\n{m}: median ratio {np.median(ratios):.2f}, worst {max(ratios):.2f}")
 
 
 if __name__ == "__main__":

@@ -85,6 +85,9 @@ class Sequence(ABC):
     camera: Camera
     camera_setup: Any = None  # datasets.camera_file.CameraSetup: the camera, where it came from, depth registration
     streaming: bool = False  # a live stream: length unknown until it ends, frames only through prefetched()
+    # load() may run in several threads at once (no shared mutable state; OpenCV objects per thread):
+    # prefetched() then prepares frames in up to ``workers`` threads, in order
+    parallel_load: bool = False
 
     @property
     @abstractmethod
@@ -113,13 +116,16 @@ class Sequence(ABC):
             raise IndexError(i)
         return self.load(i)
 
-    def prefetched(self, ahead: int = 4, then: Callable[[Frame], Frame] | None = None
+    def prefetched(self, ahead: int = 4, then: Callable[[Frame], Frame] | None = None, workers: int = 1
                    ) -> Iterator[tuple[int, Future | _Deferred]]:
         """``(i, future)`` for every frame in order; ``future.result()`` is ``load(i)`` (or raises
         its error). One background thread reads up to ``ahead`` frames in advance, so image
         decoding (cv2.imread releases the GIL) overlaps the caller's work on the previous frame.
         ``ahead = 0`` reads each frame when its ``result()`` is asked for. Frames are read in order by a
-        single thread, so ``load`` need not be thread-safe. Leaving the loop early (break,
+        single thread, so ``load`` need not be thread-safe — unless the sequence says it is
+        (``parallel_load``): then up to ``workers`` threads (at most ``ahead``) prepare consecutive
+        frames at once (stereo: two ORB extractions and the row matching per pair, mostly in
+        OpenCV/NumPy without the GIL); the futures still come in frame order. Leaving the loop early (break,
         Ctrl-C) cancels the reads not yet started. ``then`` (optional) is applied to each frame
         in the same thread, after reading: work that needs only the frame (the pipeline detects
         key points there, ``frontend.features.with_detections``); with ``ahead = 0`` it is not
@@ -130,7 +136,8 @@ class Sequence(ABC):
                 yield i, _Deferred(self.load, i)
             return
         load = _load_then(self.load, then)
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-reader")
+        threads = max(1, min(workers, ahead)) if self.parallel_load else 1
+        pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="frame-reader")
         pending: deque[tuple[int, Future]] = deque()
         nxt = 0
         try:

@@ -1,6 +1,7 @@
 """EuRoC MAV / ASL layout (Burri et al. 2016): ``mav0/cam0`` (left), ``mav0/cam1`` (right), each
 with ``data/`` images, ``data.csv`` (``#timestamp [ns],filename``) and ``sensor.yaml``
-(``intrinsics: [fu, fv, cu, cv]``, radial-tangential ``distortion_coefficients``,
+(``intrinsics: [fu, fv, cu, cv]``, radial-tangential ``distortion_coefficients`` — k1 k2 p1 p2, or
+with OpenCV's k3 as a fifth value —
 ``resolution``, ``T_BS``: sensor-to-body 4x4). Ground truth, when present:
 ``mav0/state_groundtruth_estimate0/data.csv`` (body position and ``q_w q_x q_y q_z`` per
 time stamp).
@@ -62,6 +63,9 @@ def read_sensor_yaml(path: Path) -> dict:
         fu, fv, cu, cv = (float(x) for x in data["intrinsics"])
         w, h = (int(x) for x in data["resolution"])
         dist = tuple(float(x) for x in data.get("distortion_coefficients") or (0.0,) * 4)
+        if len(dist) not in (4, 5):
+            raise InputError(f"{path}: distortion_coefficients has {len(dist)} values; radial-tangential takes 4 "
+                             f"(k1, k2, p1, p2) or 5 (OpenCV's k1, k2, p1, p2, k3)")
         T = data.get("T_BS")
         if T is None:
             raise InputError(f"{path} has no T_BS (the camera's pose on the rig); without it the stereo baseline "

@@ -187,7 +187,7 @@ class RealSenseSequence(Sequence):
         if self.recorder is not None:
             self.recorder.close()
 
-    def prefetched(self, ahead: int = 4, then: Callable[[Frame], Frame] | None = None
+    def prefetched(self, ahead: int = 4, then: Callable[[Frame], Frame] | None = None, workers: int = 1
                    ) -> Iterator[tuple[int, Future]]:
         """``(i, future)`` per frame as it arrives (read in the caller's thread: the device
         buffers ahead by itself)."""

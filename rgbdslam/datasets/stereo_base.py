@@ -78,6 +78,8 @@ def check_baseline(baseline: float, source: Path) -> float:
 class StereoSequence(Sequence):
     """A sequence of rectified stereo pairs, read as depth frames (see the module doc)."""
 
+    parallel_load = True  # load() only reads its own files; ORB/SGBM objects are per thread
+
     def __init__(self, root: Path, name: str, rig: StereoRig, timestamps: np.ndarray, left: list[Path],
                  right: list[Path], gt: Trajectory | None = None, rectify_maps=None) -> None:
         check_pair_lists(left, right, root)

@@ -68,7 +68,11 @@ def _write_png(path: Path, img: np.ndarray) -> None:
 
 
 def _sensor_yaml(cam, T_BS: np.ndarray, comment: str) -> str:
-    d = list(cam.dist[:4]) if len(cam.dist) >= 4 else [0.0] * 4
+    # radial-tangential k1 k2 p1 p2, and k3 (OpenCV's fifth) when the camera has one: fr1's k3 = 1.16
+    # moves the image corners by ~15 px, so dropping it would make the reader rectify a different lens
+    d = (list(cam.dist) + [0.0] * 5)[:5]
+    if d[4] == 0.0:
+        d = d[:4]
     return (
         f"# {comment}\nsensor_type: camera\ncomment: {comment}\n"
         f"T_BS:\n  cols: 4\n  rows: 4\n  data: [{', '.join(repr(float(v)) for v in T_BS.ravel())}]\n"

@@ -143,26 +143,40 @@ class Detections:
     image: np.ndarray = field(repr=False, compare=False)  # the image they were found in (identity is checked)
 
 
-def detect(rgb: np.ndarray, fc: FeaturesConfig) -> Detections:
-    """ORB (with optional grid bucketing) and the detection count on a colour or grey image.
+def detect(rgb: np.ndarray, fc: FeaturesConfig, count: bool = True) -> Detections:
+    """ORB (with optional grid bucketing) and the detection count on a colour or grey image
+    (``count=False``: no count, ``n_detected`` -1, for images only matched against, e.g. a stereo
+    pair's right image).
 
     Needs no depth, pose or earlier frame, so it can run ahead in the frame reader's thread
     (OpenCV releases the GIL): see :func:`with_detections`."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
+    uv_raw, desc, response = orb_features(gray, fc)
+    return Detections(uv_raw, desc, response, count_detections(gray, fc) if count else -1, fc, rgb)
+
+
+def orb_features(gray: np.ndarray, fc: FeaturesConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ORB key points (N, 2), descriptors (N, 32) and responses (N,) of a grey image.
+
+    With grid bucketing ORB finds twice the budget, the strongest per cell are kept, and only
+    those get descriptors (``detect`` then ``compute``: the same descriptors as
+    ``detectAndCompute`` on all of them, ~20 % less time on KITTI-sized images)."""
     bucketing = fc.grid_rows * fc.grid_cols > 1
     orb = _orb(fc, fc.n_features * 2 if bucketing else fc.n_features)
-    kps, desc = orb.detectAndCompute(gray, None)
-    if desc is None or len(kps) == 0:
-        uv_raw = np.zeros((0, 2))
-        desc = np.zeros((0, 32), np.uint8)
-        response = np.zeros(0, np.float32)
+    if bucketing:
+        kps = orb.detect(gray, None)
+        if kps:
+            uv = cv2.KeyPoint_convert(kps).astype(np.float64)  # C++: ~50x faster than a list of k.pt
+            keep = _bucket(uv, np.array([k.response for k in kps], dtype=np.float32), fc, gray.shape[:2])
+            kps = [kps[i] for i in keep]
+        kps, desc = orb.compute(gray, kps) if kps else ((), None)
     else:
-        uv_raw = np.array([k.pt for k in kps], dtype=np.float64)
-        response = np.array([k.response for k in kps], dtype=np.float32)
-        if bucketing:
-            keep = _bucket(uv_raw, response, fc, gray.shape[:2])
-            uv_raw, desc, response = uv_raw[keep], desc[keep], response[keep]
-    return Detections(uv_raw, np.ascontiguousarray(desc), response, count_detections(gray, fc), fc, rgb)
+        kps, desc = orb.detectAndCompute(gray, None)
+    if desc is None or len(kps) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
+    uv_raw = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)
+    response = np.array([k.response for k in kps], dtype=np.float32)
+    return uv_raw, np.ascontiguousarray(desc), response
 
 
 def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:

@@ -142,13 +142,18 @@ class LoopCloser:
         self.stats["map_keyframes"] = len(self.keyframes)
         self.stats["map_entries"] = int(self.index.size)
 
-    def add_map_keyframe(self, features, pose: np.ndarray, path: float, turn: float, segment: int) -> None:
-        """A keyframe of a loaded map (:mod:`rgbdslam.session`), with its travel and segment as saved."""
-        self.index.add(len(self.keyframes), features.desc)
-        kf = _Keyframe(int(features.index), features, np.array(pose, dtype=np.float64), float(path), float(turn),
-                       int(segment))
-        self.keyframes.append(kf)
-        self._by_index[kf.index] = kf
+    def add_map_keyframes(self, keyframes: list[tuple], desc: np.ndarray, starts: np.ndarray) -> None:
+        """The keyframes of a loaded map (:mod:`rgbdslam.session`): ``(features, pose, path, turn,
+        segment)`` each, with their travel and segment as saved; their descriptors are rows
+        ``starts[k]:starts[k + 1]`` of ``desc``, indexed in one pass (``index.add_many``)."""
+        if len(self.keyframes) != self.index.n_keyframes:
+            raise RuntimeError("the descriptor index and the keyframes disagree")
+        self.index.add_many(desc, starts)
+        for features, pose, path, turn, segment in keyframes:
+            kf = _Keyframe(int(features.index), features, np.array(pose, dtype=np.float64), float(path), float(turn),
+                           int(segment))
+            self.keyframes.append(kf)
+            self._by_index[kf.index] = kf
 
     def begin_session(self, map_only: bool) -> None:
         """The keyframes so far are a loaded map, its segments older ones: the new session is a new
@@ -162,6 +167,19 @@ class LoopCloser:
             self.stats.update(n_segments=self.segment + 1, map_keyframes=n, map_entries=int(self.index.size))
         if map_only:
             self.searchable = n
+
+    def keyframe(self, index: int) -> _Keyframe:
+        """The keyframe with frame index (or map id) ``index``."""
+        return self._by_index[index]
+
+    def register(self, ref_features, features, T0: np.ndarray | None = None, gate: float | None = None):
+        """The pair registration that verifies loops (``T0`` and ``gate``: guided matching)."""
+        return self._register(ref_features, features, T0, gate) if gate is not None else \
+            self._register(ref_features, features)
+
+    def travel(self, pose: np.ndarray) -> tuple[float, float]:
+        """(metres, degrees) travelled in the current segment up to ``pose``."""
+        return self._travel(pose)
 
     def _travel(self, pose: np.ndarray) -> tuple[float, float]:
         """(metres, degrees) travelled in the current segment up to ``pose``."""

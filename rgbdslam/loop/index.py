@@ -37,10 +37,19 @@ class LshIndex:
         self.n_entries = 0
 
     def keys(self, desc: np.ndarray) -> np.ndarray:
-        """(N, n_tables) int64 bucket keys (table id in the high bits) of (N, 32) uint8 descriptors."""
-        bits = np.unpackbits(np.asarray(desc, np.uint8), axis=1)  # (N, 256)
-        sel = bits[:, self.bits].astype(np.int64)  # (N, L, b)
-        return sel @ self._weights + self._table_offset
+        """(N, n_tables) int64 bucket keys (table id in the high bits) of (N, 32) uint8 descriptors:
+        table t's key has bit i set when descriptor bit ``bits[t, i]`` is (packed with
+        ``np.packbits``, little bit order, into 8 bytes read as one integer)."""
+        desc = np.asarray(desc, np.uint8)
+        out = np.empty((len(desc), self.n_tables), np.int64)
+        nbytes = (self.n_bits + 7) // 8
+        for s in range(0, len(desc), 4096):  # blocks small enough for the cache
+            bits = np.unpackbits(desc[s:s + 4096], axis=1)  # (n, 256)
+            packed = np.packbits(bits[:, self.bits], axis=-1, bitorder="little")  # (n, L, nbytes)
+            wide = np.zeros(packed.shape[:2] + (8,), np.uint8)
+            wide[..., :nbytes] = packed
+            out[s:s + 4096] = wide.view("<u8")[..., 0].astype(np.int64)
+        return out + self._table_offset
 
     def add(self, kf_id: int, desc: np.ndarray) -> None:
         keys = np.unique(self.keys(desc).ravel())
@@ -55,6 +64,37 @@ class LshIndex:
             v = np.concatenate([v1, v2])
             order = np.argsort(k, kind="stable")
             self.runs.append((k[order], v[order]))
+
+    def add_many(self, desc: np.ndarray, starts: np.ndarray) -> None:
+        """Keyframes ``n_keyframes, n_keyframes + 1, ...`` at once: keyframe k's descriptors are rows
+        ``starts[k]:starts[k + 1]`` of ``desc`` (a loaded map). The same votes as adding them one by
+        one, in one pass: the keys of all descriptors, one sort of the (key, keyframe) pairs, one run."""
+        starts = np.asarray(starts, np.int64)
+        n_new = len(starts) - 1
+        if n_new <= 0:
+            return
+        first = self.n_keyframes
+        owner = np.repeat(np.arange(first, first + n_new, dtype=np.int32), np.diff(starts))
+        desc = desc[starts[0]:starts[-1]]
+        keys = self.keys(desc).ravel()
+        owner = np.repeat(owner, self.n_tables)  # rows are in keyframe order
+        span = first + n_new
+        if (int(self.n_tables) << self.n_bits) * span < 1 << 62:  # (key, keyframe) as one integer: one sort
+            pair = np.sort(keys * span + owner)
+            keys, owner = pair // span, (pair % span).astype(np.int32)
+            new = np.ones(len(pair), bool)
+            new[1:] = pair[1:] != pair[:-1]
+        else:  # a stable sort keeps keyframe order within a key; drop repeated pairs
+            order = np.argsort(keys, kind="stable")
+            keys, owner = keys[order], owner[order]
+            new = np.ones(len(keys), bool)
+            new[1:] = (keys[1:] != keys[:-1]) | (owner[1:] != owner[:-1])
+        run = (keys[new], owner[new])
+        self.n_keyframes += n_new
+        self.n_entries += len(run[0])
+        # the new run goes in by size (the logarithmic method's order: larger runs first)
+        self.runs.append(run)
+        self.runs.sort(key=lambda r: -len(r[0]))
 
     def votes(self, desc: np.ndarray) -> np.ndarray:
         """Votes per keyframe id (array of length ``n_keyframes``)."""
@@ -110,6 +150,11 @@ class BruteIndex:
         self.owner.append(np.full(len(desc), kf_id, np.int64))
         self.n_keyframes += 1
         self._all = None
+
+    def add_many(self, desc: np.ndarray, starts: np.ndarray) -> None:
+        """Keyframes ``n_keyframes, ...`` at once (rows ``starts[k]:starts[k + 1]`` of ``desc``)."""
+        for k in range(len(starts) - 1):
+            self.add(self.n_keyframes, desc[starts[k]:starts[k + 1]])
 
     def votes(self, desc: np.ndarray) -> np.ndarray:
         out = np.zeros(self.n_keyframes, np.int64)

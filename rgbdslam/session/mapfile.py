@@ -2,13 +2,15 @@
 
 A plain NumPy ``.npz`` (a zip of ``.npy`` arrays, read with ``allow_pickle=False``: no Python
 object is ever unpickled from disk) whose array ``header`` holds UTF-8 JSON: format name,
-version, camera, config, sessions, counts, a reserved ``landmarks`` section and the SHA-256 of
-every other array (name, dtype, shape and bytes), so that a truncated or altered file is
-refused with one line instead of loading wrong numbers.
+version, camera, config, sessions, counts, the SHA-256 of every other array (name, dtype, shape
+and bytes), so that a truncated or altered file is refused with one line instead of loading
+wrong numbers, and the optional landmark section (``lm_*`` arrays, :data:`LANDMARK_ARRAYS`) with
+its own version and checksum.
 
 Keyframes are numbered by their position ``k`` in the file; edges name positions. The loop
-candidate index is not stored: it is rebuilt from the descriptors at load time (the LSH index
-is deterministic given its seed and the insertion order; docs/benchmarks.md measures the time).
+candidate index is not stored: it is rebuilt from the descriptors at load time in one pass
+(``LshIndex.add_many``; the LSH index is deterministic given its seed; docs/benchmarks.md
+measures the time and what storing it would cost).
 """
 
 from __future__ import annotations
@@ -62,6 +64,20 @@ ARRAYS: dict[str, tuple[str, tuple]] = {
     "loop_residual": ("float64", ("L",)),
 }
 
+# the optional landmark section (landmarks.enabled runs; header "landmarks" = {"version", "count", "sha256"}):
+# 'M' = live landmarks of the landmark map, positions in the map's frame after the pose graph
+LANDMARK_VERSION = 1
+LANDMARK_ARRAYS: dict[str, tuple[str, tuple]] = {
+    "lm_pos": ("float64", ("M", 3)),  # map-frame position (m)
+    "lm_cov": ("float64", ("M", 3, 3)),  # its covariance (m^2), Kalman-smoothed
+    "lm_desc": ("uint8", ("M", 32)),  # ORB descriptor of its first observation
+    "lm_session": ("int32", ("M",)),  # session it was first seen in
+    "lm_first": ("int64", ("M",)),  # frame index (in that session's sequence) it was first seen in,
+    "lm_last": ("int64", ("M",)),  # and last seen in
+    "lm_seen": ("int64", ("M",)),  # times seen
+    "lm_anchor": ("int64", ("M",)),  # keyframe position that anchors it (moves with it), -1: none
+}
+
 
 @dataclass
 class MapData:
@@ -71,8 +87,12 @@ class MapData:
     camera: Camera
     config: dict[str, Any] = field(default_factory=dict)
     sessions: list[dict[str, Any]] = field(default_factory=list)
-    landmarks: dict[str, Any] | None = None  # reserved for the landmark map (issue 17): None until it exists
+    landmarks: dict[str, np.ndarray] | None = None  # LANDMARK_ARRAYS when the run had a landmark map, else None
     created_by: str = ""
+
+    @property
+    def n_landmarks(self) -> int:
+        return 0 if self.landmarks is None else int(len(self.landmarks["lm_pos"]))
 
     @property
     def n_keyframes(self) -> int:
@@ -120,13 +140,14 @@ def checksum(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def _check_shapes(arrays: dict[str, np.ndarray], where: str) -> None:
-    """Every array present, of its dtype, with sizes that agree (K keyframes, N features, E, L edges)."""
-    missing = [n for n in ARRAYS if n not in arrays]
+def _check_shapes(arrays: dict[str, np.ndarray], where: str, spec: dict[str, tuple[str, tuple]] = ARRAYS) -> None:
+    """Every array of ``spec`` present, of its dtype, with sizes that agree (K keyframes, N features,
+    E, L edges; M landmarks)."""
+    missing = [n for n in spec if n not in arrays]
     if missing:
         raise MapFileError(f"{where} is corrupt: array {missing[0]!r} is missing; re-run `rgbdslam run` to make it again")
     sizes: dict[str, int] = {}
-    for name, (dtype, shape) in ARRAYS.items():
+    for name, (dtype, shape) in spec.items():
         a = arrays[name]
         if a.dtype != np.dtype(dtype) or a.ndim != len(shape):
             raise MapFileError(f"{where} is corrupt: array {name!r} is {a.dtype}{list(a.shape)}, expected {dtype} with "
@@ -140,6 +161,8 @@ def _check_shapes(arrays: dict[str, np.ndarray], where: str) -> None:
             if not ok:
                 raise MapFileError(f"{where} is corrupt: array {name!r} has shape {list(a.shape)}, which does not agree "
                                    f"with the others; re-run `rgbdslam run` to make it again")
+    if spec is not ARRAYS:
+        return
     start = arrays["kf_feature_start"]
     if len(start) and (start[0] != 0 or start[-1] != len(arrays["feat_desc"]) or np.any(np.diff(start) < 0)):
         raise MapFileError(f"{where} is corrupt: keyframe feature ranges do not cover the features")
@@ -154,16 +177,24 @@ def save_map(path: str | Path, data: MapData) -> Path:
     path = Path(path)
     arrays = {n: np.ascontiguousarray(data.arrays[n], dtype=ARRAYS[n][0]) for n in ARRAYS}
     _check_shapes(arrays, str(path))
+    landmarks = None
+    if data.landmarks is not None:
+        lm = {n: np.ascontiguousarray(data.landmarks[n], dtype=LANDMARK_ARRAYS[n][0]) for n in LANDMARK_ARRAYS}
+        _check_shapes(lm, str(path), LANDMARK_ARRAYS)
+        _check_anchors(lm, data.n_keyframes, str(path))
+        landmarks = {"version": LANDMARK_VERSION, "count": int(len(lm["lm_pos"])), "sha256": checksum(lm)}
     header = {
         "format": FORMAT, "version": VERSION, "created_by": data.created_by,
         "camera": camera_dict(data.camera), "config": data.config, "sessions": data.sessions,
         "counts": {"keyframes": data.n_keyframes, "features": int(len(arrays["feat_desc"])),
                    "frames": int(len(arrays["frame_index"])),
                    "odometry_edges": int(len(arrays["odo_ij"])), "loop_edges": int(len(arrays["loop_ij"]))},
-        "landmarks": data.landmarks,
+        "landmarks": landmarks,  # its own version and checksum: a reader without the section ignores it
         "sha256": checksum(arrays),
     }
     blob = np.frombuffer(json.dumps(header).encode("utf-8"), np.uint8)
+    if landmarks is not None:
+        arrays.update(lm)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, header=blob, **arrays)
@@ -230,8 +261,36 @@ def load_map(path: str | Path, camera: Camera | None = None) -> MapData:
         raise MapFileError(f"{path} was made with camera {_camera_text(cam)}, this sequence's camera is "
                            f"{_camera_text(camera)}: a map serves only the camera it was made with "
                            f"(check --config / dataset.camera)")
+    landmarks = _load_landmarks(arrays, header.get("landmarks"), len(arrays["kf_frame"]), path)
     return MapData({n: arrays[n] for n in ARRAYS}, cam, header.get("config") or {}, header.get("sessions") or [],
-                   header.get("landmarks"), header.get("created_by", ""))
+                   landmarks, header.get("created_by", ""))
+
+
+def _check_anchors(lm: dict[str, np.ndarray], n_keyframes: int, where: str) -> None:
+    a = lm["lm_anchor"]
+    if a.size and (a.min() < -1 or a.max() >= n_keyframes):
+        raise MapFileError(f"{where} is corrupt: lm_anchor names a keyframe outside 0..{n_keyframes - 1}")
+
+
+def _load_landmarks(arrays: dict[str, np.ndarray], section: Any, n_keyframes: int,
+                    path: Path) -> dict[str, np.ndarray] | None:
+    """The landmark section's arrays, checked (its version, shapes, anchors, checksum); None
+    when the map has none (a run without ``landmarks.enabled``)."""
+    if section is None:
+        return None
+    version = section.get("version") if isinstance(section, dict) else None
+    if version != LANDMARK_VERSION:
+        newer = isinstance(version, int) and version > LANDMARK_VERSION
+        raise MapFileError(f"{path} has landmark section version {version}, this rgbdslam reads version "
+                           f"{LANDMARK_VERSION}; " + ("update rgbdslam to use it" if newer else
+                                                      "re-run `rgbdslam run` to make the map again"))
+    lm = {n: arrays[n] for n in LANDMARK_ARRAYS if n in arrays}
+    _check_shapes(lm, str(path), LANDMARK_ARRAYS)
+    _check_anchors(lm, n_keyframes, str(path))
+    if len(lm["lm_pos"]) != section.get("count") or checksum(lm) != section.get("sha256"):
+        raise MapFileError(f"{path} is corrupt: its landmark section does not match the checksum in its header "
+                           f"(changed or damaged after it was written); re-run `rgbdslam run` to make it again")
+    return lm
 
 
 def map_path(run_dir: str | Path) -> Path:

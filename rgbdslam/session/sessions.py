@@ -69,6 +69,7 @@ class MapSession:
                              "against its keyframes")
         a, n = self.data.arrays, self.data.n_keyframes
         lc, graph = slam.loop, slam.graph
+        kfs = []
         for k in range(n):
             f = self.data.features(k)
             kid = MAP_ID_BASE + k
@@ -76,16 +77,21 @@ class MapSession:
                                   desc=np.ascontiguousarray(f["desc"]), pts=f["pts"].astype(np.float64),
                                   valid=f["valid"].copy(), n_detected=int(a["kf_n_detected"][k]),
                                   uv_raw=f["uv_raw"].astype(np.float64), response=f["response"].copy())
-            lc.add_map_keyframe(feats, a["kf_pose"][k], a["kf_path"][k], a["kf_turn"][k], a["kf_segment"][k])
+            kfs.append((feats, a["kf_pose"][k], a["kf_path"][k], a["kf_turn"][k], a["kf_segment"][k]))
             slam.map_poses[kid] = a["kf_pose"][k].copy()
             if graph is not None:
                 graph.add_node(kid, a["kf_pose"][k])
+        lc.add_map_keyframes(kfs, a["feat_desc"], a["kf_feature_start"])  # the index rebuilt in one pass
         lc.begin_session(map_only=self.localize)  # localising: only the map's keyframes are loop candidates
         if graph is None or not n:
             return
         if self.localize:  # a fixed map: every keyframe held where the map has it; loops keep the plain kernel
             for k in range(n):
                 graph.add_prior(MAP_ID_BASE + k, a["kf_pose"][k], FIXED_SIGMA)
+            if slam.cfg.loop.map_track_every > 0:  # tracked against the map between relocalisations
+                from rgbdslam.session.tracking import MapTracker
+
+                slam.map_tracker = MapTracker(lc, slam.cfg.loop)
             return
         # extending: the map's edges; loops get chain-aware kernels (slam_graph.kernel_scale) from the map's
         # covariance chains (each starts at a keyframe without an incoming odometry edge), this session's
@@ -148,6 +154,8 @@ class MapSession:
         for g in summary.get("segments", []):
             g["localized_from"] = since.get(g["first"])
             g["map"] = g["first"] in since if since else g["map"]
+        if slam.map_tracker is not None:
+            summary["map_tracking"] = dict(slam.map_tracker.stats)
         summary["session"] = {
             "map": str(self.path.resolve()), "mode": "localize" if self.localize else "extend",
             "session": self.session, "map_keyframes": self.data.n_keyframes, "load_time_s": round(self.load_time_s, 4),
@@ -268,7 +276,63 @@ def build_map(slam, seq, cfg, out_dir: Path, session: MapSession | None) -> MapD
     sessions.append({"session": sid, "sequence": str(Path(seq.root).resolve()), "run": str(Path(out_dir).resolve()),
                      "dataset": asdict(cfg.dataset), "keyframes": int(np.sum(np.array(sess) == sid)),
                      "frames": len(slam.state.records)})
-    return MapData(arrays, seq.camera, cfg.to_dict(), sessions, None, f"rgbdslam {__version__}")
+    landmarks = _landmarks(slam, pos, sid, session.data if session is not None else None, opt)
+    return MapData(arrays, seq.camera, cfg.to_dict(), sessions, landmarks, f"rgbdslam {__version__}")
+
+
+def _landmarks(slam, pos: dict[int, int], sid: int, old: MapData | None,
+               opt: dict[int, np.ndarray]) -> dict[str, np.ndarray] | None:
+    """The map's landmark section: the loaded map's landmarks (moved with their anchor keyframes'
+    new poses, re-anchored to their new positions) then this session's live landmarks (already
+    moved by ``LandmarkTracker.finish``); None when neither has a landmark map."""
+    from rgbdslam.geometry.se3 import inv
+
+    parts = []
+    if old is not None and old.landmarks is not None:
+        lm = {n: a.copy() for n, a in old.landmarks.items()}
+        anchor = lm["lm_anchor"]
+        for k in np.unique(anchor[anchor >= 0]):
+            new_pose = opt.get(MAP_ID_BASE + int(k))
+            if new_pose is None:
+                continue
+            C = new_pose @ inv(old.arrays["kf_pose"][k])  # how the pose graph moved that keyframe
+            sel = anchor == k
+            lm["lm_pos"][sel] = lm["lm_pos"][sel] @ C[:3, :3].T + C[:3, 3]
+            lm["lm_cov"][sel] = np.einsum("ij,njk,lk->nil", C[:3, :3], lm["lm_cov"][sel], C[:3, :3])
+        moved = np.array([pos.get(MAP_ID_BASE + k, -1) for k in range(old.n_keyframes)] + [-1], np.int64)
+        lm["lm_anchor"] = moved[anchor]  # -1 stays -1 (the last entry)
+        parts.append(lm)
+    tracker = getattr(slam, "landmarks", None)
+    if tracker is not None:
+        m = tracker.map
+        ids = m.live_ids()
+        parts.append({"lm_pos": m.pos[ids], "lm_cov": m.cov[ids], "lm_desc": m.desc[ids],
+                      "lm_session": np.full(len(ids), sid, np.int32), "lm_first": m.first[ids],
+                      "lm_last": m.last[ids], "lm_seen": m.seen[ids],
+                      "lm_anchor": np.array([pos.get(int(a), -1) for a in m.anchor[ids]], np.int64)})
+    if not parts:
+        return None
+    return {n: np.concatenate([p[n] for p in parts]) for n in parts[0]}
+
+
+def landmark_map(data: MapData, cfg) -> "LandmarkMap | None":  # noqa: F821
+    """The map file's landmark section as a :class:`rgbdslam.landmarks.map.LandmarkMap` (the
+    ``landmarks`` config section's store and filter settings; anchors are keyframe ids
+    ``MAP_ID_BASE + position``, as the map's keyframes are named in the SLAM chain); None without one."""
+    if data.landmarks is None:
+        return None
+    from rgbdslam.landmarks.map import LandmarkMap
+
+    c, lm = cfg.landmarks, data.landmarks
+    m = LandmarkMap(c.store, c.kalman, c.process_noise, c.min_seen, c.cull_after, c.store_n1, c.store_q)
+    if not len(lm["lm_pos"]):
+        return m
+    anchor = np.where(lm["lm_anchor"] >= 0, lm["lm_anchor"] + MAP_ID_BASE, -1)
+    ids = m.add(lm["lm_pos"], lm["lm_cov"], lm["lm_desc"], 0, 0)
+    m.first[ids], m.last[ids], m.anchor[ids] = lm["lm_first"], lm["lm_last"], anchor
+    m.seen[ids] = lm["lm_seen"]
+    m.store.step(m.seen[: m.n])
+    return m
 
 
 def _frames(slam, pos: dict[int, int], sid: int, old: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
@@ -318,6 +382,7 @@ def save_run_map(out_dir: Path, slam, seq, cfg, session: MapSession | None, summ
         return
     save_map(out_dir / MAP_NAME, data)
     summary["map_file"] = {"path": MAP_NAME, "keyframes": data.n_keyframes, "sessions": len(data.sessions),
+                           "landmarks": data.n_landmarks if data.landmarks is not None else None,
                            "bytes": (out_dir / MAP_NAME).stat().st_size}
     if session is not None:  # a joined map: every session's trajectory in its frame (Rerun: one colour each)
         summary["map_file"]["session_trajectories"] = write_session_trajectories(out_dir, data)

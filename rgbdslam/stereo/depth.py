@@ -10,6 +10,8 @@ later stage (registration, loop closure, pose graph, maps, evaluation) runs unch
   and a one-to-one check; each match is refined to sub-pixel disparity by a SAD patch search
   along the row with a parabola through the best three costs, and triangulated as the
   midpoint of the two viewing rays. Depth is written at the key point's rounded pixel only.
+  With ``stereo.sparse_search = row`` the right image gets no ORB: a coarse SAD search along
+  the row (:func:`coarse_row_search`) gives the column the refinement starts from.
 * ``sgbm``: OpenCV's semi-global block matching (3-way), optionally on a resized pair.
 """
 
@@ -71,7 +73,7 @@ def match_rows(uv_l: np.ndarray, desc_l: np.ndarray, uv_r: np.ndarray, desc_r: n
     wr = np.ascontiguousarray(desc_r).view(np.uint64).reshape(-1, 4)
     x = wl[i] ^ wr[j]
     ham = np.bitwise_count(x).sum(axis=1).astype(np.int32)
-    order = np.lexsort((ham, i))  # by left point, best first
+    order = np.argsort(i.astype(np.int64) * 512 + ham, kind="stable")  # by left point, best first (ham <= 256)
     i, j, ham = i[order], j[order], ham[order]
     first = np.r_[True, i[1:] != i[:-1]]
     idx_first = np.flatnonzero(first)
@@ -107,14 +109,17 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, ul: np.ndarray, vl: np
     if not ok.any():
         return out, ok
     idx = np.flatnonzero(ok)
-    dy, dx = np.mgrid[-r:r + 1, -r:r + 1]
-    L = left[vl[idx, None, None] + dy, ul[idx, None, None] + dx].astype(np.float32)
+    n = 2 * r + 1
+    dy = np.arange(-r, r + 1)
+    rows = vl[idx, None, None] + dy[None, :, None]
+    L = left[rows, ul[idx, None, None] + dy[None, None, :]].astype(np.int16)  # (M, n, n)
     L -= L[:, r:r + 1, r:r + 1]
+    # one strip of the right row band per point, the 2s+1 shifted patches are views of it
+    strip = right[rows, ur0[idx, None, None] + np.arange(-r - s, r + s + 1)[None, None, :]].astype(np.int16)
+    R = np.lib.stride_tricks.sliding_window_view(strip, n, axis=2)  # (M, n, 2s+1, n)
+    R = R - strip[:, r:r + 1, r:r + 2 * s + 1, None]  # minus each patch's centre value
+    sad = np.abs(R - L[:, :, None, :]).sum(axis=(1, 3), dtype=np.int32)
     offs = np.arange(-s, s + 1)
-    cols = ur0[idx, None, None, None] + offs[None, :, None, None] + dx[None]
-    R = right[vl[idx, None, None, None] + dy[None], cols].astype(np.float32)
-    R -= R[:, :, r:r + 1, r:r + 1]
-    sad = np.abs(L[:, None] - R).sum(axis=(2, 3))
     best = sad.argmin(axis=1)
     inner = (best > 0) & (best < 2 * s)
     k = np.arange(len(idx))
@@ -139,20 +144,77 @@ def _detect_right(right: np.ndarray, fc: FeaturesConfig, factor: int = 2):
 
     from rgbdslam.frontend.features import detect
 
-    return detect(right, dataclasses.replace(fc, n_features=factor * fc.n_features, grid_rows=1, grid_cols=1))
+    return detect(right, dataclasses.replace(fc, n_features=factor * fc.n_features, grid_rows=1, grid_cols=1),
+                  count=False)
+
+
+def coarse_row_search(left: np.ndarray, right: np.ndarray, uv_l: np.ndarray, sc: StereoConfig
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Left key points' right columns by a search along the row, without right key points.
+
+    Both grey images are reduced by ``row_scale`` (area average) and high-passed (minus their 5x5
+    mean: a brightness difference between the cameras cancels); for every coarse disparity of
+    ``[min_disparity, max_disparity]`` OpenCV gives the 5x5 SAD of the whole image (``absdiff`` +
+    ``boxFilter``), read at the key points. The best disparity must beat every one more than a coarse
+    pixel away by ``row_ratio`` (else repetitive texture or no texture: no depth). Returns the key
+    point indices and their right columns (full-resolution pixels, +-row_scale/2), to be refined."""
+    s = int(sc.row_scale)
+    h, w = left.shape
+    size = (max(1, w // s), max(1, h // s))
+    k = 5
+
+    def high_pass(img: np.ndarray) -> np.ndarray:
+        c = cv2.resize(img, size, interpolation=cv2.INTER_AREA).astype(np.float32) if s > 1 else img.astype(np.float32)
+        return c - cv2.blur(c, (k, k))
+
+    lc, rc = high_pass(left), high_pass(right)
+    dmin = max(1, int(np.floor(sc.min_disparity / s)))
+    dmax = min(size[0] - 1, int(np.ceil(sc.max_disparity / s)))
+    if dmax < dmin or len(uv_l) == 0:
+        return np.zeros(0, int), np.zeros(0)
+    uc = np.clip((uv_l[:, 0] / s).astype(np.int64), 0, size[0] - 1)
+    vc = np.clip((uv_l[:, 1] / s).astype(np.int64), 0, size[1] - 1)
+    nd = dmax - dmin + 1
+    # vol[n, v, x]: SAD of left (v, x + d) against right (v, x) for d = dmin + n (inf where x + d >= width)
+    vol = np.full((nd, size[1], size[0]), np.inf, np.float32)
+    for n, d in enumerate(range(dmin, dmax + 1)):
+        vol[n, :, :size[0] - d] = cv2.boxFilter(cv2.absdiff(lc[:, d:], rc[:, :-d]), -1, (k, k), normalize=False,
+                                                borderType=cv2.BORDER_REPLICATE)
+    dn = np.arange(dmin, dmax + 1)
+    xr = uc[:, None] - dn[None, :]  # right column of each disparity
+    cost = np.where(xr >= 0, vol[np.arange(nd)[None, :], vc[:, None], np.clip(xr, 0, None)], np.inf)  # (M, nd)
+    m = np.arange(len(uv_l))
+    best = cost.argmin(axis=1)
+    b = cost[m, best]
+    others = cost.copy()
+    for o in (-1, 0, 1):
+        others[m, np.clip(best + o, 0, nd - 1)] = np.inf
+    ok = np.isfinite(b) & (b < sc.row_ratio * others.min(axis=1))
+    # left-right check: seen from the right pixel, the best left partner along the row is this point (+-1 coarse
+    # pixel); fails where the left patch is half occluded in the right image
+    xb = np.clip(uc - dn[best], 0, None)
+    back = vol[:, vc, xb].argmin(axis=0)
+    ok &= np.abs(back - best) <= 1
+    good = np.flatnonzero(ok)
+    return good, uv_l[good, 0] - dn[best[good]] * s
 
 
 def sparse_matches(left: np.ndarray, right: np.ndarray, rig: StereoRig, uv_l: np.ndarray, desc_l: np.ndarray,
                    sc: StereoConfig, fc: FeaturesConfig) -> StereoMatches:
     """Row-matched, sub-pixel refined and triangulated left key points (see the module doc)."""
     gl, gr = to_gray(left), to_gray(right)
-    det_r = _detect_right(gr, fc, sc.right_features)
-    il, ir = match_rows(uv_l, desc_l, det_r.uv_raw, det_r.desc, sc)
+    if sc.sparse_search == "row":
+        il, ur_coarse = coarse_row_search(gl, gr, uv_l, sc)
+        search = sc.search_radius + (sc.row_scale + 1) // 2  # the coarse column is good to +-row_scale/2
+    else:
+        det_r = _detect_right(gr, fc, sc.right_features)
+        il, ir = match_rows(uv_l, desc_l, det_r.uv_raw, det_r.desc, sc)
+        ur_coarse, search = det_r.uv_raw[ir, 0], sc.search_radius
     u0 = np.rint(uv_l[il, 0])
     v0 = np.rint(uv_l[il, 1])
     # the right match's column, shifted by the left point's rounding, is the search centre
-    ur_guess = det_r.uv_raw[ir, 0] + (u0 - uv_l[il, 0])
-    ur, ok = refine_disparity(gl, gr, u0, v0, ur_guess, sc.patch_radius, sc.search_radius)
+    ur_guess = ur_coarse + (u0 - uv_l[il, 0])
+    ur, ok = refine_disparity(gl, gr, u0, v0, ur_guess, sc.patch_radius, search)
     disp = u0 - ur
     ok &= np.isfinite(disp) & (disp >= sc.min_disparity) & (disp <= sc.max_disparity)
     il, u0, v0, ur, disp = il[ok], u0[ok], v0[ok], ur[ok], disp[ok]

@@ -54,6 +54,31 @@ def test_lsh_votes_find_the_right_keyframe():
     assert lsh.votes(random_desc(rng, 300)).max() < 8
 
 
+def test_lsh_bulk_add_gives_the_same_votes():
+    """A loaded map's keyframes indexed in one pass (add_many) vote exactly as added one by one,
+    before and after more keyframes come one by one (the runs keep merging)."""
+    rng = np.random.default_rng(3)
+    descs = [random_desc(rng, int(n)) for n in rng.integers(0, 400, 25)]  # one keyframe without features
+    descs[4] = descs[4][:0]
+    one, bulk = LshIndex(8, 12, seed=1), LshIndex(8, 12, seed=1)  # 12 bits: many shared buckets
+    for k, d in enumerate(descs):
+        one.add(k, d)
+    bulk.add_many(np.concatenate(descs), np.concatenate([[0], np.cumsum([len(d) for d in descs])]))
+    assert bulk.n_keyframes == one.n_keyframes == 25 and bulk.size == one.size
+    q = np.concatenate([flip_bits(rng, descs[9][:200], 30), random_desc(rng, 100)])
+    assert np.array_equal(bulk.votes(q), one.votes(q)) and bulk.votes(q).max() > 0
+    for k in range(25, 40):  # a session's own keyframes after the map's
+        d = random_desc(rng, 300)
+        one.add(k, d)
+        bulk.add(k, d)
+    q = random_desc(rng, 500)
+    assert np.array_equal(bulk.votes(q), one.votes(q)) and bulk.size == one.size
+    brute = BruteIndex(64)
+    brute.add_many(np.concatenate(descs[:3]), [0, len(descs[0]), len(descs[0]) + len(descs[1]),
+                                               sum(len(d) for d in descs[:3])])
+    assert brute.n_keyframes == 3 and brute.votes(descs[1][:50]).argmax() == 1
+
+
 def make_place(rng, n=400):
     """Random 3-D points in front of the camera (world = camera of the first view) + descriptors."""
     P = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.0, 1.0, n), rng.uniform(1.5, 4.0, n)])

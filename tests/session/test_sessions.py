@@ -158,6 +158,12 @@ def test_second_session_lands_in_the_map(session1, tmp_path, localize):
     assert _joint_ate(session1 / "trajectory.tum", out / "trajectory.tum") < 0.035
     if localize:
         assert s["map_file"] is None and not (out / "map.npz").exists()
+        # tracked against the map: most frames registered to a map keyframe near their predicted pose
+        mt = s["map_tracking"]
+        assert mt["frames_tried"] == s["tracked"] - ss["first_localized_frame"]  # every frame from the first localised
+        assert mt["frames_anchored"] >= 0.6 * mt["frames_tried"] and mt["edges"] >= mt["frames_anchored"]
+        assert mt["rejected_prediction"] <= 2
+        assert len(s["map_loops"]) >= mt["edges"]
         return
     m = load_map(out / "map.npz")
     assert [x["session"] for x in m.sessions] == [0, 1]
@@ -189,3 +195,138 @@ def test_a_session_elsewhere_stays_apart(session1, tmp_path):
     assert set(seg[m.arrays["kf_session"] == 0]) == {0} and set(seg[m.arrays["kf_session"] == 1]) == {1}
     with pytest.raises(MapFileError, match="was made with camera fr1"):
         load_map(tmp_path / "ext" / "map.npz", camera=CAMERAS["fr3"])
+
+
+@pytest.fixture(scope="module")
+def landmark_runs(tmp_path_factory) -> tuple[Path, Path, dict, dict]:
+    """fr1/rpy frames 0-29 mapped with the landmark map on, then frames 30-49 extending that map."""
+    base = tmp_path_factory.mktemp("lm")
+    s1 = run_sequence(need(TUM_RPY200), base / "s1", _cfg("dataset.max_frames=30", "landmarks.enabled=true"),
+                      progress=False)
+    s2 = run_sequence(TUM_RPY200, base / "s2", _cfg("dataset.first_frame=30", "dataset.max_frames=20",
+                                                    "landmarks.enabled=true"),
+                      progress=False, map_dir=base / "s1")
+    return base / "s1", base / "s2", s1, s2
+
+
+def test_landmark_section_round_trip(landmark_runs):
+    from rgbdslam.session.mapfile import LANDMARK_VERSION
+    from rgbdslam.session.sessions import MAP_ID_BASE, landmark_map
+
+    s1, s2, info1, info2 = landmark_runs
+    m = load_map(s1 / "map.npz")
+    lm = m.landmarks
+    assert read_header(s1 / "map.npz")["landmarks"]["version"] == LANDMARK_VERSION
+    # every live landmark of the run, with its own statistics
+    assert m.n_landmarks == info1["landmarks"]["size"] == info1["map_file"]["landmarks"] > 300
+    assert set(lm["lm_session"]) == {0} and lm["lm_first"].min() >= 0 and lm["lm_last"].max() <= 29
+    assert np.all(lm["lm_last"] >= lm["lm_first"]) and lm["lm_seen"].min() >= 1
+    assert np.all(np.linalg.eigvalsh(lm["lm_cov"]) > 0)  # covariances stay positive definite
+    # anchored to a keyframe of the map, and near where that keyframe sees it (fr1/rpy: a desk 0.5-3 m away)
+    assert lm["lm_anchor"].min() >= 0 and lm["lm_anchor"].max() < m.n_keyframes
+    kf = m.arrays["kf_pose"][lm["lm_anchor"]]
+    in_cam = np.einsum("nji,nj->ni", kf[:, :3, :3], lm["lm_pos"] - kf[:, :3, 3])
+    assert np.median(in_cam[:, 2]) > 0.4 and np.percentile(in_cam[:, 2], 5) > 0.1
+    # the descriptors are the key points' own: most match a keyframe descriptor exactly
+    assert np.isin(lm["lm_desc"].view("V32").ravel(), m.arrays["feat_desc"].view("V32").ravel()).mean() > 0.9
+    # back into a landmark map: same landmarks, anchored to the map keyframes' ids, found by position
+    lmap = landmark_map(m, _cfg())
+    ids = lmap.live_ids()
+    assert len(ids) == m.n_landmarks and np.array_equal(lmap.pos[ids], lm["lm_pos"])
+    assert np.array_equal(lmap.seen[ids], lm["lm_seen"]) and np.all(lmap.anchor[ids] >= MAP_ID_BASE)
+    assert 0 in lmap.near(lm["lm_pos"][0], 1e-6)
+    # extending: the old landmarks (moved with their keyframes, re-anchored) then session 1's own
+    j = load_map(s2 / "map.npz").landmarks
+    old = j["lm_session"] == 0
+    assert old.sum() == m.n_landmarks and (~old).sum() == info2["landmarks"]["size"] > 100
+    assert np.array_equal(j["lm_desc"][old], lm["lm_desc"]) and np.array_equal(j["lm_seen"][old], lm["lm_seen"])
+    assert np.abs(j["lm_pos"][old] - lm["lm_pos"]).max() < 0.1  # the pose graph moves them a little, if at all
+    joined = load_map(s2 / "map.npz")
+    assert np.array_equal(joined.arrays["kf_frame"][j["lm_anchor"][old]], m.arrays["kf_frame"][lm["lm_anchor"]])
+    assert set(joined.arrays["kf_session"][j["lm_anchor"][~old]]) == {1}
+
+
+@pytest.mark.parametrize("kind, message", [
+    ("altered", "is corrupt: its landmark section does not match the checksum in its header"),
+    ("missing", "is corrupt: array 'lm_cov' is missing"),
+    ("version", "has landmark section version 2, this rgbdslam reads version 1; update rgbdslam"),
+    ("anchor", "is corrupt: lm_anchor names a keyframe outside"),
+])
+def test_a_bad_landmark_section_is_one_line(landmark_runs, tmp_path, kind, message):
+    s1 = landmark_runs[0]
+    src, bad = s1 / "map.npz", tmp_path / "map.npz"
+    h = read_header(src)
+    with np.load(src) as z:
+        pos, anchor = z["lm_pos"].copy(), z["lm_anchor"].copy()
+    if kind == "altered":
+        pos[3, 1] += 0.005
+        _rewrite(src, bad, arrays={"lm_pos": pos})
+    elif kind == "missing":
+        with zipfile.ZipFile(src) as zin, zipfile.ZipFile(bad, "w") as zout:
+            for item in zin.infolist():
+                if item.filename != "lm_cov.npy":
+                    zout.writestr(item, zin.read(item.filename))
+    elif kind == "version":
+        h["landmarks"]["version"] = 2
+        _rewrite(src, bad, header=h)
+    else:  # a landmark anchored to a keyframe the file does not have, with a matching checksum
+        from rgbdslam.session.mapfile import checksum
+
+        anchor[0] = 10_000
+        with np.load(src) as z:
+            lm = {n: z[n] for n in z.files if n.startswith("lm_")}
+        lm["lm_anchor"] = anchor
+        h["landmarks"]["sha256"] = checksum(lm)
+        _rewrite(src, bad, header=h, arrays={"lm_anchor": anchor})
+    with pytest.raises(MapFileError) as e:
+        load_map(bad)
+    assert str(e.value).startswith(f"{bad} {message}") and "\n" not in str(e.value)
+    # the keyframes' own checksum does not cover the section: a reader that ignores it still loads the map
+    h0 = read_header(src)
+    assert h0["sha256"] == read_header(bad)["sha256"]
+
+
+def test_map_tracking_off_leaves_loops_only(session1, tmp_path):
+    """``loop.map_track_every=0``: between relocalisations only the loop closer's matches tie the
+    session to the map (far fewer edges into it than with map tracking, the default)."""
+    cfg = _cfg("dataset.first_frame=50", "dataset.max_frames=40", "loop.map_track_every=0")
+    s = run_sequence(TUM_RPY200, tmp_path / "off", cfg, progress=False, map_dir=session1, localize=True)
+    assert "map_tracking" not in s and s["session"]["relocalized"]
+    # with map tracking (test_second_session_lands_in_the_map) at least 0.6 x 40 frames have an edge into the map
+    assert 0 < len(s["map_loops"]) < 20
+
+
+def test_map_tracker_picks_the_nearest_map_keyframes():
+    """Neighbours by predicted pose: camera centres within map_track_distance, viewing directions
+    within map_track_angle_deg, nearest first (distance + 0.25 m per radian)."""
+    from rgbdslam.frontend.features import FrameFeatures
+    from rgbdslam.geometry.se3 import make_pose
+    from rgbdslam.loop.detector import build_loop_closer
+    from rgbdslam.session.sessions import MAP_ID_BASE
+    from rgbdslam.session.tracking import MapTracker
+    from scipy.spatial.transform import Rotation
+
+    cfg = load_config(None, ["loop.map_track_neighbours=3"])
+    lc = build_loop_closer(cfg)
+    rng = np.random.default_rng(0)
+    # map keyframes along x every 0.3 m looking along +z; keyframe 5 at x = 0.6 turned 90 degrees
+    poses = [make_pose(np.eye(3), np.array([0.3 * k, 0.0, 0.0])) for k in range(5)]
+    poses.append(make_pose(Rotation.from_euler("y", 90, degrees=True).as_matrix(), np.array([0.6, 0.0, 0.0])))
+    kfs = []
+    for k, P in enumerate(poses):
+        f = FrameFeatures(MAP_ID_BASE + k, float(k), np.zeros((10, 2)), rng.integers(0, 256, (10, 32), dtype=np.uint8),
+                          np.ones((10, 3)), np.ones(10, bool), 10)
+        kfs.append((f, P, 0.3 * k, 0.0, 0))
+    lc.add_map_keyframes(kfs, np.concatenate([f.desc for f, *_ in kfs]), np.arange(0, 61, 10))
+    lc.begin_session(map_only=True)
+    mt = MapTracker(lc, cfg.loop)
+    pred = make_pose(np.eye(3), np.array([0.62, 0.1, 0.0]))
+    # distances 0.63, 0.33, 0.11, 0.33, 0.57 (k = 0..4); keyframe 5 is 0.10 away but looks sideways
+    assert mt.neighbours(pred, set()) == [2, 3, 1]
+    assert mt.neighbours(pred, {MAP_ID_BASE + 2}) == [3, 1, 4]
+    tilted = make_pose(Rotation.from_euler("y", 80, degrees=True).as_matrix(), pred[:3, 3])
+    assert mt.neighbours(tilted, set()) == [5]  # only the sideways keyframe looks within 45 degrees of it
+    assert mt.neighbours(make_pose(np.eye(3), np.array([5.0, 0, 0])), set()) == []
+    # another segment of the map (its own coordinates) is never a neighbour of this one's
+    lc.keyframes[3].segment = mt.segments[3] = 1
+    assert mt.neighbours(pred, set(), segment=0) == [2, 1, 4] and mt.neighbours(pred, set(), segment=1) == [3]

@@ -98,8 +98,11 @@ def test_sparse_and_sgbm_depth_against_exact_depth(stereo_kitti_layout):
     from rgbdslam.datasets.synthetic import Rays, Scene, make_trajectory
 
     world = make_trajectory("loop", 40)  # the KITTI layout's poses start at the identity: render from the world's
-    for method, max_bias, max_sigma, min_pixels in (("sparse", 0.1, 0.3, 200), ("sgbm", 0.15, 0.6, 50000)):
-        seq = open_sequence(stereo_kitti_layout, load_config(None, [f"stereo.depth={method}"]))
+    for method, search, max_bias, max_sigma, min_pixels, max_gross in (("sparse", "orb", 0.1, 0.3, 200, 0.02),
+                                                                       ("sparse", "row", 0.1, 0.3, 300, 0.04),
+                                                                       ("sgbm", "orb", 0.15, 0.6, 50000, 0.2)):
+        seq = open_sequence(stereo_kitti_layout, load_config(None, [f"stereo.depth={method}",
+                                                                    f"stereo.sparse_search={search}"]))
         fb = seq.camera.fx * seq.rig.baseline
         frame = seq.load(20)
         assert frame.rgb.ndim == 2 and frame.right.shape == frame.rgb.shape  # grey camera
@@ -110,6 +113,7 @@ def test_sparse_and_sgbm_depth_against_exact_depth(stereo_kitti_layout):
         assert ok.sum() >= min_pixels, method
         assert abs(med) < max_bias, method
         assert 1.4826 * np.median(np.abs(e - med)) < max_sigma, method
+        assert np.mean(np.abs(e) > 1.0) < max_gross, (method, search, np.mean(np.abs(e) > 1.0))
         assert frame.depth_noise.sigma(2.0) == pytest.approx(
             4.0 * getattr(seq.stereo_cfg, f"sigma_disparity_{method}") / fb)
 
@@ -313,3 +317,176 @@ def test_stereo_map_uses_dense_map_depth(tmp_path, stereo_kitti_layout):
     s = run_sequence(stereo_kitti_layout, tmp_path / "run", cfg, progress=False)
     sparse_points_per_frame = 1000
     assert s["map"]["cloud_points"] > 20 * sparse_points_per_frame, s["map"]
+
+
+def test_stereo_pairs_are_prepared_in_two_threads_in_order(tmp_path, stereo_kitti_layout):
+    """Stereo pairs (parallel_load) are read and matched by up to ``workers`` threads at once, and
+    still come in frame order with exactly what ``load`` gives; an RGB-D folder keeps one reader."""
+    import threading
+    import time
+
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.datasets.synthetic import generate_sequence
+
+    def overlaps(seq, workers):
+        active, most, lock = [0], [0], threading.Lock()
+        real = seq.load
+
+        def load(i):
+            with lock:
+                active[0] += 1
+                most[0] = max(most[0], active[0])
+            time.sleep(0.05)  # long enough that the next read starts meanwhile when a second thread exists
+            try:
+                return real(i)
+            finally:
+                with lock:
+                    active[0] -= 1
+
+        seq.load = load
+        frames = [(i, p.result()) for i, p in seq.prefetched(4, workers=workers)]
+        seq.load = real
+        return most[0], frames
+
+    stereo = open_sequence(stereo_kitti_layout)
+    most, frames = overlaps(stereo, 2)
+    assert most == 2
+    assert [i for i, _ in frames] == [f.index for _, f in frames] == list(range(len(stereo)))
+    for i in (0, 17, 39):
+        ref = stereo.load(i)
+        assert np.array_equal(frames[i][1].depth, ref.depth) and np.array_equal(frames[i][1].rgb, ref.rgb)
+    assert overlaps(stereo, 1)[0] == 1
+    # the front end takes the reader's left key points (those that have depth) as they are: no second ORB
+    from rgbdslam.frontend.features import with_detections
+
+    f = stereo.load(5)
+    det = f.detections
+    assert with_detections(f, load_config(None, []).features).detections is det
+    generate_sequence(tmp_path / "rgbd", frames=6, motion="loop", seed=3)
+    assert overlaps(open_sequence(tmp_path / "rgbd"), 2)[0] == 1
+
+
+def test_bad_euroc_and_folder_input_one_error_line(tmp_path):
+    """EuRoC and plain-folder counterparts of the KITTI checks: counts, sizes, no baseline (T_BS),
+    a distortion list of the wrong length — one error line each; a later pair of two sizes is
+    skipped with one warning and the run finishes."""
+    from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
+
+    def euroc(name):
+        generate_stereo_sequence(tmp_path / name, 0.12, "euroc", frames=3, motion="circle", seed=0, width=160,
+                                 height=120)
+        return tmp_path / name / "mav0"
+
+    mav = euroc("count")
+    csv = mav / "cam1" / "data.csv"
+    csv.write_text("".join(csv.read_text().splitlines(keepends=True)[:-1]))
+    assert_cli_error(cli(["info", mav.parent]), f"{mav} has 3 left (cam0) and 2 right (cam1) images with 2 common "
+                                                f"time stamps; a stereo sequence needs one right image per left "
+                                                f"image at the same time")
+    mav = euroc("size")
+    y = mav / "cam1" / "sensor.yaml"
+    y.write_text(y.read_text().replace("resolution: [160, 120]", "resolution: [150, 120]"))
+    assert_cli_error(cli(["info", mav.parent]), "cam0 is 160x120 but cam1 is 150x120 (sensor.yaml); a stereo pair "
+                                                "needs two images of one size")
+    mav = euroc("nobaseline")
+    (mav / "cam1" / "sensor.yaml").write_text((mav / "cam0" / "sensor.yaml").read_text())  # cam1 where cam0 is
+    assert_cli_error(cli(["info", mav.parent]), f"{mav / 'cam1' / 'sensor.yaml'} gives no stereo baseline (got 0 m); "
+                                                f"the calibration must give the right camera's offset (e.g. KITTI P1 "
+                                                f"with -fx*B in its 4th column, or 'baseline:')")
+    y = mav / "cam1" / "sensor.yaml"
+    y.write_text("\n".join(line for line in y.read_text().splitlines() if not line.startswith(("T_BS", "  "))))
+    assert_cli_error(cli(["info", mav.parent]), f"{y} has no T_BS (the camera's pose on the rig); without it the "
+                                                f"stereo baseline is unknown")
+    mav = euroc("dist")
+    y = mav / "cam0" / "sensor.yaml"
+    y.write_text(y.read_text().replace("distortion_coefficients: [0.0, 0.0, 0.0, 0.0]",
+                                       "distortion_coefficients: [0.1, 0.0, 0.0]"))
+    assert_cli_error(cli(["info", mav.parent]), f"{y}: distortion_coefficients has 3 values; radial-tangential "
+                                                f"takes 4 (k1, k2, p1, p2) or 5 (OpenCV's k1, k2, p1, p2, k3)")
+
+    # plain folder: counts; then a later pair of two sizes during a run
+    kitti = tmp_path / "k"
+    generate_stereo_sequence(kitti, 0.12, "kitti", frames=20, motion="circle", seed=0, width=320, height=240)
+    folder = tmp_path / "plain"
+    shutil.copytree(kitti / "sequences" / "00" / "image_0", folder / "left")
+    shutil.copytree(kitti / "sequences" / "00" / "image_1", folder / "right")
+    (folder / "stereo.yaml").write_text("fx: 262.5\nfy: 262.5\ncx: 159.5\ncy: 119.5\nbaseline: 0.12\n")
+    (folder / "right" / "000019.png").rename(tmp_path / "r5.png")
+    assert_cli_error(cli(["info", folder]), f"{folder} has 20 left and 19 right images; a stereo sequence needs one "
+                                            f"right image per left image")
+    img = cv2.imread(str(tmp_path / "r5.png"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(folder / "right" / "000019.png"), img)
+    cv2.imwrite(str(folder / "right" / "000003.png"), img[:, :300])
+    res = cli(["run", folder, "--out", tmp_path / "run", "--no-map", "--set", "output.plots=false"])
+    assert res.exit_code == 0, res.output
+    warned = [line for line in res.output.splitlines() if "000003.png" in line]
+    assert len(warned) == 1 and warned[0].startswith("warning: skipped frame 3: left image") and \
+        "is 320x240 but right image" in warned[0] and "is 300x240" in warned[0], res.output
+    import json
+
+    s = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert s["skipped_frames"] == [3] and s["tracked"] == 19
+
+
+def test_euroc_distortion_k3_round_trip_and_depth(tmp_path):
+    """A strongly distorted synthetic EuRoC rig (fr1: k3 = 1.16, ~15 px at the corners) keeps all five
+    coefficients in sensor.yaml, the reader rectifies with them, and the sparse disparities of the
+    rectified pair agree with the exact depth (as for an undistorted rig)."""
+    import yaml
+
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.datasets.synthetic import Rays, Scene, make_trajectory
+    from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
+    from rgbdslam.geometry.camera import CAMERAS
+
+    generate_stereo_sequence(tmp_path / "e", 0.12, "euroc", frames=4, motion="loop", noise=True, seed=1,
+                             camera="fr1")
+    y = yaml.safe_load((tmp_path / "e" / "mav0" / "cam0" / "sensor.yaml").read_text())
+    assert y["distortion_coefficients"] == list(CAMERAS["fr1"].dist)
+    seq = open_sequence(tmp_path / "e", load_config(None, ["stereo.depth=sparse"]))
+    frame = seq.load(3)
+    # exact depth of the rectified left camera: render the scene through the reader's pinhole camera,
+    # placed at the left camera's world pose turned by the rectifying rotation
+    T = make_trajectory("loop", 4)[3]
+    rect = np.eye(4)
+    rect[:3, :3] = seq.rectifying_rotation.T
+    true = Scene(1).render(Rays(seq.camera), T @ rect)[1]
+    ok = (frame.depth > 0) & (true > 0)
+    fb = seq.camera.fx * seq.rig.baseline
+    e = fb / frame.depth[ok] - fb / true[ok]
+    assert ok.sum() >= 150
+    assert abs(np.median(e)) < 0.15 and np.mean(np.abs(e) > 1.0) < 0.05, (np.median(e), np.mean(np.abs(e) > 1.0))
+
+
+def test_row_search_finds_a_known_shift_without_right_key_points():
+    """sparse_search=row on a textured pair shifted by exactly 37.25 pixels: every accepted left point
+    gets disparity 37.25 (sub-pixel from the refinement), the left-most points (partner outside the
+    right image) get none; the ORB search agrees where both give depth."""
+    from rgbdslam.config import FeaturesConfig, StereoConfig
+    from rgbdslam.frontend.features import detect
+    from rgbdslam.stereo.depth import sparse_matches
+
+    rng = np.random.default_rng(5)
+    big = cv2.GaussianBlur(rng.integers(0, 256, (240, 1400)).astype(np.float32), (0, 0), 2.0)
+    big = cv2.normalize(big, None, 0, 255, cv2.NORM_MINMAX)
+    # right(x) = left(x + 37.25): resample a 4x finer image with an integer shift of 149 samples
+    fine = cv2.resize(big, (big.shape[1] * 4, big.shape[0]), interpolation=cv2.INTER_CUBIC)
+    left = np.ascontiguousarray(cv2.resize(fine[:, 400:400 + 2400], (600, 240), interpolation=cv2.INTER_AREA))
+    right = np.ascontiguousarray(cv2.resize(fine[:, 400 + 149:400 + 149 + 2400], (600, 240),
+                                            interpolation=cv2.INTER_AREA))
+    left, right = left.astype(np.uint8), right.astype(np.uint8)
+    rig = StereoRig(Camera(500.0, 500.0, 300.0, 120.0, 600, 240, (0.0,) * 5, "t"), 0.1)
+    fc = FeaturesConfig(n_features=600)
+    det = detect(left, fc)
+    out = {}
+    for search in ("row", "orb"):
+        sc = StereoConfig(sparse_search=search, min_disparity=4.0, max_disparity=96)
+        m = sparse_matches(left, right, rig, det.uv_raw, det.desc, sc, fc)
+        assert len(m.left_index) > 150, search
+        assert np.median(np.abs(m.disparity - 37.25)) < 0.1, search
+        assert np.mean(np.abs(m.disparity - 37.25) > 1.0) < 0.02, search
+        assert np.allclose(m.points[:, 2], 500.0 * 0.1 / m.disparity)
+        assert m.uv[:, 0].min() >= 37 + 5  # no partner (with its patch) left of the right image's border
+        out[search] = dict(zip(m.left_index.tolist(), m.disparity))
+    both = sorted(set(out["row"]) & set(out["orb"]))
+    assert len(both) > 50 and max(abs(out["row"][k] - out["orb"][k]) for k in both) < 0.05
