@@ -267,8 +267,10 @@ def main(argv=None) -> int:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
                    f"{time.strftime('%Y-%m-%d')}")
-        a.json.write_text(json.dumps({"command": "python " + " ".join(shlex.quote(x) for x in sys.argv),
-                                      "machine": machine, "rows": rows}, indent=1))
+        from rgbdslam.io.atomic import atomic_write_text
+
+        atomic_write_text(a.json, json.dumps({"command": "python " + " ".join(shlex.quote(x) for x in sys.argv),
+                                              "machine": machine, "rows": rows}, indent=1))
     return 0
 
 
