@@ -259,14 +259,24 @@ class LandmarksConfig:
     store_n1: int = 3500  # multi-tree store: size of the smallest tree
     store_q: float = 5.5  # multi-tree store: size ratio of consecutive trees
     new_min_distance: float = 5.0  # pixels: a keyframe feature this close to a projected landmark makes no new one
-    old_age: int = 100  # frames: a matched landmark first seen this long ago counts as "old" (run.json)
+    old_age: int = 100  # frames: a matched landmark first seen this long ago counts as "old" (run.json, revisit)
+    # revisit search: old landmarks matched within this radius (pixels; 0 = off); their pose wins when
+    # revisit_min_inliers agree and it is within revisit_max_correction of the registration's
+    revisit_radius: float = 0.0  # pixels around an old landmark's projection (0 = no revisit search)
+    revisit_min_inliers: int = 20  # old landmarks that must agree on the revisit pose
+    revisit_max_correction: float = 0.1  # metres: a revisit pose further from the registration's is rejected
+    revisit_max_correction_deg: float = 5.0  # degrees: see revisit_max_correction
     # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
     ba_iterations: int = 5  # Levenberg-Marquardt iterations of one local BA
-    ba_max_landmarks: int = 300  # landmarks in one local BA (those seen by most keyframes)
+    ba_max_landmarks: int = 1000  # landmarks in one local BA (those seen by most keyframes)
     ba_baseline: float = 0.08  # virtual stereo baseline (m) turning depth into a disparity
     ba_huber: float = 1.345  # robust kernel width (whitened)
+    ba_landmark_prior: bool = True  # each landmark's Kalman position and covariance as a prior in local BA
+    ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
+    ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
+    ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
     seed: int = 0  # RANSAC seed of the map pose
 
 
@@ -461,6 +471,8 @@ POSITIVE = {
     "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
     "landmarks.ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
     "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
+    "landmarks.ba_max_move", "landmarks.ba_max_move_deg", "landmarks.revisit_min_inliers",
+    "landmarks.revisit_max_correction", "landmarks.revisit_max_correction_deg",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -541,6 +553,9 @@ MAXIMA = {
     "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,
     "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
+    "landmarks.ba_min_observations": 10**6, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
+    "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
+    "landmarks.revisit_max_correction_deg": 360.0,
     "landmarks.seed": C_INT_MAX,
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)

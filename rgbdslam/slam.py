@@ -161,15 +161,36 @@ class SLAM:
         if is_kf:
             t0 = time.perf_counter()
             refined = self.landmarks.add_keyframe(frame.index, result.features, pose)
-            if refined is not None:  # local BA moved this keyframe: tracking continues from there
-                pose = refined
+            if frame.index in refined:  # local BA moved this keyframe: tracking continues from there
+                pose = refined.pop(frame.index)
                 result.pose = pose
                 self.frontend.correct_last(pose)
+            if refined:  # the window's older keyframes, their frames, references and graph edges
+                self._move_keyframes(refined, pose)
             self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
         self.landmarks.end_frame(frame.index)
         if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
             self.landmarks.log(self.observer, frame.index, result.features, is_kf)
         return pose
+
+    def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray) -> None:
+        """Write local-BA keyframe poses back: each keyframe's frames follow it rigidly (their pose
+        relative to it kept), so do the front end's reference frames; the pose graph's odometry edges
+        are re-measured between the refined keyframes (the current keyframe, not yet a node, gets its
+        edge from ``pose``)."""
+        old = {r.index: r.pose for r in self.state.records if r.index in refined and r.keyframe == r.index}
+        corr = {k: refined[k] @ inv(P) for k, P in old.items()}
+        if not corr:
+            return
+        moved = {}
+        for r in self.state.records:
+            C = corr.get(r.keyframe)
+            if C is not None:
+                r.pose = C @ r.pose
+                moved[r.index] = r.pose
+        self.frontend.move_references(moved)
+        if self.graph is not None:
+            self.graph.refine_poses({k: refined[k] for k in corr})
 
     def _filter_depth(self, frame: Frame, pose: np.ndarray, restart: bool) -> np.ndarray:
         if self.depth_filter is None:

@@ -51,6 +51,7 @@ class KeyframeGraph:
         self.order: list[int] = []  # keyframe indices in insertion order
         self.guess: dict[int, np.ndarray] = {}  # front-end poses
         self.odometry: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+        self._odo_factor: list[int] = []  # index in self.factors of each odometry edge's factor
         self.loops: list[Any] = []
         self.factors = gtsam.NonlinearFactorGraph()
         self._pending = gtsam.NonlinearFactorGraph()
@@ -109,9 +110,28 @@ class KeyframeGraph:
         info = _check_information(information, f"odometry edge {i}->{j}")
         T_ij = np.array(T_ij, dtype=np.float64)
         self.odometry.append((int(i), int(j), T_ij, info))
+        self._odo_factor.append(int(self.factors.size()))
         if self.order and int(j) == self.order[-1] and int(i) in self._chain_cov:
             self._chain_cov[int(j)] = self._chain_cov[int(i)] + np.linalg.inv(info)
         self._add_factor(gtsam.BetweenFactorPose3(key(i), key(j), _pose3(T_ij), self._noise(info, False)))
+
+    def refine_poses(self, poses: dict[int, np.ndarray]) -> int:
+        """Keyframe poses refined by the front end (local bundle adjustment): the nodes' guesses move and
+        every odometry edge touching one of them is re-measured from the refined guesses (same
+        information); the final batch sees the new measurements. iSAM2's running estimate keeps the
+        edges it was given (it only serves ``correction`` during the run). Returns the edges re-measured."""
+        moved = {int(k) for k in poses if int(k) in self.guess}
+        for k in moved:
+            self.guess[k] = np.array(poses[k], dtype=np.float64)
+        n = 0
+        for e, (i, j, _, info) in enumerate(self.odometry):
+            if i in moved or j in moved:
+                T_ij = inv(self.guess[i]) @ self.guess[j]
+                self.odometry[e] = (i, j, T_ij, info)
+                self.factors.replace(self._odo_factor[e], gtsam.BetweenFactorPose3(
+                    key(i), key(j), _pose3(T_ij), self._noise(info, False)))
+                n += 1
+        return n
 
     def add_prior(self, index: int, pose: np.ndarray, sigma: float) -> None:
         """Hold a node at ``pose`` (isotropic ``sigma``; a loaded map kept fixed)."""

@@ -315,6 +315,16 @@ class Frontend:
             prev = self.refs[-2]
             self._velocity = (inv(prev.pose) @ last.pose, last.features.index - prev.features.index)
 
+    def move_references(self, poses: dict[int, np.ndarray]) -> None:
+        """New poses ``{frame index: pose}`` for reference frames moved by the back end (local BA)."""
+        for r in self.refs:
+            P = poses.get(r.features.index)
+            if P is not None:
+                r.pose = np.array(P, dtype=np.float64)
+        if len(self.refs) > 1 and self._velocity is not None:  # the constant-velocity model follows
+            prev, last = self.refs[-2], self.refs[-1]
+            self._velocity = (inv(prev.pose) @ last.pose, last.features.index - prev.features.index)
+
     def predict_pose(self, index: int) -> np.ndarray | None:
         """Constant-velocity prediction of frame ``index``'s pose (for writing lost frames)."""
         return self._predict(index) if self.refs else None

@@ -39,11 +39,17 @@ class LandmarkStats:
     frames: int = 0
     map_poses: int = 0  # frames placed by the map
     rejected: int = 0  # map poses too far from the registration's
+    revisits: int = 0  # frames placed by the revisit search (old landmarks, wide radius)
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
     ba_runs: int = 0
     ba_ms: list[float] = field(default_factory=list)
+
+
+def _close(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
+    d = inv(A) @ B
+    return bool(np.linalg.norm(d[:3, 3]) <= metres and np.degrees(rotation_angle(d[:3, :3])) <= degrees)
 
 
 def fuse_poses(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -> np.ndarray:
@@ -96,17 +102,19 @@ class LandmarkTracker:
             return pose
         m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
         self._last_matches = m
-        if len(m.lm) < c.min_inliers:
-            return pose
-        res = estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
-                            c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
-                            c.refine, self.camera, c.sigma_px, c.chi_gate)
+        res = None
+        if len(m.lm) >= c.min_inliers:
+            res = estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
+                                c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
+                                c.refine, self.camera, c.sigma_px, c.chi_gate)
+        if res is not None and not _close(pose, res.pose, c.max_correction, c.max_correction_deg):
+            self.stats.rejected += 1  # a map pose far from the registration's is a wrong map match
+            res = None
+        if c.revisit_radius > 0:  # old landmarks, searched wider: a revisit snaps back to their coordinates
+            old = self._revisit(index, feats, pose if res is None else res.pose, pose)
+            if old is not None:
+                res = old
         if res is None:
-            return pose
-        d = inv(pose) @ res.pose  # a map pose far from the registration's is a wrong map match
-        if np.linalg.norm(d[:3, 3]) > c.max_correction or \
-                np.degrees(rotation_angle(d[:3, :3])) > c.max_correction_deg:
-            self.stats.rejected += 1
             return pose
         if c.mode == "fuse" and information is not None and res.information is not None:
             res.pose = fuse_poses(pose, information, res.pose, res.information)
@@ -118,12 +126,40 @@ class LandmarkTracker:
         self._last = (index, res.feat, res.lm)
         return res.pose
 
+    def _revisit(self, index: int, feats, start: np.ndarray, pose: np.ndarray):
+        """The pose from landmarks first seen ``old_age`` frames or more ago, matched within
+        ``revisit_radius`` px of their projection from ``start`` (the drift since they were mapped
+        moves them by more than ``search_radius``); None unless ``revisit_min_inliers`` agree and the
+        pose is within ``revisit_max_correction`` of the registration's ``pose``. The map's younger
+        matched landmarks that agree with it (3-D residual under ``ransac_threshold``) join its inliers."""
+        c = self.cfg
+        if index < c.old_age:
+            return None
+        m = match_to_map(self.map, feats, start, self.camera, c.revisit_radius, c.max_hamming, c.max_depth,
+                         k=16, first_before=index - c.old_age + 1)
+        if len(m.lm) < c.revisit_min_inliers:
+            return None
+        res = estimate_pose(self.map, feats, m, start, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
+                            c.ransac_iterations, c.revisit_min_inliers, "uniform", 1.0, self.rng,
+                            c.refine, self.camera, c.sigma_px, c.chi_gate)
+        if res is None or not _close(pose, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
+            return None
+        self.stats.revisits += 1
+        y = self._last_matches  # the normal search's matches that agree with the old landmarks' pose
+        if y is not None and len(y.lm):
+            keep = ~np.isin(y.lm, res.lm) & ~np.isin(y.feat, res.feat)
+            f, l = y.feat[keep], y.lm[keep]
+            P = feats.pts[f] @ res.pose[:3, :3].T + res.pose[:3, 3]
+            ok = np.linalg.norm(P - self.map.pos[l], axis=1) < c.ransac_threshold
+            res.feat, res.lm = np.concatenate([res.feat, f[ok]]), np.concatenate([res.lm, l[ok]])
+        return res
+
     def end_frame(self, index: int) -> None:
         self.map.end_step(index)
 
-    def add_keyframe(self, index: int, feats, pose: np.ndarray) -> np.ndarray | None:
+    def add_keyframe(self, index: int, feats, pose: np.ndarray) -> dict[int, np.ndarray]:
         """New landmarks from the keyframe's unmatched depth-valid features; local BA. Returns the
-        keyframe's refined pose when local BA moved it (else None)."""
+        window keyframes' refined poses ``{keyframe: pose}`` (empty without local BA or when it did not run)."""
         c = self.cfg
         matched_feat = np.zeros(len(feats.valid), bool)
         lm_idx, lm_ids = np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -152,17 +188,15 @@ class LandmarkTracker:
             del self.keyframes[: len(self.keyframes) - keep]
         self._last_matches = None
         if self.ba is None:
-            return None
+            return {}
         t0 = time.perf_counter()
         refined = self.ba.run(self.map, self.keyframes, self.kf_pose)
         self.stats.ba_ms.append(1e3 * (time.perf_counter() - t0))
         self.stats.ba_runs += 1
         self.last_ba_moved = sorted(refined) if refined else []
-        if refined:
-            for k, P in refined.items():
-                self.kf_pose[k] = P
-            return refined.get(index)
-        return None
+        for k, P in refined.items():
+            self.kf_pose[k] = P
+        return refined
 
     def log(self, observer, index: int, feats, is_kf: bool) -> None:
         """Send the map to a Rerun observer (landmarks by age, this frame's map matches, BA moves)."""
@@ -189,7 +223,7 @@ class LandmarkTracker:
         s = self.stats
         return {
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
-            "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected,
+            "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),

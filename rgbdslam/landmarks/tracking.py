@@ -62,9 +62,13 @@ def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin:
 
 
 def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, max_hamming: int,
-                 max_depth: float, k: int = 6) -> MapMatch:
-    """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px."""
+                 max_depth: float, k: int = 6, first_before: int | None = None) -> MapMatch:
+    """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px
+    (``first_before``: only landmarks first seen before that frame — the revisit search)."""
     ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
+    if first_before is not None:
+        old = lmap.first[ids] < first_before
+        ids, uv = ids[old], uv[old]
     fi = np.flatnonzero(feats.valid)
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv)
     if len(ids) == 0 or len(fi) == 0:

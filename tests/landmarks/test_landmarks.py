@@ -202,3 +202,93 @@ def test_run_with_landmarks_on_real_frames(desk9, tmp_path):
 
     paths = entity_paths(tmp_path / "r.rrd")
     assert "/world/landmarks" in paths and "/world/camera/image/map_matches" in paths
+
+
+def test_graph_refine_poses_remeasures_the_odometry_edges():
+    """Keyframe poses refined by local BA: the edges touching them are re-measured from the refined
+    poses, and without loops the batch returns exactly the refined chain."""
+    from rgbdslam.backend.slam_graph import KeyframeGraph
+    from rgbdslam.config import BackendConfig
+    from rgbdslam.geometry.se3 import inv
+
+    g = KeyframeGraph(BackendConfig(init="odometry"))
+    P = [_pose([0, 0.05 * k, 0], [0.1 * k, 0, 0.02 * k]) for k in range(4)]
+    for k in range(4):
+        g.add_node(k, P[k])
+        if k:
+            g.add_odometry(k - 1, k, inv(P[k - 1]) @ P[k], np.eye(6) * 1e4)
+    new1 = P[1] @ _pose([0.01, 0, 0], [0.0, 0.02, 0])
+    assert g.refine_poses({1: new1}) == 2  # edges 0-1 and 1-2
+    assert np.allclose(g.odometry[0][2], inv(P[0]) @ new1) and np.allclose(g.odometry[1][2], inv(new1) @ P[2])
+    assert np.allclose(g.odometry[2][2], inv(P[2]) @ P[3])
+    out = g.optimize()
+    for k, want in enumerate([P[0], new1, P[2], P[3]]):
+        assert np.allclose(out[k], want, atol=1e-6)
+
+
+@pytest.mark.data
+def test_local_ba_poses_reach_the_trajectory_and_the_graph(desk9):
+    """Local BA's refined keyframe poses are written back: each keyframe's record, the front end's
+    pose graph guess and the landmark anchors agree, the odometry edges are re-measured from them,
+    and the frames between keyframes keep their pose relative to their keyframe."""
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.geometry.se3 import inv
+    from rgbdslam.slam import SLAM
+
+    cfg = load_config(None, ["landmarks.enabled=true", "landmarks.local_ba=true", "keyframes.max_gap=2",
+                             "landmarks.ba_min_observations=10"])
+    seq = open_sequence(desk9, cfg.dataset)
+    slam = SLAM(cfg, seq.camera)
+    rel = {}
+    moved_old = 0
+    for i in range(len(seq)):
+        before = {r.index: r.pose.copy() for r in slam.state.records}
+        slam.track(seq[i])
+        for r in slam.state.records[:-1]:
+            if not np.allclose(before[r.index], r.pose):
+                moved_old += 1
+                if r.index != r.keyframe:  # a non-keyframe moved rigidly with its keyframe
+                    kb, ka = before[r.keyframe], slam.state.records[[x.index for x in slam.state.records].index(r.keyframe)].pose
+                    rel[r.index] = (inv(kb) @ before[r.index], inv(ka) @ r.pose)
+    assert moved_old > 0 and rel  # keyframes and frames between them moved
+    for a, b in rel.values():
+        assert np.allclose(a, b, atol=1e-9)
+    kf = {r.index: r.pose for r in slam.state.records if r.index == r.keyframe}
+    for k, P in kf.items():
+        assert np.allclose(slam.graph.guess[k], P) and np.allclose(slam.landmarks.kf_pose[k], P)
+    for i, j, T, _ in slam.graph.odometry:
+        assert np.allclose(T, inv(kf[i]) @ kf[j], atol=1e-9)
+
+
+def test_revisit_search_snaps_a_drifted_pose_back_to_old_landmarks():
+    """A revisit after drift: the old landmarks project 15-25 px from their features, beyond the
+    normal search radius; the revisit search (old landmarks only, wider radius) finds them and
+    returns the pose they give, the normal search alone keeps the drifted one."""
+    from types import SimpleNamespace
+
+    from rgbdslam.config import LandmarksConfig
+    from rgbdslam.frontend.features import descriptor_words
+    from rgbdslam.landmarks.stage import LandmarkTracker
+
+    rng = np.random.default_rng(5)
+    X = _scene(400, 2)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.02, -0.05, 0.01], [0.1, 0.0, 0.05])
+    uv, z = _observe(truth, X)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    Xc = (X @ inv(truth)[:3, :3].T + inv(truth)[:3, 3])[inside]
+    feats = SimpleNamespace(pts=Xc, uv=uv[inside], uv_raw=uv[inside], valid=np.ones(inside.sum(), bool),
+                            desc=desc[inside], words=descriptor_words(desc[inside]))
+    drifted = truth @ _pose([0.0, 0.03, 0.0], [0.03, 0.0, 0.0])
+    out = {}
+    for radius in (0.0, 40.0):
+        cfg = LandmarksConfig(enabled=True, mode="seed", revisit_radius=radius, max_correction=0.1, max_correction_deg=5)
+        tr = LandmarkTracker(cfg, CAM)
+        tr.map.add(X, np.tile(np.eye(3) * 1e-6, (len(X), 1, 1)), desc, 0, 0)
+        tr.map.end_step(0)
+        out[radius] = (tr.track(150, feats, drifted), tr.stats)
+    assert np.allclose(out[0.0][0], drifted)  # nothing within 10 px: the registration's pose stays
+    P, stats = out[40.0]
+    assert stats.revisits == 1 and stats.matched_old >= 100
+    assert np.linalg.norm(P[:3, 3] - truth[:3, 3]) < 1e-3 and np.allclose(P[:3, :3], truth[:3, :3], atol=1e-4)
