@@ -286,8 +286,8 @@ class MappingConfig:
     # which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame
     keyframes_only: bool = True
     live: bool = True  # fuse keyframes while tracking (keyframes_only); false: fuse after the run
-    # a keyframe whose pose changed by less than this many voxels (at depth_max for a rotation)
-    # stays where the live map integrated it; larger: less re-integration, a map further from the final poses
+    # a keyframe whose points moved by less than this many voxels (translation + rotation angle x
+    # depth_max) stays where the live map integrated it; larger: less re-integration, a map further from the final poses
     live_tolerance: float = 0.25
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0  # degrees: see select_translation

@@ -112,7 +112,9 @@ def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunR
             mapper.abort()
         raise
     record.stage = "pose graph"
+    t_end = time.perf_counter()  # the last frame is tracked: what follows is what the user waits for on top
     final = slam.finish()
+    after = {"pose_graph": time.perf_counter() - t_end}
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
     summary["first_frame_s"] = run.first_frame_s
     if run.interrupted:
@@ -123,8 +125,12 @@ def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunR
     record.stage = "writing the trajectory"
     write_outputs(out_dir, slam, summary, final)
     record.write(summary)
+    after["outputs"] = time.perf_counter() - t_end - after["pose_graph"]
+    summary["after_tracking_s"] = after
     post_process(summary, slam, final, gt, out_dir, cfg, run.interrupted, progress, console, record,
                  groundtruth_name(seq))
+    after["total"] = time.perf_counter() - t_end
+    summary["after_tracking_s"] = {k: round(v, 3) for k, v in after.items()}
     record.stage = "end"
     record.write(summary, final=True)  # only now: "finished" (or "interrupted" from the tracking loop)
     print_summary(summary, out_dir, console)
@@ -298,6 +304,7 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
     adds to run.json and none of them fails a finished run by bad input (a full disk or Ctrl-C
     does: ``record`` names the stage)."""
     observer = slam.observer
+    after = summary.setdefault("after_tracking_s", {})  # seconds per step, for the run record
     live = None
     if slam.mapper is not None:
         if cfg.mapping.enabled and not interrupted and slam.state.keyframes:
@@ -308,6 +315,7 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
             pool.shutdown(wait=False)
         else:
             slam.mapper.abort()
+    t0 = time.perf_counter()
     if gt is not None and len(final) > 1:
         record.stage = "evaluation"
         summary["evaluation"] = evaluate(gt, final, out_dir, cfg, console, gt_name)
@@ -315,15 +323,20 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
     observer.log_trajectory("estimate", final)
     if gt is not None:
         observer.log_trajectory("groundtruth", gt)
+    after["evaluation"] = time.perf_counter() - t0
     if cfg.mapping.enabled and not interrupted:
+        t0 = time.perf_counter()
         record.stage = "map"
         if live is not None:
             summary["map"] = _map_summary(live, observer, console)
         else:
             summary["map"] = fuse_map(out_dir, cfg, observer, progress, console)
         record.write(summary)
+        after["map"] = time.perf_counter() - t0  # with the live map: the wait for it after the evaluation
+    t0 = time.perf_counter()
     record.stage = "recording"
     observer.close()
+    after["recording"] = time.perf_counter() - t0
 
 
 def groundtruth_name(seq: Sequence) -> str:

@@ -33,6 +33,9 @@ from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.viz.observer import NullObserver
 
 
+MAP_BATCH_SHARE = 10.0  # a batch optimisation for the live map at most every 10x its own duration
+
+
 @dataclass
 class FrameRecord:
     """What the chain keeps of a tracked frame (small: no images)."""
@@ -95,6 +98,11 @@ class SLAM:
         self._info_since_kf: list[np.ndarray] = []
         self.optimised: dict[int, np.ndarray] | None = None  # keyframe poses after finish()
         self.map_poses: dict[int, np.ndarray] = {}  # keyframes of a loaded map (rgbdslam.session), by id
+        # the live map gets batch-optimised keyframe poses (see _feed_map): the correction of the
+        # front-end poses by the last batch it was sent, whether new loops await one, when one may run
+        self._map_fix: np.ndarray | None = None
+        self._map_stale = False
+        self._map_next_batch = 0.0
         self.map_tracker = None  # rgbdslam.session.tracking.MapTracker when localising in a fixed map
 
     # ------------------------------------------------------------------ one frame
@@ -136,8 +144,10 @@ class SLAM:
         st.records.append(rec)
         if is_kf:
             self._last_kf = rec
-        # 6. loop edges into the pose graph (iSAM2 updates)
+        # 6. loop edges into the pose graph (iSAM2 updates); the live map follows
         self._add_loops(loops, pose)
+        if self._map_stale:
+            self._feed_map()
         self.observer.log_frame(frame, result)
         if result.matches is not None:
             self.observer.log_inlier_matches(frame.index, result.matches[:, :2], result.matches[:, 2:])
@@ -230,9 +240,25 @@ class SLAM:
             self.graph.add_loop(e)
             self.state.loops.append((int(e.i), int(e.j)))
             self.observer.log_loop(e.i, e.j, self._pose_of(e.i), pose)
-        if self.mapper is not None:  # the loop moved the keyframes: their submaps are fused again
-            self.mapper.update_poses(self.graph.estimate())
+        self._map_stale = self.mapper is not None  # the loop moves the keyframes: the map follows (_feed_map)
         self.state.add_time("pose_graph", time.perf_counter() - t0)
+
+    def _feed_map(self) -> None:
+        """Send the live map the keyframe poses a batch optimisation of the graph gives now — the
+        final optimisation's poses once no loop comes any more, which iSAM2's estimate is not
+        (:meth:`KeyframeGraph.batch_estimate`) — when the map has applied the last ones (one update
+        in flight at a time) and at most a tenth of the time goes into them."""
+        now = time.perf_counter()
+        if now < self._map_next_batch or not self.mapper.ready():
+            return
+        poses = self.graph.batch_estimate()
+        last = self.graph.order[-1]
+        self._map_fix = poses[last] @ inv(self.graph.guess[last])  # new keyframes follow the last one
+        self.mapper.update_poses(poses)
+        self._map_stale = False
+        took = time.perf_counter() - now
+        self._map_next_batch = now + MAP_BATCH_SHARE * took
+        self.state.add_time("pose_graph", took)
 
     def _pose_of(self, index: int) -> np.ndarray | None:
         for r in reversed(self.state.records):
@@ -254,8 +280,9 @@ class SLAM:
             _write_depth_png(self.keyframe_dir / f"depth_{frame.index:06d}.png", depth)
         if self.mapper is not None:  # at the pose graph's current estimate, with the depth the PNG holds
             map_depth = _png_depth(depth) if self.depth_filter is not None else frame.depth
-            self.mapper.add(frame.index, frame.rgb, map_depth,
-                            self.graph.correction() @ pose if self.graph is not None else pose)
+            fix = self._map_fix if self._map_fix is not None else (
+                self.graph.correction() if self.graph is not None else np.eye(4))
+            self.mapper.add(frame.index, frame.rgb, map_depth, fix @ pose)
 
     def _keyframe_information(self) -> np.ndarray:
         """Information of the chained relative pose between two keyframes.

@@ -5,7 +5,7 @@ memory of a long run. One command gives the whole table.
 Usage::
 
     .venv/bin/python scripts/bench_scale.py [--work DIR] [--parts run,sweep,memory]
-                                            [--long-frames 5000] [--write-docs]
+                                            [--long-frames 5000] [--repeat 3] [--write-docs]
 
 * run: ``rgbdslam run`` on TUM fr1/rpy head200 (preset tum_fr1), as a user starts it (a new
   process, wall time from start to exit), with the map fused while tracking (default), fused after
@@ -16,8 +16,9 @@ Usage::
   from scratch): cloud points and nearest-neighbour distances, mesh vertices.
 * sweep: 12 cells — 3 sequences (fr1/desk 9 frames and two 40-frame synthetic sequences) x
   ``loop.enabled`` x ``depth_filter.enabled`` — with ``rgbdslam sweep``: in one process, on the
-  local process pool (2 workers) and on a new local Ray cluster (2 CPUs; the wall time includes
-  starting it).
+  local process pool (2 workers), on a new local Ray cluster (2 CPUs; the wall time includes
+  starting it) and on a running 2-CPU cluster (``ray start --head --block`` on a private port,
+  ``--address``; stopped afterwards), ``--repeat`` times interleaved (medians).
   The tables must be identical apart from the timing columns.
 * memory: ``rgbdslam run`` (map fused while tracking) on a long synthetic ``loop`` sequence
   (320x240); the resident memory of the run process and of its map process, sampled every 0.5 s,
@@ -71,24 +72,27 @@ def _cloud(path: Path):
 
 
 def _compare_maps(live_dir: Path, work: Path) -> dict:
-    """The live map of a run against `rgbdslam fuse` of a copy of its folder."""
+    """The live map of a run against `rgbdslam fuse` of a copy of its folder: nearest-neighbour
+    distances both ways (live -> fused and fused -> live), percentiles and the share within the
+    default tolerance (2.5 mm)."""
     import numpy as np
     import open3d as o3d
     from scipy.spatial import cKDTree
 
-    ref = work / "refused"
+    ref = work / f"refused_{live_dir.name}"
     shutil.rmtree(ref, ignore_errors=True)
     shutil.copytree(live_dir, ref, ignore=shutil.ignore_patterns("map", "previous"))
     sh([BIN, "fuse", ref, "-q"])
-    a, b = _cloud(live_dir / "map" / "cloud.ply"), _cloud(ref / "map" / "cloud.ply")
-    d, _ = cKDTree(b).query(a)
-    ma = np.asarray(o3d.io.read_triangle_mesh(str(live_dir / "map" / "mesh.ply")).vertices)
-    mb = np.asarray(o3d.io.read_triangle_mesh(str(ref / "map" / "mesh.ply")).vertices)
-    dm, _ = cKDTree(mb).query(ma)
-    return {"cloud_live": len(a), "cloud_fused": len(b), "same_points": float(np.mean(d < 1e-6)),
-            "nn_median_mm": 1e3 * float(np.median(d)), "nn_max_mm": 1e3 * float(d.max()),
-            "mesh_live": len(ma), "mesh_fused": len(mb), "mesh_nn_max_mm": 1e3 * float(dm.max()),
-            "mesh_nn_p99_mm": 1e3 * float(np.percentile(dm, 99))}
+    out = {}
+    for what, a, b in (
+            ("cloud", _cloud(live_dir / "map" / "cloud.ply"), _cloud(ref / "map" / "cloud.ply")),
+            ("mesh", np.asarray(o3d.io.read_triangle_mesh(str(live_dir / "map" / "mesh.ply")).vertices),
+             np.asarray(o3d.io.read_triangle_mesh(str(ref / "map" / "mesh.ply")).vertices))):
+        d = np.concatenate([cKDTree(b).query(a)[0], cKDTree(a).query(b)[0]]) * 1e3
+        out[what] = {"live": len(a), "fused": len(b), "same": float(np.mean(d < 1e-3)),
+                     "within": float(np.mean(d <= 2.5)), "p50": float(np.median(d)),
+                     "p99": float(np.percentile(d, 99)), "max": float(d.max())}
+    return out
 
 
 def part_run(work: Path) -> list[str]:
@@ -99,9 +103,11 @@ def part_run(work: Path) -> list[str]:
                 ("map fused after the run (mapping.live=false)", ["--set", "mapping.live=false"]),
                 ("no map (--no-map)", ["--no-map"])]
     runs = {}
+    after_rows = []
     for name, extra in variants:
         out = work / f"rpy_{len(runs)}"
         shutil.rmtree(out, ignore_errors=True)
+        load = os.getloadavg()[0]
         wall = sh([BIN, "run", RPY, "-c", "tum_fr1", "--out", out, "-q", *extra])
         info = json.loads((out / "run.json").read_text())
         runs[name] = out
@@ -110,8 +116,14 @@ def part_run(work: Path) -> list[str]:
         t = m.get("timings") or {}
         moved = (f"{t['final_moved']} of {m['frames_fused']} ({t['final_shift_median_mm']:.1f} / "
                  f"{t['final_shift_max_mm']:.1f} mm)" if "final_moved" in t else "-")
-        rows.append(f"| {name} | {wall:.1f} | {whole:.1f} | {info['fps']:.1f} | {whole / info['fps']:.2f} | "
+        rows.append(f"| {name} | {load:.1f} | {wall:.1f} | {whole:.1f} | {info['fps']:.1f} | {whole / info['fps']:.2f} | "
                     f"{info.get('first_frame_s') or float('nan'):.2f} | {m.get('seconds', float('nan')):.1f} | {moved} |")
+        a = info.get("after_tracking_s") or {}
+        rest = wall - (info.get("first_frame_s") or 0) - info["wall_time_s"] - a.get("total", 0)
+        after_rows.append(f"| {name} | {info['wall_time_s']:.1f} | " + " | ".join(
+            f"{a.get(k, float('nan')):.2f}" for k in ("pose_graph", "outputs", "evaluation", "map", "recording", "total"))
+            + f" | {rest:.2f} | {t.get('final_s', float('nan')):.2f} | {t.get('cloud', float('nan')):.2f} | "
+              f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} |")
     cmps = [(name, _compare_maps(runs[name], work)) for name, _ in variants[:2]]
     first = next(iter(runs.values()))
     info = json.loads((first / "run.json").read_text())
@@ -119,24 +131,32 @@ def part_run(work: Path) -> list[str]:
     lines = [
         f"`rgbdslam --help`: {help_s:.2f} s (median of 3).",
         "",
-        "| run | wall s | whole-command frames/s | tracking frames/s (run.json) | ratio | first tracked frame s "
+        "| run | load before | wall s | whole-command frames/s | tracking frames/s (run.json) | ratio | first tracked frame s "
         "| map after tracking s | keyframes redone at the end (shift median / max) |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
         *rows,
+        "",
+        "After the last frame (run.json `after_tracking_s`; the map's own steps from its timings), seconds:",
+        "",
+        "| run | tracking | final pose graph | outputs | evaluation + plots | waiting for the map | Rerun | total "
+        "| wall − first frame − tracking − total (the exit, less the first frame's own tracking time) | map: bring to final poses "
+        "| map: cloud | map: mesh | map: 2-D map |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        *after_rows,
         "",
         f"Map process of the default run: {t.get('integrated')} keyframes integrated while tracking, "
         f"{t.get('refreshes')} pose updates applied ({t.get('pose_updates_skipped')} coalesced), "
         f"{t.get('deintegrated')} keyframes de-integrated, {t.get('reintegrated')} re-integrated, "
         f"{t.get('rebuilds')} rebuilds; busy {t.get('busy_s', 0):.1f} s.",
         "",
-        "Live map against `rgbdslam fuse` of the same run folder (the final poses fused from scratch):",
+        "Live map against `rgbdslam fuse` of the same run folder (the final poses fused from scratch); "
+        "nearest-neighbour distances both ways (live to fused and fused to live):",
         "",
-        "| run | cloud points live / fused | identical points | NN distance median / max mm "
-        "| mesh vertices live / fused | mesh NN p99 / max mm |",
+        "| run | map | points / vertices live / fused | same (< 1 µm) | within 2.5 mm | median / p99 / max mm |",
         "|---|---|---|---|---|---|",
-        *[f"| {name} | {c['cloud_live']} / {c['cloud_fused']} | {100 * c['same_points']:.1f}% | "
-          f"{c['nn_median_mm']:.2f} / {c['nn_max_mm']:.2f} | {c['mesh_live']} / {c['mesh_fused']} | "
-          f"{c['mesh_nn_p99_mm']:.2f} / {c['mesh_nn_max_mm']:.2f} |" for name, c in cmps],
+        *[f"| {name} | {what} | {c[what]['live']} / {c[what]['fused']} | {100 * c[what]['same']:.1f}% | "
+          f"{100 * c[what]['within']:.2f}% | {c[what]['p50']:.2f} / {c[what]['p99']:.2f} / {c[what]['max']:.1f} |"
+          for name, c in cmps for what in ("cloud", "mesh")],
     ]
     return lines
 
@@ -157,28 +177,69 @@ def _table(path: Path):
     return [{k: v for k, v in r.items() if k not in TIMING} for r in csv.DictReader(open(path))]
 
 
-def part_sweep(work: Path) -> list[str]:
+class _RayHead:
+    """A Ray cluster started like a user would (``ray start --head --block``) on a private port and
+    temporary folder (so no other ``ray.init()`` on this machine finds it), stopped by ending
+    that command (``--block``: its processes go with it; never ``ray stop``, which ends every Ray
+    on the machine)."""
+
+    def __init__(self, work: Path, cpus: int = 2, port: int = 6391):
+        ray = Path(sys.executable).parent / "ray"
+        self.tmp = Path("/tmp") / f"rgbdslam_bench_ray_{os.getpid()}"  # short: Ray's socket paths must fit
+        self.address = f"127.0.0.1:{port}"
+        self.log = open(work / "ray_head.log", "w")
+        self.proc = subprocess.Popen([str(ray), "start", "--head", "--block", "--port", str(port), "--num-cpus",
+                                      str(cpus), "--include-dashboard", "false", "--disable-usage-stats",
+                                      "--temp-dir", str(self.tmp)], stdout=self.log, stderr=subprocess.STDOUT)
+        t0 = time.perf_counter()
+        while "Ray runtime started" not in (work / "ray_head.log").read_text():
+            if self.proc.poll() is not None or time.perf_counter() - t0 > 300:
+                raise SystemExit(f"ray start failed; see {work / 'ray_head.log'}")
+            time.sleep(0.5)
+        self.start_s = time.perf_counter() - t0
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        self.proc.wait(timeout=120)
+        self.log.close()
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def part_sweep(work: Path, repeat: int = 1) -> list[str]:
     seqs = [DESK, _synth(work, "synth_loop", "loop", 1, 40), _synth(work, "synth_xyz", "xyz", 2, 40)]
     grid = ["--grid", "loop.enabled=true,false", "--grid", "depth_filter.enabled=true,false"]
     base = [BIN, "sweep", *seqs, *grid, "-q"]
-    results = {}
-    variants = [("one process (--engine local --workers 1)", []),
-                ("local process pool (--engine local --workers 2)", ["--workers", "2"]),
-                ("Ray, new local cluster (--engine ray --workers 2; includes starting it)",
-                 ["--engine", "ray", "--workers", "2"])]
-    for k, (name, extra) in enumerate(variants):
-        out = work / f"sweep_{k}"
-        shutil.rmtree(out, ignore_errors=True)
-        wall = sh([*base, "--out", out, *extra])
-        with open(work / "sweep_walls.txt", "a") as f:  # as it goes
-            f.write(f"{name}\t{wall:.1f}\n")
-        results[name] = (wall, _table(out / "results.csv"))
-    ref_wall, ref_table = results[variants[1][0]]
-    lines = ["| engine | cells | wall s | / local pool | table identical to one process |", "|---|---|---|---|---|"]
-    one = results[variants[0][0]][1]
-    for name, (wall, table) in results.items():
-        lines.append(f"| {name} | {len(table)} | {wall:.1f} | {wall / ref_wall:.2f} | "
-                     f"{'yes' if table == one else 'NO'} |")
+    head = _RayHead(work)
+    try:
+        variants = [("one process (--engine local --workers 1)", []),
+                    ("local process pool (--engine local --workers 2)", ["--workers", "2"]),
+                    ("Ray, new local cluster (--engine ray --workers 2; includes starting it)",
+                     ["--engine", "ray", "--workers", "2"]),
+                    (f"Ray, running 2-CPU cluster (--engine ray --address; `ray start --head` took "
+                     f"{head.start_s:.0f} s before)", ["--engine", "ray", "--address", head.address])]
+        walls: dict[str, list[float]] = {name: [] for name, _ in variants}
+        tables = {}
+        for r in range(repeat):  # interleaved: the machine's load changes alike for every variant
+            for k, (name, extra) in enumerate(variants):
+                out = work / f"sweep_{k}"
+                shutil.rmtree(out, ignore_errors=True)
+                load = os.getloadavg()[0]
+                wall = sh([*base, "--out", out, *extra])
+                walls[name].append(wall)
+                with open(work / "sweep_walls.txt", "a") as f:  # as it goes
+                    f.write(f"{r}\t{name}\t{wall:.1f}\tload {load:.1f}\n")
+                tables[name] = _table(out / "results.csv")
+    finally:
+        head.stop()
+    med = {name: statistics.median(w) for name, w in walls.items()}
+    ref = med[variants[1][0]]
+    one = tables[variants[0][0]]
+    lines = [f"Median of {repeat} interleaved repetitions (each row's walls in brackets).", "",
+             "| engine | cells | wall s (median) | / local pool | table identical to one process |",
+             "|---|---|---|---|---|"]
+    for name, _ in variants:
+        lines.append(f"| {name} | {len(tables[name])} | {med[name]:.1f} ({', '.join(f'{w:.0f}' for w in walls[name])})"
+                     f" | {med[name] / ref:.2f} | {'yes' if tables[name] == one else 'NO'} |")
     ok = [r for r in one if r["status"] == "ok"]
     lines += ["", f"{len(ok)} of {len(one)} cells ok; ATE of the cells (m): "
               + ", ".join(f"{Path(r['sequence']).name[:12]}/{r['loop.enabled']}/{r['depth_filter.enabled']}="
@@ -235,6 +296,12 @@ def part_memory(work: Path, frames: int) -> list[str]:
         if at:
             n, a, b = at[0]
             lines.append(f"| {mark} | {a:.0f} | {b:.0f} | {a + b:.0f} |")
+    sizes = ((info.get("map") or {}).get("timings") or {}).get("size_log") or []
+    if sizes:  # what the map process holds, every 100 keyframes (rgbdslam.mapping.live.MapState.sizes)
+        lines += ["", "| keyframes in the map | map process MB | TSDF blocks used / allocated | TSDF MB (allocated) "
+                  "| cloud voxels | cached keyframe images MB |", "|---|---|---|---|---|---|"]
+        lines += [f"| {e['keyframes']} | {e['rss_mb']:.0f} | {e.get('tsdf_blocks', 0)} / {e.get('tsdf_capacity_blocks', 0)} "
+                  f"| {e.get('tsdf_mb', 0):.0f} | {e.get('cloud_voxels', 0)} | {e['cache_mb']:.0f} |" for e in sizes]
     peak = max(samples, key=lambda s: s[1] + s[2]) if samples else (0, 0, 0)
     lines += ["", f"{frames} frames in {wall:.0f} s (tracking {info['fps']:.1f} frames/s), "
               f"{len(info['keyframes'])} keyframes, {len(info['loops'])} loops, ATE "
@@ -248,6 +315,7 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_scale"))
     ap.add_argument("--parts", default="run,sweep,memory")
     ap.add_argument("--long-frames", type=int, default=5000)
+    ap.add_argument("--repeat", type=int, default=3, help="interleaved repetitions of the sweep variants")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
@@ -256,11 +324,12 @@ def main() -> int:
     out = ["## Scale", "", f"Command: `{cmd}`  ",
            f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
            f"{date.today().isoformat()}; shared with other jobs, so compare ratios within this run.  ",
-           f"Speed of the machine: {reference_timing()}", ""]
+           f"Speed of the machine: {reference_timing()}; load average at the start {os.getloadavg()[0]:.1f} "
+           f"(1 min).", ""]
     if "run" in parts:
         out += ["### Whole command, start-up, live map (TUM fr1/rpy head200)", "", *part_run(a.work), ""]
     if "sweep" in parts:
-        out += ["### Sweep: 12 cells over 3 sequences", "", *part_sweep(a.work), ""]
+        out += ["### Sweep: 12 cells over 3 sequences", "", *part_sweep(a.work, a.repeat), ""]
     if "memory" in parts:
         out += [f"### Memory of a {a.long_frames}-frame run (map fused while tracking)", "",
                 *part_memory(a.work, a.long_frames), ""]

@@ -31,6 +31,43 @@ def _import_ray():
     return ray
 
 
+def _token_auth_for_address() -> None:
+    """Ray (2.60) turns token authentication on for a cluster that ``ray start --head`` starts
+    while a token exists (``~/.ray/auth_token``, ``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH``), and
+    a driver that finds the cluster by itself (``auto``) turns it on too; a driver given the
+    address explicitly does not, and the cluster refuses it ("Authentication token is missing or
+    incorrect"). Here the explicit address is treated like ``auto``: with RAY_AUTH_MODE unset and a
+    token available, the driver uses it. Older Ray (no token authentication): nothing to do."""
+    import os
+
+    if os.environ.get("RAY_AUTH_MODE") is not None:
+        return  # the user's choice
+    try:
+        from ray._private.authentication.authentication_token_setup import (
+            maybe_enable_token_auth_if_token_available,
+        )
+    except ImportError:
+        return
+    import logging
+
+    log = logging.getLogger("ray._private.authentication.authentication_token_setup")
+    level = log.level
+    log.setLevel(logging.ERROR)  # its warning says what the user did not ask about: token auth is on
+    try:
+        maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
+    finally:
+        log.setLevel(level)
+
+
+def _refused_for_token(e: BaseException) -> bool:
+    """Whether Ray's connection error came from the cluster's token authentication."""
+    while e is not None:
+        if type(e).__name__ == "AuthenticationError" or "InvalidAuthToken" in str(e):
+            return True
+        e = e.__cause__ or e.__context__
+    return False
+
+
 def _call(fn: Callable, shared: Any, args: tuple) -> Any:
     return fn(shared, *args) if shared is not None else fn(*args)
 
@@ -52,8 +89,14 @@ class RayEngine(Engine):
                 if address is None:
                     ray.init(num_cpus=workers, **kw)
                 else:
+                    _token_auth_for_address()
                     ray.init(address=address, **kw)
             except ConnectionError as e:
+                if _refused_for_token(e):
+                    raise EngineError(
+                        f"the Ray cluster at {address} refused this driver: it uses token authentication and the "
+                        f"token here is missing or another one; give the cluster's token (`ray get-auth-token` on "
+                        f"its head node) as RAY_AUTH_TOKEN or in ~/.ray/auth_token") from None
                 raise EngineError(f"no Ray cluster at {address}: {e}; start one with `ray start --head` "
                                   f"or leave out --address for a local cluster") from None
             self._owner = True

@@ -81,7 +81,7 @@ class FuseResult:
             "seconds": round(self.seconds, 3),
             "peak_rss_mb": round(self.peak_rss_mb, 1),
             "rss_growth_mb": round(self.rss_growth_mb, 1),
-            "timings": {k: round(v, 3) for k, v in self.timings.items()},
+            "timings": {k: round(v, 3) if isinstance(v, float) else v for k, v in self.timings.items()},
             "cloud": str(self.cloud_path) if self.cloud_path else None,
             "mesh": str(self.mesh_path) if self.mesh_path else None,
             "map2d": str(self.map2d_path) if self.map2d_path else None,
@@ -288,14 +288,23 @@ def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh
     c = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else np.zeros((len(v), 0))
     # sorted unique rows (x first, then y, z, colours); marching cubes emits a vertex shared by
     # neighbouring blocks once per block, and which copy a triangle names varies: weld them
-    uniq, rank = np.unique(np.concatenate([v, c], axis=1), axis=0, return_inverse=True)
-    tri = rank.reshape(-1)[np.asarray(mesh.triangles, dtype=np.int64)]
+    rows = np.concatenate([v, c], axis=1)
+    order = np.lexsort(rows.T[::-1])  # what np.unique(axis=0) does, at half its cost
+    rows = rows[order]
+    first_copy = np.ones(len(rows), bool)
+    first_copy[1:] = np.any(rows[1:] != rows[:-1], axis=1)
+    rank = np.empty(len(rows), np.int64)
+    rank[order] = np.cumsum(first_copy) - 1
+    uniq = rows[first_copy]
+    tri = rank[np.asarray(mesh.triangles, dtype=np.int64)]
     first = np.argmin(tri, axis=1)  # cyclic rotation: same triangle, same winding
     tri = np.stack([tri[np.arange(len(tri)), (first + k) % 3] for k in range(3)], axis=1)
     tri = tri[np.lexsort(tri.T[::-1])]
-    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(uniq[:, :3]), o3d.utility.Vector3iVector(tri))
+    # int32 and contiguous: Open3D converts other layouts element by element (40x slower)
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.ascontiguousarray(uniq[:, :3])),
+                                    o3d.utility.Vector3iVector(tri.astype(np.int32)))
     if c.shape[1]:
-        out.vertex_colors = o3d.utility.Vector3dVector(uniq[:, 3:])
+        out.vertex_colors = o3d.utility.Vector3dVector(np.ascontiguousarray(uniq[:, 3:]))
     return out
 
 
@@ -486,68 +495,20 @@ def write_map(stage: Path, acc: VoxelCloud, tsdf, fused: list[int], n_depth: int
               trajectory: Trajectory, sequence: Sequence, timings: dict[str, float], console,
               filtered_depth: bool) -> FuseResult:
     """The fused cloud (outliers removed) and mesh as PLY, and the 2-D map, into ``stage``."""
-    import open3d as o3d
-
-    if n_depth == 0:
-        used = " (the run's filtered keyframe depth where present)" if filtered_depth else ""
-        raise InputError(
-            f"the map would be empty: no depth of the {len(fused)} frame{'s' if len(fused) != 1 else ''} to fuse{used} lies between "
-            f"mapping.depth_min={cfg.depth_min:g} and mapping.depth_max={cfg.depth_max:g} m; widen that range "
-            f"(defaults 0.3 and 3.0)"
-        )
-
+    check_depth(n_depth, fused, cfg, filtered_depth)
     t0 = time.perf_counter()
-    points, colors = acc.result()
+    points, colors = cloud_points(acc, cfg)
     del acc
-    if len(points) == 0:
-        raise InputError(
-            f"the map would be empty: no pixel sampled every mapping.cloud_pixel_stride={cfg.cloud_pixel_stride} "
-            f"pixels has a depth in range; lower mapping.cloud_pixel_stride (default 2)"
-        )
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cloud.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) * (1 / 255.0))
-    if cfg.outlier_neighbors > 0 and len(points) > cfg.outlier_neighbors:
-        _, keep = cloud.remove_statistical_outlier(cfg.outlier_neighbors, cfg.outlier_std)
-        keep = np.asarray(keep, dtype=np.int64)
-        if len(keep) == 0:
-            raise InputError(
-                f"statistical outlier removal left no point of the {len(points)} in the cloud; raise "
-                f"mapping.outlier_std (now {cfg.outlier_std:g}) or set mapping.outlier_neighbors=0"
-            )
-        cloud = cloud.select_by_index(keep)
-        points, colors = points[keep], colors[keep]
-    cloud_path = stage / "cloud.ply"
-    _write_ply(cloud_path, cloud, mesh=False)
+    cloud_path, points, colors = write_cloud(stage, points, colors, cfg)
     timings["cloud"] = timings.get("cloud", 0.0) + time.perf_counter() - t0
-
     mesh_path, n_vert, n_tri = None, 0, 0
     if tsdf is not None:
         t0 = time.perf_counter()
-        min_frames = max(1, min(cfg.mesh_min_frames, len(fused)))  # a single keyframe still gives a mesh
-        mesh = tsdf.mesh(min_frames)
-        n_vert, n_tri = len(mesh.vertices), len(mesh.triangles)
-        if n_tri:
-            mesh.compute_vertex_normals()
-            mesh_path = stage / "mesh.ply"
-            _write_ply(mesh_path, mesh, mesh=True)
-        else:  # _commit removes an older run's mesh.ply: never leave it behind
-            console.print(
-                f"[yellow]warning:[/] the TSDF mesh is empty (no voxel was seen by {min_frames} frames); "
-                f"mesh.ply not written; lower mapping.mesh_min_frames"
-            )
-        del mesh, tsdf
+        mesh_path, n_vert, n_tri = write_mesh(stage, tsdf, len(fused), cfg, console)
+        del tsdf
         timings["mesh"] = time.perf_counter() - t0
-
-    del cloud
     points = points.astype(np.float32)
-    map2d_path, grid = None, None
-    if cfg.map2d and len(points):
-        from rgbdslam.mapping.map2d import build_map2d, write_map2d
-
-        t0 = time.perf_counter()
-        grid = build_map2d(points, trajectory, cfg, accelerometer=_accelerometer_of(sequence))
-        map2d_path = write_map2d(grid, stage, trajectory)
-        timings["map2d"] = time.perf_counter() - t0
+    map2d_path, grid = write_2d(stage, points, trajectory, cfg, _accelerometer_of(sequence), timings)
     return FuseResult(
         out_dir=stage,
         cloud_path=cloud_path,
@@ -565,6 +526,86 @@ def write_map(stage: Path, acc: VoxelCloud, tsdf, fused: list[int], n_depth: int
         cloud_colors=colors,
         map2d=grid,
     )
+
+
+# the parts of write_map, apart: the map fused while tracking writes the mesh in its own process
+# while the run writes the cloud and the 2-D map (rgbdslam.mapping.live)
+
+
+def check_depth(n_depth: int, fused: list[int], cfg: MappingConfig, filtered_depth: bool) -> None:
+    """An InputError when no fused pixel had a depth in [depth_min, depth_max]."""
+    if n_depth == 0:
+        used = " (the run's filtered keyframe depth where present)" if filtered_depth else ""
+        raise InputError(
+            f"the map would be empty: no depth of the {len(fused)} frame{'s' if len(fused) != 1 else ''} to fuse{used} lies between "
+            f"mapping.depth_min={cfg.depth_min:g} and mapping.depth_max={cfg.depth_max:g} m; widen that range "
+            f"(defaults 0.3 and 3.0)"
+        )
+
+
+def cloud_points(acc: VoxelCloud, cfg: MappingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The voxel cloud's points and colours; an InputError when it is empty."""
+    points, colors = acc.result()
+    if len(points) == 0:
+        raise InputError(
+            f"the map would be empty: no pixel sampled every mapping.cloud_pixel_stride={cfg.cloud_pixel_stride} "
+            f"pixels has a depth in range; lower mapping.cloud_pixel_stride (default 2)"
+        )
+    return points, colors
+
+
+def write_cloud(stage: Path, points: np.ndarray, colors: np.ndarray, cfg: MappingConfig
+                ) -> tuple[Path, np.ndarray, np.ndarray]:
+    """Statistical outlier removal, then ``stage``/cloud.ply; the points and colours kept."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) * (1 / 255.0))
+    if cfg.outlier_neighbors > 0 and len(points) > cfg.outlier_neighbors:
+        _, keep = cloud.remove_statistical_outlier(cfg.outlier_neighbors, cfg.outlier_std)
+        keep = np.asarray(keep, dtype=np.int64)
+        if len(keep) == 0:
+            raise InputError(
+                f"statistical outlier removal left no point of the {len(points)} in the cloud; raise "
+                f"mapping.outlier_std (now {cfg.outlier_std:g}) or set mapping.outlier_neighbors=0"
+            )
+        cloud = cloud.select_by_index(keep)
+        points, colors = points[keep], colors[keep]
+    cloud_path = stage / "cloud.ply"
+    _write_ply(cloud_path, cloud, mesh=False)
+    return cloud_path, points, colors
+
+
+def write_mesh(stage: Path, tsdf, n_fused: int, cfg: MappingConfig, console) -> tuple[Path | None, int, int]:
+    """Marching cubes of the TSDF into ``stage``/mesh.ply; (path or None when empty, vertices, triangles)."""
+    min_frames = max(1, min(cfg.mesh_min_frames, n_fused))  # a single keyframe still gives a mesh
+    mesh = tsdf.mesh(min_frames)
+    n_vert, n_tri = len(mesh.vertices), len(mesh.triangles)
+    if not n_tri:  # _commit removes an older run's mesh.ply: never leave it behind
+        console.print(
+            f"[yellow]warning:[/] the TSDF mesh is empty (no voxel was seen by {min_frames} frames); "
+            f"mesh.ply not written; lower mapping.mesh_min_frames"
+        )
+        return None, n_vert, n_tri
+    mesh.compute_vertex_normals()
+    mesh_path = stage / "mesh.ply"
+    _write_ply(mesh_path, mesh, mesh=True)
+    return mesh_path, n_vert, n_tri
+
+
+def write_2d(stage: Path, points: np.ndarray, trajectory: Trajectory, cfg: MappingConfig,
+             accelerometer: Path | None, timings: dict[str, float]):
+    """The 2-D map of the (outlier-free) cloud into ``stage`` when ``cfg.map2d``; (path, Map2D) or Nones.
+    The points become float32 (what the Rerun log and the export take)."""
+    if not (cfg.map2d and len(points)):
+        return None, None
+    from rgbdslam.mapping.map2d import build_map2d, write_map2d
+
+    t0 = time.perf_counter()
+    grid = build_map2d(points.astype(np.float32), trajectory, cfg, accelerometer=accelerometer)
+    path = write_map2d(grid, stage, trajectory)
+    timings["map2d"] = time.perf_counter() - t0
+    return path, grid
 
 
 def _accelerometer_of(sequence: Sequence) -> Path | None:

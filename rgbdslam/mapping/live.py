@@ -31,12 +31,16 @@ from rgbdslam.config import MappingConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 
-REBUILD_FRACTION = 0.5  # more keyframes than this moved: rebuild the map instead of de-/re-integrating
+CACHE_MB = 512  # keyframe images kept for re-integration (640x480: ~1.5 MB each); beyond, they are read again
+REBUILD_FRACTION = 0.5
+SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)  # more keyframes than this moved: rebuild the map instead of de-/re-integrating
 
 
-def moved(a: np.ndarray, b: np.ndarray, tol_m: float, tol_rad: float) -> bool:
+def moved(a: np.ndarray, b: np.ndarray, tol_m: float, depth_max: float) -> bool:
+    """Whether a keyframe's points (up to ``depth_max`` away) move more than ``tol_m`` from pose
+    ``a`` to ``b``: translation plus the rotation angle times ``depth_max`` (a bound)."""
     rel = inv(a) @ b
-    return bool(np.linalg.norm(rel[:3, 3]) > tol_m or rotation_angle(rel[:3, :3]) > tol_rad)
+    return bool(np.linalg.norm(rel[:3, 3]) + rotation_angle(rel[:3, :3]) * depth_max > tol_m)
 
 
 class MapState:
@@ -46,24 +50,41 @@ class MapState:
     ``load(index) -> (rgb, depth)`` gives a keyframe's images again: the colour of the sequence
     and the depth the map uses (the run's filtered keyframe depth)."""
 
-    def __init__(self, cfg: MappingConfig, camera: Camera, load: Callable[[int], tuple[np.ndarray, np.ndarray]]):
+    def __init__(self, cfg: MappingConfig, camera: Camera, load: Callable[[int], tuple[np.ndarray, np.ndarray]],
+                 cache_mb: float = CACHE_MB):
         from rgbdslam.mapping.fusion import _Undistorter
 
         self.cfg = cfg
         self.camera = camera
         self.load = load
         self.undistort = _Undistorter(camera, cfg.undistort)
-        # live_tolerance voxels (a quarter by default): the translation, and the rotation that moves a
-        # point at depth_max that far
+        # live_tolerance voxels (a quarter by default): how far a keyframe's points may be from where
+        # its final pose puts them (translation + rotation angle x depth_max)
         self.tol_m = min(cfg.voxel_size, cfg.tsdf_voxel) * cfg.live_tolerance
-        self.tol_rad = self.tol_m / max(cfg.depth_max, 1e-3)
         self.tsdf = None
         self.cloud = None
         self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
+        # keyframes' prepared images for re-integration, up to cache_mb (then read again with load)
+        self.cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.cache_bytes = 0
+        self.cache_limit = int(cache_mb * 2**20)
         self.n_depth: dict[int, int] = {}
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
-                      "pose_updates_skipped": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
+                      "pose_updates_skipped": 0, "reloaded": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
                       "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0}
+
+    def sizes(self) -> dict:
+        """What the map holds (docs/benchmarks.md "Memory"): TSDF blocks in use and allocated (8^3
+        voxels of 12 bytes; Open3D's hash map doubles its capacity when full), cloud voxels (64 bytes
+        each while summing), cached keyframe images."""
+        out = {"cache_mb": self.cache_bytes / 2**20, "cached_keyframes": len(self.cache)}
+        if self.cloud is not None:
+            out["cloud_voxels"] = len(self.cloud)
+        if self.tsdf is not None:
+            hm = self.tsdf.vol.hashmap()
+            out.update(tsdf_blocks=int(hm.size()), tsdf_capacity_blocks=int(hm.capacity()),
+                       tsdf_mb=hm.capacity() * 512 * 12 / 2**20)
+        return out
 
     def shift_mm(self, poses: dict[int, np.ndarray]) -> np.ndarray:
         """How far each keyframe in the map would move to ``poses``: translation plus the rotation
@@ -85,34 +106,62 @@ class MapState:
 
         return (_Tsdf(self.cfg, self.camera) if self.cfg.mesh else None), VoxelCloud(self.cfg.voxel_size)
 
-    def _integrate(self, tsdf, cloud, index: int, rgb, depth, pose) -> None:
-        from rgbdslam.mapping.fusion import integrate_frame, prepare_frame
+    def _prepared(self, index: int, rgb=None, depth=None) -> tuple[np.ndarray, np.ndarray]:
+        """A keyframe's colour and depth as fused (:func:`prepare_frame`): from the cache, else
+        prepared from ``rgb``/``depth`` or from ``load`` (and cached while the cache has room)."""
+        from rgbdslam.mapping.fusion import DEPTH_PNG_SCALE, prepare_frame
 
+        hit = self.cache.get(index)
+        if hit is not None:
+            return hit[0], _unpack_depth(hit[1])
+        if rgb is None:
+            rgb, depth = self.load(index)
+            self.stats["reloaded"] += 1
         rgb, depth = prepare_frame(rgb, depth, self.undistort, self.cfg)
         self.n_depth[index] = int(np.count_nonzero(depth))
-        integrate_frame(tsdf, cloud, rgb, depth, pose, self.camera, self.cfg)
+        keep = _pack_depth(depth, DEPTH_PNG_SCALE)
+        size = rgb.nbytes + keep.nbytes
+        if self.cache_bytes + size <= self.cache_limit:
+            self.cache[index] = (rgb, keep)
+            self.cache_bytes += size
+        return rgb, depth
+
+    def _uncache(self, index: int) -> None:
+        hit = self.cache.pop(index, None)
+        if hit is not None:
+            self.cache_bytes -= hit[0].nbytes + hit[1].nbytes
+
+    def _integrate(self, tsdf, cloud, pose, prepared: tuple[np.ndarray, np.ndarray]) -> None:
+        from rgbdslam.mapping.fusion import integrate_frame
+
+        integrate_frame(tsdf, cloud, *prepared, pose, self.camera, self.cfg)
 
     def add(self, index: int, rgb, depth, pose) -> None:
         if self.cloud is None:
             self.tsdf, self.cloud = self._volume()
-        self._integrate(self.tsdf, self.cloud, index, rgb, depth, pose)
+        self._integrate(self.tsdf, self.cloud, pose, self._prepared(index, rgb, depth))
         self.used[index] = pose
         self.stats["integrated"] += 1
+        if self.stats["integrated"] % SIZE_LOG_EVERY == 0:  # how the map grows (docs/benchmarks.md "Memory")
+            from rgbdslam.mapping.fusion import _rss_mb
+
+            self.stats.setdefault("size_log", []).append(
+                {"keyframes": self.stats["integrated"], "rss_mb": round(_rss_mb(), 1),
+                 **{k: round(v, 1) if isinstance(v, float) else v for k, v in self.sizes().items()}})
 
     def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None) -> int:
         """Bring the map to ``poses`` (keyframes without one stay where they are; only the keyframes
         in ``keep``, if given); returns how many keyframes moved or left."""
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
-        move = [i for i in want if moved(self.used[i], want[i], self.tol_m, self.tol_rad)]
+        move = [i for i in want if moved(self.used[i], want[i], self.tol_m, max(self.cfg.depth_max, 1e-3))]
         if not drop and not move:
             return 0
         self.stats["refreshes"] += 1
         if len(drop) + len(move) > REBUILD_FRACTION * len(self.used):
             self.tsdf, self.cloud = self._volume()
             for i, pose in want.items():
-                rgb, depth = self.load(i)
-                self._integrate(self.tsdf, self.cloud, i, rgb, depth, pose)
+                self._integrate(self.tsdf, self.cloud, pose, self._prepared(i))
             self.used = dict(want)
             self.stats["rebuilds"] += 1
             self.stats["reintegrated"] += len(want)
@@ -120,10 +169,10 @@ class MapState:
         old_t, old_c = self._volume()
         new_t, new_c = self._volume()
         for i in drop + move:
-            rgb, depth = self.load(i)
-            self._integrate(old_t, old_c, i, rgb, depth, self.used[i])
+            prepared = self._prepared(i)
+            self._integrate(old_t, old_c, self.used[i], prepared)
             if i in want:
-                self._integrate(new_t, new_c, i, rgb, depth, want[i])
+                self._integrate(new_t, new_c, want[i], prepared)
         if self.tsdf is not None:
             merge_tsdf(self.tsdf.vol, old_t.vol, sign=-1)
             merge_tsdf(self.tsdf.vol, new_t.vol, sign=+1)
@@ -131,11 +180,35 @@ class MapState:
         add_cloud(self.cloud, new_c, sign=+1)
         for i in drop:
             del self.used[i]
+            self._uncache(i)
         for i in move:
             self.used[i] = want[i]
         self.stats["deintegrated"] += len(drop) + len(move)
         self.stats["reintegrated"] += len(move)
         return len(drop) + len(move)
+
+
+def _pack_depth(depth: np.ndarray, scale: float) -> np.ndarray:
+    """Depth in 1/``scale`` m steps, as the TUM reader (steps x float32(1/scale)) or a keyframe PNG
+    (steps / scale) makes it, as uint16 steps (2 bytes a pixel instead of 4) with the way back in
+    its ``dtype`` metadata; other depth as it is. Lossless either way (:func:`_unpack_depth`)."""
+    units = np.round(depth.astype(np.float64) * scale)
+    if units.min(initial=0) < 0 or units.max(initial=0) > 65535:
+        return depth
+    steps = units.astype(np.uint16)
+    for how in ("mul", "div"):
+        packed = steps.view(np.dtype(np.uint16, metadata={"scale": scale, "how": how}))
+        if np.array_equal(_unpack_depth(packed), depth):
+            return packed
+    return depth
+
+
+def _unpack_depth(packed: np.ndarray) -> np.ndarray:
+    if packed.dtype != np.uint16:
+        return packed
+    scale, how = packed.dtype.metadata["scale"], packed.dtype.metadata["how"]
+    steps = packed.astype(np.float32)
+    return steps * np.float32(1.0 / scale) if how == "mul" else steps / scale
 
 
 class _SequenceImages:
@@ -160,7 +233,7 @@ class _SequenceImages:
         return frame.rgb, (read_depth_png(png) if png is not None and png.is_file() else frame.depth)
 
 
-def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results) -> None:
+def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None) -> None:
     """The map process: keyframes and pose updates from ``jobs``; at ``finish`` the map is
     brought to the final poses, written, and its :class:`FuseResult` put on ``results``."""
     import signal
@@ -173,6 +246,7 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results) -> None:
             if job is None:
                 return
             t0 = time.perf_counter()
+            n_skipped = 0
             if job[0] == "poses":  # coalesce: add what is queued already, apply only the newest poses
                 while True:
                     try:
@@ -185,6 +259,7 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results) -> None:
                         state.add(*nxt[1:])
                         continue
                     state.stats["pose_updates_skipped"] += 1
+                    n_skipped += job[0] == "poses"
                     job = nxt
                     if job[0] == "finish":
                         break
@@ -193,8 +268,11 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results) -> None:
             elif job[0] == "poses":
                 state.refresh(job[1])
             state.stats["busy_s"] += time.perf_counter() - t0
+            if job[0] == "poses" and applied is not None:
+                with applied.get_lock():
+                    applied.value += 1 + n_skipped
             if job[0] == "finish":
-                results.put(("ok", _finish(state, *job[1:])))
+                results.put(("ok", _finish(state, results, *job[1:])))
                 return
     except BaseException as e:  # noqa: BLE001 - the driver reports it (OSError as itself: a full disk names its file)
         from rgbdslam.errors import RgbdslamError
@@ -202,11 +280,14 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results) -> None:
         results.put(("error", e if isinstance(e, (RgbdslamError, OSError)) else RuntimeError(f"{type(e).__name__}: {e}")))
 
 
-def _finish(state: MapState, poses, keep, out_dir: str, trajectory, root: str, filtered_depth: bool):
+def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: bool) -> dict:
+    """The end, in the map process: the map brought to the final poses, cloud.ply written into the
+    run's temporary map folder ``stage`` and its points sent to the run (``("cloud", ...)`` on
+    ``results``: it makes the 2-D map of them) while this process writes mesh.ply."""
     from pathlib import Path
 
     from rgbdslam.errors import InputError
-    from rgbdslam.mapping.fusion import staged, write_map
+    from rgbdslam.mapping.fusion import _peak_rss_mb, check_depth, cloud_points, write_cloud, write_mesh
     from rgbdslam.ui import console
 
     t0 = time.perf_counter()
@@ -220,14 +301,24 @@ def _finish(state: MapState, poses, keep, out_dir: str, trajectory, root: str, f
     if not fused:
         raise InputError("no keyframe of the run is in a tracking segment that belongs to the map; "
                          "re-run with loop closure on (loop.enabled=true)")
-    seq = type("Root", (), {"root": root})()  # write_map only looks for the sequence's accelerometer.txt
-    res = staged(Path(out_dir), lambda stage: write_map(stage, cloud, tsdf, fused, n_depth, state.cfg, trajectory,
-                                                        seq, {}, console, filtered_depth))
-    res.timings.update({k: round(v, 3) if isinstance(v, float) else v for k, v in state.stats.items()})
-    from rgbdslam.mapping.fusion import _peak_rss_mb
-
-    res.peak_rss_mb = _peak_rss_mb()
-    return res
+    check_depth(n_depth, fused, state.cfg, filtered_depth)
+    state.stats.update(state.sizes())
+    state.cache.clear()  # the images are not needed any more
+    t0 = time.perf_counter()
+    points, colors = cloud_points(cloud, state.cfg)
+    state.cloud = cloud = None
+    path, points, colors = write_cloud(Path(stage), points, colors, state.cfg)
+    results.put(("cloud", (str(path), points.astype(np.float32), colors, fused)))
+    state.stats["cloud"] = time.perf_counter() - t0
+    out = {"mesh_path": None, "n_vertices": 0, "n_triangles": 0}
+    if tsdf is not None:
+        t0 = time.perf_counter()
+        path, out["n_vertices"], out["n_triangles"] = write_mesh(Path(stage), tsdf, len(fused), state.cfg, console)
+        out["mesh_path"] = str(path) if path is not None else None
+        state.stats["mesh"] = time.perf_counter() - t0
+    out["timings"] = {k: round(v, 3) if isinstance(v, float) else v for k, v in state.stats.items()}
+    out["peak_rss_mb"] = _peak_rss_mb()
+    return out
 
 
 class LiveMap:
@@ -243,11 +334,14 @@ class LiveMap:
         import multiprocessing as mp
 
         ctx = mp.get_context("spawn")
+        self.cfg = cfg
         self._jobs = ctx.Queue()
         self._results = ctx.Queue()
+        self._applied = ctx.Value("q", 0)  # pose updates the map process has applied
+        self._sent = 0
         self._proc = ctx.Process(target=_serve, name="rgbdslam-map", daemon=True,
                                  args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
-                                       self._results))
+                                       self._results, self._applied))
         self._proc.start()
 
     def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
@@ -256,16 +350,52 @@ class LiveMap:
 
     def update_poses(self, poses: dict[int, np.ndarray]) -> None:
         """The keyframes' current poses (after a loop closure): moved keyframes are re-integrated."""
+        self._sent += 1
         self._jobs.put(("poses", {int(k): np.array(v) for k, v in poses.items()}))
+
+    def ready(self) -> bool:
+        """True when the map process has applied every pose update sent so far."""
+        return self._applied.value >= self._sent
 
     def finish(self, poses: dict[int, np.ndarray], keep: set[int] | None, out_dir, trajectory, root: str,
                filtered_depth: bool):
         """Bring the map to the final ``poses`` (only the keyframes in ``keep``), write it into
-        ``out_dir`` (atomically, as ``rgbdslam fuse`` does) and return the :class:`FuseResult`."""
+        ``out_dir`` (atomically, as ``rgbdslam fuse`` does) and return the :class:`FuseResult`.
+
+        The work is shared: the map process writes the cloud and then the mesh, this process
+        (meanwhile) the 2-D map of the cloud, into one temporary folder moved into place at the end."""
+        from pathlib import Path
+
+        from rgbdslam.mapping.fusion import FuseResult, staged, write_2d
+
+        def work(stage: Path) -> FuseResult:
+            self._jobs.put(("finish", {int(k): np.array(v) for k, v in poses.items()}, keep, str(stage),
+                            filtered_depth))
+            try:
+                cloud_path, points, colors, fused = self._receive("cloud")
+                timings: dict = {}
+                acc = Path(root) / "accelerometer.txt"
+                map2d_path, grid = write_2d(stage, points, trajectory, self.cfg, acc if acc.is_file() else None,
+                                            timings)
+                mesh = self._receive("ok")
+            except BaseException:
+                self._stop()  # it may still be writing into the folder that is about to be removed
+                raise
+            self._proc.join(timeout=30)
+            timings.update(mesh["timings"])
+            return FuseResult(out_dir=stage, cloud_path=Path(cloud_path),
+                              mesh_path=Path(mesh["mesh_path"]) if mesh["mesh_path"] else None,
+                              map2d_path=map2d_path, frames=fused, n_points=len(points),
+                              n_vertices=mesh["n_vertices"], n_triangles=mesh["n_triangles"], seconds=0.0,
+                              peak_rss_mb=mesh["peak_rss_mb"], rss_growth_mb=0.0, timings=timings,
+                              cloud_points=points, cloud_colors=colors, map2d=grid)
+
+        return staged(Path(out_dir), work)
+
+    def _receive(self, want: str):
+        """The map process's next result, ``want`` (its error raised here)."""
         from rgbdslam.errors import RgbdslamError
 
-        self._jobs.put(("finish", {int(k): np.array(v) for k, v in poses.items()}, keep, str(out_dir), trajectory,
-                        root, filtered_depth))
         while True:
             try:
                 status, value = self._results.get(timeout=1.0)
@@ -273,10 +403,17 @@ class LiveMap:
             except queue.Empty:
                 if not self._proc.is_alive():
                     raise RgbdslamError(f"the map process ended unexpectedly (exit code {self._proc.exitcode})") from None
-        self._proc.join(timeout=30)
         if status == "error":
             raise value
+        if status != want:
+            raise RgbdslamError(f"the map process sent {status!r} where {want!r} was due")
         return value
+
+    def _stop(self) -> None:
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join()
+        self._jobs.cancel_join_thread()
 
     def abort(self) -> None:
         """Stop the map process without a map (a failed or interrupted run)."""

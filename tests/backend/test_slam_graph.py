@@ -162,3 +162,22 @@ def test_failed_batch_keeps_the_initial_guess(monkeypatch):
     init = g.initial_values()
     assert all(np.allclose(out[i], init[i]) for i in (0, 1))
     assert np.allclose(out[1][:3, 3], [0.12, 0, 0])  # MASAT chains the odometry edge
+
+
+@pytest.mark.parametrize("init", ["masat", "isam2"])
+def test_batch_estimate_is_the_final_batch_and_changes_nothing(init):
+    """What the live map is given after a loop: the final optimisation's poses with the factors so
+    far (not iSAM2's estimate), without touching iSAM2 or the run's statistics; with no factor
+    after it, it is the final result."""
+    gt = circle()
+    g, _ = build(BackendConfig(enabled=True, isam2=True, init=init), gt, loops=((20, 0), (39, 0)))
+    isam_before = g.estimate()
+    stats_before = dict(g.stats)
+    mid = g.batch_estimate()
+    assert g.stats == stats_before
+    assert all(np.array_equal(isam_before[k], v) for k, v in g.estimate().items())
+    final = g.optimize()
+    assert mid.keys() == final.keys()
+    assert max(np.abs(mid[k] - final[k]).max() for k in final) < 1e-9
+    g.add_loop(LoopEdge(0, 10, inv(gt[0]) @ gt[10], INFO, 200, 0.01))  # a later loop: the batch moves on
+    assert max(np.abs(g.batch_estimate()[k] - mid[k]).max() for k in final) > 1e-6

@@ -95,3 +95,73 @@ def test_posegraph_bench_on_ray_matches_one_local_worker(cluster):
     k = lambda r: (r.instance, r.method, r.converged_rel, r.iterations_rel, r.reduced_chi2_rel)  # noqa: E731
     assert [k(r) for r in a["records"]] == [k(r) for r in b["records"]]
     assert "engine ray" in b["report"]
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def ray_head(tmp_path_factory):
+    """A running 2-CPU cluster as a user starts it (`ray start --head`), with token authentication
+    (a token in RAY_AUTH_TOKEN_PATH, RAY_AUTH_MODE unset: Ray 2.60 turns it on) on a free port and
+    a private temporary folder (no other `ray.init()` on this machine finds it). Stopped by ending
+    `ray start --block` (never `ray stop`: that ends every Ray on the machine)."""
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    work = tmp_path_factory.mktemp("head")
+    token = work / "token"
+    token.write_text("5e1f" * 16)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env["RAY_AUTH_TOKEN_PATH"] = str(token)
+    tmp = Path("/tmp") / f"rgbdslam_test_ray_{os.getpid()}"  # short: Ray's socket paths must fit
+    port = _free_port()
+    log = work / "head.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([str(Path(sys.executable).parent / "ray"), "start", "--head", "--block", "--port",
+                                 str(port), "--num-cpus", "2", "--include-dashboard", "false",
+                                 "--disable-usage-stats", "--temp-dir", str(tmp)], env=env, stdout=out,
+                                stderr=subprocess.STDOUT)
+    try:
+        t0 = time.monotonic()
+        while "Ray runtime started" not in log.read_text():
+            assert proc.poll() is None and time.monotonic() - t0 < 180, log.read_text()[-2000:]
+            time.sleep(0.5)
+        assert "Token authentication is enabled" in log.read_text()
+        yield f"127.0.0.1:{port}", env
+    finally:
+        proc.terminate()
+        proc.wait(timeout=120)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+@pytest.mark.data
+def test_sweep_on_a_running_cluster_with_token_authentication(ray_head, tmp_path, desk9):
+    """`--address` of a cluster `ray start --head` made: Ray 2.60 refused an explicit address
+    ("Authentication token is missing or incorrect") until the driver turned token auth on; a
+    wrong token is one clear error."""
+    import subprocess
+    import sys
+
+    address, env = ray_head
+    rgbdslam = str(Path(sys.executable).parent / "rgbdslam")
+    args = [rgbdslam, "sweep", str(desk9), "--grid", "loop.enabled=true,false", "-c", "tum_fr1", "-q"]
+    res = subprocess.run([*args, "--out", str(tmp_path / "ray"), "--engine", "ray", "--address", address],
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    res = subprocess.run([*args, "--out", str(tmp_path / "local")], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert _without_timing(tmp_path / "ray" / "results.csv") == _without_timing(tmp_path / "local" / "results.csv")
+    bad = dict(env, RAY_AUTH_TOKEN="0" * 64, RAY_AUTH_MODE="token")
+    res = subprocess.run([*args, "--out", str(tmp_path / "bad"), "--engine", "ray", "--address", address],
+                         env=bad, capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0
+    assert f"error: the Ray cluster at {address} refused this driver: it uses token authentication" in res.stderr + res.stdout

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -24,14 +25,15 @@ def synth(tmp_path_factory):
     return open_sequence(d)
 
 
-def _fresh(seq, cfg, poses: dict[int, np.ndarray]):
+def _fresh(seq, cfg, poses: dict[int, np.ndarray], camera=None):
     """The map fusing ``poses`` from scratch, the way `rgbdslam fuse` does."""
-    tsdf, cloud = _Tsdf(cfg, seq.camera), VoxelCloud(cfg.voxel_size)
-    und = _Undistorter(seq.camera, cfg.undistort)
+    camera = camera or seq.camera
+    tsdf, cloud = _Tsdf(cfg, camera), VoxelCloud(cfg.voxel_size)
+    und = _Undistorter(camera, cfg.undistort)
     for i, p in poses.items():
         f = seq.load(i)
         rgb, depth = prepare_frame(f.rgb, f.depth, und, cfg)
-        integrate_frame(tsdf, cloud, rgb, depth, p, seq.camera, cfg)
+        integrate_frame(tsdf, cloud, rgb, depth, p, camera, cfg)
     return tsdf, cloud
 
 
@@ -135,3 +137,30 @@ def test_run_writes_the_live_map_and_it_matches_fusing_afterwards(tmp_path, desk
     # keyframes the final optimisation moved by less than a quarter voxel (2.5 mm, and 2.5 mm at
     # depth_max by rotation) stay where they were integrated: a voxel mean moves at most that much
     assert d.max() <= 0.005 and np.median(d) == 0
+
+
+@pytest.mark.parametrize("cache_mb", [0, 64])
+def test_reintegration_takes_the_cached_images_or_reads_them_again(synth, cache_mb):
+    cfg = MappingConfig()
+    gt = synth.groundtruth()
+    reads = []
+
+    def load(i):
+        reads.append(i)
+        return synth.load(i).rgb, synth.load(i).depth
+
+    # a lens with distortion: the images are undistorted once, whether cached or read again
+    camera = dataclasses.replace(synth.camera, dist=(0.08, -0.05, 0.001, 0.0, 0.0))
+    live = MapState(cfg, camera, load, cache_mb=cache_mb)
+    shift = np.eye(4)
+    shift[1, 3] = 0.02
+    for i in (0, 4, 8):
+        f = synth.load(i)
+        live.add(i, f.rgb, f.depth, gt.poses[i] @ shift if i == 8 else gt.poses[i])
+    assert live.cache_bytes == (0 if cache_mb == 0 else sum(a.nbytes + b.nbytes for a, b in live.cache.values()))
+    if cache_mb:  # the synthetic depth is in 1/5000 m steps: kept as 2-byte steps, lossless
+        assert all(d.dtype == np.uint16 for _, d in live.cache.values())
+    live.refresh({i: gt.poses[i] for i in (0, 4, 8)})  # 8 is taken out and put in again
+    assert live.stats["deintegrated"] == 1 and live.stats["rebuilds"] == 0
+    assert reads == ([] if cache_mb else [8]) and live.stats["reloaded"] == len(reads)
+    _same_map(_fresh(synth, cfg, {i: gt.poses[i] for i in (0, 4, 8)}, camera), live.result()[:2], synth, cfg)
