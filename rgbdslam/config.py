@@ -445,7 +445,7 @@ C_INT_MAX = 2**31 - 1
 SIGNED = {"registration.beta", "mapping.obstacle_min_height", "mapping.obstacle_max_height", "dataset.offset"}
 POSITIVE = {
     "dataset.max_difference", "dataset.max_frames",
-    "dataset.stride",
+    "dataset.stride", "dataset.reader_threads",
     "features.n_features", "features.n_levels", "features.fast_threshold", "features.grid_rows",
     "features.grid_cols",
     "matching.ratio", "matching.prefilter_threshold", "matching.prefilter_iterations", "matching.max_depth",
@@ -469,7 +469,8 @@ POSITIVE = {
     "mapping.floor_ransac_iterations", "mapping.floor_band", "mapping.obstacle_min_points",
     "output.rerun_image_width", "output.rerun_log_every",
     "stereo.sigma_disparity_sparse", "stereo.sigma_disparity_sgbm", "stereo.max_disparity", "stereo.min_disparity",
-    "stereo.row_tolerance", "stereo.right_features", "stereo.patch_radius", "stereo.search_radius", "stereo.sgbm_block_size",
+    "stereo.row_tolerance", "stereo.right_features", "stereo.row_ratio", "stereo.patch_radius", "stereo.search_radius",
+    "stereo.sgbm_block_size",
     "landmarks.search_radius", "landmarks.max_depth", "landmarks.ransac_threshold", "landmarks.ransac_iterations",
     "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
     "landmarks.ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
@@ -496,7 +497,7 @@ BOUNDS = {
     "mapping.obstacle_min_height": (-1e3, 1e3), "mapping.obstacle_max_height": (-1e3, 1e3),
     "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
     "landmarks.max_hamming": (0, 256),
-    "stereo.row_ratio": (0.0, 1.0), "stereo.row_scale": (1, 16),
+    "stereo.row_scale": (1, 16),
 }
 # Upper bounds of the keys whose range is not in BOUNDS (closed: the value itself is accepted).
 MAXIMA = {
@@ -548,7 +549,7 @@ MAXIMA = {
     "stereo.sigma_disparity_sparse": 100.0, "stereo.sigma_disparity_sgbm": 100.0,
     "stereo.min_disparity": 1000.0, "stereo.row_tolerance": 100.0,
     "stereo.right_features": 4, "stereo.patch_radius": 64, "stereo.search_radius": 64,
-    "stereo.sgbm_uniqueness": 100,
+    "stereo.sgbm_uniqueness": 100, "stereo.row_ratio": 1.0,
     # landmark map: pixels, metres and counts of one frame's search; BA sizes bound its GTSAM problem
     "landmarks.search_radius": 1000.0, "landmarks.max_depth": 1e3, "landmarks.ransac_threshold": 10.0,
     "landmarks.ransac_iterations": 20_000, "landmarks.max_correction": 100.0, "landmarks.max_correction_deg": 360.0,
@@ -564,7 +565,8 @@ MAXIMA = {
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)
 ORDERED = [("matching.min_depth", "matching.max_depth"), ("depth_filter.min_depth", "depth_filter.max_depth"),
-           ("mapping.depth_min", "mapping.depth_max"), ("mapping.obstacle_min_height", "mapping.obstacle_max_height")]
+           ("mapping.depth_min", "mapping.depth_max"), ("mapping.obstacle_min_height", "mapping.obstacle_max_height"),
+           ("stereo.min_disparity", "stereo.max_disparity")]
 
 
 def value_range(key: str, kind: type) -> tuple[float, bool, float]:

@@ -277,8 +277,10 @@ def main(argv=None) -> int:
         machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
                    f"{time.strftime('%Y-%m-%d')}, load average at the start {load0} and at the end "
                    f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}")
-        a.json.write_text(json.dumps({"command": "python " + " ".join(shlex.quote(x) for x in sys.argv),
-                                      "machine": machine, "rows": rows}, indent=1))
+        from rgbdslam.io.atomic import atomic_write_text
+
+        atomic_write_text(a.json, json.dumps({"command": "python " + " ".join(shlex.quote(x) for x in sys.argv),
+                                              "machine": machine, "rows": rows}, indent=1))
     return 0
 
 

@@ -301,7 +301,9 @@ def main() -> None:
     print(f"\nmachine: {platform.machine()} {os.cpu_count()} cores (shared), Python {platform.python_version()}")
     print(table(rows))
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=2, default=str))
+        from rgbdslam.io.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(rows, indent=2, default=str))
 
 
 if __name__ == "__main__":

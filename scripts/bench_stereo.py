@@ -60,8 +60,8 @@ def depth_accuracy(work: Path, seed: int = 0, frames: int = 30) -> dict:
     if not (seq_dir / "synthetic.yaml").exists():
         generate_stereo_sequence(seq_dir, 0.12, "kitti", frames=frames, motion="loop", noise=True, seed=seed)
     out = {}
-    for method in ("sparse", "sgbm"):
-        cfg = load_config(None, [f"stereo.depth={method}"])
+    for method, sets in METHODS.items():  # sparse (ORB search), row (sparse, row search), sgbm
+        cfg = load_config(None, sets)
         seq = open_sequence(seq_dir, cfg)
         world = make_trajectory("loop", frames)  # KITTI layout poses start at the identity: render from the world's
         scene, rays = Scene(seed), Rays(seq.camera)
@@ -104,37 +104,36 @@ def run(seq, cfg_name: str | None, sets: list[str], out: Path) -> dict:
 
 def reader_breakdown(frames: int = 51) -> dict:
     """CPU time (thread_time, medians over the pairs) of each step of preparing a KITTI pair with
-    sparse depth, in this thread: reading both PNGs, left ORB (the front end's key points), right ORB,
-    row matching, SAD refinement + triangulation."""
+    sparse depth, in this thread, by the product's own functions: reading both PNGs
+    (``rectified_pair``), left ORB (``detect``, the front end's key points), and the stereo matching
+    (``sparse_matches``: right ORB + row matching, or the row search, then refinement and
+    triangulation) with each ``stereo.sparse_search``."""
     import cv2
 
     from rgbdslam.config import load_config
     from rgbdslam.datasets import open_sequence
     from rgbdslam.frontend.features import detect
-    from rgbdslam.stereo import depth as sd
+    from rgbdslam.stereo.depth import sparse_matches
 
     cfg = load_config("kitti", [])
     seq = open_sequence(KITTI, cfg)
-    sc, fc = cfg.stereo, cfg.features
-    steps: dict[str, list[float]] = {k: [] for k in ("read", "left_orb", "right_orb", "match_rows", "refine")}
+    fc = cfg.features
+    searches = {k: load_config("kitti", [f"stereo.sparse_search={k}"]).stereo for k in ("orb", "row")}
+    steps: dict[str, list[float]] = {k: [] for k in ("read", "left_orb", "stereo_orb", "stereo_row")}
     for i in range(min(frames, len(seq))):
         t = time.thread_time()
         left, right = seq.rectified_pair(i)
         t1 = time.thread_time()
         det = detect(left, fc)
-        t2 = time.thread_time()
-        det_r = sd._detect_right(right, fc, sc.right_features)
-        t3 = time.thread_time()
-        il, ir = sd.match_rows(det.uv_raw, det.desc, det_r.uv_raw, det_r.desc, sc)
-        t4 = time.thread_time()
-        u0, v0 = np.rint(det.uv_raw[il, 0]), np.rint(det.uv_raw[il, 1])
-        sd.refine_disparity(left, right, u0, v0, det_r.uv_raw[ir, 0] + (u0 - det.uv_raw[il, 0]), sc.patch_radius,
-                            sc.search_radius)
-        t5 = time.thread_time()
-        for k, v in zip(steps, (t1 - t, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
-            steps[k].append(v)
+        steps["read"].append(t1 - t)
+        steps["left_orb"].append(time.thread_time() - t1)
+        for k, sc in searches.items():
+            t2 = time.thread_time()
+            sparse_matches(left, right, seq.rig, det.uv_raw, det.desc, sc, fc)
+            steps[f"stereo_{k}"].append(time.thread_time() - t2)
     out = {k: 1e3 * float(np.median(v)) for k, v in steps.items()}
-    out["total"] = sum(out.values())
+    out["total_orb"] = out["read"] + out["left_orb"] + out["stereo_orb"]
+    out["total_row"] = out["read"] + out["left_orb"] + out["stereo_row"]
     out["opencv_threads"] = cv2.getNumThreads()
     return out
 
@@ -218,7 +217,9 @@ def main() -> None:
     report["load_average_end"] = os.getloadavg()[0]
     print_markdown(report)
     if args.json:
-        args.json.write_text(json.dumps(report, indent=2))
+        from rgbdslam.io.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(report, indent=2))
 
 
 def print_markdown(r: dict) -> None:

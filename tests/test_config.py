@@ -129,6 +129,10 @@ def test_invalid_yaml(tmp_path):
     ("loop.query_gap=-3", "'loop.query_gap' must not be negative; got -3"),
     ("dataset.depth_scale=.nan", "'dataset.depth_scale' must be a finite number; got nan"),
     ("mapping.depth_min=5", "'mapping.depth_min' (5.0) must be smaller than 'mapping.depth_max' (3.0)"),
+    ("stereo.row_ratio=0", "'stereo.row_ratio' must be positive; got 0.0"),
+    ("stereo.row_ratio=1.5", "'stereo.row_ratio' must be at most 1; got 1.5"),
+    ("dataset.reader_threads=0", "'dataset.reader_threads' must be at least 1; got 0"),
+    ("stereo.min_disparity=128", "'stereo.min_disparity' (128.0) must be smaller than 'stereo.max_disparity' (128)"),
 ])
 def test_out_of_range_values_are_one_clear_error(override, message):
     with pytest.raises(ConfigError) as e:

@@ -107,7 +107,10 @@ class StereoSequence(Sequence):
         if purpose == "map" and cfg.stereo.map_depth != "same":
             method = cfg.stereo.map_depth
         self.method = method
-        from rgbdslam.stereo.depth import depth_noise
+        from rgbdslam.stereo.depth import check_row_search, depth_noise
+
+        if method == "sparse" and cfg.stereo.sparse_search == "row":
+            check_row_search(cfg.stereo, self.camera.width, self.camera.height)  # before any frame is read
 
         self.depth_noise = depth_noise(self.rig, self.stereo_cfg, method)
 

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from rgbdslam.config import FeaturesConfig, StereoConfig
+from rgbdslam.errors import ConfigError
 from rgbdslam.geometry.stereo import DepthNoise, StereoRig, midpoint_triangulate
 
 
@@ -148,6 +149,40 @@ def _detect_right(right: np.ndarray, fc: FeaturesConfig, factor: int = 2):
                   count=False)
 
 
+ROW_SEARCH_BUDGET = 256 * 2**20  # bytes of one reader thread's coarse cost table (float32 disparities x rows x cols)
+
+
+def row_search_bytes(sc: StereoConfig, width: int, height: int) -> int:
+    """Bytes of :func:`coarse_row_search`'s cost table for ``width`` x ``height`` images."""
+    s = int(sc.row_scale)
+    w, h = max(1, width // s), max(1, height // s)
+    dmin = max(1, int(np.floor(sc.min_disparity / s)))
+    dmax = min(w - 1, int(np.ceil(sc.max_disparity / s)))
+    return 4 * max(0, dmax - dmin + 1) * w * h
+
+
+def check_row_search(sc: StereoConfig, width: int, height: int) -> None:
+    """ConfigError when the row search's cost table for ``width`` x ``height`` pairs would exceed
+    :data:`ROW_SEARCH_BUDGET` (per reader thread)."""
+    need = row_search_bytes(sc, width, height)
+    if need > ROW_SEARCH_BUDGET:
+        raise ConfigError(f"stereo.sparse_search=row with stereo.row_scale={sc.row_scale} and stereo.max_disparity="
+                          f"{sc.max_disparity} needs {need / 2**20:.0f} MB per reader thread for {width}x{height} "
+                          f"pairs (budget {ROW_SEARCH_BUDGET // 2**20} MB); raise stereo.row_scale or lower "
+                          f"stereo.max_disparity")
+
+
+def coarse_image(img: np.ndarray, s: int) -> np.ndarray:
+    """float32 mean of every whole ``s`` x ``s`` block of a grey image: cropped to whole blocks first,
+    so that coarse pixel ``(u // s, v // s)`` is exactly the block holding full-size pixel (u, v)
+    (a plain resize of KITTI's 1226 columns to 306 would stretch each coarse pixel to 4.0065)."""
+    if s == 1:
+        return img.astype(np.float32)
+    h, w = img.shape
+    size = (max(1, w // s), max(1, h // s))
+    return cv2.resize(img[:size[1] * s, :size[0] * s], size, interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
 def coarse_row_search(left: np.ndarray, right: np.ndarray, uv_l: np.ndarray, sc: StereoConfig
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Left key points' right columns by a search along the row, without right key points.
@@ -160,11 +195,12 @@ def coarse_row_search(left: np.ndarray, right: np.ndarray, uv_l: np.ndarray, sc:
     point indices and their right columns (full-resolution pixels, +-row_scale/2), to be refined."""
     s = int(sc.row_scale)
     h, w = left.shape
+    check_row_search(sc, w, h)
     size = (max(1, w // s), max(1, h // s))
     k = 5
 
     def high_pass(img: np.ndarray) -> np.ndarray:
-        c = cv2.resize(img, size, interpolation=cv2.INTER_AREA).astype(np.float32) if s > 1 else img.astype(np.float32)
+        c = coarse_image(img, s)
         return c - cv2.blur(c, (k, k))
 
     lc, rc = high_pass(left), high_pass(right)

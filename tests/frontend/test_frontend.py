@@ -363,3 +363,33 @@ def test_a_new_registration_strategy_plugs_in_without_touching_the_loop(desk):
     rel_gt = inv(gt_pose(gt, frames[0].timestamp)) @ gt_pose(gt, frames[3].timestamp)
     dt, dr = rel_error(rel_gt, poses[3])
     assert dt < 0.03 and dr < 2.0, (dt, dr)
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("which", ["tum", "kitti"])
+def test_detect_then_compute_equals_detect_and_compute(which):
+    """orb_features with a grid detects, keeps the strongest per cell and computes descriptors only
+    for those: points, descriptors and responses equal detectAndCompute on all points (as before)
+    then the same selection, on a real TUM frame (4x4 grid) and a KITTI frame (kitti preset's grid)."""
+    import cv2
+
+    from rgbdslam.config import load_config
+    from rgbdslam.frontend.features import _bucket, _orb, orb_features
+    from tests.conftest import DATA, TUM_DESK9, need
+
+    if which == "tum":
+        fc = dataclasses.replace(load_config(None).features, grid_rows=4, grid_cols=4)  # default: no grid
+        img = cv2.imread(str(sorted((need(TUM_DESK9) / "rgb").glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE)
+    else:
+        fc = load_config("kitti").features
+        img = cv2.imread(str(need(DATA / "kitti" / "odometry_06_head51") / "sequences" / "06" / "image_0" /
+                             "000010.png"), cv2.IMREAD_GRAYSCALE)
+    assert fc.grid_rows * fc.grid_cols > 1
+    uv, desc, resp = orb_features(img, fc)
+    kps, ref = _orb(fc, 2 * fc.n_features).detectAndCompute(img, None)
+    ref_uv = cv2.KeyPoint_convert(kps).astype(np.float64)
+    ref_resp = np.array([k.response for k in kps], dtype=np.float32)
+    keep = _bucket(ref_uv, ref_resp, fc, img.shape)
+    assert len(uv) > 500
+    assert np.array_equal(uv, ref_uv[keep]) and np.array_equal(resp, ref_resp[keep])
+    assert np.array_equal(desc, ref[keep])

@@ -490,3 +490,43 @@ def test_row_search_finds_a_known_shift_without_right_key_points():
         out[search] = dict(zip(m.left_index.tolist(), m.disparity))
     both = sorted(set(out["row"]) & set(out["orb"]))
     assert len(both) > 50 and max(abs(out["row"][k] - out["orb"][k]) for k in both) < 0.05
+
+
+@pytest.mark.data
+def test_row_search_cost_table_budget_is_checked_up_front(tmp_path):
+    """A row search whose cost table (disparities x rows x cols, float32, per reader thread) would
+    pass ROW_SEARCH_BUDGET is refused with one line, on its own and before a run reads a frame; the
+    kitti preset's settings fit."""
+    from rgbdslam.config import StereoConfig
+    from rgbdslam.errors import ConfigError
+    from rgbdslam.stereo.depth import ROW_SEARCH_BUDGET, check_row_search, coarse_row_search, row_search_bytes
+
+    big = StereoConfig(sparse_search="row", row_scale=1, max_disparity=1024)
+    assert row_search_bytes(big, 1920, 1080) == 4 * 1024 * 1080 * 1920  # min_disparity 0.5: d = 1..1024
+    with pytest.raises(ConfigError, match="needs 8100 MB per reader thread for 1920x1080 pairs"):
+        check_row_search(big, 1920, 1080)
+    with pytest.raises(ConfigError):  # also when called directly (before any allocation)
+        coarse_row_search(np.zeros((1080, 1920), np.uint8), np.zeros((1080, 1920), np.uint8), np.zeros((1, 2)), big)
+    kitti = load_config("kitti", ["stereo.sparse_search=row"]).stereo
+    assert row_search_bytes(kitti, 1226, 370) < ROW_SEARCH_BUDGET
+    check_row_search(kitti, 1920, 1080)
+    res = cli(["run", need(KITTI), "--config", "kitti", "--out", tmp_path / "run", "--set",
+               "stereo.sparse_search=row", "--set", "stereo.row_scale=1", "--set", "stereo.max_disparity=1024"])
+    assert_cli_error(res, "stereo.sparse_search=row with stereo.row_scale=1 and stereo.max_disparity=1024 needs "
+                          "1767 MB per reader thread for 1226x370 pairs (budget 256 MB); raise stereo.row_scale or "
+                          "lower stereo.max_disparity")
+
+
+def test_row_search_coarse_pixels_are_whole_blocks():
+    """Width/height not multiples of row_scale (KITTI's 1226 at 4): coarse pixel (u // s, v // s) is
+    the exact mean of the s x s block that holds (u, v), the mapping coarse_row_search reads key points
+    by (a resize of the whole image would stretch the blocks: 1226 / 306 = 4.0065 px)."""
+    from rgbdslam.stereo.depth import coarse_image
+
+    rng = np.random.default_rng(3)
+    for (h, w), s in (((370, 1226), 4), ((101, 203), 8), ((64, 96), 4)):
+        img = rng.integers(0, 256, (h, w)).astype(np.uint8)
+        c = coarse_image(img, s)
+        assert c.shape == (h // s, w // s) and c.dtype == np.float32
+        blocks = img[:h // s * s, :w // s * s].astype(np.float64).reshape(h // s, s, w // s, s).mean(axis=(1, 3))
+        assert np.abs(c - blocks).max() <= 0.5 + 1e-6  # OpenCV rounds the 8-bit means
