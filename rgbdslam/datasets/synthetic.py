@@ -399,6 +399,21 @@ def validate_parameters(frames, motion, width, height, noise, dropout, drift, se
         raise InputError(f"--time-offset must be seconds from 0 to 1e6 (got {time_offset!r})")
 
 
+def partial_folder(out: Path) -> tuple[Path, Path]:
+    """``(target, work)``: ``out`` resolved, and a new temporary folder to render into — inside
+    ``out`` when it is an existing folder (it may be a mount point: renames must not cross
+    devices), else beside it — renamed to ``out`` when complete. One error line if it cannot be made."""
+    target = out.resolve()
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        where = target if target.is_dir() else target.parent
+        work = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=where))
+    except OSError as e:
+        raise InputError(f"cannot create the sequence folder {out} ({e.strerror or e}); choose a writable "
+                         f"place") from None
+    return target, work
+
+
 def _check_output(out: Path) -> None:
     """``out`` may be new, an empty folder or an earlier synthetic sequence (which is replaced)."""
     if out.exists() and not out.is_dir():
@@ -506,16 +521,7 @@ def generate_sequence(
         params.update(phase=float(phase), time_offset=float(time_offset))
     # rendered into a temporary sibling folder that replaces ``out`` only when complete: a
     # failure or Ctrl-C part-way leaves an earlier sequence in ``out`` as it was
-    target = out.resolve()
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        # inside an existing folder (it may be a mount point: renames must not cross devices),
-        # else beside it, renamed to it at the end
-        where = target if target.is_dir() else target.parent
-        work = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=where))
-    except OSError as e:
-        raise InputError(f"cannot create the sequence folder {out} ({e.strerror or e}); choose a writable "
-                         f"place") from None
+    target, work = partial_folder(out)
     try:
         _render_into(work, cam, poses, params, progress)
         _replace_folder(work, target)

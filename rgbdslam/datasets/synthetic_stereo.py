@@ -19,7 +19,6 @@ grey (as KITTI's and EuRoC's cameras), in one of two layouts:
 from __future__ import annotations
 
 import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,6 +34,7 @@ from rgbdslam.datasets.synthetic import (
     _check_output,
     _replace_folder,
     make_trajectory,
+    partial_folder,
     scaled_camera,
     validate_parameters,
 )
@@ -101,13 +101,7 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
     poses = make_trajectory(motion, frames)
     params = dict(frames=int(frames), motion=motion, width=int(width), height=int(height), noise=bool(noise),
                   seed=int(seed), camera=camera, stereo_baseline=float(baseline), layout=layout)
-    target = out.resolve()
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        where = target if target.is_dir() else target.parent
-        work = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=where))
-    except OSError as e:
-        raise InputError(f"cannot create the sequence folder {out} ({e.strerror or e}); choose a writable place") from None
+    target, work = partial_folder(out)
     try:
         atomic_write_text(work / "synthetic.yaml",
                           yaml.safe_dump({"generator": "rgbdslam synthetic stereo v1", **params}, sort_keys=False))
