@@ -293,6 +293,9 @@ class MappingConfig:
     # a keyframe whose points moved by less than this many voxels (translation + rotation angle x
     # depth_max) stays where the live map integrated it; larger: less re-integration, a map further from the final poses
     live_tolerance: float = 0.25
+    # niceness of the map process (and of the plot process): tracking keeps its speed, the map takes
+    # what tracking leaves; 0: the same priority as tracking (docs/mapping.md "Fusion while tracking")
+    live_nice: int = 10
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0  # degrees: see select_translation
     undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing
@@ -486,6 +489,7 @@ BOUNDS = {
     # LSH bucket keys hold the table id above lsh_bits key bits in an int64
     "loop.lsh_bits": (1, 40),
     "mapping.floor_max_tilt_deg": (0.0, 90.0), "mapping.live_tolerance": (0.0, 10.0),
+    "mapping.live_nice": (0, 19),
     "stereo.ratio": (0.0, 1.0), "stereo.max_hamming": (0, 256), "stereo.sgbm_scale": (0.1, 1.0),
     "stereo.max_disparity": (1, 1024), "stereo.sgbm_block_size": (1, 31),
     # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane

@@ -98,19 +98,31 @@ def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunR
         raise InputError(f"sequence {seq.root} has no frames; check rgb.txt/depth.txt (or 'matched')")
     # with --map the map is fused after the run (every session of a joined map, in the map's frame)
     mapper = start_live_map(cfg, seq, out_dir) if session is None else None
-    slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes", mapper=mapper)
-    if session is not None:
-        session.attach(slam)
+    plotter = None
     try:
-        record.stage = "tracking"
-        run = track_all(seq, slam, cfg, out_dir, progress, console)
-        record.stage = "writing the trajectory"
-        if not slam.state.records or (len(slam.state.records) == 1 and run.frames > 1 and not run.interrupted):
-            fail(seq, slam, run, out_dir, record)  # raises
-    except BaseException:
-        if mapper is not None:
-            mapper.abort()
-        raise
+        try:
+            slam = SLAM(cfg, seq.camera, observer, keyframe_dir=out_dir / "keyframes", mapper=mapper)
+            if session is not None:
+                session.attach(slam)
+            plotter = start_plot_worker(cfg, gt)
+            record.stage = "tracking"
+            run = track_all(seq, slam, cfg, out_dir, progress, console)
+            record.stage = "writing the trajectory"
+            if not slam.state.records or (len(slam.state.records) == 1 and run.frames > 1 and not run.interrupted):
+                fail(seq, slam, run, out_dir, record)  # raises
+        except BaseException:
+            if mapper is not None:
+                mapper.abort()
+            raise
+        return _finish_run(seq, out_dir, cfg, progress, record, session, slam, run, gt, plotter, console)
+    finally:
+        if plotter is not None:
+            plotter.close()
+
+
+def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunRecord, session, slam: SLAM,
+                run: Tracking, gt: Trajectory | None, plotter, console) -> dict[str, Any]:
+    """After the last frame: the final pose graph, the outputs, evaluation, plots and map."""
     record.stage = "pose graph"
     t_end = time.perf_counter()  # the last frame is tracked: what follows is what the user waits for on top
     final = slam.finish()
@@ -128,7 +140,7 @@ def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunR
     after["outputs"] = time.perf_counter() - t_end - after["pose_graph"]
     summary["after_tracking_s"] = after
     post_process(summary, slam, final, gt, out_dir, cfg, run.interrupted, progress, console, record,
-                 groundtruth_name(seq))
+                 groundtruth_name(seq), plotter)
     after["total"] = time.perf_counter() - t_end
     summary["after_tracking_s"] = {k: round(v, 3) for k, v in after.items()}
     record.stage = "end"
@@ -157,6 +169,16 @@ def check_settings(cfg: Config) -> None:
         from rgbdslam.config import validate_section
 
         validate_section("mapping", cfg.mapping)
+
+
+def start_plot_worker(cfg: Config, gt: Trajectory | None):
+    """The process that draws the evaluation plots after the last frame, started now so that it has
+    imported matplotlib by then (:mod:`rgbdslam.evaluation.plot_worker`); None without plots to draw."""
+    if not (cfg.output.plots and gt is not None and len(gt) > 1):
+        return None
+    from rgbdslam.evaluation.plot_worker import PlotWorker
+
+    return PlotWorker(cfg.mapping.live_nice)
 
 
 def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
@@ -299,10 +321,11 @@ def fail(seq: Sequence, slam: SLAM, run: Tracking, out_dir: Path, record: RunRec
 
 def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Trajectory | None, out_dir: Path,
                  cfg: Config, interrupted: bool, progress: bool, console, record: RunRecord,
-                 gt_name: str = "ground truth") -> None:
+                 gt_name: str = "ground truth", plotter=None) -> None:
     """Evaluation against the ground truth, the trajectories for the observer, the map; each
     adds to run.json and none of them fails a finished run by bad input (a full disk or Ctrl-C
-    does: ``record`` names the stage)."""
+    does: ``record`` names the stage). With ``plotter`` (a :class:`PlotWorker`) the plots are drawn
+    there while the map is finished."""
     observer = slam.observer
     after = summary.setdefault("after_tracking_s", {})  # seconds per step, for the run record
     live = None
@@ -318,7 +341,7 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
     t0 = time.perf_counter()
     if gt is not None and len(final) > 1:
         record.stage = "evaluation"
-        summary["evaluation"] = evaluate(gt, final, out_dir, cfg, console, gt_name)
+        summary["evaluation"] = evaluate(gt, final, out_dir, cfg, console, gt_name, plotter)
         record.write(summary)
     observer.log_trajectory("estimate", final)
     if gt is not None:
@@ -333,6 +356,12 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
             summary["map"] = fuse_map(out_dir, cfg, observer, progress, console)
         record.write(summary)
         after["map"] = time.perf_counter() - t0  # with the live map: the wait for it after the evaluation
+    if plotter is not None and plotter.submitted:
+        t0 = time.perf_counter()
+        record.stage = "evaluation"
+        collect_plots(plotter, summary, out_dir, console)
+        record.write(summary)
+        after["plots"] = time.perf_counter() - t0  # the wait for the plot process after the map
     t0 = time.perf_counter()
     record.stage = "recording"
     observer.close()
@@ -346,17 +375,36 @@ def groundtruth_name(seq: Sequence) -> str:
 
 
 def evaluate(gt: Trajectory, est: Trajectory, out_dir: Path, cfg: Config, console,
-             gt_name: str = "ground truth") -> dict[str, Any]:
+             gt_name: str = "ground truth", plotter=None) -> dict[str, Any]:
+    """ATE/RPE into evaluation.json; the plots drawn here, or sent to ``plotter`` (then
+    :func:`collect_plots` adds them to evaluation.json when they are written)."""
     from rgbdslam.evaluation.report import evaluate_trajectories
 
     plot_dir = out_dir / "plots" if cfg.output.plots else None
     try:  # the files named as `rgbdslam evaluate GT RUN_DIR/trajectory.tum --json` names them
-        rep = evaluate_trajectories(gt, est, json_path=out_dir / "evaluation.json", plot_dir=plot_dir,
+        rep = evaluate_trajectories(gt, est, json_path=out_dir / "evaluation.json",
+                                    plot_dir=plot_dir if plotter is None else None,
                                     gt_name=gt_name, est_name=str(out_dir / "trajectory.tum"))
     except RgbdslamError as e:  # evaluation is a bonus: it never stops a finished run
         console.print(f"[yellow]warning:[/] no evaluation: {e}")
         return {}
+    if plotter is not None and plot_dir is not None:
+        plotter.submit(rep, plot_dir)
     return rep.to_dict() if hasattr(rep, "to_dict") else {}
+
+
+def collect_plots(plotter, summary: dict[str, Any], out_dir: Path, console) -> None:
+    """The plots the plot process drew, named in evaluation.json and run.json (a plot that cannot
+    be written is a warning: the evaluation's numbers stand)."""
+    try:
+        plots = plotter.result()
+    except RgbdslamError as e:
+        console.print(f"[yellow]warning:[/] no plots: {e}")
+        return
+    ev = summary.get("evaluation")
+    if ev:
+        ev["plots"] = plots
+        atomic_write_text(out_dir / "evaluation.json", json.dumps(ev, indent=2) + "\n")
 
 
 def fuse_map(out_dir: Path, cfg: Config, observer, progress: bool, console) -> dict[str, Any]:

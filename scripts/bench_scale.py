@@ -95,15 +95,23 @@ def _compare_maps(live_dir: Path, work: Path) -> dict:
     return out
 
 
-def part_run(work: Path) -> list[str]:
+RUN_VARIANTS = {  # --variants: key -> (row name, extra arguments of `rgbdslam run`)
+    "default": ("map fused while tracking (default)", []),
+    "nice0": ("map fused while tracking, map process at tracking's priority (mapping.live_nice=0)",
+              ["--set", "mapping.live_nice=0"]),
+    "tol1": ("map fused while tracking, mapping.live_tolerance=1 (1 voxel)", ["--set", "mapping.live_tolerance=1"]),
+    "after": ("map fused after the run (mapping.live=false)", ["--set", "mapping.live=false"]),
+    "nomap": ("no map (--no-map)", ["--no-map"]),
+}
+
+
+def part_run(work: Path, keys: list[str]) -> list[str]:
     rows = []
     help_s = statistics.median(sh([BIN, "--help"]) for _ in range(3))
-    variants = [("map fused while tracking (default)", []),
-                ("map fused while tracking, mapping.live_tolerance=1 (1 voxel)", ["--set", "mapping.live_tolerance=1"]),
-                ("map fused after the run (mapping.live=false)", ["--set", "mapping.live=false"]),
-                ("no map (--no-map)", ["--no-map"])]
+    variants = [RUN_VARIANTS[k] for k in keys]
     runs = {}
     after_rows = []
+    ratios = []
     for name, extra in variants:
         out = work / f"rpy_{len(runs)}"
         shutil.rmtree(out, ignore_errors=True)
@@ -116,19 +124,33 @@ def part_run(work: Path) -> list[str]:
         t = m.get("timings") or {}
         moved = (f"{t['final_moved']} of {m['frames_fused']} ({t['final_shift_median_mm']:.1f} / "
                  f"{t['final_shift_max_mm']:.1f} mm)" if "final_moved" in t else "-")
+        ratios.append((name, whole / info["fps"], wall))
         rows.append(f"| {name} | {load:.1f} | {wall:.1f} | {whole:.1f} | {info['fps']:.1f} | {whole / info['fps']:.2f} | "
                     f"{info.get('first_frame_s') or float('nan'):.2f} | {m.get('seconds', float('nan')):.1f} | {moved} |")
         a = info.get("after_tracking_s") or {}
         rest = wall - (info.get("first_frame_s") or 0) - info["wall_time_s"] - a.get("total", 0)
         after_rows.append(f"| {name} | {info['wall_time_s']:.1f} | " + " | ".join(
-            f"{a.get(k, float('nan')):.2f}" for k in ("pose_graph", "outputs", "evaluation", "map", "recording", "total"))
+            f"{a.get(k, float('nan')):.2f}" for k in ("pose_graph", "outputs", "evaluation", "map", "plots", "recording",
+                                                      "total"))
             + f" | {rest:.2f} | {t.get('final_s', float('nan')):.2f} | {t.get('cloud', float('nan')):.2f} | "
               f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} |")
-    cmps = [(name, _compare_maps(runs[name], work)) for name, _ in variants[:2]]
-    first = next(iter(runs.values()))
-    info = json.loads((first / "run.json").read_text())
-    t = (info.get("map") or {}).get("timings") or {}
+    cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in keys
+            if k in ("default", "nice0", "tol1")]
+    live_lines = []
+    for name, out in runs.items():  # what the map process did, in the runs with a live map
+        info = json.loads((out / "run.json").read_text())
+        t = (info.get("map") or {}).get("timings") or {}
+        if "integrated" in t:
+            live_lines.append(
+                f"* {name}: {t.get('integrated')} keyframes integrated while tracking, {t.get('refreshes')} pose "
+                f"updates applied ({t.get('pose_updates_skipped')} coalesced), {t.get('deintegrated')} keyframes "
+                f"de-integrated, {t.get('reintegrated')} re-integrated, {t.get('rebuilds')} rebuilds; busy "
+                f"{t.get('busy_s', 0):.1f} s ({t.get('busy_cpu_s', float('nan')):.1f} s of CPU) during "
+                f"{info['wall_time_s']:.1f} s of tracking.")
     lines = [
+        *[f"**Whole-command rate / tracking rate: {r:.2f}** (target >= 0.8; wall {w:.1f} s) - {name}"
+          for name, r, w in ratios],
+        "",
         f"`rgbdslam --help`: {help_s:.2f} s (median of 3).",
         "",
         "| run | load before | wall s | whole-command frames/s | tracking frames/s (run.json) | ratio | first tracked frame s "
@@ -138,16 +160,16 @@ def part_run(work: Path) -> list[str]:
         "",
         "After the last frame (run.json `after_tracking_s`; the map's own steps from its timings), seconds:",
         "",
-        "| run | tracking | final pose graph | outputs | evaluation + plots | waiting for the map | Rerun | total "
+        "| run | tracking | final pose graph | outputs | evaluation (+ plots when drawn in the run) | waiting for the map "
+        "| waiting for the plot process | Rerun | total "
         "| wall − first frame − tracking − total (the exit, less the first frame's own tracking time) | map: bring to final poses "
-        "| map: cloud | map: mesh | map: 2-D map |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| map: cloud (outliers, cloud.ply) | map: mesh | map: 2-D map |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *after_rows,
         "",
-        f"Map process of the default run: {t.get('integrated')} keyframes integrated while tracking, "
-        f"{t.get('refreshes')} pose updates applied ({t.get('pose_updates_skipped')} coalesced), "
-        f"{t.get('deintegrated')} keyframes de-integrated, {t.get('reintegrated')} re-integrated, "
-        f"{t.get('rebuilds')} rebuilds; busy {t.get('busy_s', 0):.1f} s.",
+        "Map process:",
+        "",
+        *live_lines,
         "",
         "Live map against `rgbdslam fuse` of the same run folder (the final poses fused from scratch); "
         "nearest-neighbour distances both ways (live to fused and fused to live):",
@@ -316,6 +338,8 @@ def main() -> int:
     ap.add_argument("--parts", default="run,sweep,memory")
     ap.add_argument("--long-frames", type=int, default=5000)
     ap.add_argument("--repeat", type=int, default=3, help="interleaved repetitions of the sweep variants")
+    ap.add_argument("--variants", default=",".join(RUN_VARIANTS),
+                    help=f"runs of the 'run' part, in this order (of {', '.join(RUN_VARIANTS)})")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
@@ -327,7 +351,7 @@ def main() -> int:
            f"Speed of the machine: {reference_timing()}; load average at the start {os.getloadavg()[0]:.1f} "
            f"(1 min).", ""]
     if "run" in parts:
-        out += ["### Whole command, start-up, live map (TUM fr1/rpy head200)", "", *part_run(a.work), ""]
+        out += ["### Whole command, start-up, live map (TUM fr1/rpy head200)", "", *part_run(a.work, a.variants.split(",")), ""]
     if "sweep" in parts:
         out += ["### Sweep: 12 cells over 3 sequences", "", *part_sweep(a.work, a.repeat), ""]
     if "memory" in parts:

@@ -20,12 +20,6 @@ from rich.table import Table
 
 from rgbdslam.errors import InputError, RgbdslamError
 from rgbdslam.evaluation.ate import AteResult, ErrorStats, PairingError, ate
-from rgbdslam.evaluation.plots import (
-    plot_error_over_time,
-    plot_rpe,
-    plot_trajectories_topview,
-    plot_trajectory_topview,
-)
 from rgbdslam.evaluation.rpe import RpeResult, check_delta, rpe
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
@@ -224,6 +218,8 @@ def compare_and_print(
     written = [p for r in reports for p in r.plots]
     if plots:
         path = Path(plot_dir) / "comparison_topview.png"
+        from rgbdslam.evaluation.plots import plot_trajectories_topview  # matplotlib: only when drawing
+
         _write(path, lambda p: plot_trajectories_topview(
             reports[0].ate.gt, {n: r.ate.aligned for n, r in zip(names, reports)}, p))
         written.append(str(path))
@@ -278,6 +274,8 @@ def format_comparison(reports: list[EvaluationReport]) -> Table:
 
 def write_plots(rep: EvaluationReport, plot_dir: str | Path, prefix: str = "") -> list[str]:
     """Write the top view, the ATE-over-time and (if present) the RPE plot; return their paths."""
+    from rgbdslam.evaluation.plots import plot_error_over_time, plot_rpe, plot_trajectory_topview  # matplotlib
+
     plot_dir = Path(plot_dir)
     jobs = [
         (f"{prefix}ate_topview.png", lambda p: plot_trajectory_topview(rep.ate.gt, rep.ate.aligned, p)),

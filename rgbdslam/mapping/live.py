@@ -30,17 +30,38 @@ import numpy as np
 from rgbdslam.config import MappingConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
+from rgbdslam.io.worker import end, exit_now, lower_priority, receive
 
 CACHE_MB = 512  # keyframe images kept for re-integration (640x480: ~1.5 MB each); beyond, they are read again
-REBUILD_FRACTION = 0.5
-SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)  # more keyframes than this moved: rebuild the map instead of de-/re-integrating
+REBUILD_FRACTION = 0.5  # more keyframes than this share moved: rebuild the map instead of de-/re-integrating
+SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)
 
 
-def moved(a: np.ndarray, b: np.ndarray, tol_m: float, depth_max: float) -> bool:
-    """Whether a keyframe's points (up to ``depth_max`` away) move more than ``tol_m`` from pose
-    ``a`` to ``b``: translation plus the rotation angle times ``depth_max`` (a bound)."""
+def shift_m(a: np.ndarray, b: np.ndarray, depth_max: float, box: np.ndarray | None = None) -> float:
+    """How far a keyframe's points move from pose ``a`` to ``b`` at most, in metres.
+
+    With ``box`` (2x3: the lowest and highest x, y, z of its points in its camera frame) it is exact
+    for that box: a point p moves by |(R - I) p + t| (R, t: the relative pose ``a``^-1 ``b``), a convex
+    function of p, so its largest value over the box is at one of the box's 8 corners. Without a box:
+    the translation plus the rotation angle times ``depth_max`` (a point straight ahead at depth_max)."""
     rel = inv(a) @ b
-    return bool(np.linalg.norm(rel[:3, 3]) + rotation_angle(rel[:3, :3]) * depth_max > tol_m)
+    if box is None:
+        return float(np.linalg.norm(rel[:3, 3]) + rotation_angle(rel[:3, :3]) * depth_max)
+    corners = np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    step = corners @ (rel[:3, :3] - np.eye(3)).T + rel[:3, 3]
+    return float(np.sqrt((step * step).sum(axis=1)).max())
+
+
+def points_box(depth: np.ndarray, camera: Camera) -> np.ndarray | None:
+    """The lowest and highest camera-frame x, y, z (2x3) of the points of a prepared depth image
+    (depth > 0); None when it has none."""
+    v, u = np.nonzero(depth > 0)
+    if len(u) == 0:
+        return None
+    z = depth[v, u].astype(np.float64)
+    x = (u - camera.cx) * z / camera.fx
+    y = (v - camera.cy) * z / camera.fy
+    return np.array([[x.min(), y.min(), z.min()], [x.max(), y.max(), z.max()]])
 
 
 class MapState:
@@ -69,9 +90,11 @@ class MapState:
         self.cache_bytes = 0
         self.cache_limit = int(cache_mb * 2**20)
         self.n_depth: dict[int, int] = {}
+        self.box: dict[int, np.ndarray | None] = {}  # keyframe -> its points' camera-frame box (shift_m)
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
                       "pose_updates_skipped": 0, "reloaded": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
-                      "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0}
+                      "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0,
+                      "busy_cpu_s": 0.0}
 
     def sizes(self) -> dict:
         """What the map holds (docs/benchmarks.md "Memory"): TSDF blocks in use and allocated (8^3
@@ -87,14 +110,12 @@ class MapState:
         return out
 
     def shift_mm(self, poses: dict[int, np.ndarray]) -> np.ndarray:
-        """How far each keyframe in the map would move to ``poses``: translation plus the rotation
-        angle times depth_max (an upper bound on how far its points move), in mm."""
-        out = []
-        for i, p in self.used.items():
-            if i in poses:
-                rel = inv(p) @ poses[i]
-                out.append(np.linalg.norm(rel[:3, 3]) + rotation_angle(rel[:3, :3]) * self.cfg.depth_max)
-        return 1e3 * np.array(out)
+        """How far each keyframe in the map would move to ``poses`` (the most any of its points moves,
+        :func:`shift_m`), in mm."""
+        return 1e3 * np.array([self._shift(i, poses[i]) for i in self.used if i in poses])
+
+    def _shift(self, index: int, pose: np.ndarray) -> float:
+        return shift_m(self.used[index], pose, max(self.cfg.depth_max, 1e-3), self.box.get(index))
 
     def result(self):
         """``(tsdf or None, VoxelCloud, fused keyframes, depth pixel count)``."""
@@ -119,6 +140,8 @@ class MapState:
             self.stats["reloaded"] += 1
         rgb, depth = prepare_frame(rgb, depth, self.undistort, self.cfg)
         self.n_depth[index] = int(np.count_nonzero(depth))
+        if index not in self.box:
+            self.box[index] = points_box(depth, self.camera)
         keep = _pack_depth(depth, DEPTH_PNG_SCALE)
         size = rgb.nbytes + keep.nbytes
         if self.cache_bytes + size <= self.cache_limit:
@@ -154,7 +177,7 @@ class MapState:
         in ``keep``, if given); returns how many keyframes moved or left."""
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
-        move = [i for i in want if moved(self.used[i], want[i], self.tol_m, max(self.cfg.depth_max, 1e-3))]
+        move = [i for i in want if self._shift(i, want[i]) > self.tol_m]
         if not drop and not move:
             return 0
         self.stats["refreshes"] += 1
@@ -180,6 +203,7 @@ class MapState:
         add_cloud(self.cloud, new_c, sign=+1)
         for i in drop:
             del self.used[i]
+            self.box.pop(i, None)
             self._uncache(i)
         for i in move:
             self.used[i] = want[i]
@@ -233,19 +257,27 @@ class _SequenceImages:
         return frame.rgb, (read_depth_png(png) if png is not None and png.is_file() else frame.depth)
 
 
+def _process(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None) -> None:
+    """The map process's body: :func:`_serve`, then exit without the interpreter's teardown (freeing
+    Open3D's and NumPy's modules takes longer than the map's last step; the run waits for it)."""
+    _serve(cfg, camera, load, jobs, results, applied)
+    exit_now(results)
+
+
 def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None) -> None:
     """The map process: keyframes and pose updates from ``jobs``; at ``finish`` the map is
     brought to the final poses, written, and its :class:`FuseResult` put on ``results``."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
+    lower_priority(cfg.live_nice)  # tracking first
     state = MapState(cfg, camera, load)
     try:
         while True:
             job = jobs.get()
             if job is None:
                 return
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             n_skipped = 0
             if job[0] == "poses":  # coalesce: add what is queued already, apply only the newest poses
                 while True:
@@ -268,6 +300,7 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
             elif job[0] == "poses":
                 state.refresh(job[1])
             state.stats["busy_s"] += time.perf_counter() - t0
+            state.stats["busy_cpu_s"] += time.process_time() - c0  # all its threads (Open3D's too)
             if job[0] == "poses" and applied is not None:
                 with applied.get_lock():
                     applied.value += 1 + n_skipped
@@ -281,13 +314,14 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
 
 
 def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: bool) -> dict:
-    """The end, in the map process: the map brought to the final poses, cloud.ply written into the
-    run's temporary map folder ``stage`` and its points sent to the run (``("cloud", ...)`` on
-    ``results``: it makes the 2-D map of them) while this process writes mesh.ply."""
+    """The end, in the map process: the map brought to the final poses, the voxel cloud's points
+    sent to the run (``("cloud", ...)`` on ``results``: it removes the outliers, writes cloud.ply and
+    makes the 2-D map) while this process extracts and writes mesh.ply into the run's temporary map
+    folder ``stage``."""
     from pathlib import Path
 
     from rgbdslam.errors import InputError
-    from rgbdslam.mapping.fusion import _peak_rss_mb, check_depth, cloud_points, write_cloud, write_mesh
+    from rgbdslam.mapping.fusion import _peak_rss_mb, check_depth, cloud_points, write_mesh
     from rgbdslam.ui import console
 
     t0 = time.perf_counter()
@@ -307,9 +341,8 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     t0 = time.perf_counter()
     points, colors = cloud_points(cloud, state.cfg)
     state.cloud = cloud = None
-    path, points, colors = write_cloud(Path(stage), points, colors, state.cfg)
-    results.put(("cloud", (str(path), points.astype(np.float32), colors, fused)))
-    state.stats["cloud"] = time.perf_counter() - t0
+    results.put(("cloud", (points, colors, fused)))
+    state.stats["cloud_points"] = time.perf_counter() - t0
     out = {"mesh_path": None, "n_vertices": 0, "n_triangles": 0}
     if tsdf is not None:
         t0 = time.perf_counter()
@@ -339,7 +372,7 @@ class LiveMap:
         self._results = ctx.Queue()
         self._applied = ctx.Value("q", 0)  # pose updates the map process has applied
         self._sent = 0
-        self._proc = ctx.Process(target=_serve, name="rgbdslam-map", daemon=True,
+        self._proc = ctx.Process(target=_process, name="rgbdslam-map", daemon=True,
                                  args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
                                        self._results, self._applied))
         self._proc.start()
@@ -362,18 +395,22 @@ class LiveMap:
         """Bring the map to the final ``poses`` (only the keyframes in ``keep``), write it into
         ``out_dir`` (atomically, as ``rgbdslam fuse`` does) and return the :class:`FuseResult`.
 
-        The work is shared: the map process writes the cloud and then the mesh, this process
-        (meanwhile) the 2-D map of the cloud, into one temporary folder moved into place at the end."""
+        The work is shared: the map process sends the cloud's points and then writes the mesh, this
+        process (meanwhile) removes the cloud's outliers, writes it and makes the 2-D map, into one
+        temporary folder moved into place at the end."""
         from pathlib import Path
 
-        from rgbdslam.mapping.fusion import FuseResult, staged, write_2d
+        from rgbdslam.mapping.fusion import FuseResult, staged, write_2d, write_cloud
 
         def work(stage: Path) -> FuseResult:
             self._jobs.put(("finish", {int(k): np.array(v) for k, v in poses.items()}, keep, str(stage),
                             filtered_depth))
             try:
-                cloud_path, points, colors, fused = self._receive("cloud")
-                timings: dict = {}
+                points, colors, fused = self._receive("cloud")
+                t0 = time.perf_counter()
+                cloud_path, points, colors = write_cloud(stage, points, colors, self.cfg)
+                points = points.astype(np.float32)
+                timings: dict = {"cloud": time.perf_counter() - t0}
                 acc = Path(root) / "accelerometer.txt"
                 map2d_path, grid = write_2d(stage, points, trajectory, self.cfg, acc if acc.is_file() else None,
                                             timings)
@@ -396,13 +433,7 @@ class LiveMap:
         """The map process's next result, ``want`` (its error raised here)."""
         from rgbdslam.errors import RgbdslamError
 
-        while True:
-            try:
-                status, value = self._results.get(timeout=1.0)
-                break
-            except queue.Empty:
-                if not self._proc.is_alive():
-                    raise RgbdslamError(f"the map process ended unexpectedly (exit code {self._proc.exitcode})") from None
+        status, value = receive(self._results, self._proc, "map process")
         if status == "error":
             raise value
         if status != want:
@@ -417,13 +448,7 @@ class LiveMap:
 
     def abort(self) -> None:
         """Stop the map process without a map (a failed or interrupted run)."""
-        if self._proc.is_alive():
-            self._jobs.put(None)
-            self._proc.join(timeout=5)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join()
-                self._jobs.cancel_join_thread()  # its reader is gone: exit must not wait to flush the queue
+        end(self._proc, self._jobs)
 
 
 def add_cloud(dst, src, sign: int) -> None:

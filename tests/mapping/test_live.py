@@ -164,3 +164,45 @@ def test_reintegration_takes_the_cached_images_or_reads_them_again(synth, cache_
     assert live.stats["deintegrated"] == 1 and live.stats["rebuilds"] == 0
     assert reads == ([] if cache_mb else [8]) and live.stats["reloaded"] == len(reads)
     _same_map(_fresh(synth, cfg, {i: gt.poses[i] for i in (0, 4, 8)}, camera), live.result()[:2], synth, cfg)
+
+
+def test_shift_is_the_largest_point_motion_over_the_box_corners():
+    from rgbdslam.mapping.live import shift_m
+
+    box = np.array([[-1.0, -0.5, 0.5], [1.2, 0.7, 2.5]])
+    a = np.eye(4)
+    th = np.deg2rad(1.0)  # a turn about the optical axis: a point moves 2 sin(th/2) x its distance from the axis
+    b = np.eye(4)
+    b[:2, :2] = [[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]
+    assert shift_m(a, b, 3.0, box) == pytest.approx(2 * np.sin(th / 2) * np.hypot(1.2, 0.7), rel=1e-12)
+    # the old bound (rotation angle x depth_max) ignores that the axis does not move the centre
+    assert shift_m(a, b, 3.0) == pytest.approx(th * 3.0)
+    t = np.eye(4)
+    t[:3, 3] = [0.001, -0.002, 0.002]  # a translation moves every point alike
+    assert shift_m(a, t, 3.0, box) == pytest.approx(0.003)
+    rng = np.random.default_rng(0)  # any pose: no point inside the box moves further than the bound
+    from scipy.spatial.transform import Rotation
+
+    for _ in range(20):
+        rel = np.eye(4)
+        rel[:3, :3] = Rotation.from_rotvec(rng.normal(scale=0.02, size=3)).as_matrix()
+        rel[:3, 3] = rng.normal(scale=0.01, size=3)
+        p = rng.uniform(box[0], box[1], size=(2000, 3))
+        moved = np.linalg.norm(p @ (rel[:3, :3] - np.eye(3)).T + rel[:3, 3], axis=1)
+        bound = shift_m(a, rel, 3.0, box)
+        assert moved.max() <= bound + 1e-12 and moved.max() > 0.8 * bound
+
+
+@pytest.mark.data
+def test_points_box_holds_every_point_of_a_real_keyframe(desk9):
+    from rgbdslam.mapping.fusion import backproject_image
+    from rgbdslam.mapping.live import points_box
+
+    seq = open_sequence(desk9)
+    cfg = MappingConfig()
+    f = seq.load(0)
+    _, depth = prepare_frame(f.rgb, f.depth, _Undistorter(seq.camera, True), cfg)
+    pts, _ = backproject_image(depth, seq.camera)
+    box = points_box(depth, seq.camera)
+    np.testing.assert_allclose(box, [pts.min(axis=0), pts.max(axis=0)], atol=1e-5)
+    assert points_box(np.zeros_like(depth), seq.camera) is None
