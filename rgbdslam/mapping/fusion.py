@@ -449,16 +449,17 @@ def prepare_frame(rgb: np.ndarray, depth: np.ndarray, undistort, cfg: MappingCon
     return rgb, depth
 
 
-def integrate_frame(tsdf, acc: VoxelCloud, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray, camera: Camera,
+def integrate_frame(tsdf, acc: VoxelCloud | None, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray, camera: Camera,
                     cfg: MappingConfig, timings: dict[str, float] | None = None) -> None:
-    """One prepared frame into the TSDF (if any) and the voxel cloud, at camera-to-world ``pose``."""
+    """One prepared frame into the TSDF and the voxel cloud (either may be None), at camera-to-world ``pose``."""
     t1 = time.perf_counter()
     if tsdf is not None and depth.any():  # Open3D aborts on a frame that touches no block
         tsdf.integrate(rgb, depth, pose)
     t2 = time.perf_counter()
-    pts, flat = backproject_image(depth, camera, cfg.cloud_pixel_stride)
-    pts_w = pts @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
-    acc.add(pts_w, rgb.reshape(-1, 3)[flat])
+    if acc is not None:
+        pts, flat = backproject_image(depth, camera, cfg.cloud_pixel_stride)
+        pts_w = pts @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
+        acc.add(pts_w, rgb.reshape(-1, 3)[flat])
     if timings is not None:
         timings["tsdf"] = timings.get("tsdf", 0.0) + t2 - t1
         timings["cloud"] = timings.get("cloud", 0.0) + time.perf_counter() - t2

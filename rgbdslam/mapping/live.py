@@ -122,10 +122,12 @@ class MapState:
         fused = sorted(self.used)
         return self.tsdf, self.cloud, fused, sum(self.n_depth[i] for i in fused)
 
-    def _volume(self):
+    def _volume(self, tsdf: bool = True, cloud: bool = True):
+        """A new, empty TSDF (None without a mesh or when not ``tsdf``) and voxel cloud (None when not ``cloud``)."""
         from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf
 
-        return (_Tsdf(self.cfg, self.camera) if self.cfg.mesh else None), VoxelCloud(self.cfg.voxel_size)
+        return ((_Tsdf(self.cfg, self.camera) if self.cfg.mesh and tsdf else None),
+                VoxelCloud(self.cfg.voxel_size) if cloud else None)
 
     def _prepared(self, index: int, rgb=None, depth=None) -> tuple[np.ndarray, np.ndarray]:
         """A keyframe's colour and depth as fused (:func:`prepare_frame`): from the cache, else
@@ -172,44 +174,61 @@ class MapState:
                 {"keyframes": self.stats["integrated"], "rss_mb": round(_rss_mb(), 1),
                  **{k: round(v, 1) if isinstance(v, float) else v for k, v in self.sizes().items()}})
 
-    def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None) -> int:
+    def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None, between=None) -> int:
         """Bring the map to ``poses`` (keyframes without one stay where they are; only the keyframes
-        in ``keep``, if given); returns how many keyframes moved or left."""
+        in ``keep``, if given); returns how many keyframes moved or left.
+
+        ``between(fused)``, if given, is called when the cloud is at the poses and before the TSDF
+        is (``fused``: the keyframes the map then holds): at the end of a run the cloud goes to the
+        run, which removes its outliers and makes the 2-D map while the TSDF is redone here."""
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
         move = [i for i in want if self._shift(i, want[i]) > self.tol_m]
-        if not drop and not move:
-            return 0
-        self.stats["refreshes"] += 1
-        if len(drop) + len(move) > REBUILD_FRACTION * len(self.used):
-            self.tsdf, self.cloud = self._volume()
-            for i, pose in want.items():
-                self._integrate(self.tsdf, self.cloud, pose, self._prepared(i))
-            self.used = dict(want)
-            self.stats["rebuilds"] += 1
-            self.stats["reintegrated"] += len(want)
-            return len(drop) + len(move)
-        old_t, old_c = self._volume()
-        new_t, new_c = self._volume()
-        for i in drop + move:
-            prepared = self._prepared(i)
-            self._integrate(old_t, old_c, self.used[i], prepared)
-            if i in want:
-                self._integrate(new_t, new_c, want[i], prepared)
-        if self.tsdf is not None:
-            merge_tsdf(self.tsdf.vol, old_t.vol, sign=-1)
-            merge_tsdf(self.tsdf.vol, new_t.vol, sign=+1)
-        add_cloud(self.cloud, old_c, sign=-1)
-        add_cloud(self.cloud, new_c, sign=+1)
+        n = len(drop) + len(move)
+        rebuild = n > REBUILD_FRACTION * len(self.used)
+        if n:
+            self.stats["refreshes"] += 1
+            self.stats["rebuilds"] += rebuild
+            self.stats["deintegrated"] += 0 if rebuild else n
+            self.stats["reintegrated"] += len(want) if rebuild else len(move)
+        for parts in ((("cloud", "tsdf"),) if between is None else (("cloud",), None, ("tsdf",))):
+            if parts is None:
+                between(sorted(want))
+            elif n:
+                self._redo(parts, want, drop + move, rebuild)
         for i in drop:
             del self.used[i]
             self.box.pop(i, None)
             self._uncache(i)
-        for i in move:
-            self.used[i] = want[i]
-        self.stats["deintegrated"] += len(drop) + len(move)
-        self.stats["reintegrated"] += len(move)
-        return len(drop) + len(move)
+        self.used.update(want if rebuild else {i: want[i] for i in move})  # a rebuild put every keyframe at its pose
+        return n
+
+    def _redo(self, parts: tuple[str, ...], want: dict[int, np.ndarray], redo: list[int], rebuild: bool) -> None:
+        """The ``parts`` of the map ("cloud", "tsdf") made again from the keyframes ``want`` at
+        their poses (``rebuild``), or with the keyframes ``redo`` taken out at the pose they are in
+        the map at and put in again at their ``want`` pose (those that have one)."""
+        tsdf = "tsdf" in parts and self.tsdf is not None
+        cloud = "cloud" in parts
+        if rebuild:
+            t, c = self._volume(tsdf, cloud)
+            for i, pose in want.items():
+                self._integrate(t, c, pose, self._prepared(i))
+            self.tsdf = t if tsdf else self.tsdf
+            self.cloud = c if cloud else self.cloud
+            return
+        old_t, old_c = self._volume(tsdf, cloud)
+        new_t, new_c = self._volume(tsdf, cloud)
+        for i in redo:
+            prepared = self._prepared(i)
+            self._integrate(old_t, old_c, self.used[i], prepared)
+            if i in want:
+                self._integrate(new_t, new_c, want[i], prepared)
+        if tsdf:
+            merge_tsdf(self.tsdf.vol, old_t.vol, sign=-1)
+            merge_tsdf(self.tsdf.vol, new_t.vol, sign=+1)
+        if cloud:
+            add_cloud(self.cloud, old_c, sign=-1)
+            add_cloud(self.cloud, new_c, sign=+1)
 
 
 def _pack_depth(depth: np.ndarray, scale: float) -> np.ndarray:
@@ -314,10 +333,10 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
 
 
 def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: bool) -> dict:
-    """The end, in the map process: the map brought to the final poses, the voxel cloud's points
-    sent to the run (``("cloud", ...)`` on ``results``: it removes the outliers, writes cloud.ply and
-    makes the 2-D map) while this process extracts and writes mesh.ply into the run's temporary map
-    folder ``stage``."""
+    """The end, in the map process: the map brought to the final poses, the cloud first: its points
+    go to the run (``("cloud", ...)`` on ``results``: it removes the outliers, writes cloud.ply and
+    makes the 2-D map) while this process brings the TSDF to the poses and extracts and writes
+    mesh.ply into the run's temporary map folder ``stage``."""
     from pathlib import Path
 
     from rgbdslam.errors import InputError
@@ -329,20 +348,25 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     if len(shift):
         state.stats["final_shift_median_mm"] = float(np.median(shift))
         state.stats["final_shift_max_mm"] = float(shift.max())
-    state.stats["final_moved"] = state.refresh(poses, keep)
-    state.stats["final_s"] = time.perf_counter() - t0
-    tsdf, cloud, fused, n_depth = state.result()
-    if not fused:
-        raise InputError("no keyframe of the run is in a tracking segment that belongs to the map; "
-                         "re-run with loop closure on (loop.enabled=true)")
-    check_depth(n_depth, fused, state.cfg, filtered_depth)
+
+    def send_cloud(fused: list[int]) -> None:
+        if not fused:
+            raise InputError("no keyframe of the run is in a tracking segment that belongs to the map; "
+                             "re-run with loop closure on (loop.enabled=true)")
+        check_depth(sum(state.n_depth[i] for i in fused), fused, state.cfg, filtered_depth)
+        t1 = time.perf_counter()
+        state.stats["final_cloud_s"] = t1 - t0
+        state.stats["cloud_voxels"] = len(state.cloud)
+        points, colors = cloud_points(state.cloud, state.cfg)
+        state.cloud = None
+        results.put(("cloud", (points, colors, fused)))
+        state.stats["cloud_points"] = time.perf_counter() - t1
+
+    state.stats["final_moved"] = state.refresh(poses, keep, between=send_cloud)
+    state.stats["final_s"] = time.perf_counter() - t0 - state.stats["cloud_points"]
+    tsdf, _, fused, _ = state.result()
     state.stats.update(state.sizes())
     state.cache.clear()  # the images are not needed any more
-    t0 = time.perf_counter()
-    points, colors = cloud_points(cloud, state.cfg)
-    state.cloud = cloud = None
-    results.put(("cloud", (points, colors, fused)))
-    state.stats["cloud_points"] = time.perf_counter() - t0
     out = {"mesh_path": None, "n_vertices": 0, "n_triangles": 0}
     if tsdf is not None:
         t0 = time.perf_counter()

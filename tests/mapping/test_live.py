@@ -124,6 +124,11 @@ def test_run_writes_the_live_map_and_it_matches_fusing_afterwards(tmp_path, desk
     assert res.exit_code == 0, res.output
     info = json.loads((out / "run.json").read_text())
     assert info["map"]["live"] is True and info["map"]["frames_fused"] == len(info["keyframes"]) >= 2
+    # the plots, drawn by the plot process meanwhile, are written and named in evaluation.json and run.json
+    plots = json.loads((out / "evaluation.json").read_text())["plots"]
+    assert [p.rsplit("/", 1)[1] for p in plots] == ["ate_topview.png", "ate_over_time.png", "rpe_over_time.png"]
+    assert all(open(p, "rb").read(8) == b"\x89PNG\r\n\x1a\n" for p in plots)
+    assert info["evaluation"]["plots"] == plots and "plots" in info["after_tracking_s"]
     import open3d as o3d
 
     live = np.asarray(o3d.io.read_point_cloud(str(out / "map" / "cloud.ply")).points)
@@ -206,3 +211,29 @@ def test_points_box_holds_every_point_of_a_real_keyframe(desk9):
     box = points_box(depth, seq.camera)
     np.testing.assert_allclose(box, [pts.min(axis=0), pts.max(axis=0)], atol=1e-5)
     assert points_box(np.zeros_like(depth), seq.camera) is None
+
+
+def test_the_end_gives_the_cloud_before_the_tsdf_is_redone(synth):
+    """At the end of a run the cloud goes to the run first (it makes cloud.ply and the 2-D map
+    meanwhile); both parts still equal fusing the final poses."""
+    cfg = MappingConfig()
+    gt = synth.groundtruth()
+    live = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+    shift = np.eye(4)
+    shift[2, 3] = 0.03
+    for i in (0, 3, 6, 9):
+        f = synth.load(i)
+        live.add(i, f.rgb, f.depth, gt.poses[i] @ shift if i == 9 else gt.poses[i])
+    final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
+    fresh = _fresh(synth, cfg, {i: final[i] for i in (0, 3, 9)})
+    seen = []
+
+    def between(fused):
+        seen.append(fused)
+        tsdf_now = _voxels(live.tsdf.vol)
+        assert tsdf_now.keys() != _voxels(fresh[0].vol).keys()  # the TSDF still has 6 in and 9 where it was
+        _same_map((fresh[0], fresh[1]), (fresh[0], live.cloud), synth, cfg)  # the cloud is final already
+
+    assert live.refresh(final, keep={0, 3, 9}, between=between) == 2  # 6 leaves, 9 moves
+    assert seen == [[0, 3, 9]]
+    _same_map(fresh, live.result()[:2], synth, cfg)
