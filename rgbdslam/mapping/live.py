@@ -1,22 +1,24 @@
-"""Fusion while tracking: keyframes go into the map in a background thread as they are made.
+"""Fusion while tracking: keyframes go into the map in a separate process as they are made.
 
 One TSDF volume and one voxel cloud hold the map, each keyframe integrated at the pose the pose
 graph gave it when it was made. Both are sums over frames — the cloud per voxel the sum of
 positions, colours and the point count; a TSDF voxel the weighted mean of the frames' signed
 distances with the number of frames as weight — so a frame can be taken out again exactly:
-when poses change (after a loop closure, iSAM2; at the end, the final batch optimisation and
-the tracking segments left out of the map), the keyframes that moved more than a quarter of a
-voxel are *de-integrated* (their images integrated into a scratch volume at the old pose and
+when poses change (after a loop closure, a batch optimisation of the graph so far; at the end,
+the final optimisation and the tracking segments left out of the map), the keyframes whose points
+moved more than a quarter of a voxel (:func:`shift_m`) are *de-integrated* (their images integrated into a scratch volume at the old pose and
 subtracted) and integrated at the new pose. When more than half of the keyframes moved, the map
 is rebuilt instead (one integration per keyframe instead of two). So the map at the end is the
 one fusing the final poses gives, up to the quarter-voxel tolerance and float rounding
 (docs/mapping.md, "Fusion while tracking", has the measured difference), and memory is that of
 one map, not of one volume per keyframe.
 
-All the work happens in one worker thread; the tracking thread only enqueues. Pose updates are
-coalesced: when several are waiting, only the newest is applied. A keyframe's images are held
-until they are integrated; re-integration reads them again (``load``). An error in the thread
-is raised by :meth:`LiveMap.finish`.
+All the work happens in the map process (:class:`LiveMap`, niced: ``mapping.live_nice``); the
+tracking thread only enqueues. Pose updates are coalesced: when several are waiting, only the
+newest is applied. A keyframe's prepared images are cached for re-integration (up to
+:data:`CACHE_MB`; beyond, ``load`` reads them again). At the end the cloud is brought to the final
+poses first and sent to the run, then the TSDF and the mesh (:func:`_finish`). An error in the
+process is raised by :meth:`LiveMap.finish`.
 """
 
 from __future__ import annotations
