@@ -211,6 +211,8 @@ class MapState:
         the map at and put in again at their ``want`` pose (those that have one)."""
         tsdf = "tsdf" in parts and self.tsdf is not None
         cloud = "cloud" in parts
+        if not (tsdf or cloud):  # no mesh
+            return
         if rebuild:
             t, c = self._volume(tsdf, cloud)
             for i, pose in want.items():

@@ -237,3 +237,23 @@ def test_the_end_gives_the_cloud_before_the_tsdf_is_redone(synth):
     assert live.refresh(final, keep={0, 3, 9}, between=between) == 2  # 6 leaves, 9 moves
     assert seen == [[0, 3, 9]]
     _same_map(fresh, live.result()[:2], synth, cfg)
+
+
+def test_without_a_mesh_the_map_is_the_cloud_alone(synth):
+    cfg = MappingConfig(mesh=False)
+    gt = synth.groundtruth()
+    live = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+    shift = np.eye(4)
+    shift[0, 3] = 0.02
+    for i in (0, 5, 10):
+        f = synth.load(i)
+        live.add(i, f.rgb, f.depth, gt.poses[i] @ shift)
+    seen = []
+    assert live.refresh({i: gt.poses[i] for i in (0, 5, 10)}, between=seen.append) == 3  # a rebuild
+    assert seen == [[0, 5, 10]] and live.tsdf is None and live.stats["rebuilds"] == 1
+    fresh = VoxelCloud(cfg.voxel_size)
+    for i in (0, 5, 10):
+        f = synth.load(i)
+        integrate_frame(None, fresh, *prepare_frame(f.rgb, f.depth, _Undistorter(synth.camera, True), cfg),
+                        gt.poses[i], synth.camera, cfg)
+    np.testing.assert_allclose(np.sort(live.cloud.result()[0], axis=0), np.sort(fresh.result()[0], axis=0), atol=1e-9)
