@@ -100,15 +100,22 @@ def test_moved_and_dropped_keyframes_are_reintegrated_to_the_final_poses(synth):
     _same_map(_fresh(synth, cfg, expect), (tsdf, cloud), synth, cfg)
 
 
-def test_most_keyframes_moved_rebuilds_and_still_matches(synth):
-    cfg = MappingConfig()
+def _shifted_map(synth, cfg, frames, shifted, axis: int, metres: float):
+    """A live map of ``frames`` at the ground-truth poses, those in ``shifted`` moved ``metres``
+    along camera ``axis`` (as a loop closure would find them off); and the ground truth."""
     gt = synth.groundtruth()
     live = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
     shift = np.eye(4)
-    shift[0, 3] = 0.05
-    for i in (0, 3, 6):
+    shift[axis, 3] = metres
+    for i in frames:
         f = synth.load(i)
-        live.add(i, f.rgb, f.depth, gt.poses[i] @ shift)
+        live.add(i, f.rgb, f.depth, gt.poses[i] @ shift if i in shifted else gt.poses[i])
+    return live, gt
+
+
+def test_most_keyframes_moved_rebuilds_and_still_matches(synth):
+    cfg = MappingConfig()
+    live, gt = _shifted_map(synth, cfg, (0, 3, 6), (0, 3, 6), 0, 0.05)
     live.refresh({i: gt.poses[i] for i in (0, 3)})  # during tracking, after a loop: 6 stays
     assert live.stats["rebuilds"] == 1 and live.used[6] is not None
     live.refresh({i: gt.poses[i] for i in (0, 3, 6)})  # the end
@@ -217,13 +224,7 @@ def test_the_end_gives_the_cloud_before_the_tsdf_is_redone(synth):
     """At the end of a run the cloud goes to the run first (it makes cloud.ply and the 2-D map
     meanwhile); both parts still equal fusing the final poses."""
     cfg = MappingConfig()
-    gt = synth.groundtruth()
-    live = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
-    shift = np.eye(4)
-    shift[2, 3] = 0.03
-    for i in (0, 3, 6, 9):
-        f = synth.load(i)
-        live.add(i, f.rgb, f.depth, gt.poses[i] @ shift if i == 9 else gt.poses[i])
+    live, gt = _shifted_map(synth, cfg, (0, 3, 6, 9), (9,), 2, 0.03)
     final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
     fresh = _fresh(synth, cfg, {i: final[i] for i in (0, 3, 9)})
     seen = []
@@ -241,13 +242,7 @@ def test_the_end_gives_the_cloud_before_the_tsdf_is_redone(synth):
 
 def test_without_a_mesh_the_map_is_the_cloud_alone(synth):
     cfg = MappingConfig(mesh=False)
-    gt = synth.groundtruth()
-    live = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
-    shift = np.eye(4)
-    shift[0, 3] = 0.02
-    for i in (0, 5, 10):
-        f = synth.load(i)
-        live.add(i, f.rgb, f.depth, gt.poses[i] @ shift)
+    live, gt = _shifted_map(synth, cfg, (0, 5, 10), (0, 5, 10), 0, 0.02)
     seen = []
     assert live.refresh({i: gt.poses[i] for i in (0, 5, 10)}, between=seen.append) == 3  # a rebuild
     assert seen == [[0, 5, 10]] and live.tsdf is None and live.stats["rebuilds"] == 1
