@@ -211,3 +211,21 @@ def test_synth_cli_figure8_and_revisit(tmp_path):
     assert len(open_sequence(tmp_path / "r")) == 12
     with pytest.raises(InputError, match="--blur must be"):
         generate_sequence(tmp_path / "z", frames=2, blur=True)
+
+
+def test_bench_landmarks_takes_the_visits_from_synthetic_yaml(tmp_path):
+    """scripts/bench_landmarks.py's revisit table: the revisit motion's recorded ranges, else the
+    first and last 15 % of the frames."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / "bench_landmarks.py"
+    spec = importlib.util.spec_from_file_location("bench_landmarks", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    (tmp_path / "synthetic.yaml").write_text(yaml.safe_dump({"frames": 150, "motion": "revisit",
+                                                             **revisit_ranges(150)}))
+    assert mod.visit_ranges(tmp_path, 150) == (range(0, 22), range(128, 150))
+    assert mod.visit_ranges(tmp_path, 140) == (range(0, 21), range(119, 140))  # not this sequence's: fallback
+    assert mod.visit_ranges(tmp_path / "none", 100) == (range(0, 15), range(85, 100))
+    assert "revisit" in mod.LOOP_TYPE and "figure8" in mod.LOOP_TYPE
