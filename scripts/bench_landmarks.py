@@ -213,6 +213,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--motions", default="loop,circle,xyz,rpy,figure8,revisit")
+    ap.add_argument("--blur", type=float, default=None, metavar="MS",
+                    help="render the synthetic sequences with this exposure (ms; 0 = sharp) instead of each motion's "
+                         "default (figure8: 16 ms, others sharp); the names then say it")
     ap.add_argument("--variant", action="append", default=[])
     ap.add_argument("--no-open3d", action="store_true")
     ap.add_argument("--open3d-only", action="store_true",
@@ -231,9 +234,9 @@ def main(argv=None) -> int:
         if a.work is not None:  # first visit vs revisit on the loop-type sequences, from the run folders
             for r in rows:
                 motion, _, seed = r["sequence"].partition(" seed ")
-                if motion in LOOP_TYPE and r["variant"] != "Open3D hybrid odometry":
-                    rv = revisit_errors(a.work / f"{motion}_s{seed}_{a.frames}", a.work / "runs" /
-                                        run_dir_name(r["sequence"], r["variant"]))
+                if motion.split(" ")[0] in LOOP_TYPE and r["variant"] != "Open3D hybrid odometry":
+                    seq_dir = Path(r["dir"]) if r.get("dir") else a.work / f"{motion}_s{seed}_{a.frames}"
+                    rv = revisit_errors(seq_dir, a.work / "runs" / run_dir_name(r["sequence"], r["variant"]))
                     if rv:
                         r["first_visit"], r["revisit"] = rv
         machine = next((d["machine"] for d in data if d.get("machine")),
@@ -263,10 +266,11 @@ def main(argv=None) -> int:
     if not a.skip_synthetic:
         for motion in a.motions.split(","):
             for seed in [int(s) for s in a.seeds.split(",")]:
-                d = work / f"{motion}_s{seed}_{a.frames}"
+                tag = "" if a.blur is None else f"_blur{a.blur:g}"
+                d = work / f"{motion}_s{seed}_{a.frames}{tag}"
                 if not (d / "groundtruth.txt").exists():
-                    generate_sequence(d, frames=a.frames, motion=motion, noise=True, seed=seed)
-                seqs.append((f"{motion} seed {seed}", d))
+                    generate_sequence(d, frames=a.frames, motion=motion, noise=True, seed=seed, blur=a.blur)
+                seqs.append((f"{motion}{'' if a.blur is None else f' blur {a.blur:g} ms'} seed {seed}", d))
     rows = []
     for name, d in seqs:
         for vname, sets in ({} if a.open3d_only else variants).items():
@@ -274,8 +278,8 @@ def main(argv=None) -> int:
                 and not (d / "rgb.txt").exists() else []
             cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *extra, *sets])
             s = run_sequence(d, work / "runs" / run_dir_name(name, vname), cfg, progress=False)
-            row = {"sequence": name, "variant": vname, **_metrics(s)}
-            if " seed " in name and name.split(" seed ")[0] in LOOP_TYPE:
+            row = {"sequence": name, "variant": vname, "dir": str(d), **_metrics(s)}
+            if " seed " in name and name.split(" ")[0] in LOOP_TYPE:
                 rv = revisit_errors(d, work / "runs" / run_dir_name(name, vname))
                 if rv:
                     row["first_visit"], row["revisit"] = rv
