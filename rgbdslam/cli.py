@@ -381,8 +381,10 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
 @main.command()
 @click.argument("out", type=PATH)
 @click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz).")
-@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static"]), default="xyz",
-              show_default=True, help="Camera motion; 'loop' returns to and revisits the start view.")
+@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static", "figure8", "revisit"]),
+              default="xyz", show_default=True,
+              help="Camera motion; 'loop' returns to and revisits the start view; 'figure8' a fast figure eight "
+                   "(~1 m/s, ~75 deg/s) with motion blur; 'revisit' maps a place, leaves, comes back to the same view.")
 @click.option("--noise", is_flag=True, help="Kinect-like depth noise (sigma 1.2 mm + 1.9 mm (z-0.4)^2) and colour noise.")
 @click.option("--dropout", type=float, default=0.0, show_default=True, help="Fraction of depth pixels lost in holes.")
 @click.option("--drift", type=float, default=0.0, show_default=True,
@@ -400,7 +402,9 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
                    "(same scene and trajectory as the RGB-D sequence of the same options).")
 @click.option("--layout", type=click.Choice(["kitti", "euroc"]), default="kitti", show_default=True,
               help="With --stereo: KITTI odometry or EuRoC/ASL folder layout.")
-def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase, time_offset, baseline, layout):
+@click.option("--blur", type=float, default=None, metavar="MS",
+              help="Motion blur: exposure time in ms (0 = sharp, at most 33.3). Default: 16 for figure8, 0 otherwise.")
+def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase, time_offset, baseline, layout, blur):
     """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout), or with
     --stereo a stereo sequence (KITTI or EuRoC layout)."""
     if baseline is not None:
@@ -412,12 +416,12 @@ def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase,
         if phase or time_offset:
             raise InputError("--phase and --time-offset are for RGB-D sequences (sessions); leave them out with --stereo")
         synth_stereo_command(out, baseline=baseline, layout=layout, frames=frames, motion=motion, noise=noise,
-                             seed=seed, camera=camera, width=size[0], height=size[1])
+                             seed=seed, camera=camera, width=size[0], height=size[1], blur=blur)
         return
     from rgbdslam.datasets.synthetic import synth_command
 
     synth_command(out, frames=frames, motion=motion, noise=noise, dropout=dropout, drift=drift, seed=seed,
-                  camera=camera, width=size[0], height=size[1], phase=phase, time_offset=time_offset)
+                  camera=camera, width=size[0], height=size[1], phase=phase, time_offset=time_offset, blur=blur)
 
 
 # ------------------------------------------------------------------------------- posegraph

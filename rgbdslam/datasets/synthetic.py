@@ -32,7 +32,7 @@ from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred, plain_per
 from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.ui import console, frame_progress
 
-MOTIONS = ("xyz", "rpy", "loop", "circle", "static")
+MOTIONS = ("xyz", "rpy", "loop", "circle", "static", "figure8", "revisit")
 FPS = 30.0
 EPOCH = 1_600_000_000.0  # time stamp of frame 0 (seconds)
 DEPTH_SCALE = 5000.0  # TUM: raw units per metre
@@ -226,6 +226,7 @@ class Rays:
         self.y = ((ideal[:, 1] - camera.cy) / camera.fy).reshape(camera.height, camera.width)
         self._col_lo, self._col_hi = self.x.min(axis=0), self.x.max(axis=0)
         self._row_lo, self._row_hi = self.y.min(axis=1), self.y.max(axis=1)
+        self.fx, self.fy = camera.fx, camera.fy
 
     def window(self, corners: np.ndarray, near: float = 1e-3) -> tuple[int, int, int, int] | None:
         """Rows r0:r1 and columns c0:c1 that may see the convex polygon ``corners``
@@ -289,6 +290,12 @@ def _rot(axis: int, angle: float) -> np.ndarray:
     return R
 
 
+FIGURE8_PERIOD = 5.0  # seconds per lap of the figure eight (laps rounded so the last frame closes it)
+REVISIT_SHARE = 0.15  # share of the frames in each of the two visits of the revisit motion
+REVISIT_MIN_FRAMES = 12
+DEFAULT_EXPOSURE_MS = {"figure8": 16.0}  # motion blur on by default (other motions: sharp frames)
+
+
 def make_trajectory(motion: str, frames: int, phase: float = 0.0) -> np.ndarray:
     """Smooth camera-to-world poses (frames, 4, 4) for a motion in :data:`MOTIONS`.
 
@@ -302,19 +309,88 @@ def make_trajectory(motion: str, frames: int, phase: float = 0.0) -> np.ndarray:
     last frame (the start view is revisited); circle: a 0.4 m circle in the world
     y-z plane around the eye point (0, 0, 1.4) while looking at a fixed point on wall x=3,
     back at the start on the last frame;
+    figure8: a figure eight (lemniscate of Gerono, 1.6 m x 0.84 m) around the room's centre,
+    the camera turning once round per lap (yaw = lap angle + 0.3 sin 2·angle: 29-115 °/s,
+    72 °/s mean) with pitch and roll swaying, at ~1.0 m/s mean (0.66-1.45 m/s); one lap per
+    ~5 s (:data:`FIGURE8_PERIOD`; the number of laps is rounded so that the last frame is
+    back at the start pose). Rendered with motion blur by default (:data:`DEFAULT_EXPOSURE_MS`);
+    revisit: the camera maps place A (the first :data:`REVISIT_SHARE` of the frames: a slow
+    pan at A facing wall x=3), turns left by 75° and moves 1 m to place B (facing the corner
+    towards wall y=2.5, a view that does not overlap A's), looks around there, comes back, and
+    repeats the first visit pose for pose (the last :data:`REVISIT_SHARE` of the frames; 150
+    frames: frames 0-21 and 128-149, 128 frames apart); see :func:`revisit_ranges`;
     static: no motion.
     """
+    return trajectory_at(motion, np.arange(frames, dtype=np.float64), frames, phase)
+
+
+def revisit_ranges(frames: int) -> dict:
+    """First and last frame (inclusive) of the first visit and of the revisit of the
+    ``revisit`` motion: frame ``k`` of the first visit and frame ``k + offset`` of the
+    revisit have the same pose."""
+    n_visit = max(2, int(round(REVISIT_SHARE * frames)))
+    return {"first_visit": [0, n_visit - 1], "revisit": [frames - n_visit, frames - 1],
+            "revisit_offset": frames - n_visit}
+
+
+def _pose_ypr(position, yaw: float, pitch: float, roll: float = 0.0) -> np.ndarray:
+    """Camera at ``position`` looking along heading ``yaw`` (about world z, 0 = +x), ``pitch``
+    (up positive) and rolled by ``roll`` about its optical axis."""
+    fwd = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
+    P = _look(np.asarray(position, dtype=np.float64), fwd)
+    if roll:
+        P[:3, :3] = P[:3, :3] @ _rot(2, roll)
+    return P
+
+
+def _smoothstep(x):
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _revisit_pose(u: float, frames: int) -> np.ndarray:
+    """Pose of the revisit motion at (fractional) frame index ``u``."""
+    last = max(frames - 1, 1)
+    r = revisit_ranges(frames)
+    d = float(r["first_visit"][1])  # the visit lasts u in [0, d]
+    pos_a, yaw_a = np.array([0.4, -0.4, EYE_HEIGHT]), 0.0
+    pos_b, yaw_b = np.array([-0.3, 0.3, EYE_HEIGHT - 0.05]), np.radians(75.0)
+    pitch = np.radians(-10.0)
+    u = float(np.clip(u, 0.0, last))
+    if u <= d or u >= last - d:  # first visit or revisit: a slow pan away from B and back
+        tau = u if u <= d else u - (last - d)
+        phi = 0.5 * (1.0 - np.cos(2 * np.pi * tau / d))  # 0 -> 1 -> 0, at rest at both ends
+        return _pose_ypr(pos_a + phi * np.array([0.0, -0.12, 0.04]), yaw_a - np.radians(12.0) * phi, pitch)
+    w = (u - d) / (last - 2 * d)  # 0..1 away from A
+    if w < 0.37:  # A -> B, turning left by 75 degrees
+        g = _smoothstep(w / 0.37)
+        return _pose_ypr(pos_a + g * (pos_b - pos_a), yaw_a + g * (yaw_b - yaw_a), pitch)
+    if w > 0.63:  # B -> A
+        g = _smoothstep((w - 0.63) / 0.37)
+        return _pose_ypr(pos_b + g * (pos_a - pos_b), yaw_b + g * (yaw_a - yaw_b), pitch)
+    a = (w - 0.37) / 0.26  # at B: a sideways step and a look to both sides, at rest at both ends
+    s2 = np.sin(np.pi * a) ** 2
+    return _pose_ypr(pos_b + 0.15 * s2 * np.array([1.0, 0.0, 0.0]),
+                     yaw_b + np.radians(8.0) * np.sin(2 * np.pi * a) * s2, pitch + np.radians(5.0) * s2)
+
+
+def trajectory_at(motion: str, u: np.ndarray, frames: int, phase: float = 0.0) -> np.ndarray:
+    """Poses (len(u), 4, 4) of a motion of ``frames`` frames at the (fractional) frame indices
+    ``u``: :func:`make_trajectory` at ``u = 0, 1, ...``; between frames for motion blur."""
     if motion not in MOTIONS:
         raise InputError(f"unknown motion '{motion}'; choose one of {', '.join(MOTIONS)}")
     if frames < 1:
         raise InputError(f"frames must be at least 1 (got {frames})")
-    shift = float(phase) * max(frames - 1, 1)
-    t = (np.arange(frames) + shift) / FPS
-    s = (np.arange(frames) + shift) / max(frames - 1, 1)  # 0..1 over the sequence (+ phase)
+    u = np.atleast_1d(np.asarray(u, dtype=np.float64))
+    last = max(frames - 1, 1)
+    shift = float(phase) * last
+    t = (u + shift) / FPS
+    s = (u + shift) / last  # 0..1 over the sequence (+ phase)
     centre = np.array([0.0, 0.0, EYE_HEIGHT])
     ahead = np.array([1.0, 0.0, 0.0])
-    poses = np.empty((frames, 4, 4))
-    for k in range(frames):
+    poses = np.empty((len(u), 4, 4))
+    laps = max(1, int(round(last / FPS / FIGURE8_PERIOD)))
+    for k in range(len(u)):
         if motion == "static":
             poses[k] = _look(centre, ahead)
         elif motion == "xyz":
@@ -333,11 +409,105 @@ def make_trajectory(motion: str, frames: int, phase: float = 0.0) -> np.ndarray:
             pos = centre + 0.7 * radial + [0.0, 0.0, 0.1 * np.sin(2 * th)]
             P = _look(pos, radial + [0.0, 0.0, -0.1 + 0.1 * np.cos(2 * th)])
             poses[k] = P
-        else:  # circle
+        elif motion == "circle":
             th = 2 * np.pi * s[k]
             pos = centre + 0.4 * np.array([0.0, np.sin(th), np.cos(th)])
             poses[k] = _look(pos, np.array([3.0, 0.0, 1.2]) - pos)
+        elif motion == "figure8":
+            th = 2 * np.pi * laps * s[k]
+            pos = centre + np.array([0.8 * np.sin(th), 0.42 * np.sin(2 * th), 0.08 * np.sin(3 * th)])
+            poses[k] = _pose_ypr(pos, th + 0.3 * np.sin(2 * th), np.radians(-8.0 + 8.0 * np.sin(3 * th)),
+                                 np.radians(6.0) * np.sin(2 * th))
+        else:  # revisit (no phase: validate_parameters refuses it)
+            poses[k] = _revisit_pose(u[k], frames)
     return poses
+
+
+# ----------------------------------------------------------------------------- motion blur
+
+
+def render_exposure(scene: "Scene", rays: "Rays", pose_at, k: int, exposure_frames: float,
+                    max_step_px: float = 1.5, max_subframes: int = 41):
+    """Render frame ``k`` as a camera whose shutter is open for ``exposure_frames`` frame
+    intervals centred on the frame's time: the mean of ``n`` ray-cast sub-frames at poses
+    ``pose_at(u)`` (``u`` fractional frame indices, a (n, 4, 4) stack) spread evenly over the
+    exposure, ``n`` odd and chosen so that the image moves by at most ``max_step_px`` between
+    sub-frames (a continuous streak, not ghost copies). The centre sub-frame is the frame's
+    pose (the ground truth): depth and surface ids are its, exact. Deterministic (no random
+    draw). Returns ``(rgb, depth, surface, streak_px)``; ``streak_px`` is the longest image
+    motion over the exposure (0 without blur)."""
+    centre = pose_at(np.array([float(k)]))[0]
+    rgb, depth, hit = scene.render(rays, centre)
+    if exposure_frames <= 0:
+        return rgb, depth, hit, 0.0
+    ends = pose_at(np.array([k - 0.5 * exposure_frames, k + 0.5 * exposure_frames]))
+    streak = _streak_px(rays, depth, centre, ends)
+    n = int(min(max_subframes, 2 * int(np.ceil(streak / (2 * max_step_px))) + 1))
+    if n < 3:
+        return rgb, depth, hit, streak
+    us = k + exposure_frames * (np.arange(n) / (n - 1) - 0.5)
+    acc = rgb.astype(np.float32)
+    for i, P in enumerate(pose_at(us)):
+        if i != (n - 1) // 2:  # the centre is rendered already
+            acc += scene.render(rays, P)[0]
+    return np.clip(np.round(acc / n), 0, 255).astype(np.uint8), depth, hit, streak
+
+
+def _streak_px(rays: "Rays", depth: np.ndarray, centre: np.ndarray, ends: np.ndarray) -> float:
+    """Longest motion (pixels) between the exposure's start and end poses of the scene points
+    seen at the centre pose (a grid of every 4th pixel; pinhole projection)."""
+    sub = (slice(None, None, 4), slice(None, None, 4))
+    z = depth[sub]
+    ok = z > 0
+    if not ok.any():
+        return 0.0
+    P = np.stack([rays.x[sub][ok] * z[ok], rays.y[sub][ok] * z[ok], z[ok]], axis=1)
+    world = P @ centre[:3, :3].T + centre[:3, 3]
+    uv = []
+    for T in ends:
+        c = (world - T[:3, 3]) @ T[:3, :3]
+        zc = np.maximum(c[:, 2], 1e-3)
+        uv.append(np.stack([rays.fx * c[:, 0] / zc, rays.fy * c[:, 1] / zc], axis=1))
+    return float(np.linalg.norm(uv[1] - uv[0], axis=1).max())
+
+
+def exposure_frames(exposure_ms: float) -> float:
+    """An exposure time (ms) in frame intervals at :data:`FPS`."""
+    return float(exposure_ms) * 1e-3 * FPS
+
+
+def motion_parameters(motion: str, frames: int, exposure_ms: float) -> dict:
+    """What synthetic.yaml records beyond the options: the revisit motion's frame ranges, and the
+    motion blur (only when on, so sharp sequences' files stay as they were)."""
+    extra: dict = {}
+    if motion == "revisit":
+        extra.update(revisit_ranges(frames))
+    if exposure_ms > 0:
+        extra["motion_blur"] = {"exposure_ms": float(exposure_ms), "shutter": "box, centred on the frame's time",
+                                "max_subframe_step_px": 1.5}
+    return extra
+
+
+def record_streaks(params: dict, streaks: list[float]) -> None:
+    """Add the blur streak lengths (pixels, per frame: longest image motion over the exposure)."""
+    if "motion_blur" in params and streaks:
+        a = np.asarray(streaks)
+        params["motion_blur"].update(streak_px_median=round(float(np.median(a)), 2),
+                                     streak_px_p90=round(float(np.percentile(a, 90)), 2),
+                                     streak_px_max=round(float(a.max()), 2))
+
+
+def blur_note(summary: dict) -> str:
+    """", motion blur 16 ms (streaks median 17 px)" for a summary with blur, else ""."""
+    b = summary.get("motion_blur")
+    if not b:
+        return ""
+    return f", motion blur {b['exposure_ms']:g} ms (streaks median {b.get('streak_px_median', 0):.0f} px)"
+
+
+def resolve_blur(motion: str, blur) -> float:
+    """The exposure (ms) a sequence is rendered with: ``blur`` if given, else the motion's default."""
+    return float(DEFAULT_EXPOSURE_MS.get(motion, 0.0) if blur is None else blur)
 
 
 # ----------------------------------------------------------------------------- sensor effects
@@ -365,6 +535,7 @@ def dropout_mask(shape: tuple[int, int], fraction: float, rng: np.random.Generat
 
 MAX_SIZE = 4096  # pixels per image side
 MAX_FRAMES = 100_000  # ~55 min at 30 Hz
+MAX_EXPOSURE_MS = 1000.0 / FPS  # the shutter cannot stay open longer than a frame
 GENERATED = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml", "synthetic.yaml")
 
 
@@ -373,7 +544,7 @@ def _is_int(v) -> bool:
 
 
 def validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera, phase=0.0,
-                        time_offset=0.0) -> None:
+                        time_offset=0.0, blur=None) -> None:
     """Check every parameter of :func:`generate_sequence` before anything is written; an
     InputError names the parameter (as the ``synth`` option) and its valid range."""
     if not _is_int(frames) or not 1 <= frames <= MAX_FRAMES:
@@ -397,6 +568,16 @@ def validate_parameters(frames, motion, width, height, noise, dropout, drift, se
         raise InputError(f"--phase must be a fraction in [0, 1) (got {phase!r})")
     if isinstance(time_offset, bool) or not isinstance(time_offset, (int, float)) or not 0.0 <= time_offset <= 1e6:
         raise InputError(f"--time-offset must be seconds from 0 to 1e6 (got {time_offset!r})")
+    if blur is not None and (isinstance(blur, bool) or not isinstance(blur, (int, float))
+                             or not 0.0 <= blur <= MAX_EXPOSURE_MS):
+        raise InputError(f"--blur must be an exposure time in milliseconds from 0 (sharp) to {MAX_EXPOSURE_MS:.1f} "
+                         f"(one frame at {FPS:g} Hz) (got {blur!r})")
+    if motion == "revisit" and frames < REVISIT_MIN_FRAMES:
+        raise InputError(f"--motion revisit needs at least {REVISIT_MIN_FRAMES} frames (visit, away, revisit); "
+                         f"use --frames 150 or more for a revisit >= 100 frames later (got {frames})")
+    if motion == "revisit" and phase:
+        raise InputError("--phase moves the start along a periodic path; --motion revisit has a fixed first visit "
+                         "and revisit (leave --phase out)")
 
 
 def partial_folder(out: Path) -> tuple[Path, Path]:
@@ -496,6 +677,7 @@ def generate_sequence(
     progress: bool = False,
     phase: float = 0.0,
     time_offset: float = 0.0,
+    blur: float | None = None,
 ) -> dict:
     """Render a synthetic sequence into ``out_dir`` (TUM layout) and return a summary.
 
@@ -505,11 +687,15 @@ def generate_sequence(
     true depth * (1 + drift) (undo it with ``dataset.depth_correction = 1 / (1 + drift)``).
     All randomness is seeded by ``seed`` (the scene's textures too: one seed, one scene).
     ``phase`` starts the motion further along its path and ``time_offset`` (s) shifts the time
-    stamps: two sequences of one seed are two sessions in the same scene. Written: ``rgb/``, ``depth/`` (16-bit, 5000 per
-    metre), ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``, ``camera.yaml`` (read by the TUM
-    reader), ``synthetic.yaml`` (these parameters).
+    stamps: two sequences of one seed are two sessions in the same scene. ``blur``: exposure time
+    in ms of a box shutter centred on each frame's time (:func:`render_exposure`; the colour image
+    is blurred along its motion, the depth stays the frame's exact depth); None = the motion's
+    default (:data:`DEFAULT_EXPOSURE_MS`: 16 ms for figure8, sharp otherwise). Written: ``rgb/``,
+    ``depth/`` (16-bit, 5000 per metre), ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``,
+    ``camera.yaml`` (read by the TUM reader), ``synthetic.yaml`` (these parameters; with blur its
+    exposure and streak lengths, with the revisit motion its visits' frame ranges).
     """
-    validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera, phase, time_offset)
+    validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera, phase, time_offset, blur)
     start = time.perf_counter()
     out = Path(out_dir)
     _check_output(out)
@@ -519,6 +705,7 @@ def generate_sequence(
                   dropout=float(dropout), drift=float(drift), seed=int(seed), camera=camera)
     if phase or time_offset:  # only then: earlier sequences' synthetic.yaml stay as they were
         params.update(phase=float(phase), time_offset=float(time_offset))
+    params.update(motion_parameters(motion, frames, resolve_blur(motion, blur)))
     # rendered into a temporary sibling folder that replaces ``out`` only when complete: a
     # failure or Ctrl-C part-way leaves an earlier sequence in ``out`` as it was
     target, work = partial_folder(out)
@@ -538,7 +725,6 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
     noise, dropout, drift = params["noise"], params["dropout"], params["drift"]
     (out / "rgb").mkdir()
     (out / "depth").mkdir()
-    atomic_write_text(out / "synthetic.yaml", yaml.safe_dump({"generator": "rgbdslam synthetic v1", **params}, sort_keys=False))
     atomic_write_text(
         out / "camera.yaml",
         (f"camera: {camera}\n" if cam is CAMERAS[camera] else "")
@@ -550,10 +736,17 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
     rng = np.random.default_rng([seed, 31337])
     stamps = EPOCH + params.get("time_offset", 0.0) + np.arange(frames) / FPS
     names = [f"{ts:.6f}.png" for ts in stamps]
+    exposure = exposure_frames(params.get("motion_blur", {}).get("exposure_ms", 0.0))
+    pose_at = lambda u: trajectory_at(params["motion"], u, frames, params.get("phase", 0.0))  # noqa: E731
+    streaks = []
     with frame_progress(frames, f"rendering {frames} frames", enabled=progress) as advance:
         for k in range(frames):
-            _write_frame(out, names[k], scene.render(rays, poses[k]), noise, dropout, drift, rng)
+            *rendered, streak = render_exposure(scene, rays, pose_at, k, exposure)
+            streaks.append(streak)
+            _write_frame(out, names[k], rendered, noise, dropout, drift, rng)
             advance()
+    record_streaks(params, streaks)
+    atomic_write_text(out / "synthetic.yaml", yaml.safe_dump({"generator": "rgbdslam synthetic v1", **params}, sort_keys=False))
     header = "# timestamp filename\n"
     atomic_write_text(out / "rgb.txt", "# color images (synthetic)\n" + header + "".join(f"{t:.6f} rgb/{n}\n" for t, n in zip(stamps, names)))
     atomic_write_text(out / "depth.txt", "# depth maps (synthetic)\n" + header + "".join(f"{t:.6f} depth/{n}\n" for t, n in zip(stamps, names)))
@@ -565,6 +758,6 @@ def synth_command(out_dir: str | Path, **kwargs) -> dict:
     summary = generate_sequence(out_dir, progress=True, **kwargs)
     console.print(
         f"wrote {summary['frames']} {summary['motion']} frames ({summary['width']}x{summary['height']}, "
-        f"camera {summary['camera']}) to {summary['path']} in {summary['seconds']:.1f} s"
+        f"camera {summary['camera']}{blur_note(summary)}) to {summary['path']} in {summary['seconds']:.1f} s"
     )
     return summary

@@ -33,9 +33,16 @@ from rgbdslam.datasets.synthetic import (
     Scene,
     _check_output,
     _replace_folder,
+    blur_note,
+    exposure_frames,
     make_trajectory,
+    motion_parameters,
     partial_folder,
+    record_streaks,
+    render_exposure,
+    resolve_blur,
     scaled_camera,
+    trajectory_at,
     validate_parameters,
 )
 from rgbdslam.errors import InputError
@@ -84,9 +91,11 @@ def _sensor_yaml(cam, T_BS: np.ndarray, comment: str) -> str:
 
 def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str = "kitti", frames: int = 100,
                              motion: str = "loop", width: int = 640, height: int = 480, noise: bool = False,
-                             seed: int = 0, camera: str = "ros_default", progress: bool = False) -> dict:
-    """Render a stereo sequence into ``out_dir`` in ``layout`` (see the module doc)."""
-    validate_parameters(frames, motion, width, height, noise, 0.0, 0.0, seed, camera)
+                             seed: int = 0, camera: str = "ros_default", progress: bool = False,
+                             blur: float | None = None) -> dict:
+    """Render a stereo sequence into ``out_dir`` in ``layout`` (see the module doc). ``blur``: the
+    exposure (ms) of both cameras, as in :func:`rgbdslam.datasets.synthetic.generate_sequence`."""
+    validate_parameters(frames, motion, width, height, noise, 0.0, 0.0, seed, camera, blur=blur)
     if isinstance(baseline, bool) or not isinstance(baseline, (int, float)) or not 0.0 < baseline <= 10.0:
         raise InputError(f"--stereo must be a baseline in metres, above 0 and at most 10 (got {baseline!r})")
     if layout not in LAYOUTS:
@@ -101,11 +110,15 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
     poses = make_trajectory(motion, frames)
     params = dict(frames=int(frames), motion=motion, width=int(width), height=int(height), noise=bool(noise),
                   seed=int(seed), camera=camera, stereo_baseline=float(baseline), layout=layout)
+    params.update(motion_parameters(motion, frames, resolve_blur(motion, blur)))
     target, work = partial_folder(out)
     try:
+        streaks: list[float] = []
+        (_write_kitti if layout == "kitti" else _write_euroc)(work, cam, poses, float(baseline), noise, seed, progress,
+                                                              params, streaks)
+        record_streaks(params, streaks)
         atomic_write_text(work / "synthetic.yaml",
                           yaml.safe_dump({"generator": "rgbdslam synthetic stereo v1", **params}, sort_keys=False))
-        (_write_kitti if layout == "kitti" else _write_euroc)(work, cam, poses, float(baseline), noise, seed, progress)
         _replace_folder(work, target, GENERATED)
     finally:
         if not (work / ".replaced").is_dir() or not any((work / ".replaced").iterdir()):
@@ -113,25 +126,34 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
     return {"path": str(out), "seconds": time.perf_counter() - start, **params}
 
 
-def _render_pairs(cam, poses: np.ndarray, baseline: float, noise: bool, seed: int, progress: bool):
+def _render_pairs(cam, poses: np.ndarray, baseline: float, noise: bool, seed: int, progress: bool, params: dict,
+                  streaks: list[float]):
+    """Grey left and right images of every frame (motion-blurred over the exposure in ``params``;
+    the left image's streak length per frame is appended to ``streaks``)."""
     scene = Scene(seed)
     rays = Rays(cam)
     rng = np.random.default_rng([seed, 31337, 2])
     off = right_offset(baseline)
-    with frame_progress(len(poses), f"rendering {len(poses)} stereo pairs", enabled=progress) as advance:
-        for k, P in enumerate(poses):
-            left = _grey(scene.render(rays, P)[0], noise, rng)
-            right = _grey(scene.render(rays, P @ off)[0], noise, rng)
+    frames = len(poses)
+    exposure = exposure_frames(params.get("motion_blur", {}).get("exposure_ms", 0.0))
+    left_at = lambda u: trajectory_at(params["motion"], u, frames)  # noqa: E731
+    right_at = lambda u: left_at(u) @ off  # noqa: E731
+    with frame_progress(frames, f"rendering {frames} stereo pairs", enabled=progress) as advance:
+        for k in range(frames):
+            rgb, _, _, streak = render_exposure(scene, rays, left_at, k, exposure)
+            streaks.append(streak)
+            left = _grey(rgb, noise, rng)
+            right = _grey(render_exposure(scene, rays, right_at, k, exposure)[0], noise, rng)
             yield k, left, right
             advance()
 
 
-def _write_kitti(out: Path, cam, poses, baseline, noise, seed, progress) -> None:
+def _write_kitti(out: Path, cam, poses, baseline, noise, seed, progress, params, streaks) -> None:
     seq = out / "sequences" / "00"
     (seq / "image_0").mkdir(parents=True)
     (seq / "image_1").mkdir()
     (out / "poses").mkdir()
-    for k, left, right in _render_pairs(cam, poses, baseline, noise, seed, progress):
+    for k, left, right in _render_pairs(cam, poses, baseline, noise, seed, progress, params, streaks):
         _write_png(seq / "image_0" / f"{k:06d}.png", left)
         _write_png(seq / "image_1" / f"{k:06d}.png", right)
     P0 = np.hstack([cam.K, np.zeros((3, 1))])
@@ -143,7 +165,7 @@ def _write_kitti(out: Path, cam, poses, baseline, noise, seed, progress) -> None
     atomic_write_text(out / "poses" / "00.txt", format_kitti_poses(inv(poses[0]) @ poses))
 
 
-def _write_euroc(out: Path, cam, poses, baseline, noise, seed, progress) -> None:
+def _write_euroc(out: Path, cam, poses, baseline, noise, seed, progress, params, streaks) -> None:
     mav = out / "mav0"
     stamps = (EPOCH * 1e9 + np.round(np.arange(len(poses)) / FPS * 1e9)).astype(np.int64)
     T_BS1 = T_BS_CAM0 @ right_offset(baseline)
@@ -152,7 +174,7 @@ def _write_euroc(out: Path, cam, poses, baseline, noise, seed, progress) -> None
         atomic_write_text(mav / c / "sensor.yaml", _sensor_yaml(cam, T_BS, f"synthetic {c}"))
         atomic_write_text(mav / c / "data.csv", "#timestamp [ns],filename\n"
                           + "".join(f"{t},{t}.png\n" for t in stamps))
-    for k, left, right in _render_pairs(cam, poses, baseline, noise, seed, progress):
+    for k, left, right in _render_pairs(cam, poses, baseline, noise, seed, progress, params, streaks):
         _write_png(mav / "cam0" / "data" / f"{stamps[k]}.png", left)
         _write_png(mav / "cam1" / "data" / f"{stamps[k]}.png", right)
     body = poses @ inv(T_BS_CAM0)  # T_WB = T_WS inv(T_BS)
@@ -172,7 +194,7 @@ def synth_stereo_command(out_dir: str | Path, **kwargs) -> dict:
     summary = generate_stereo_sequence(out_dir, progress=True, **kwargs)
     console.print(
         f"wrote {summary['frames']} {summary['motion']} stereo pairs ({summary['width']}x{summary['height']}, "
-        f"baseline {summary['stereo_baseline']:g} m, {summary['layout']} layout) to {summary['path']} in "
+        f"baseline {summary['stereo_baseline']:g} m, {summary['layout']} layout{blur_note(summary)}) to {summary['path']} in "
         f"{summary['seconds']:.1f} s"
     )
     return summary

@@ -179,7 +179,8 @@ def test_motions_stay_inside_looking_at_surfaces(motion):
     assert ((pos > lo + 0.5) & (pos < hi - 0.5)).all()
     np.testing.assert_allclose(poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2), np.tile(np.eye(3), (300, 1, 1)), atol=1e-12)
     steps = np.linalg.norm(np.diff(pos, axis=0), axis=1)
-    assert steps.max() < 0.03  # smooth: < 3 cm per frame at 30 Hz
+    # smooth: < 3 cm per frame at 30 Hz; the figure eight is a fast hand-held motion, <= 1.5 m/s
+    assert steps.max() < (0.05 if motion == "figure8" else 0.03)
     rel = np.swapaxes(poses[:1, :3, :3], 1, 2) @ poses[:, :3, :3]  # rotation from the first pose
     if motion == "static":
         np.testing.assert_array_equal(poses, np.broadcast_to(poses[0], poses.shape))  # no motion at all
