@@ -31,6 +31,8 @@ class LocalBA:
         self.camera = camera
         self.K = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, cfg.ba_baseline)
         self.last_moved: list[int] = []
+        self.last_fixed: list[int] = []  # the held keyframes of the last solve (diagnostics)
+        self.last_landmarks = np.zeros(0, np.int64)  # the landmarks of the last solve (diagnostics)
         self.last_error: tuple[float, float] = (0.0, 0.0)
         self.rejected = 0  # solutions dropped (a keyframe moved more than ba_max_move)
 
@@ -119,4 +121,6 @@ class LocalBA:
         for i in use:
             lmap.pos[i] = result.atPoint3(L(i))
         self.last_moved = sorted(out)
+        self.last_fixed = sorted(fixed & poses_used)
+        self.last_landmarks = use
         return out
