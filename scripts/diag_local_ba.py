@@ -79,6 +79,75 @@ def landmark_truth(clean_depth, gt: dict[int, np.ndarray], camera, kf_obs: dict)
     return {i: np.mean(v, axis=0) for i, v in pts.items() if len(v) >= 2}
 
 
+def replay(a) -> int:
+    """Re-solve dumped BA problems with another configuration; keyframe errors relative to the
+    newest held keyframe and landmark errors, before and after."""
+    import pickle
+    from types import SimpleNamespace
+
+    from rgbdslam.config import load_config
+    from rgbdslam.geometry.se3 import inv
+    from rgbdslam.landmarks.local_ba import LocalBA
+
+    d = pickle.loads(a.replay.read_bytes())
+    gt, truth = d["gt"], d["truth"]
+    cfg = load_config(None, ["landmarks.enabled=true", "landmarks.local_ba=true", *a.set]).landmarks
+    ba = LocalBA(cfg, d["camera"])
+    rb, ra, lb, la, better, axes = [], [], [], [], 0, []
+    rng = np.random.default_rng(0)
+    cam = d["camera"]
+    for kfs, poses, pos, cov, alive in d["problems"]:
+        lmap = SimpleNamespace(pos=pos.copy(), cov=cov, alive=alive, n=len(pos))
+        if a.ideal_obs is not None:  # the measurements as the model assumes them (same geometry, same ids)
+            sp, ds = a.ideal_obs
+            ideal = []
+            for k in kfs:
+                keep = np.array([int(i) in truth for i in k.lm], bool)
+                T = np.array([truth[int(i)] for i in k.lm[keep]]).reshape(-1, 3)
+                Pc = (T - gt[k.index][:3, 3]) @ gt[k.index][:3, :3]
+                z = Pc[:, 2]
+                uv = np.stack([cam.fx * Pc[:, 0] / z + cam.cx, cam.fy * Pc[:, 1] / z + cam.cy], 1)
+                uv += rng.normal(scale=sp, size=uv.shape)
+                z = z + ds * (0.0012 + 0.0019 * (z - 0.4) ** 2) * rng.standard_normal(len(z))
+                ideal.append(SimpleNamespace(index=k.index, lm=k.lm[keep], uv=uv, z=z))
+            kfs = ideal
+        poses = {k: P.copy() for k, P in poses.items()}
+        if a.oracle_fixed:  # window keyframes keep their tracked poses, the rest go to the truth
+            win = {k.index for k in kfs[-cfg.ba_window:]}
+            held = [k for k in poses if k not in win]
+            if not held:
+                continue
+            f0 = max(held)
+            A = poses[f0] @ inv(gt[f0])
+            for k in poses:
+                if k not in win:
+                    poses[k] = A @ gt[k]
+        before = {k: P.copy() for k, P in poses.items()}
+        out = ba.run(lmap, kfs, poses)
+        if not out:
+            continue
+        f = max(ba.last_fixed) if ba.last_fixed else min(out)
+        L = gt[f] @ inv(before[f])
+        b = [_terr(L @ before[k], gt[k]) for k in out]
+        c = [_terr(L @ out[k], gt[k]) for k in out]
+        rb += b
+        ra += c
+        for k in out:  # the error's direction in the true camera frame
+            axes.append(gt[k][:3, :3].T @ ((L @ out[k])[:3, 3] - gt[k][:3, 3]))
+        better += sum(x < y for x, y in zip(c, b))
+        ids = [int(i) for i in ba.last_landmarks if int(i) in truth]
+        T = np.array([truth[i] for i in ids]).reshape(-1, 3)
+        lb += list(np.linalg.norm(pos[ids] @ L[:3, :3].T + L[:3, 3] - T, axis=1))
+        la += list(np.linalg.norm(lmap.pos[ids] @ L[:3, :3].T + L[:3, 3] - T, axis=1))
+    med = lambda x: 1e3 * float(np.median(x)) if len(x) else float("nan")  # noqa: E731
+    rms = lambda x: 1e3 * float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")  # noqa: E731
+    print(f"replay {a.replay.name} {' '.join(a.set) or '(defaults)'}{' oracle-fixed' if a.oracle_fixed else ''}: "
+          f"kf err rel (mm) median {med(rb):.2f} -> {med(ra):.2f}, rms {rms(rb):.2f} -> {rms(ra):.2f}, "
+          f"better {better}/{len(rb)}; landmarks median {med(lb):.2f} -> {med(la):.2f}; after, rms per camera axis "
+          f"x/y/z (mm) {' / '.join(f'{v:.2f}' for v in 1e3 * np.sqrt(np.mean(np.square(axes), axis=0)))}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--motion", default="xyz")
@@ -87,7 +156,16 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/diag_local_ba"))
     ap.add_argument("--set", action="append", default=[], help="config KEY=VALUE (repeatable)")
     ap.add_argument("--quiet", action="store_true", help="only the run's summary lines")
+    ap.add_argument("--dump", type=Path, default=None, help="save every BA problem (inputs + truth) here")
+    ap.add_argument("--replay", type=Path, default=None,
+                    help="re-solve the problems of a --dump offline with --set (no tracking feedback)")
+    ap.add_argument("--oracle-fixed", action="store_true", help="replay: the held keyframes at their true poses")
+    ap.add_argument("--ideal-obs", type=float, nargs=2, default=None, metavar=("SIGMA_PX", "DEPTH_SCALE"),
+                    help="replay: every observation replaced by the true landmark projected with the true pose "
+                         "+ Gaussian noise (SIGMA_PX pixels; depth noise the Kinect model times DEPTH_SCALE)")
     a = ap.parse_args(argv)
+    if a.replay is not None:
+        return replay(a)
 
     from rgbdslam.config import load_config
     from rgbdslam.datasets import open_sequence
@@ -109,6 +187,7 @@ def main(argv=None) -> int:
     slam = SLAM(cfg, cam)
     tr = slam.landmarks
     kf_obs: dict[int, object] = {}
+    problems = []  # --dump: (keyframes, poses, landmark positions, covariances, alive) per solve
     solves = []  # (fixed, moved, poses before, poses after, landmark ids, pos before, pos after)
     ba = tr.ba
     if ba is not None:
@@ -119,6 +198,9 @@ def main(argv=None) -> int:
                 kf_obs.setdefault(k.index, k)
             before = {k: P.copy() for k, P in kf_pose.items()}
             pos0 = lmap.pos.copy()
+            if a.dump is not None:
+                problems.append((list(keyframes), before, pos0[:lmap.n].copy(), lmap.cov[:lmap.n].copy(),
+                                 lmap.alive[:lmap.n].copy()))
             out = run0(lmap, keyframes, kf_pose)
             if out:
                 ids = ba.last_landmarks
@@ -161,6 +243,11 @@ def main(argv=None) -> int:
             print(f"BA fixed {fixed} moved {sorted(out)}: rel kf err {1e3 * np.median(rb):.2f} -> "
                   f"{1e3 * np.median(ra):.2f} mm, abs {1e3 * np.median(ab):.2f} -> {1e3 * np.median(aa):.2f} mm; "
                   f"{len(ids)} landmarks")
+    if a.dump is not None:
+        import pickle
+
+        with open(a.dump, "wb") as fh:
+            pickle.dump({"problems": problems, "gt": gt, "truth": truth, "G": G, "camera": cam}, fh)
     med = lambda x: 1e3 * float(np.median(x)) if len(x) else float("nan")  # noqa: E731
     rms = lambda x: 1e3 * float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")  # noqa: E731
     n = len(rel_b)
