@@ -333,10 +333,15 @@ class SLAM:
             return odo
         t0 = time.perf_counter()
         optimised = self.graph.optimize()
-        self.optimised = optimised
         if self.landmarks is not None:  # landmarks move with the keyframe that anchors them
             self.landmarks.finish(optimised)
         self.state.add_time("pose_graph", time.perf_counter() - t0)
+        if self.landmarks is not None and self.cfg.landmarks.global_ba and not self.map_poses:
+            t0 = time.perf_counter()  # one bundle adjustment over every keyframe, the loops kept
+            loops = [(int(e.i), int(e.j), e.T_ij, e.information) for e in self.graph.loops]
+            optimised = self.landmarks.global_ba(optimised, loops, self.graph.odometry)
+            self.state.add_time("global_ba", time.perf_counter() - t0)
+        self.optimised = optimised
         kf_pose = {r.index: r.pose for r in self.state.records if r.index == r.keyframe}
         poses = []
         for r in self.state.records:

@@ -261,6 +261,8 @@ def main(argv=None) -> int:
     print(f"  landmark err abs (mm):               median {med(labs_b):.2f} -> {med(labs_a):.2f}")
     print(f"  final ATE {rep.ate.rmse:.4f}  RPE(1f) {rep.rpe.trans.rmse:.4f}  keyframes {len(ks)}  "
           f"BA rejected {getattr(ba, 'rejected', 0)}")
+    if tr.global_ba_stats:
+        print(f"  global BA {tr.global_ba_stats}")
     return 0
 
 
