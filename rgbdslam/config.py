@@ -278,6 +278,9 @@ class LandmarksConfig:
     ba_baseline: float = 0.08  # virtual stereo baseline (m) turning depth into a disparity
     ba_huber: float = 1.345  # robust kernel width (whitened)
     ba_landmark_prior: bool = True  # each landmark's Kalman position and covariance as a prior in local BA
+    # metres added (in quadrature, every direction) to the prior's Kalman sigma: the filter counts every
+    # frame's observation as independent, but they share the frames' pose errors
+    ba_prior_floor: float = 0.0
     ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
     ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
     ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
@@ -286,6 +289,9 @@ class LandmarksConfig:
     global_ba: bool = False  # bundle adjustment over all keyframes after the pose graph (run end)
     global_ba_iterations: int = 20  # Levenberg-Marquardt iterations of the global bundle adjustment
     global_ba_odometry: bool = False  # every pose-graph odometry edge in the global BA (else weak keyframes' only)
+    # the map inliers of the frames between keyframes join the global BA as observations of their
+    # keyframe's pose (their pose relative to it held)
+    global_ba_frames: bool = False
     seed: int = 0  # RANSAC seed of the map pose
 
 
@@ -564,7 +570,7 @@ MAXIMA = {
     "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,
     "landmarks.global_ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
-    "landmarks.ba_min_observations": 10**6, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
+    "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
     "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
     "landmarks.revisit_max_correction_deg": 360.0,
     "landmarks.seed": C_INT_MAX,

@@ -189,6 +189,8 @@ class SLAM:
             if refined:  # the window's older keyframes, their frames, references and graph edges
                 self._move_keyframes(refined, pose)
             self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
+        else:
+            self.landmarks.record_frame(frame.index, result.features, pose)
         self.landmarks.end_frame(frame.index)
         if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
             self.landmarks.log(self.observer, frame.index, result.features, is_kf)

@@ -8,7 +8,9 @@ depth as a virtual disparity, correlated covariance, Huber); the pose graph's lo
 ``BetweenFactorPose3`` with their information and a Huber kernel, so a loop correction is kept
 where the two sides of the loop share no landmark; the odometry edges of keyframes that see fewer
 than ``ba_min_observations`` of the optimised landmarks (they would be barely constrained; with
-``global_ba_odometry`` every odometry edge, which carries the frames between keyframes); the
+``global_ba_odometry`` every odometry edge, which carries the frames between keyframes); with
+``global_ba_frames`` the map inliers of the frames between keyframes too, each a factor on its
+keyframe's pose through the frame's pose relative to it (``body_P_sensor``, held); the
 first keyframe held fixed (gauge). No landmark prior: the keyframes' observations are the data.
 Levenberg–Marquardt, ``global_ba_iterations``. Returns the refined keyframe poses; the landmark
 positions are written into the map. Keyframes in no factor keep their pose-graph pose.
@@ -50,7 +52,7 @@ def global_bundle_adjustment(cfg: LandmarksConfig, camera: Camera, lmap, keyfram
     kfs = [k for k in keyframes if k.index in poses and len(k.lm)]
     if len(kfs) < 2:
         return None
-    alive = [k.lm[lmap.alive[k.lm]] for k in kfs]
+    alive = [k.lm[lmap.alive[k.lm]] for k in kfs] + [f[1][lmap.alive[f[1]]] for k in kfs for f in k.frames]
     counts = np.bincount(np.concatenate(alive), minlength=lmap.n) if any(len(a) for a in alive) else np.zeros(lmap.n)
     use = np.flatnonzero(counts >= 2)
     if len(use) < 10:
@@ -68,6 +70,11 @@ def global_bundle_adjustment(cfg: LandmarksConfig, camera: Camera, lmap, keyfram
         if sel.any():
             n_obs += factors.add(graph, k.index, k.lm[sel], k.uv[sel], k.z[sel])
             used.add(k.index)
+        for body, lm, uv, z in k.frames:  # the frames hanging from it (global_ba_frames)
+            f = in_use[lm]
+            if f.any():
+                n_obs += factors.add(graph, k.index, lm[f], uv[f], z[f], body)
+                used.add(k.index)
     huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.ba_huber)
     n_between = 0
     for i, j, T_ij, info in loops:

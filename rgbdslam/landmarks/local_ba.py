@@ -48,14 +48,16 @@ class StereoFactors:
             m = self._models[b] = gtsam.noiseModel.Robust.Create(self.huber, gtsam.noiseModel.Gaussian.Covariance(C))
         return m
 
-    def add(self, graph, kf: int, lm: np.ndarray, uv: np.ndarray, z: np.ndarray) -> int:
-        """Factors of keyframe ``kf`` seeing landmarks ``lm`` at pixels ``uv`` with depth ``z``."""
+    def add(self, graph, kf: int, lm: np.ndarray, uv: np.ndarray, z: np.ndarray, body=None) -> int:
+        """Factors of keyframe ``kf`` seeing landmarks ``lm`` at pixels ``uv`` with depth ``z``;
+        ``body`` (4x4): the observing camera's pose relative to the keyframe (a frame hanging from it)."""
         c = self.cfg
         sz = c.depth_noise_a + c.depth_noise_b * z * z
         sd = self.fb * sz / (z * z)  # disparity noise (px)
+        extra = (False, False) if body is None else (False, False, gtsam.Pose3(body))
         for j in range(len(lm)):
             meas = gtsam.StereoPoint2(uv[j, 0], uv[j, 0] - self.fb / z[j], uv[j, 1])
-            graph.add(gtsam.GenericStereoFactor3D(meas, self._model(sd[j]), X(kf), L(lm[j]), self.K, False, False))
+            graph.add(gtsam.GenericStereoFactor3D(meas, self._model(sd[j]), X(kf), L(lm[j]), self.K, *extra))
         return len(lm)
 
 
@@ -134,8 +136,8 @@ class LocalBA:
         for i in use:
             values.insert(L(i), lmap.pos[i].astype(np.float64))
             if c.ba_landmark_prior:  # the Kalman estimate (every frame's observations, not only keyframes')
-                graph.add(gtsam.PriorFactorPoint3(L(i), lmap.pos[i].astype(np.float64),
-                                                  gtsam.noiseModel.Gaussian.Covariance(lmap.cov[i] + 1e-12 * np.eye(3))))
+                graph.add(gtsam.PriorFactorPoint3(L(i), lmap.pos[i].astype(np.float64), gtsam.noiseModel.Gaussian.Covariance(
+                    lmap.cov[i] + (c.ba_prior_floor ** 2 + 1e-12) * np.eye(3))))
         result = solve(graph, values, sorted(poses_used), c.ba_iterations)
         if result is None:  # an indeterminate system: keep the map as it is
             return {}

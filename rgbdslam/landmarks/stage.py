@@ -32,6 +32,8 @@ class _KeyframeObs:
     lm: np.ndarray
     uv: np.ndarray
     z: np.ndarray
+    # the map-placed frames hanging from this keyframe (global BA): (pose relative to it, lm, uv, z)
+    frames: list = field(default_factory=list)
 
 
 @dataclass
@@ -155,6 +157,17 @@ class LandmarkTracker:
             ok = np.linalg.norm(P - self.map.pos[l], axis=1) < c.ransac_threshold
             res.feat, res.lm = np.concatenate([res.feat, f[ok]]), np.concatenate([res.lm, l[ok]])
         return res
+
+    def record_frame(self, index: int, feats, pose: np.ndarray) -> None:
+        """Keep a non-keyframe's map inliers for the global BA, relative to the last keyframe (the
+        frame moves rigidly with it); only with ``global_ba_frames``."""
+        if not (self.cfg.global_ba and self.cfg.global_ba_frames) or not self.all_keyframes:
+            return
+        if self._last is None or self._last[0] != index:
+            return
+        kf = self.all_keyframes[-1]
+        _, f, lm = self._last
+        kf.frames.append((inv(self.kf_pose[kf.index]) @ pose, lm.copy(), feats.uv[f].copy(), feats.pts[f, 2].copy()))
 
     def end_frame(self, index: int) -> None:
         self.map.end_step(index)
