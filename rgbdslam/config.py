@@ -280,7 +280,7 @@ class LandmarksConfig:
     ba_landmark_prior: bool = True  # each landmark's Kalman position and covariance as a prior in local BA
     # metres added (in quadrature, every direction) to the prior's Kalman sigma: the filter counts every
     # frame's observation as independent, but they share the frames' pose errors
-    ba_prior_floor: float = 0.0
+    ba_prior_floor: float = 0.004
     ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
     ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
     ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
@@ -288,7 +288,7 @@ class LandmarksConfig:
     # (stereo-style factors as local BA, the pose graph's loop edges as relative-pose factors)
     global_ba: bool = False  # bundle adjustment over all keyframes after the pose graph (run end)
     global_ba_iterations: int = 20  # Levenberg-Marquardt iterations of the global bundle adjustment
-    global_ba_odometry: bool = False  # every pose-graph odometry edge in the global BA (else weak keyframes' only)
+    global_ba_odometry: bool = True  # every pose-graph odometry edge in the global BA (else weak keyframes' only)
     # the map inliers of the frames between keyframes join the global BA as observations of their
     # keyframe's pose (their pose relative to it held)
     global_ba_frames: bool = False

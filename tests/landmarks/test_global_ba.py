@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.se3 import inv
@@ -11,7 +12,7 @@ from rgbdslam.landmarks.map import LandmarkMap
 from rgbdslam.landmarks.stage import _KeyframeObs
 from tests.landmarks.test_landmarks import CAM, _observe, _pose, _scene
 
-CFG = LandmarksConfig(global_ba_iterations=50, ba_min_observations=30)
+CFG = LandmarksConfig(global_ba_iterations=50, ba_min_observations=30, global_ba_odometry=False)
 
 
 def _problem(X, truth, seen_by, rng, pose_noise=0.02, point_noise=0.02):
@@ -91,5 +92,38 @@ def test_global_ba_ties_a_weakly_observed_keyframe_with_its_odometry():
     assert res.between == 1  # only the weak keyframe's edge: 0 -> 1 is left to the landmarks
     assert np.linalg.norm(res.poses[2][:3, 3] - truth[2][:3, 3]) < 2e-3
     lmap.pos[:] = pos0
+    every = global_bundle_adjustment(LandmarksConfig(global_ba_iterations=50, global_ba_odometry=True), CAM, lmap, kfs,
+                                     guess, odometry=odo)
+    assert every.between == 2  # global_ba_odometry: every edge
+    lmap.pos[:] = pos0
     free = global_bundle_adjustment(CFG, CAM, lmap, kfs, guess)
     assert np.linalg.norm(free.poses[2][:3, 3] - off[:3, 3]) < 2e-3
+
+
+@pytest.mark.data
+def test_global_ba_runs_at_the_end_of_a_real_run(desk9):
+    """fr1/desk, 9 frames, landmarks + global BA through SLAM: it runs after the pose graph over
+    every keyframe, the final trajectory's keyframes are its poses, the frames between keep their
+    pose relative to their keyframe, the landmark anchors follow, and the accuracy stays."""
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.evaluation.ate import ate
+    from rgbdslam.slam import SLAM
+
+    cfg = load_config(None, ["landmarks.enabled=true", "landmarks.global_ba=true", "landmarks.global_ba_frames=true",
+                             "keyframes.max_gap=3", "landmarks.ba_min_observations=10"])
+    seq = open_sequence(desk9, cfg.dataset)
+    slam = SLAM(cfg, seq.camera)
+    for i in range(len(seq)):
+        slam.track(seq[i])
+    recs = {r.index: (r.pose.copy(), r.keyframe) for r in slam.state.records}
+    traj = slam.finish()
+    g = slam.landmarks.global_ba_stats
+    assert g["ran"] and g["keyframes"] == len(slam.state.keyframes) >= 3 and g["between"] >= 2
+    assert g["observations"] > 2000 and g["error_after"] < g["error_before"]
+    assert any(len(k.frames) for k in slam.landmarks.all_keyframes)  # the frames between keyframes joined
+    for n, (P, kf) in enumerate(recs.values()):
+        assert np.allclose(traj.poses[n], slam.optimised[kf] @ inv(recs[kf][0]) @ P, atol=1e-9)
+    for k in slam.state.keyframes:
+        assert np.allclose(slam.landmarks.kf_pose[k], slam.optimised[k])
+    assert ate(seq.groundtruth(), traj).rmse < 0.03
