@@ -148,6 +148,42 @@ def replay(a) -> int:
     return 0
 
 
+def replay_final(a) -> int:
+    """Re-solve a --dump-final global BA problem with --set; the trajectory as ``SLAM.finish``
+    makes it (frames follow their keyframe), evaluated after the pose graph and after the BA."""
+    import pickle
+    from types import SimpleNamespace
+
+    from rgbdslam.config import load_config
+    from rgbdslam.evaluation.report import evaluate_trajectories
+    from rgbdslam.geometry.se3 import inv
+    from rgbdslam.io.trajectory import Trajectory
+    from rgbdslam.landmarks.global_ba import global_bundle_adjustment
+
+    d = pickle.loads(a.replay_final.read_bytes())
+    cfg = load_config(None, ["landmarks.enabled=true", "landmarks.global_ba=true", *d["cfg_sets"], *a.set]).landmarks
+    lmap = SimpleNamespace(pos=d["pos"].copy(), alive=d["alive"], n=len(d["pos"]))
+    recs = d["records"]
+    kf_pose = {i: P for i, _, P, k in recs if i == k}
+
+    def traj(opt):
+        return Trajectory(np.array([t for _, t, _, _ in recs]),
+                          np.array([opt[k] @ inv(kf_pose[k]) @ P if k in opt else P for _, _, P, k in recs]))
+
+    before = evaluate_trajectories(d["gt"], traj(d["poses"]))
+    import time
+
+    t0 = time.perf_counter()
+    res = global_bundle_adjustment(cfg, d["camera"], lmap, d["keyframes"], d["poses"], d["loops"], d["odometry"])
+    took = time.perf_counter() - t0
+    after = evaluate_trajectories(d["gt"], traj({**d["poses"], **(res.poses if res else {})}))
+    print(f"replay-final {a.replay_final.name} {' '.join(a.set) or '(defaults)'}: ATE {before.ate.rmse:.4f} -> "
+          f"{after.ate.rmse:.4f}, RPE {before.rpe.trans.rmse:.4f} -> {after.rpe.trans.rmse:.4f}; "
+          f"{len(res.poses) if res else 0} keyframes, {res.landmarks if res else 0} landmarks, "
+          f"{res.observations if res else 0} observations, {res.between if res else 0} relative-pose factors, {took:.1f} s")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--motion", default="xyz")
@@ -157,6 +193,12 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], help="config KEY=VALUE (repeatable)")
     ap.add_argument("--quiet", action="store_true", help="only the run's summary lines")
     ap.add_argument("--dump", type=Path, default=None, help="save every BA problem (inputs + truth) here")
+    ap.add_argument("--sequence", type=Path, default=None,
+                    help="a recorded sequence instead of the synthetic one (no landmark truth; for --dump-final)")
+    ap.add_argument("--dump-final", type=Path, default=None,
+                    help="save the global BA's problem (the run after the pose graph) here (needs landmarks.global_ba=true)")
+    ap.add_argument("--replay-final", type=Path, default=None,
+                    help="re-solve a --dump-final problem with --set; ATE / RPE after the pose graph and after it")
     ap.add_argument("--replay", type=Path, default=None,
                     help="re-solve the problems of a --dump offline with --set (no tracking feedback)")
     ap.add_argument("--oracle-fixed", action="store_true", help="replay: the held keyframes at their true poses")
@@ -166,6 +208,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.replay is not None:
         return replay(a)
+    if a.replay_final is not None:
+        return replay_final(a)
 
     from rgbdslam.config import load_config
     from rgbdslam.datasets import open_sequence
@@ -176,12 +220,15 @@ def main(argv=None) -> int:
 
     noisy = a.work / f"{a.motion}_s{a.seed}_{a.frames}"
     clean = a.work / f"{a.motion}_s{a.seed}_{a.frames}_clean"
-    for d, n in ((noisy, True), (clean, False)):
-        if not (d / "groundtruth.txt").exists():
-            generate_sequence(d, frames=a.frames, motion=a.motion, noise=n, seed=a.seed)
+    if a.sequence is None:
+        for d, n in ((noisy, True), (clean, False)):
+            if not (d / "groundtruth.txt").exists():
+                generate_sequence(d, frames=a.frames, motion=a.motion, noise=n, seed=a.seed)
+    else:
+        noisy = a.sequence
     cfg = load_config(None, ["landmarks.enabled=true", "landmarks.local_ba=true", *a.set])
     seq = open_sequence(noisy, cfg.dataset)
-    cseq = open_sequence(clean, cfg.dataset)
+    cseq = open_sequence(clean, cfg.dataset) if a.sequence is None else None
     gt = _gt_by_frame(seq)
     cam = seq.camera
     slam = SLAM(cfg, cam)
@@ -208,6 +255,21 @@ def main(argv=None) -> int:
             return out
 
         ba.run = run
+    if a.dump_final is not None:  # the global BA's inputs, saved before it runs
+        gba0 = tr.global_ba
+
+        def gba(poses, loops=(), odometry=()):
+            import pickle
+
+            m = tr.map
+            state = {"cfg_sets": a.set, "camera": cam, "keyframes": tr.all_keyframes, "poses": poses,
+                     "loops": loops, "odometry": odometry, "pos": m.pos[:m.n].copy(), "alive": m.alive[:m.n].copy(),
+                     "records": [(r.index, r.timestamp, r.pose.copy(), r.keyframe) for r in slam.state.records],
+                     "gt": seq.groundtruth()}
+            a.dump_final.write_bytes(pickle.dumps(state))
+            return gba0(poses, loops, odometry)
+
+        tr.global_ba = gba
     for i in range(len(seq)):
         slam.track(seq[i])
     for k in tr.keyframes:
@@ -218,7 +280,7 @@ def main(argv=None) -> int:
 
     ks = sorted(kf_final)
     G = _align([kf_final[k] for k in ks], [gt[k] for k in ks])  # one alignment, the run's keyframes
-    truth = landmark_truth(lambda k: cseq[k].depth, gt, cam, kf_obs)
+    truth = {} if cseq is None else landmark_truth(lambda k: cseq[k].depth, gt, cam, kf_obs)
     rel_b, rel_a, abs_b, abs_a, lrel_b, lrel_a, labs_b, labs_a = ([] for _ in range(8))
     better = 0
     for fixed, out, before, p0, p1, ids in solves:
