@@ -2,7 +2,7 @@
 
 ORB-SLAM runs one after a loop closure; here it runs once, in ``SLAM.finish``, after the final
 pose-graph optimisation has corrected the keyframes and the landmarks have moved with their
-anchor keyframes. Variables: every keyframe pose, every live landmark seen by >= 2 keyframes.
+anchor keyframes. Variables: every keyframe pose, every live landmark with >= 2 observations.
 Factors: each keyframe observation as in local BA (:class:`rgbdslam.landmarks.local_ba.StereoFactors`:
 depth as a virtual disparity, correlated covariance, Huber); the pose graph's loop edges as
 ``BetweenFactorPose3`` with their information and a Huber kernel, so a loop correction is kept
