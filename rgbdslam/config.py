@@ -278,9 +278,20 @@ class LandmarksConfig:
     ba_baseline: float = 0.08  # virtual stereo baseline (m) turning depth into a disparity
     ba_huber: float = 1.345  # robust kernel width (whitened)
     ba_landmark_prior: bool = True  # each landmark's Kalman position and covariance as a prior in local BA
+    # metres added (in quadrature, every direction) to the prior's Kalman sigma: the filter counts every
+    # frame's observation as independent, but they share the frames' pose errors
+    ba_prior_floor: float = 0.004
     ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
     ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
     ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
+    # one bundle adjustment over every keyframe and its landmarks after the final pose graph
+    # (stereo-style factors as local BA, the pose graph's loop edges as relative-pose factors)
+    global_ba: bool = False  # bundle adjustment over all keyframes after the pose graph (run end)
+    global_ba_iterations: int = 20  # Levenberg-Marquardt iterations of the global bundle adjustment
+    global_ba_odometry: bool = True  # every pose-graph odometry edge in the global BA (else weak keyframes' only)
+    # the map inliers of the frames between keyframes join the global BA as observations of their
+    # keyframe's pose (their pose relative to it held)
+    global_ba_frames: bool = False
     seed: int = 0  # RANSAC seed of the map pose
 
 
@@ -476,7 +487,7 @@ POSITIVE = {
     "stereo.sgbm_block_size",
     "landmarks.search_radius", "landmarks.max_depth", "landmarks.ransac_threshold", "landmarks.ransac_iterations",
     "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
-    "landmarks.ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
+    "landmarks.ba_iterations", "landmarks.global_ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
     "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
     "landmarks.ba_max_move", "landmarks.ba_max_move_deg", "landmarks.revisit_min_inliers",
     "landmarks.revisit_max_correction", "landmarks.revisit_max_correction_deg",
@@ -561,8 +572,9 @@ MAXIMA = {
     "landmarks.sigma_px": 100.0, "landmarks.process_noise": 10.0, "landmarks.min_seen": 10**6,
     "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,
     "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,
+    "landmarks.global_ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
-    "landmarks.ba_min_observations": 10**6, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
+    "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
     "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
     "landmarks.revisit_max_correction_deg": 360.0,
     "landmarks.seed": C_INT_MAX,

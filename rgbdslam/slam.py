@@ -189,6 +189,8 @@ class SLAM:
             if refined:  # the window's older keyframes, their frames, references and graph edges
                 self._move_keyframes(refined, pose)
             self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
+        else:
+            self.landmarks.record_frame(frame.index, result.features, pose)
         self.landmarks.end_frame(frame.index)
         if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
             self.landmarks.log(self.observer, frame.index, result.features, is_kf)
@@ -333,10 +335,15 @@ class SLAM:
             return odo
         t0 = time.perf_counter()
         optimised = self.graph.optimize()
-        self.optimised = optimised
         if self.landmarks is not None:  # landmarks move with the keyframe that anchors them
             self.landmarks.finish(optimised)
         self.state.add_time("pose_graph", time.perf_counter() - t0)
+        if self.landmarks is not None and self.cfg.landmarks.global_ba and not self.map_poses:
+            t0 = time.perf_counter()  # one bundle adjustment over every keyframe, the loops kept
+            loops = [(int(e.i), int(e.j), e.T_ij, e.information) for e in self.graph.loops]
+            optimised = self.landmarks.global_ba(optimised, loops, self.graph.odometry)
+            self.state.add_time("global_ba", time.perf_counter() - t0)
+        self.optimised = optimised
         kf_pose = {r.index: r.pose for r in self.state.records if r.index == r.keyframe}
         poses = []
         for r in self.state.records:

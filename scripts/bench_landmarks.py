@@ -222,6 +222,8 @@ def main(argv=None) -> int:
                     help="only Open3D's odometry on the loop-type sequences (its rows join a run's with --report)")
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--skip-synthetic", action="store_true")
+    ap.add_argument("--skip-default", action="store_true",
+                    help="do not run the default configuration (its rows come from an earlier --json via --report)")
     ap.add_argument("--json", type=Path, default=None, help="write every row here")
     ap.add_argument("--report", type=Path, nargs="+", default=None,
                     help="only build the markdown from earlier --json files (several runs' rows joined)")
@@ -253,7 +255,7 @@ def main(argv=None) -> int:
     load0 = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     work = a.work or Path(tempfile.mkdtemp(prefix="bench_landmarks_"))
     work.mkdir(parents=True, exist_ok=True)
-    variants = {"default": []}
+    variants = {} if a.skip_default else {"default": []}
     variants.update(dict(parse_variant(v) for v in a.variant))
     seqs: list[tuple[str, Path]] = []
     if not a.skip_real:

@@ -25,14 +25,66 @@ X = lambda i: gtsam.symbol("x", int(i))  # noqa: E731
 L = lambda i: gtsam.symbol("l", int(i))  # noqa: E731
 
 
+class StereoFactors:
+    """The observation factors of local and global BA: one ``GenericStereoFactor3D`` per (keyframe,
+    landmark) observation, depth as a virtual disparity, the correlated covariance of the module
+    doc, Huber. The noise models are shared between observations whose disparity noise agrees
+    within 1 % (one model per log-spaced bin): building a Gaussian model per factor costs more than the factor."""
+
+    def __init__(self, cfg: LandmarksConfig, camera: Camera):
+        self.cfg = cfg
+        self.fb = camera.fx * cfg.ba_baseline
+        self.K = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, cfg.ba_baseline)
+        self.huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.ba_huber)
+        self._models: dict[int, object] = {}
+
+    def _model(self, sd: float):
+        b = int(np.round(np.log(max(sd, 1e-6)) / np.log(1.01)))
+        m = self._models.get(b)
+        if m is None:
+            s2, sd = self.cfg.sigma_px ** 2, 1.01 ** b
+            # u_right = u_left - d: it carries u_left's pixel noise (correlated) plus the disparity's
+            C = np.array([[s2, s2, 0.0], [s2, s2 + sd * sd, 0.0], [0.0, 0.0, s2]])
+            m = self._models[b] = gtsam.noiseModel.Robust.Create(self.huber, gtsam.noiseModel.Gaussian.Covariance(C))
+        return m
+
+    def add(self, graph, kf: int, lm: np.ndarray, uv: np.ndarray, z: np.ndarray, body=None) -> int:
+        """Factors of keyframe ``kf`` seeing landmarks ``lm`` at pixels ``uv`` with depth ``z``;
+        ``body`` (4x4): the observing camera's pose relative to the keyframe (a frame hanging from it)."""
+        c = self.cfg
+        sz = c.depth_noise_a + c.depth_noise_b * z * z
+        sd = self.fb * sz / (z * z)  # disparity noise (px)
+        extra = (False, False) if body is None else (False, False, gtsam.Pose3(body))
+        for j in range(len(lm)):
+            meas = gtsam.StereoPoint2(uv[j, 0], uv[j, 0] - self.fb / z[j], uv[j, 1])
+            graph.add(gtsam.GenericStereoFactor3D(meas, self._model(sd[j]), X(kf), L(lm[j]), self.K, *extra))
+        return len(lm)
+
+
+def solve(graph, values, pose_ids, iterations: int):
+    """Levenberg–Marquardt with the landmarks eliminated first and the poses last (the Schur
+    complement of BA: ~10x faster than plain COLAMD); None when the system is indeterminate."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    params.setRelativeErrorTol(1e-4)
+    poses = gtsam.KeyVector([X(kf) for kf in pose_ids])
+    params.setOrdering(gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, poses))
+    try:
+        return gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError:
+        return None
+
+
 class LocalBA:
     def __init__(self, cfg: LandmarksConfig, camera: Camera):
         self.cfg = cfg
         self.camera = camera
-        self.K = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, cfg.ba_baseline)
         self.last_moved: list[int] = []
+        self.last_fixed: list[int] = []  # the held keyframes of the last solve (diagnostics)
+        self.last_landmarks = np.zeros(0, np.int64)  # the landmarks of the last solve (diagnostics)
         self.last_error: tuple[float, float] = (0.0, 0.0)
         self.rejected = 0  # solutions dropped (a keyframe moved more than ba_max_move)
+        self.factors = StereoFactors(cfg, camera)
 
     def run(self, lmap, keyframes: list, kf_pose: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """Optimise; writes landmark positions into ``lmap`` and returns ``{keyframe: refined pose}``
@@ -70,24 +122,13 @@ class LocalBA:
             return {}
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
-        fb = self.camera.fx * c.ba_baseline
-        huber = gtsam.noiseModel.mEstimator.Huber.Create(c.ba_huber)
         poses_used = set()
         for kf, lm, uv, z in obs:
             sel = np.isin(lm, use)
             if not sel.any():
                 continue
-            lm, uv, z = lm[sel], uv[sel], z[sel]
             poses_used.add(kf)
-            sz = c.depth_noise_a + c.depth_noise_b * z * z
-            sd = fb * sz / (z * z)  # disparity noise (px)
-            s2 = c.sigma_px**2
-            for j in range(len(lm)):
-                # u_right = u_left - d: it carries u_left's pixel noise (correlated) plus the disparity's
-                C = np.array([[s2, s2, 0.0], [s2, s2 + sd[j] ** 2, 0.0], [0.0, 0.0, s2]])
-                nm = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(C))
-                meas = gtsam.StereoPoint2(uv[j, 0], uv[j, 0] - fb / z[j], uv[j, 1])
-                graph.add(gtsam.GenericStereoFactor3D(meas, nm, X(kf), L(lm[j]), self.K, False, False))
+            self.factors.add(graph, kf, lm[sel], uv[sel], z[sel])
         for kf in poses_used:
             values.insert(X(kf), gtsam.Pose3(kf_pose[kf]))
             if kf in fixed:
@@ -95,18 +136,10 @@ class LocalBA:
         for i in use:
             values.insert(L(i), lmap.pos[i].astype(np.float64))
             if c.ba_landmark_prior:  # the Kalman estimate (every frame's observations, not only keyframes')
-                graph.add(gtsam.PriorFactorPoint3(L(i), lmap.pos[i].astype(np.float64),
-                                                  gtsam.noiseModel.Gaussian.Covariance(lmap.cov[i] + 1e-12 * np.eye(3))))
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(c.ba_iterations)
-        params.setRelativeErrorTol(1e-4)
-        # landmarks eliminated first, poses last (the Schur complement of BA): ~10x faster than plain COLAMD
-        poses = gtsam.KeyVector([X(kf) for kf in sorted(poses_used)])
-        params.setOrdering(gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, poses))
-        try:
-            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-            result = opt.optimize()
-        except RuntimeError:  # an indeterminate system: keep the map as it is
+                graph.add(gtsam.PriorFactorPoint3(L(i), lmap.pos[i].astype(np.float64), gtsam.noiseModel.Gaussian.Covariance(
+                    lmap.cov[i] + (c.ba_prior_floor ** 2 + 1e-12) * np.eye(3))))
+        result = solve(graph, values, sorted(poses_used), c.ba_iterations)
+        if result is None:  # an indeterminate system: keep the map as it is
             return {}
         self.last_error = (graph.error(values), graph.error(result))
         out = {kf: result.atPose3(X(kf)).matrix() for kf in poses_used if kf in win_idx and kf not in fixed}
@@ -119,4 +152,6 @@ class LocalBA:
         for i in use:
             lmap.pos[i] = result.atPoint3(L(i))
         self.last_moved = sorted(out)
+        self.last_fixed = sorted(fixed & poses_used)
+        self.last_landmarks = use
         return out

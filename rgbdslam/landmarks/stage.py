@@ -32,6 +32,8 @@ class _KeyframeObs:
     lm: np.ndarray
     uv: np.ndarray
     z: np.ndarray
+    # the map-placed frames hanging from this keyframe (global BA): (pose relative to it, lm, uv, z)
+    frames: list = field(default_factory=list)
 
 
 @dataclass
@@ -71,6 +73,8 @@ class LandmarkTracker:
         self.rng = np.random.default_rng(cfg.seed)
         self.stats = LandmarkStats()
         self.keyframes: list[_KeyframeObs] = []  # the last ones (bounded: what local BA can use)
+        self.all_keyframes: list[_KeyframeObs] = []  # every keyframe's (global_ba only)
+        self.global_ba_stats: dict = {}
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
@@ -154,6 +158,17 @@ class LandmarkTracker:
             res.feat, res.lm = np.concatenate([res.feat, f[ok]]), np.concatenate([res.lm, l[ok]])
         return res
 
+    def record_frame(self, index: int, feats, pose: np.ndarray) -> None:
+        """Keep a non-keyframe's map inliers for the global BA, relative to the last keyframe (the
+        frame moves rigidly with it); only with ``global_ba_frames``."""
+        if not (self.cfg.global_ba and self.cfg.global_ba_frames) or not self.all_keyframes:
+            return
+        if self._last is None or self._last[0] != index:
+            return
+        kf = self.all_keyframes[-1]
+        _, f, lm = self._last
+        kf.frames.append((inv(self.kf_pose[kf.index]) @ pose, lm.copy(), feats.uv[f].copy(), feats.pts[f, 2].copy()))
+
     def end_frame(self, index: int) -> None:
         self.map.end_step(index)
 
@@ -183,6 +198,8 @@ class LandmarkTracker:
             lm_ids = np.concatenate([lm_ids, ids])
         self.kf_pose[index] = pose.copy()
         self.keyframes.append(_KeyframeObs(index, lm_ids, feats.uv[lm_idx].copy(), feats.pts[lm_idx, 2].copy()))
+        if c.global_ba:
+            self.all_keyframes.append(self.keyframes[-1])
         keep = max(3 * c.ba_window, 10)
         if len(self.keyframes) > keep:
             del self.keyframes[: len(self.keyframes) - keep]
@@ -219,6 +236,25 @@ class LandmarkTracker:
         corr = {k: optimised[k] @ inv(P) for k, P in self.kf_pose.items() if k in optimised}
         return self.map.move_with_anchors(corr)
 
+    def global_ba(self, poses: dict[int, np.ndarray], loops=(), odometry=()) -> dict[int, np.ndarray]:
+        """Bundle adjustment over every keyframe at the pose graph's ``poses`` (after :meth:`finish`
+        moved the landmarks), the graph's ``loops`` and ``odometry`` as ``(i, j, T_ij, information)``;
+        returns ``poses`` with the refined keyframes (unchanged when it could not run)."""
+        from rgbdslam.landmarks.global_ba import global_bundle_adjustment
+
+        t0 = time.perf_counter()
+        res = global_bundle_adjustment(self.cfg, self.camera, self.map, self.all_keyframes, poses, loops, odometry)
+        if res is None:
+            self.global_ba_stats = {"ran": False}
+            return poses
+        self.global_ba_stats = {"ran": True, "keyframes": len(res.poses), "landmarks": res.landmarks,
+                                "observations": res.observations, "between": res.between,
+                                "error_before": round(float(res.error[0]), 3), "error_after": round(float(res.error[1]), 3),
+                                "seconds": round(time.perf_counter() - t0, 3)}
+        for k, P in res.poses.items():
+            self.kf_pose[k] = P
+        return {**poses, **res.poses}
+
     def summary(self) -> dict:
         s = self.stats
         return {
@@ -229,4 +265,5 @@ class LandmarkTracker:
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),
             "local_ba_runs": s.ba_runs,
             "local_ba_median_ms": float(np.median(s.ba_ms)) if s.ba_ms else 0.0,
+            **({"global_ba": self.global_ba_stats} if self.global_ba_stats else {}),
         }
