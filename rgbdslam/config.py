@@ -346,6 +346,9 @@ class StereoConfig:
     row_ratio: float = 0.8  # sparse row: best coarse cost < this x the best one >1 coarse pixel away
     patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
     search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
+    # sparse: sub-pixel refinement: "zsad_v" = zero-mean SAD + equiangular fit; "centre_parabola" = the
+    # method before (patch minus its centre pixel, parabola): biased toward whole pixels (docs/stereo.md)
+    subpixel: Literal["zsad_v", "centre_parabola"] = "centre_parabola"
     sgbm_block_size: int = 5  # SGBM matching block size (odd, pixels)
     sgbm_uniqueness: int = 10  # SGBM uniqueness ratio (%): the best match must win by this margin
     sgbm_scale: float = 1.0  # SGBM on an image resized by this factor (0.5: ~4x faster, coarser)
