@@ -282,7 +282,9 @@ def reader_breakdown(frames: int = 51) -> dict:
     seq = open_sequence(KITTI, cfg)
     fc = cfg.features
     searches = {k: load_config("kitti", [f"stereo.sparse_search={k}"]).stereo for k in ("orb", "row")}
-    steps: dict[str, list[float]] = {k: [] for k in ("read", "left_orb", "stereo_orb", "stereo_row")}
+    # the sub-pixel refinement before (centre pixel subtracted, parabola), for the ratio in one run
+    searches["orb_centre_parabola"] = load_config("kitti", ["stereo.subpixel=centre_parabola"]).stereo
+    steps: dict[str, list[float]] = {k: [] for k in ("read", "left_orb", *(f"stereo_{s}" for s in searches))}
     for i in range(min(frames, len(seq))):
         t = time.thread_time()
         left, right = seq.rectified_pair(i)
@@ -342,6 +344,7 @@ def main() -> None:
                     help="oracle part (needs the synthetic part's RGB-D runs in --work): depth at the stereo key "
                          "points replaced by exact / kinect / dispS (exact disparity + S px noise) / stereo "
                          "(unchanged), each run with and without registration.noise_refit")
+    ap.add_argument("--oracle-refit", default="true,false", help="oracle part: registration.noise_refit values to run")
     ap.add_argument("--tag", default="", help="suffix of the synthetic part's stereo run folders (to keep variants)")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_stereo_"))
@@ -407,7 +410,7 @@ def main() -> None:
                                              seed=seed)
                 rgbd = json.loads((work / f"run_{motion}_{seed}_rgbd" / "evaluation.json").read_text())["ate"]["rmse"]
                 for mode in args.oracle_modes.split(","):
-                    for refit in ("true", "false"):
+                    for refit in args.oracle_refit.split(","):
                         sets = [*args.sets, f"registration.noise_refit={refit}"]
                         seq = with_oracle_depth(open_sequence(st, load_config(None, sets)), motion, seed, mode)
                         b = run(seq, None, sets, work / f"oracle_{motion}_{seed}_{mode}_{refit}{args.tag}")
