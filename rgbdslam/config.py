@@ -116,7 +116,7 @@ class RegistrationConfig:
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
     # after fusion (frames with a depth noise model, i.e. stereo): Gauss-Newton refit on the kept inlier
     # pairs weighted by their covariances (geometry.mahalanobis; docs/stereo.md). Off by default: on a short
-    # indoor baseline (synthetic 0.12 m) it costs accuracy (circle 1.6-2.0x RGB-D with it, ~1.1x without);
+    # indoor baseline (synthetic 0.12 m) it costs accuracy (circle 1.5-2.0x RGB-D with it, 0.4-1.1x without);
     # the kitti preset turns it on (far points: ATE 0.29 m without it)
     noise_refit: bool = False
     noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
