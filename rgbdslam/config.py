@@ -115,8 +115,10 @@ class RegistrationConfig:
     joint_gate: float = 0.02  # metres, pairs further from the fused pose are left out of the joint refit
     depth_weighting: bool = False  # weight pairs by 1/z^2 in the joint refit
     # after fusion (frames with a depth noise model, i.e. stereo): Gauss-Newton refit on the kept inlier
-    # pairs weighted by their covariances (geometry.mahalanobis; docs/stereo.md)
-    noise_refit: bool = True
+    # pairs weighted by their covariances (geometry.mahalanobis; docs/stereo.md). Off by default: on a short
+    # indoor baseline (synthetic 0.12 m) it costs accuracy (circle 1.5-2.0x RGB-D with it, 0.4-1.1x without);
+    # the kitti preset turns it on (far points: ATE 0.29 m without it)
+    noise_refit: bool = False
     noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
     noise_refit_huber: float = 3.0  # Huber threshold of the refit (Mahalanobis distance, sigmas)
     threads: int = 1  # threads registering the ISLAM references in parallel
@@ -344,7 +346,7 @@ class StereoConfig:
     depth: Literal["sparse", "sgbm"] = "sparse"  # tracking: row-matched ORB key points, or OpenCV SGBM
     map_depth: Literal["same", "sparse", "sgbm"] = "sgbm"  # what `fuse` re-reads for the map ("same" = depth)
     # disparity noise (pixels) each method implies: depth sigma = z^2 * sigma / (fx * baseline)
-    sigma_disparity_sparse: float = 0.5
+    sigma_disparity_sparse: float = 0.12  # measured: zsad_v refinement, synthetic exact depth and KITTI consistency
     sigma_disparity_sgbm: float = 0.5  # disparity noise (px) of SGBM depth, for the depth noise model
     max_disparity: int = 128  # search range (pixels); SGBM rounds it up to a multiple of 16
     min_disparity: float = 0.5  # smaller disparities (farther than fx * B / this) give no depth
@@ -360,6 +362,9 @@ class StereoConfig:
     row_ratio: float = 0.8  # sparse row: best coarse cost < this x the best one >1 coarse pixel away
     patch_radius: int = 5  # sparse: SAD patch half-size of the sub-pixel refinement
     search_radius: int = 4  # sparse: SAD search +- pixels around the descriptor match
+    # sparse: sub-pixel refinement: "zsad_v" = zero-mean SAD + equiangular fit; "centre_parabola" = the
+    # method before (patch minus its centre pixel, parabola): biased toward whole pixels (docs/stereo.md)
+    subpixel: Literal["zsad_v", "centre_parabola"] = "zsad_v"
     sgbm_block_size: int = 5  # SGBM matching block size (odd, pixels)
     sgbm_uniqueness: int = 10  # SGBM uniqueness ratio (%): the best match must win by this margin
     sgbm_scale: float = 1.0  # SGBM on an image resized by this factor (0.5: ~4x faster, coarser)

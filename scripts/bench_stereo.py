@@ -4,7 +4,8 @@ stereo with exact ground truth.
 Usage::
 
     .venv/bin/python scripts/bench_stereo.py [--seeds 0,1,2] [--frames 150] [--motions loop,circle]
-        [--work DIR] [--json FILE] [--parts depth,kitti,synthetic,speed] [--repeats 3]
+        [--work DIR] [--json FILE] [--parts depth,disparity,kitti,synthetic,oracle,speed] [--repeats 3]
+        [--methods sparse,...] [--set KEY=VALUE ...] [--tag NAME] [--reuse-rgbd] [--oracle-modes ...]
 
 1. Depth accuracy: synthetic stereo pairs (0.12 m baseline, 640x480, image noise) against the
    exact rendered depth: disparity error (median = bias, 1.4826 * MAD = sigma, share > 1 px) and
@@ -16,6 +17,15 @@ Usage::
    RGB-D (``rgbdslam synth``) and as stereo (``--stereo 0.12``, KITTI layout), both run with the
    default config: ATE of each and the ratio stereo / RGB-D (target <= 1.5), for each stereo
    variant of ``--methods`` (sparse with the ORB or the row search, SGBM).
+   ``--set`` adds config settings to every stereo run (``--tag`` keeps their run folders apart).
+   Parts 1-3 are run by default; ``disparity`` and ``oracle`` only when asked for:
+   * ``disparity``: per-point sparse disparity error against the exact rendered depth for each
+     ``stereo.subpixel`` method (bias, spread, mean error by the true sub-pixel fraction, by depth, by
+     image column), and on KITTI the consistency of consecutive frames' disparities moved by the
+     ground-truth poses (no true disparity there).
+   * ``oracle``: the synthetic stereo runs again with the depth at the stereo key points replaced by
+     the exact depth, the exact depth + Kinect noise, or the exact disparity + Gaussian noise, with
+     and without ``registration.noise_refit``: what the depth errors cost, and what the rest does.
 4. Speed: the whole pipeline on KITTI-sized pairs (1226x370) with each depth method, next to the
    RGB-D pipeline on TUM fr1/rpy (640x480) in the same process, so that a ratio survives a
    shared machine: frames/s are quoted with the fr1/rpy frames/s measured in the same run.
@@ -47,7 +57,9 @@ KITTI = DATA / "kitti" / "odometry_06_head51"
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 # stereo depth variants of the synthetic comparison
 METHODS = {"sparse": ["stereo.depth=sparse"], "row": ["stereo.depth=sparse", "stereo.sparse_search=row"],
-           "sgbm": ["stereo.depth=sgbm"]}
+           "sgbm": ["stereo.depth=sgbm"],
+           # the sub-pixel refinement before (patch minus its centre pixel, parabola), for comparison
+           "sparse_parabola": ["stereo.depth=sparse", "stereo.subpixel=centre_parabola"]}
 
 
 def depth_accuracy(work: Path, seed: int = 0, frames: int = 30) -> dict:
@@ -81,6 +93,157 @@ def depth_accuracy(work: Path, seed: int = 0, frames: int = 30) -> dict:
                        "gross_share": float(np.mean(np.abs(e) > 1.0)), "depth_pixels_median": float(np.median(cover)),
                        "load_ms_median": 1e3 * float(np.median(t))}
     return out
+
+
+SUBPIXEL = ("centre_parabola", "zsad_v")
+
+
+def _error_stats(e: np.ndarray) -> dict:
+    """Disparity errors (px): bias = mean of |e| < 1 px, median, robust sigma, sd of |e| < 1, share > 1 px."""
+    core = np.abs(e) < 1.0
+    med = float(np.median(e))
+    return {"n": int(len(e)), "bias_px": float(np.mean(e[core])), "median_px": med,
+            "sigma_robust_px": float(1.4826 * np.median(np.abs(e - med))), "sd_core_px": float(np.std(e[core])),
+            "gross_share": float(np.mean(~core))}
+
+
+def disparity_errors(motions: list[str], seeds: list[int], frames: int = 150, step: int = 10) -> dict:
+    """Per-point sparse disparity error against the renderer's exact depth (``disparity`` part).
+
+    Every ``step``-th pair of the synthetic sequence (0.12 m baseline, image noise) is rendered in memory,
+    the product's ``sparse_matches`` gives disparities at the left key points and the truth is
+    ``fx B / z`` of the rendered depth at the same integer pixel (the right image is an exact render of the
+    shifted camera, so this is exact). For each ``stereo.subpixel`` method: overall statistics, the mean
+    error by the true disparity's sub-pixel fraction (pixel locking shows as a sine-like pattern), by depth
+    and by image column third."""
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets.synthetic import Rays, Scene, make_trajectory, scaled_camera
+    from rgbdslam.datasets.synthetic_stereo import _render_pairs
+    from rgbdslam.frontend.features import detect
+    from rgbdslam.geometry.stereo import StereoRig
+    from rgbdslam.stereo.depth import sparse_matches
+
+    cam = scaled_camera("ros_default", 640, 480)
+    rig = StereoRig(cam, 0.12)
+    fb = cam.fx * rig.baseline
+    out = {}
+    for motion in motions:
+        for seed in seeds:
+            poses = make_trajectory(motion, frames)[::step]
+            scene, rays = Scene(seed), Rays(cam)
+            rows: dict[str, list] = {m: [] for m in SUBPIXEL}
+            for k, left, right in _render_pairs(cam, poses, rig.baseline, True, seed, False):
+                z_true = scene.render(rays, poses[k])[1]
+                for method in SUBPIXEL:
+                    cfg = load_config(None, [f"stereo.subpixel={method}"])
+                    det = detect(left, cfg.features)
+                    m = sparse_matches(left, right, rig, det.uv_raw, det.desc, cfg.stereo, cfg.features)
+                    u, v = m.uv[:, 0].astype(int), m.uv[:, 1].astype(int)
+                    z = z_true[v, u]
+                    rows[method].append(np.stack([m.disparity - fb / z, fb / z, z, u], axis=1))
+            res = {}
+            for method, r in rows.items():
+                a = np.concatenate(r)
+                e, frac, z, u = a[:, 0], a[:, 1] % 1.0, a[:, 2], a[:, 3]
+                core = np.abs(e) < 1.0
+                d = _error_stats(e)
+                d["by_fraction"] = [float(np.mean(e[core & (frac >= f) & (frac < f + 0.1)])) for f in np.arange(0, 1, 0.1)]
+                d["by_depth"] = {f"{lo}-{hi} m": _error_stats(e[(z >= lo) & (z < hi)])
+                                 for lo, hi in ((0.0, 2.0), (2.0, 2.5), (2.5, 3.0), (3.0, 3.5), (3.5, 9.0))
+                                 if np.count_nonzero((z >= lo) & (z < hi)) >= 30}
+                third = np.minimum((3 * u / cam.width).astype(int), 2)
+                d["by_column_third"] = [_error_stats(e[third == t]) for t in range(3)]
+                res[method] = d
+            out[f"{motion} seed {seed}"] = res
+            print("disparity", motion, seed, json.dumps({m: {k: v for k, v in d.items() if not k.startswith("by_")}
+                                                         for m, d in res.items()}), flush=True)
+    return out
+
+
+def kitti_disparity_consistency() -> dict:
+    """KITTI 06 0-50 (no true disparity): each key point's disparity in frame i+1 against the one predicted
+    from its partner in frame i (descriptor match, cross-checked, within 3 px of the ground-truth
+    reprojection) moved by the ground-truth relative pose. The difference holds the error of both
+    measurements (and of the ground truth): per-measurement sigma ~ robust sd / sqrt(2)."""
+    import cv2
+
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.frontend.features import detect
+    from rgbdslam.geometry.se3 import inv
+    from rgbdslam.stereo.depth import sparse_matches
+
+    seq = open_sequence(KITTI, load_config("kitti", []))
+    G = seq.groundtruth().poses
+    cam, fb = seq.camera, seq.camera.fx * seq.rig.baseline
+    pairs = [seq.rectified_pair(i) for i in range(len(seq))]
+    out = {}
+    for method in SUBPIXEL:
+        cfg = load_config("kitti", [f"stereo.subpixel={method}"])
+        per = []
+        for left, right in pairs:
+            det = detect(left, cfg.features)
+            m = sparse_matches(left, right, seq.rig, det.uv_raw, det.desc, cfg.stereo, cfg.features)
+            per.append((det.uv_raw[m.left_index], det.desc[m.left_index], m.disparity, m.points))
+        bf = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+        diffs = []
+        for i in range(len(per) - 1):
+            (_, da, pa, Pa), (ub, db, pb, _) = per[i], per[i + 1]
+            ms = bf.match(da, db)
+            ia = np.array([x.queryIdx for x in ms], int)
+            ib = np.array([x.trainIdx for x in ms], int)
+            T = inv(G[i + 1]) @ G[i]
+            Q = Pa[ia] @ T[:3, :3].T + T[:3, 3]
+            proj = np.stack([cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy], axis=1)
+            ok = (Q[:, 2] > 0) & np.all(np.abs(proj - ub[ib]) < 3.0, axis=1)
+            diffs.append(np.stack([pb[ib][ok] - fb / Q[ok, 2], pb[ib][ok]], axis=1))
+        a = np.concatenate(diffs)
+        d = _error_stats(a[:, 0])
+        d["sigma_per_measurement_px"] = d["sigma_robust_px"] / np.sqrt(2.0)
+        d["by_disparity"] = {f"{lo}-{hi} px": _error_stats(a[(a[:, 1] >= lo) & (a[:, 1] < hi), 0])
+                             for lo, hi in ((4, 10), (10, 20), (20, 40), (40, 130))}
+        out[method] = d
+        print("kitti disparity consistency", method, json.dumps({k: v for k, v in d.items() if k != "by_disparity"}),
+              flush=True)
+    return out
+
+
+def with_oracle_depth(seq, motion: str, seed: int, mode: str):
+    """``seq`` (a synthetic stereo sequence, sparse depth) with the depth at its key points replaced, to
+    separate what the depth's errors cost from what the rest of the stereo pipeline costs (``oracle``
+    part): ``exact`` = the renderer's depth; ``kinect`` = exact + the RGB-D rendering's Kinect noise;
+    ``dispS`` = exact disparity + Gaussian noise of S px (independent per point and frame); ``stereo`` =
+    unchanged. The same key points get depth in every mode."""
+    from rgbdslam.datasets.synthetic import Rays, Scene, kinect_noise, make_trajectory
+
+    if mode == "stereo":
+        return seq
+    world = make_trajectory(motion, len(seq))  # KITTI layout poses start at the identity: render from the world's
+    scene, rays = Scene(seed), Rays(seq.camera)
+    fb = seq.camera.fx * seq.rig.baseline
+    load = seq.load
+
+    def oracle_load(i: int):
+        f = load(i)
+        true = scene.render(rays, world[i])[1]
+        rng = np.random.default_rng([seed, i, 777])
+        has = f.depth > 0
+        if mode == "exact":
+            z = true[has]
+        elif mode == "kinect":
+            z = kinect_noise(true, rng)[has]
+        elif mode.startswith("disp"):
+            d = fb / true[has] + float(mode[4:]) * rng.standard_normal(int(has.sum()))
+            z = np.where(d > 0, fb / np.maximum(d, 1e-9), 0.0)
+        else:
+            raise ValueError(f"unknown oracle mode {mode!r}")
+        depth = np.zeros_like(f.depth)
+        depth[has] = z
+        f.depth = depth
+        return f
+
+    seq.load = oracle_load
+    return seq
 
 
 def run(seq, cfg_name: str | None, sets: list[str], out: Path) -> dict:
@@ -119,7 +282,9 @@ def reader_breakdown(frames: int = 51) -> dict:
     seq = open_sequence(KITTI, cfg)
     fc = cfg.features
     searches = {k: load_config("kitti", [f"stereo.sparse_search={k}"]).stereo for k in ("orb", "row")}
-    steps: dict[str, list[float]] = {k: [] for k in ("read", "left_orb", "stereo_orb", "stereo_row")}
+    # the sub-pixel refinement before (centre pixel subtracted, parabola), for the ratio in one run
+    searches["orb_centre_parabola"] = load_config("kitti", ["stereo.subpixel=centre_parabola"]).stereo
+    steps: dict[str, list[float]] = {k: [] for k in ("read", "left_orb", *(f"stereo_{s}" for s in searches))}
     for i in range(min(frames, len(seq))):
         t = time.thread_time()
         left, right = seq.rectified_pair(i)
@@ -165,10 +330,22 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--skip-synthetic", action="store_true")
     ap.add_argument("--parts", default="depth,kitti,synthetic,speed",
-                    help="comma list of the parts to run: depth (accuracy), kitti (+ fr1/rpy), synthetic, speed")
+                    help="comma list of the parts to run: depth (accuracy), disparity (per-point sparse disparity "
+                         "errors by sub-pixel method, synthetic exact and KITTI consistency), kitti (+ fr1/rpy), "
+                         "synthetic, oracle (synthetic stereo with exact / noisy true depth), speed")
     ap.add_argument("--repeats", type=int, default=3, help="rounds of the speed part")
     ap.add_argument("--methods", default="sparse,row,sgbm", help="stereo depth variants of the synthetic part: "
                     + ", ".join(f"{k} ({' '.join(v)})" for k, v in METHODS.items()))
+    ap.add_argument("--set", action="append", default=[], dest="sets", metavar="KEY=VALUE",
+                    help="extra config setting for every stereo run of the synthetic part (repeatable)")
+    ap.add_argument("--reuse-rgbd", action="store_true",
+                    help="synthetic part: take the RGB-D ATE from an earlier run in --work (the runs are deterministic)")
+    ap.add_argument("--oracle-modes", default="exact,kinect,disp0.12,stereo",
+                    help="oracle part (needs the synthetic part's RGB-D runs in --work): depth at the stereo key "
+                         "points replaced by exact / kinect / dispS (exact disparity + S px noise) / stereo "
+                         "(unchanged), each run with and without registration.noise_refit")
+    ap.add_argument("--oracle-refit", default="true,false", help="oracle part: registration.noise_refit values to run")
+    ap.add_argument("--tag", default="", help="suffix of the synthetic part's stereo run folders (to keep variants)")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_stereo_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -181,6 +358,9 @@ def main() -> None:
     if args.skip_synthetic:
         parts.discard("synthetic")
     report["depth_accuracy"] = depth_accuracy(work) if "depth" in parts else {}
+    if "disparity" in parts:
+        report["disparity"] = disparity_errors(args.motions.split(","), [int(s) for s in args.seeds.split(",")])
+        report["kitti_disparity"] = kitti_disparity_consistency()
     print("depth accuracy", json.dumps(report["depth_accuracy"]), flush=True)
 
     # KITTI with both methods, and fr1/rpy (RGB-D) in between for the speed ratio
@@ -203,16 +383,42 @@ def main() -> None:
                 if not (st / "synthetic.yaml").exists():
                     generate_stereo_sequence(st, 0.12, "kitti", frames=args.frames, motion=motion, noise=True,
                                              seed=seed)
-                a = run(rg, None, [], work / f"run_{motion}_{seed}_rgbd")
+                ra = work / f"run_{motion}_{seed}_rgbd"
+                if args.reuse_rgbd and (ra / "evaluation.json").is_file():  # deterministic: an earlier run's ATE
+                    a = {"ate": json.loads((ra / "evaluation.json").read_text())["ate"]["rmse"]}
+                else:
+                    a = run(rg, None, [], ra)
                 row = {"motion": motion, "seed": seed, "rgbd": a["ate"]}
                 for method in args.methods.split(","):
-                    b = run(st, None, METHODS[method], work / f"run_{motion}_{seed}_{method}")
+                    b = run(st, None, METHODS[method] + args.sets, work / f"run_{motion}_{seed}_{method}{args.tag}")
                     row[method] = b["ate"]
                     row[f"{method}_lost"] = b["lost"]
                     row[f"{method}_ratio"] = b["ate"] / a["ate"] if a["ate"] and b["ate"] is not None else None
                 synth.append(row)
                 print("synthetic", row, flush=True)
     report["synthetic"] = synth
+    oracle = []
+    if "oracle" in parts:
+        from rgbdslam.config import load_config
+        from rgbdslam.datasets import open_sequence
+
+        for motion in args.motions.split(","):
+            for seed in [int(s) for s in args.seeds.split(",")]:
+                st = work / f"{motion}_s{seed}_stereo"
+                if not (st / "synthetic.yaml").exists():
+                    generate_stereo_sequence(st, 0.12, "kitti", frames=args.frames, motion=motion, noise=True,
+                                             seed=seed)
+                rgbd = json.loads((work / f"run_{motion}_{seed}_rgbd" / "evaluation.json").read_text())["ate"]["rmse"]
+                for mode in args.oracle_modes.split(","):
+                    for refit in args.oracle_refit.split(","):
+                        sets = [*args.sets, f"registration.noise_refit={refit}"]
+                        seq = with_oracle_depth(open_sequence(st, load_config(None, sets)), motion, seed, mode)
+                        b = run(seq, None, sets, work / f"oracle_{motion}_{seed}_{mode}_{refit}{args.tag}")
+                        row = {"motion": motion, "seed": seed, "mode": mode, "refit": refit == "true",
+                               "ate": b["ate"], "lost": b["lost"], "rgbd": rgbd, "ratio": b["ate"] / rgbd}
+                        oracle.append(row)
+                        print("oracle", row, flush=True)
+    report["oracle"] = oracle
     report["speed"] = speed(work, args.repeats) if "speed" in parts else {}
     report["load_average_end"] = os.getloadavg()[0]
     print_markdown(report)
@@ -230,12 +436,44 @@ def print_markdown(r: dict) -> None:
         for m, d in r["depth_accuracy"].items():
             print(f"| {m} | {d['bias_px']:+.3f} | {d['sigma_px']:.3f} | {100 * d['gross_share']:.1f} % | "
                   f"{d['depth_pixels_median']:.0f} | {d['load_ms_median']:.0f} |")
+    if r.get("disparity"):
+        print_disparity(r["disparity"], r["kitti_disparity"])
     if r["kitti"]:
         print_kitti(r["kitti"])
     if r["synthetic"]:
         print_synthetic(r["synthetic"])
+    if r.get("oracle"):
+        print("\n| sequence | depth at the stereo key points | noise refit | ATE (m) | RGB-D ATE (m) | ratio | lost |")
+        print("|---|---|---|---|---|---|---|")
+        for o in r["oracle"]:
+            print(f"| {o['motion']} seed {o['seed']} | {o['mode']} | {'on' if o['refit'] else 'off'} | {o['ate']:.4f} | "
+                  f"{o['rgbd']:.4f} | {o['ratio']:.2f} | {o['lost']} |")
     if r["speed"]:
         print_speed(r["speed"])
+
+
+def print_disparity(syn: dict, kitti: dict) -> None:
+    print("\n| sequence | sub-pixel | points | bias (px) | median | robust sigma | sd of |e|<1 | > 1 px | "
+          "mean error by true fraction 0.0 ... 0.9 (px) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, res in syn.items():
+        for m, d in res.items():
+            print(f"| {name} | {m} | {d['n']} | {d['bias_px']:+.3f} | {d['median_px']:+.3f} | {d['sigma_robust_px']:.3f} | "
+                  f"{d['sd_core_px']:.3f} | {100 * d['gross_share']:.1f} % | "
+                  + " ".join(f"{x:+.2f}" for x in d["by_fraction"]) + " |")
+    print("\nby depth (bias / robust sigma px): " + "; ".join(
+        f"{name} {m}: " + ", ".join(f"{k} {v['bias_px']:+.3f}/{v['sigma_robust_px']:.3f}" for k, v in d["by_depth"].items())
+        for name, res in syn.items() for m, d in res.items()))
+    print("\nby image column third (bias / robust sigma px): " + "; ".join(
+        f"{name} {m}: " + ", ".join(f"{v['bias_px']:+.3f}/{v['sigma_robust_px']:.3f}" for v in d["by_column_third"])
+        for name, res in syn.items() for m, d in res.items()))
+    print("\n| KITTI 06 consistency | pairs | median diff (px) | robust sd of diff | per measurement | > 1 px | "
+          "median diff by disparity 4-10 / 10-20 / 20-40 / 40-130 px |")
+    print("|---|---|---|---|---|---|---|")
+    for m, d in kitti.items():
+        print(f"| {m} | {d['n']} | {d['median_px']:+.3f} | {d['sigma_robust_px']:.3f} | {d['sigma_per_measurement_px']:.3f} | "
+              f"{100 * d['gross_share']:.1f} % | " + " / ".join(f"{v['median_px']:+.3f}" for v in d["by_disparity"].values())
+              + " |")
 
 
 def print_speed(sp: dict) -> None:
