@@ -51,7 +51,7 @@ def run(seq_dir: Path, sets: list[str], frames: int | None) -> dict:
     orig_track, orig_fuse = stage.LandmarkTracker.track, stage.fuse_poses
 
     def fuse(P1, H1, P2, H2):
-        trace[cur[0]]["map"] = P2.copy()
+        trace[cur[0]].update(map=P2.copy(), H_reg=H1.copy(), H_map=H2.copy())
         return orig_fuse(P1, H1, P2, H2)
 
     def track(self, index, feats, pose, information=None):
@@ -82,6 +82,7 @@ def run(seq_dir: Path, sets: list[str], frames: int | None) -> dict:
     pos = {k: j for j, k in enumerate(idx)}
     errs = {k: [] for k in ("reg", "map", "out", "map_chain", "odo", "final_map", "final")}
     absd = {k: [] for k in ("reg", "map", "out")}  # absolute error, the first frame aligned
+    chi2, sig_t = {"reg": [], "map": []}, {"reg": [], "map": []}  # Mahalanobis² of each stage's 1-frame error under its information
     for j in range(1, len(idx)):
         i, p = idx[j], idx[j - 1]
         e = rel_error(G[j - 1], G[j], final.poses[j - 1], final.poses[j])
@@ -96,6 +97,14 @@ def run(seq_dir: Path, sets: list[str], frames: int | None) -> dict:
         tp = trace.get(p)
         if tp is not None and "map" in tp:
             errs["map_chain"].append(rel_error(G[j - 1], G[j], tp["map"], t["map"]))
+        if "H_reg" in t:
+            import gtsam
+
+            for k in ("reg", "map"):
+                E = inv(inv(G[j - 1]) @ G[j]) @ (inv(odo[p]) @ t[k])
+                eta = gtsam.Pose3.Logmap(gtsam.Pose3(E))
+                chi2[k].append(float(eta @ t["H_" + k] @ eta))
+                sig_t[k].append(1e3 * np.sqrt(np.trace(np.linalg.inv(t["H_" + k])[3:, 3:])))
         for k in absd:
             absd[k].append(rel_error(G[0], G[j], odo[idx[0]], t[k]))
     out = {"sequence": str(seq_dir), "frames": len(idx), "map_frames": len(errs["map"])}
@@ -108,6 +117,9 @@ def run(seq_dir: Path, sets: list[str], frames: int | None) -> dict:
         a = np.array(v) if v else np.zeros((0, 2))
         out["abs_" + k] = {"t_mm": float(1e3 * np.sqrt(np.mean(a[:, 0] ** 2))) if len(a) else float("nan"),
                            "r_deg": float(np.sqrt(np.mean(a[:, 1] ** 2))) if len(a) else float("nan")}
+    for k, v in chi2.items():
+        out["chi2_" + k] = float(np.median(v)) if v else float("nan")
+        out["sigma_t_mm_" + k] = float(np.median(sig_t[k])) if v else float("nan")
     if slam.landmarks is not None:
         out["summary"] = slam.landmarks.summary()
     return out
@@ -126,6 +138,8 @@ def main(argv=None) -> int:
         rows.append(r)
         line = "  ".join(f"{k} {r[k]['t_mm']:.2f}mm/{r[k]['r_deg']:.3f}°" for k in
                          ("reg", "map", "out", "map_chain", "odo", "final"))
+        line += (f"  chi2med reg {r['chi2_reg']:.1f} map {r['chi2_map']:.1f}  sigma_t reg {r['sigma_t_mm_reg']:.2f}"
+                 f" map {r['sigma_t_mm_map']:.2f}")
         line += "  abs " + " ".join(f"{k} {r['abs_' + k]['t_mm']:.2f}" for k in ("reg", "map", "out"))
         print(f"{d.name:20s} map {r['map_frames']}/{r['frames']}  {line}", flush=True)
     if a.json is not None:

@@ -74,6 +74,7 @@ class LandmarkTracker:
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
+        self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
         self.last_ba_moved: list[int] = []
         self.ba = None
         if cfg.local_ba:
@@ -84,12 +85,22 @@ class LandmarkTracker:
     def _sigma(self, z: np.ndarray) -> np.ndarray:
         return self.cfg.depth_noise_a + self.cfg.depth_noise_b * z * z
 
-    def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int) -> None:
+    def _sigma_px(self, feats):
+        """Key point noise (px): one per frame feature by ORB pyramid level, or the scalar."""
+        c = self.cfg
+        if c.sigma_px_scale == 1.0 or len(feats.octave) != len(feats.uv):
+            return c.sigma_px
+        return c.sigma_px * c.sigma_px_scale ** feats.octave.astype(float)
+
+    def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int,
+                 count: bool = True) -> None:
+        """Kalman update of landmarks ``ids`` from frame features ``idx`` seen from ``pose``
+        (``count``: also count them as seen at ``frame``)."""
         P = feats.pts[idx]
         zw = P @ pose[:3, :3].T + pose[:3, 3]
         R = observation_covariance(P, pose[:3, :3], self.camera.fx, self.cfg.sigma_px, self.cfg.depth_noise_a,
                                    self.cfg.depth_noise_b)
-        self.map.observe(ids, zw, R, frame)
+        self.map.observe(ids, zw, R, frame, count)
 
     def track(self, index: int, feats, pose: np.ndarray, information: np.ndarray | None = None) -> np.ndarray:
         """The map pose of frame ``index`` given the registration's ``pose`` (returned unchanged if
@@ -98,6 +109,7 @@ class LandmarkTracker:
         self.stats.frames += 1
         self._last = None
         self._last_matches = None
+        self._pending = None
         if self.map.size == 0:
             return pose
         m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
@@ -106,7 +118,7 @@ class LandmarkTracker:
         if len(m.lm) >= c.min_inliers:
             res = estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                                 c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
-                                c.refine, self.camera, c.sigma_px, c.chi_gate)
+                                c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full")
         if res is not None and not _close(pose, res.pose, c.max_correction, c.max_correction_deg):
             self.stats.rejected += 1  # a map pose far from the registration's is a wrong map match
             res = None
@@ -117,13 +129,18 @@ class LandmarkTracker:
         if res is None:
             return pose
         if c.mode == "fuse" and information is not None and res.information is not None:
-            res.pose = fuse_poses(pose, information, res.pose, res.information)
+            res.pose = fuse_poses(pose, information * c.fuse_scale, res.pose, res.information)
         self.stats.map_poses += 1
         self.stats.inliers.append(len(res.lm))
         self.stats.matched += len(res.lm)
         self.stats.matched_old += int((index - self.map.first[res.lm] >= c.old_age).sum())
-        self._observe(feats, res.feat, res.lm, res.pose, index)
         self._last = (index, res.feat, res.lm)
+        self._pending = (feats, res.feat, res.lm)
+        if c.observe == "frames":
+            self._observe(feats, res.feat, res.lm, res.pose, index)
+            self._pending = None
+        else:  # seen now (culling counts it); the position waits for the keyframe decision (end_frame)
+            self.map.observe(res.lm, None, None, index)
         return res.pose
 
     def _revisit(self, index: int, feats, start: np.ndarray, pose: np.ndarray):
@@ -141,7 +158,7 @@ class LandmarkTracker:
             return None
         res = estimate_pose(self.map, feats, m, start, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                             c.ransac_iterations, c.revisit_min_inliers, "uniform", 1.0, self.rng,
-                            c.refine, self.camera, c.sigma_px, c.chi_gate)
+                            c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full")
         if res is None or not _close(pose, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
             return None
         self.stats.revisits += 1
@@ -155,6 +172,12 @@ class LandmarkTracker:
         return res
 
     def end_frame(self, index: int) -> None:
+        """The end of frame ``index``'s map step: (``observe: keyframes``) a keyframe's map matches
+        re-observe their landmarks from its final pose; culling."""
+        if self._pending is not None and index in self.kf_pose:
+            feats, f, l = self._pending
+            self._observe(feats, f, l, self.kf_pose[index], index, count=False)
+        self._pending = None
         self.map.end_step(index)
 
     def add_keyframe(self, index: int, feats, pose: np.ndarray) -> dict[int, np.ndarray]:
