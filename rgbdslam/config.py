@@ -235,7 +235,7 @@ class LandmarksConfig:
     # 'seed' = the registration's pose predicts, the map pose replaces it (kept when the map fails);
     # 'fuse' = the information-weighted mean of both (the registration's per-frame information,
     # the map pose's from its reprojection refine)
-    mode: Literal["seed", "fuse"] = "fuse"
+    mode: Literal["seed", "fuse", "filter"] = "fuse"
     search_radius: float = 10.0  # pixels around a landmark's projection
     max_hamming: int = 50  # largest Hamming distance of a landmark-to-feature descriptor match
     max_depth: float = 5.0  # metres: landmarks further from the camera are not searched, features not mapped

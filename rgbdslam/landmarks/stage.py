@@ -75,6 +75,7 @@ class LandmarkTracker:
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
         self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
+        self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
         self.last_ba_moved: list[int] = []
         self.ba = None
         if cfg.local_ba:
@@ -126,10 +127,24 @@ class LandmarkTracker:
             old = self._revisit(index, feats, pose if res is None else res.pose, pose)
             if old is not None:
                 res = old
-        if res is None:
-            return pose
-        if c.mode == "fuse" and information is not None and res.information is not None:
-            res.pose = fuse_poses(pose, information * c.fuse_scale, res.pose, res.information)
+        # the registration's pose as a prediction: its covariance is the last output's plus this step's
+        C_pred = None
+        if information is not None:
+            C_pred = np.linalg.inv(information * c.fuse_scale)
+            if c.mode == "filter" and self._cov is not None:
+                C_pred = C_pred + self._cov
+        if res is None or res.information is None or C_pred is None:
+            self._cov = C_pred if res is None else None
+            return pose if res is None else self._accept(index, feats, res)
+        if c.mode in ("fuse", "filter"):
+            H_pred = np.linalg.inv(C_pred)
+            res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
+            self._cov = np.linalg.inv(H_pred + res.information)
+        return self._accept(index, feats, res)
+
+    def _accept(self, index: int, feats, res) -> np.ndarray:
+        """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
+        c = self.cfg
         self.stats.map_poses += 1
         self.stats.inliers.append(len(res.lm))
         self.stats.matched += len(res.lm)
