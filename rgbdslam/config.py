@@ -254,6 +254,8 @@ class LandmarksConfig:
     landmark_cov: Literal["full", "isotropic"] = "full"
     # which frames' observations update the landmarks (Kalman): every map-tracked frame or keyframes only
     observe: Literal["frames", "keyframes"] = "frames"
+    # the map pose's key point and depth noise rescaled per frame by the robust scale of its residuals
+    adaptive_noise: bool = False
     fuse_scale: float = 1.0  # fuse mode: the registration's information is multiplied by this
     old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it

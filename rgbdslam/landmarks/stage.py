@@ -119,7 +119,8 @@ class LandmarkTracker:
         if len(m.lm) >= c.min_inliers:
             res = estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                                 c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
-                                c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full")
+                                c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
+                                c.adaptive_noise)
         if res is not None and not _close(pose, res.pose, c.max_correction, c.max_correction_deg):
             self.stats.rejected += 1  # a map pose far from the registration's is a wrong map match
             res = None

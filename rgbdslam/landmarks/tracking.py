@@ -99,12 +99,15 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
 def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.ndarray, threshold: float,
                   iterations: int, min_inliers: int, sampling: str, old_fraction: float,
                   rng: np.random.Generator, refine: str = "rigid", camera=None, sigma_px=1.0,
-                  chi2_gate: float = 3.0, full_cov: bool = True) -> MapPose | None:
+                  chi2_gate: float = 3.0, full_cov: bool = True, adaptive: bool = False) -> MapPose | None:
     """Pose from the matches: RANSAC (old landmarks first) + weighted refit on the inliers.
 
     ``sigma_obs`` (M,) is each frame point's depth noise (m); the landmark's own is sqrt(trace(P)/3)
     in the 3-D refit, its full covariance in the reprojection refine (``full_cov``; else the same
     isotropic sigma). ``sigma_px``: key point noise (px), a scalar or one per frame feature.
+    ``adaptive``: after the refine, the key point and depth noise are rescaled by the robust scale
+    (1.4826 · median |r|, clipped to [0.25, 4]) of the inliers' whitened residuals and the refine is
+    run once more: the frame's own noise level sets the weights and the information.
     """
     m = len(match.lm)
     if m < max(3, min_inliers):
@@ -147,6 +150,11 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
             if new.sum() < max(3, min_inliers):
                 break
             mask = new
+        if adaptive:  # the frame's own noise: robust scale of the inliers' whitened pixel and depth residuals
+            k_px = 1.4826 * np.median(np.abs(r[mask, :2]))
+            k_z = 1.4826 * np.median(np.abs(r[mask, 2]))
+            spx, sig = spx * np.clip(k_px, 0.25, 4.0), sig * np.clip(k_z, 0.25, 4.0)
+            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask])
     r = np.linalg.norm(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]), axis=1)
     return MapPose(T, feat[mask], lm[mask], m, match.n_candidates, float(np.sqrt(np.mean(r**2))), info)
 
