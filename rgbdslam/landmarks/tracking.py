@@ -168,14 +168,6 @@ def _so3_exp(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
 
 
-def _landmark_cov(cov_lm: np.ndarray, n: int) -> np.ndarray:
-    """(N, 3, 3) world covariances from (N, 3, 3) or an (N,) isotropic sigma (m)."""
-    cov_lm = np.asarray(cov_lm, float)
-    if cov_lm.ndim == 3:
-        return cov_lm
-    return np.broadcast_to(cov_lm, (n,))[:, None, None] ** 2 * np.eye(3)
-
-
 def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera,
                            sigma_px, sigma_z: np.ndarray, cov_lm: np.ndarray):
     """Whitened residuals (N, 3) of the measured (u, v, 1/z) against landmarks X (N, 3) seen by the
@@ -184,8 +176,10 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
 
     The covariance of each residual is diag(σ_px², σ_px², (σ_z/z²)²) (the frame's key point and
     depth noise; ``sigma_px`` scalar or (N,), e.g. by ORB octave) plus the landmark's own 3x3
-    covariance ``cov_lm`` carried through the projection, J_p Σ_lm J_pᵀ: the part of its
-    uncertainty along the viewing ray goes into the inverse depth, not into the pixels.
+    covariance ``cov_lm`` (N, 3, 3) carried through the projection, J_p Σ_lm J_pᵀ: the part of its
+    uncertainty along the viewing ray goes into the inverse depth, not into the pixels. With an
+    isotropic sigma ``cov_lm`` (N,) instead (the earlier model): f·σ/z added to each pixel's sigma,
+    nothing to the inverse depth's.
     """
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     n = len(X)
@@ -199,8 +193,13 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
     Jp[:, 0, 0], Jp[:, 0, 2] = fx * a, -fx * xa * a
     Jp[:, 1, 1], Jp[:, 1, 2] = fy * a, -fy * ya * a
     Jp[:, 2, 2] = -a * a
-    C = R @ _landmark_cov(cov_lm, n) @ R.T  # landmark covariance in the camera frame
-    S = Jp @ C @ Jp.transpose(0, 2, 1)
+    cov_lm = np.asarray(cov_lm, float)
+    if cov_lm.ndim == 3:
+        C = R @ cov_lm @ R.T  # landmark covariance in the camera frame
+        S = Jp @ C @ Jp.transpose(0, 2, 1)
+    else:
+        S = np.zeros((n, 3, 3))
+        S[:, 0, 0] = S[:, 1, 1] = (fx * np.broadcast_to(cov_lm, (n,)) * a) ** 2
     s_px2 = np.broadcast_to(np.asarray(sigma_px, float) ** 2, (n,))
     S[:, 0, 0] += s_px2
     S[:, 1, 1] += s_px2
