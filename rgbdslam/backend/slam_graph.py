@@ -22,6 +22,7 @@ import numpy as np
 
 from rgbdslam.config import BackendConfig
 from rgbdslam.errors import InputError, RgbdslamError
+from rgbdslam.geometry.graph import components
 from rgbdslam.geometry.se3 import inv, project_to_so3
 
 
@@ -238,24 +239,11 @@ class KeyframeGraph:
                                 for e in self.loops]
 
     def _components(self) -> dict[int, int]:
-        """Root keyframe of each node's connected component (BFS over all edges)."""
-        adj: dict[int, list[int]] = {i: [] for i in self.order}
-        for i, j, _, _ in self._edges():
-            adj[i].append(j)
-            adj[j].append(i)
-        root: dict[int, int] = {}
-        for r in self.order:
-            if r in root:
-                continue
-            root[r] = r
-            q = deque([r])
-            while q:
-                w = q.popleft()
-                for v in adj[w]:
-                    if v not in root:
-                        root[v] = r
-                        q.append(v)
-        return root
+        """Root keyframe (first in order) of each node's connected component over all edges."""
+        pos = {k: n for n, k in enumerate(self.order)}
+        label = components(len(self.order), [(pos[i], pos[j]) for i, j, _, _ in self._edges()])
+        _, first = np.unique(label, return_index=True)
+        return {k: self.order[first[label[n]]] for n, k in enumerate(self.order)}
 
     def initial_values(self, method: str | None = None) -> dict[int, np.ndarray]:
         """Initial poses for the batch optimisation (``cfg.init`` unless ``method`` is given)."""

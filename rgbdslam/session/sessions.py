@@ -21,7 +21,6 @@ tracking loss; run.json says so.
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ import numpy as np
 
 from rgbdslam import __version__
 from rgbdslam.errors import InputError
+from rgbdslam.geometry.graph import components
 from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.session.mapfile import MAP_NAME, MapData, load_map, map_path, save_map
 
@@ -192,24 +192,8 @@ def open_map(map_dir: str | Path, camera, out_dir: Path, localize: bool) -> MapS
 # ---------------------------------------------------------------------- saving
 def _components(n: int, edges: list[tuple[int, int]]) -> np.ndarray:
     """Connected component of each of ``n`` nodes, numbered by size (0 = the largest)."""
-    adj: list[list[int]] = [[] for _ in range(n)]
-    for i, j in edges:
-        adj[i].append(j)
-        adj[j].append(i)
-    comp = np.full(n, -1, np.int64)
-    c = 0
-    for r in range(n):
-        if comp[r] >= 0:
-            continue
-        comp[r] = c
-        q = deque([r])
-        while q:
-            w = q.popleft()
-            for v in adj[w]:
-                if comp[v] < 0:
-                    comp[v] = c
-                    q.append(v)
-        c += 1
+    comp = components(n, edges)
+    c = int(comp.max()) + 1 if n else 0
     sizes = np.bincount(comp, minlength=c) if n else np.zeros(0, int)
     rank = np.empty(c, np.int64)
     rank[np.argsort(-sizes, kind="stable")] = np.arange(c)
