@@ -7,9 +7,9 @@ Usage::
 
 Runs ``rgbdslam.slam.SLAM`` frame by frame over each sequence (with exact ground truth: the
 synthetic generator's) and records, for every frame i that the landmark map tracked, the poses of
-the stages of ``LandmarkTracker.track``: the frame-to-frame registration's (``reg``), the map pose
-before fusing (``map``), the pose the tracker returns (``out``, fused or replaced), and the final
-trajectory after the pose graph (``final``). Each stage's error is its 1-frame relative error
+the stages of ``LandmarkTracker.track``: the frame-to-frame registration's (``reg``), the map
+pose before fusing (``map``), the pose the tracker returns (``out``, fused or replaced), and the
+final trajectory after the pose graph (``final``). Each stage's error is its 1-frame relative error
 against the truth, taken from the previous frame's *output* pose (what the stage started from):
 E_X(i) = (gt_{i-1}⁻¹ gt_i)⁻¹ · (out_{i-1}⁻¹ X_i). Reported: RMS translation (mm) and rotation (deg)
 of each stage over the frames where the map placed the frame; ``map_chain``: consecutive map poses
@@ -17,8 +17,11 @@ against each other (the map pose's own jitter); ``odo``/``final``: the odometry'
 trajectory's 1-frame RPE over all frames; ``chi2med``: median Mahalanobis² of the registration's
 and the map pose's 1-frame error under the information the fusion gives them (a calibrated 6-dof
 information: 5.35); ``sigma_t``: the translation sigma (mm) that information predicts; ``abs``:
-RMS absolute error with the first frame aligned (drift included); ATE of the final trajectory. ``--set`` takes config overrides as ``rgbdslam run --set``; the landmark map
-is on (``landmarks.enabled=true``) unless a ``--set landmarks.enabled=false`` says otherwise.
+RMS absolute error with the first frame aligned (drift included); ATE of the final trajectory.
+``--set`` takes config overrides as ``rgbdslam run --set``; the landmark map is on
+(``landmarks.enabled=true``) unless a ``--set landmarks.enabled=false`` says otherwise. Real
+sequences (TUM) work too, but their ground truth is taken at the next time stamp (no
+interpolation), so their per-stage numbers are rough; their ATE is exact.
 """
 
 from __future__ import annotations
@@ -86,7 +89,8 @@ def run(seq_dir: Path, sets: list[str], frames: int | None) -> dict:
     pos = {k: j for j, k in enumerate(idx)}
     errs = {k: [] for k in ("reg", "map", "out", "map_chain", "odo", "final_map", "final")}
     absd = {k: [] for k in ("reg", "map", "out")}  # absolute error, the first frame aligned
-    chi2, sig_t = {"reg": [], "map": []}, {"reg": [], "map": []}  # Mahalanobis² of each stage's 1-frame error under its information
+    # Mahalanobis² of each stage's 1-frame error under its information; the sigma it predicts
+    chi2, sig_t = {"reg": [], "map": []}, {"reg": [], "map": []}
     for j in range(1, len(idx)):
         i, p = idx[j], idx[j - 1]
         e = rel_error(G[j - 1], G[j], final.poses[j - 1], final.poses[j])
