@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
+from rgbdslam.landmarks.map import LandmarkMap
 from rgbdslam.landmarks.tracking import refine_reprojection, reprojection_residuals
 
 CAM = Camera(525.0, 525.0, 319.5, 239.5, 640, 480)
@@ -108,3 +109,48 @@ def test_tracker_sigma_px_follows_the_orb_octave():
     assert np.allclose(t._sigma_px(feats), [0.8, 0.96, 0.8 * 1.728])
     t = LandmarkTracker(LandmarksConfig(sigma_px=0.8), CAM)  # scale 1: one sigma
     assert t._sigma_px(feats) == 0.8
+
+
+def test_isotropic_landmark_sigma_is_the_earlier_model():
+    # hand-worked: f·σ_lm/z added to the pixels' sigma, nothing to the inverse depth's
+    X = np.array([[0.5, 0.2, 2.0]])
+    Pc, uv, z = _seen(np.eye(4), X)
+    r, _ = reprojection_residuals(np.eye(3), np.zeros(3), X, uv + [1.0, 2.0], np.array([1 / 0.51]), CAM, 1.0,
+                                  np.array([0.01]), np.array([0.004]))
+    s_px = np.hypot(1.0, 525.0 * 0.004 / 2.0)
+    assert np.allclose(r[0], [1.0 / s_px, 2.0 / s_px, 0.01 / (0.01 * 0.51**2)])
+
+
+def test_map_observe_can_count_without_moving_and_move_without_counting():
+    m = LandmarkMap("single", kalman=True, process_noise=0.0)
+    ids = m.add(np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 32), np.uint8), 0, 0)
+    m.observe(ids, None, None, 5)  # seen at frame 5, positions kept
+    assert np.all(m.seen[ids] == 2) and np.all(m.last[ids] == 5) and np.allclose(m.pos[ids], 0)
+    m.observe(ids, np.ones((2, 3)), np.tile(np.eye(3), (2, 1, 1)), 6, count=False)  # Kalman only: the mean
+    assert np.all(m.seen[ids] == 2) and np.all(m.last[ids] == 5) and np.allclose(m.pos[ids], 0.5)
+
+
+def test_adaptive_noise_follows_the_frames_own_pixel_noise():
+    # pixels with 0.3 px noise, sigma_px configured 1: the adaptive refine finds the scale of its
+    # whitened residuals (~0.3) and its information grows accordingly; the pose stays as good
+    from types import SimpleNamespace
+
+    from rgbdslam.landmarks.tracking import MapMatch, estimate_pose
+
+    rng = np.random.default_rng(4)
+    X = _scene(400, seed=5)
+    m = LandmarkMap("single")
+    ids = m.add(X, np.tile(np.eye(3) * 1e-8, (len(X), 1, 1)), np.zeros((len(X), 32), np.uint8), 0, 0)
+    P = _pose([0.02, 0.01, -0.03], [0.1, 0.0, 0.05])
+    Pc, uv, z = _seen(P, X)
+    dz = rng.normal(scale=0.01, size=len(X))  # depth noise as configured (sigma 1 cm): its scale stays ~1
+    feats = SimpleNamespace(uv=uv + rng.normal(scale=0.3, size=uv.shape), pts=Pc * (1 + dz / Pc[:, 2])[:, None])
+    match = MapMatch(np.arange(len(X)), ids, len(X))
+    sig = np.full(len(X), 0.01)
+    out = {}
+    for adaptive in (False, True):
+        out[adaptive] = estimate_pose(m, feats, match, P, sig, 0.03, 50, 10, "uniform", 1.0, np.random.default_rng(0),
+                                      "reprojection", CAM, 1.0, 3.0, True, adaptive)
+    gain = np.trace(out[True].information) / np.trace(out[False].information)
+    assert 5.0 < gain < 15.0  # (1 / 0.3)² ≈ 11 on the pixel-dominated directions
+    assert _err(out[True].pose, P) < 2e-3 and _err(out[False].pose, P) < 2e-3
