@@ -236,8 +236,9 @@ class LandmarksConfig:
     # how the map pose combines with the frame-to-frame registration (registration.method):
     # 'seed' = the registration's pose predicts, the map pose replaces it (kept when the map fails);
     # 'fuse' = the information-weighted mean of both (the registration's per-frame information,
-    # the map pose's from its reprojection refine)
-    mode: Literal["seed", "fuse"] = "fuse"
+    # the map pose's from its reprojection refine); 'filter' = as fuse, the registration's covariance
+    # plus the last output's (carried from frame to frame) as the prediction's
+    mode: Literal["seed", "fuse", "filter"] = "fuse"
     search_radius: float = 10.0  # pixels around a landmark's projection
     max_hamming: int = 50  # largest Hamming distance of a landmark-to-feature descriptor match
     max_depth: float = 5.0  # metres: landmarks further from the camera are not searched, features not mapped
@@ -251,6 +252,14 @@ class LandmarksConfig:
     # inverse-depth residuals (whitened; Huber), inliers re-gated at chi_gate sigmas; 'rigid' = stop there
     refine: Literal["reprojection", "rigid"] = "reprojection"  # after RANSAC: reprojection Gauss-Newton or rigid refit
     chi_gate: float = 3.0  # sigmas: inliers re-gated after the reprojection refine
+    # the landmark's covariance in the reprojection refine: 'full' = its 3x3 carried through the
+    # projection (along the ray into the inverse depth); 'isotropic' = sqrt(trace/3) in every direction
+    landmark_cov: Literal["full", "isotropic"] = "full"
+    # which frames' observations update the landmarks (Kalman): every map-tracked frame or keyframes only
+    observe: Literal["frames", "keyframes"] = "frames"
+    # the map pose's key point and depth noise rescaled per frame by the robust scale of its residuals
+    adaptive_noise: bool = False
+    fuse_scale: float = 1.0  # fuse/filter modes: the registration's information is multiplied by this
     old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
     # z sigma_px / f; process noise per step (m)
@@ -258,6 +267,7 @@ class LandmarksConfig:
     depth_noise_a: float = 0.001  # metres: constant term of the depth noise along the ray
     depth_noise_b: float = 0.002  # per metre: z^2 term of the depth noise along the ray
     sigma_px: float = 1.0  # pixels: key point noise across the ray
+    sigma_px_scale: float = 1.0  # key point noise of ORB pyramid level o: sigma_px * sigma_px_scale^o (1 = same)
     process_noise: float = 0.0002  # metres per step: Kalman process noise of a landmark position
     min_seen: int = 3  # landmarks seen fewer times cull_after frames after they were made are culled
     cull_after: int = 30  # frames after its creation a rarely seen landmark is culled (see min_seen)
@@ -496,6 +506,7 @@ POSITIVE = {
     "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
     "landmarks.ba_max_move", "landmarks.ba_max_move_deg", "landmarks.revisit_min_inliers",
     "landmarks.revisit_max_correction", "landmarks.revisit_max_correction_deg",
+    "landmarks.fuse_scale", "landmarks.sigma_px_scale",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -573,7 +584,8 @@ MAXIMA = {
     # landmark map: pixels, metres and counts of one frame's search; BA sizes bound its GTSAM problem
     "landmarks.search_radius": 1000.0, "landmarks.max_depth": 1e3, "landmarks.ransac_threshold": 10.0,
     "landmarks.ransac_iterations": 20_000, "landmarks.max_correction": 100.0, "landmarks.max_correction_deg": 360.0,
-    "landmarks.chi_gate": 100.0, "landmarks.depth_noise_a": 10.0, "landmarks.depth_noise_b": 10.0,
+    "landmarks.chi_gate": 100.0, "landmarks.fuse_scale": 1e6, "landmarks.sigma_px_scale": 10.0,
+    "landmarks.depth_noise_a": 10.0, "landmarks.depth_noise_b": 10.0,
     "landmarks.sigma_px": 100.0, "landmarks.process_noise": 10.0, "landmarks.min_seen": 10**6,
     "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,
     "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,

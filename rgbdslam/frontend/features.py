@@ -34,6 +34,7 @@ class FrameFeatures:
     n_detected: int  # corners detected before ORB keeps the best n_features (sharpness gate)
     uv_raw: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (N, 2) distorted pixels
     response: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (N,) ORB response
+    octave: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))  # (N,) ORB pyramid level (scale^octave px)
     depth_noise: Any = None  # the frame's DepthNoise (stereo) or None: covariance of pts
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
@@ -141,6 +142,7 @@ class Detections:
     n_detected: int
     config: FeaturesConfig
     image: np.ndarray = field(repr=False, compare=False)  # the image they were found in (identity is checked)
+    octave: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))  # pyramid level of each key point
 
 
 def detect(rgb: np.ndarray, fc: FeaturesConfig, count: bool = True) -> Detections:
@@ -151,12 +153,12 @@ def detect(rgb: np.ndarray, fc: FeaturesConfig, count: bool = True) -> Detection
     Needs no depth, pose or earlier frame, so it can run ahead in the frame reader's thread
     (OpenCV releases the GIL): see :func:`with_detections`."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
-    uv_raw, desc, response = orb_features(gray, fc)
-    return Detections(uv_raw, desc, response, count_detections(gray, fc) if count else -1, fc, rgb)
+    uv_raw, desc, response, octave = orb_features(gray, fc)
+    return Detections(uv_raw, desc, response, count_detections(gray, fc) if count else -1, fc, rgb, octave)
 
 
-def orb_features(gray: np.ndarray, fc: FeaturesConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ORB key points (N, 2), descriptors (N, 32) and responses (N,) of a grey image.
+def orb_features(gray: np.ndarray, fc: FeaturesConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """ORB key points (N, 2), descriptors (N, 32), responses (N,) and pyramid levels (N,) of a grey image.
 
     With grid bucketing ORB finds twice the budget, the strongest per cell are kept, and only
     those get descriptors (``detect`` then ``compute``: the same descriptors as
@@ -173,10 +175,11 @@ def orb_features(gray: np.ndarray, fc: FeaturesConfig) -> tuple[np.ndarray, np.n
     else:
         kps, desc = orb.detectAndCompute(gray, None)
     if desc is None or len(kps) == 0:
-        return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
+        return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32), np.zeros(0, np.int8)
     uv_raw = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)
     response = np.array([k.response for k in kps], dtype=np.float32)
-    return uv_raw, np.ascontiguousarray(desc), response
+    octave = np.array([k.octave for k in kps], dtype=np.int8)
+    return uv_raw, np.ascontiguousarray(desc), response, octave
 
 
 def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:
@@ -209,6 +212,7 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig) -> Fr
         n_detected=det.n_detected,
         uv_raw=det.uv_raw,
         response=det.response,
+        octave=det.octave,
         depth_noise=frame.depth_noise,
     )
     lift(feats, frame.depth, camera, mc)

@@ -81,16 +81,19 @@ class LandmarkMap:
         self.store.insert(ids, pts_world, self.seen[ids])
         return ids
 
-    def observe(self, ids: np.ndarray, z_world: np.ndarray, R: np.ndarray, frame: int) -> None:
-        """Re-observations of landmarks ``ids`` at world points ``z_world`` with covariances ``R``."""
+    def observe(self, ids: np.ndarray, z_world: np.ndarray | None, R: np.ndarray | None, frame: int,
+                count: bool = True) -> None:
+        """Re-observations of landmarks ``ids`` at world points ``z_world`` with covariances ``R``
+        (``z_world`` None: only counted as seen at ``frame``; ``count`` False: only the positions)."""
         if not len(ids):
             return
-        if self.kalman:
+        if self.kalman and z_world is not None:
             x, P = kalman_update(self.pos[ids], self.cov[ids], z_world, R, self.process_noise)
             self.pos[ids] = x
             self.cov[ids] = P
-        self.last[ids] = frame
-        self.seen[ids] += 1
+        if count:
+            self.last[ids] = frame
+            self.seen[ids] += 1
 
     def end_step(self, frame: int) -> None:
         """Cull landmarks seen fewer than ``min_seen`` times ``cull_after`` frames after they were

@@ -78,6 +78,8 @@ class LandmarkTracker:
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
+        self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
+        self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
         self.last_ba_moved: list[int] = []
         self.ba = None
         if cfg.local_ba:
@@ -88,12 +90,22 @@ class LandmarkTracker:
     def _sigma(self, z: np.ndarray) -> np.ndarray:
         return self.cfg.depth_noise_a + self.cfg.depth_noise_b * z * z
 
-    def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int) -> None:
+    def _sigma_px(self, feats):
+        """Key point noise (px): one per frame feature by ORB pyramid level, or the scalar."""
+        c = self.cfg
+        if c.sigma_px_scale == 1.0 or len(feats.octave) != len(feats.uv):
+            return c.sigma_px
+        return c.sigma_px * c.sigma_px_scale ** feats.octave.astype(float)
+
+    def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int,
+                 count: bool = True) -> None:
+        """Kalman update of landmarks ``ids`` from frame features ``idx`` seen from ``pose``
+        (``count``: also count them as seen at ``frame``)."""
         P = feats.pts[idx]
         zw = P @ pose[:3, :3].T + pose[:3, 3]
         R = observation_covariance(P, pose[:3, :3], self.camera.fx, self.cfg.sigma_px, self.cfg.depth_noise_a,
                                    self.cfg.depth_noise_b)
-        self.map.observe(ids, zw, R, frame)
+        self.map.observe(ids, zw, R, frame, count)
 
     def track(self, index: int, feats, pose: np.ndarray, information: np.ndarray | None = None) -> np.ndarray:
         """The map pose of frame ``index`` given the registration's ``pose`` (returned unchanged if
@@ -102,6 +114,7 @@ class LandmarkTracker:
         self.stats.frames += 1
         self._last = None
         self._last_matches = None
+        self._pending = None
         if self.map.size == 0:
             return pose
         m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
@@ -110,7 +123,8 @@ class LandmarkTracker:
         if len(m.lm) >= c.min_inliers:
             res = estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                                 c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
-                                c.refine, self.camera, c.sigma_px, c.chi_gate)
+                                c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
+                                c.adaptive_noise)
         if res is not None and not _close(pose, res.pose, c.max_correction, c.max_correction_deg):
             self.stats.rejected += 1  # a map pose far from the registration's is a wrong map match
             res = None
@@ -118,16 +132,35 @@ class LandmarkTracker:
             old = self._revisit(index, feats, pose if res is None else res.pose, pose)
             if old is not None:
                 res = old
-        if res is None:
-            return pose
-        if c.mode == "fuse" and information is not None and res.information is not None:
-            res.pose = fuse_poses(pose, information, res.pose, res.information)
+        # the registration's pose as a prediction: its covariance is the last output's plus this step's
+        C_pred = None
+        if information is not None:
+            C_pred = np.linalg.inv(information * c.fuse_scale)
+            if c.mode == "filter" and self._cov is not None:
+                C_pred = C_pred + self._cov
+        if res is None or res.information is None or C_pred is None:
+            self._cov = C_pred if res is None else None
+            return pose if res is None else self._accept(index, feats, res)
+        if c.mode in ("fuse", "filter"):
+            H_pred = np.linalg.inv(C_pred)
+            res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
+            self._cov = np.linalg.inv(H_pred + res.information)
+        return self._accept(index, feats, res)
+
+    def _accept(self, index: int, feats, res) -> np.ndarray:
+        """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
+        c = self.cfg
         self.stats.map_poses += 1
         self.stats.inliers.append(len(res.lm))
         self.stats.matched += len(res.lm)
         self.stats.matched_old += int((index - self.map.first[res.lm] >= c.old_age).sum())
-        self._observe(feats, res.feat, res.lm, res.pose, index)
         self._last = (index, res.feat, res.lm)
+        self._pending = (feats, res.feat, res.lm)
+        if c.observe == "frames":
+            self._observe(feats, res.feat, res.lm, res.pose, index)
+            self._pending = None
+        else:  # seen now (culling counts it); the position waits for the keyframe decision (end_frame)
+            self.map.observe(res.lm, None, None, index)
         return res.pose
 
     def _revisit(self, index: int, feats, start: np.ndarray, pose: np.ndarray):
@@ -145,7 +178,7 @@ class LandmarkTracker:
             return None
         res = estimate_pose(self.map, feats, m, start, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                             c.ransac_iterations, c.revisit_min_inliers, "uniform", 1.0, self.rng,
-                            c.refine, self.camera, c.sigma_px, c.chi_gate)
+                            c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full")
         if res is None or not _close(pose, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
             return None
         self.stats.revisits += 1
@@ -170,6 +203,12 @@ class LandmarkTracker:
         kf.frames.append((inv(self.kf_pose[kf.index]) @ pose, lm.copy(), feats.uv[f].copy(), feats.pts[f, 2].copy()))
 
     def end_frame(self, index: int) -> None:
+        """The end of frame ``index``'s map step: (``observe: keyframes``) a keyframe's map matches
+        re-observe their landmarks from its final pose; culling."""
+        if self._pending is not None and index in self.kf_pose:
+            feats, f, l = self._pending
+            self._observe(feats, f, l, self.kf_pose[index], index, count=False)
+        self._pending = None
         self.map.end_step(index)
 
     def add_keyframe(self, index: int, feats, pose: np.ndarray) -> dict[int, np.ndarray]:

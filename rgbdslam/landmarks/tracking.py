@@ -98,11 +98,16 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
 
 def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.ndarray, threshold: float,
                   iterations: int, min_inliers: int, sampling: str, old_fraction: float,
-                  rng: np.random.Generator, refine: str = "rigid", camera=None, sigma_px: float = 1.0,
-                  chi2_gate: float = 3.0) -> MapPose | None:
+                  rng: np.random.Generator, refine: str = "rigid", camera=None, sigma_px=1.0,
+                  chi2_gate: float = 3.0, full_cov: bool = True, adaptive: bool = False) -> MapPose | None:
     """Pose from the matches: RANSAC (old landmarks first) + weighted refit on the inliers.
 
-    ``sigma_obs`` (M,) is each frame point's noise (m); the landmark's own is sqrt(trace(P)/3).
+    ``sigma_obs`` (M,) is each frame point's depth noise (m); the landmark's own is sqrt(trace(P)/3)
+    in the 3-D refit, its full covariance in the reprojection refine (``full_cov``; else the same
+    isotropic sigma). ``sigma_px``: key point noise (px), a scalar or one per frame feature.
+    ``adaptive``: after the refine, the key point and depth noise are rescaled by the robust scale
+    (1.4826 · median |r|, clipped to [0.25, 4]) of the inliers' whitened residuals and the refine is
+    run once more: the frame's own noise level sets the weights and the information.
     """
     m = len(match.lm)
     if m < max(3, min_inliers):
@@ -133,19 +138,23 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     T = fit_rigid(S[mask], D[mask], w[mask])
     info = None
     if refine == "reprojection":  # motion-only GN on pixels + inverse depth, re-gated once
-        uv, z, slm = feats.uv[feat], S[:, 2], np.sqrt(s_lm2)
+        uv, z = feats.uv[feat], S[:, 2]
+        cov = lmap.cov[lm] if full_cov else np.sqrt(s_lm2)
+        spx = sigma_px if np.ndim(sigma_px) == 0 else np.asarray(sigma_px, float)[feat]  # per frame feature
         for _ in range(2):
-            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sigma_px, sig[mask], slm[mask])
-            P = D @ inv(T)[:3, :3].T + inv(T)[:3, 3]
-            pz = np.maximum(P[:, 2], 1e-3)
-            s_pix = np.sqrt(sigma_px**2 + (camera.fx * slm / pz) ** 2)
-            eu = (uv[:, 0] - (camera.fx * P[:, 0] / pz + camera.cx)) / s_pix
-            ev = (uv[:, 1] - (camera.fy * P[:, 1] / pz + camera.cy)) / s_pix
-            ez = (1.0 / z - 1.0 / pz) / (sig / (z * z))
-            new = np.sqrt(eu**2 + ev**2 + ez**2) < chi2_gate
+            sel = lambda v: v if np.ndim(v) == 0 else v[mask]  # noqa: E731
+            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask])
+            Tcw = inv(T)
+            r, _ = reprojection_residuals(Tcw[:3, :3], Tcw[:3, 3], D, uv, z, camera, spx, sig, cov)
+            new = np.linalg.norm(r, axis=1) < chi2_gate
             if new.sum() < max(3, min_inliers):
                 break
             mask = new
+        if adaptive:  # the frame's own noise: robust scale of the inliers' whitened pixel and depth residuals
+            k_px = 1.4826 * np.median(np.abs(r[mask, :2]))
+            k_z = 1.4826 * np.median(np.abs(r[mask, 2]))
+            spx, sig = spx * np.clip(k_px, 0.25, 4.0), sig * np.clip(k_z, 0.25, 4.0)
+            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask])
     r = np.linalg.norm(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]), axis=1)
     return MapPose(T, feat[mask], lm[mask], m, match.n_candidates, float(np.sqrt(np.mean(r**2))), info)
 
@@ -159,42 +168,74 @@ def _so3_exp(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
 
 
-def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera, sigma_px: float,
-                        sigma_z: np.ndarray, sigma_lm: np.ndarray, iterations: int = 5,
+def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera,
+                           sigma_px, sigma_z: np.ndarray, cov_lm: np.ndarray):
+    """Whitened residuals (N, 3) of the measured (u, v, 1/z) against landmarks X (N, 3) seen by the
+    world-to-camera (R, t), and their whitened Jacobians (N, 3, 6) w.r.t. ξ = (ω, v), the left
+    perturbation of world-to-camera (p ← p + ω×p + v).
+
+    The covariance of each residual is diag(σ_px², σ_px², (σ_z/z²)²) (the frame's key point and
+    depth noise; ``sigma_px`` scalar or (N,), e.g. by ORB octave) plus the landmark's own 3x3
+    covariance ``cov_lm`` (N, 3, 3) carried through the projection, J_p Σ_lm J_pᵀ: the part of its
+    uncertainty along the viewing ray goes into the inverse depth, not into the pixels. With an
+    isotropic sigma ``cov_lm`` (N,) instead (the earlier model): f·σ/z added to each pixel's sigma,
+    nothing to the inverse depth's.
+    """
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    n = len(X)
+    P = X @ R.T + t
+    x, y = P[:, 0], P[:, 1]
+    a = 1.0 / np.maximum(P[:, 2], 1e-3)  # inverse depth of the prediction
+    xa, ya = x * a, y * a
+    r = np.stack([uv[:, 0] - (fx * xa + cx), uv[:, 1] - (fy * ya + cy), 1.0 / z - a], axis=1)
+    # d(u, v, 1/z)/dP (N, 3, 3)
+    Jp = np.zeros((n, 3, 3))
+    Jp[:, 0, 0], Jp[:, 0, 2] = fx * a, -fx * xa * a
+    Jp[:, 1, 1], Jp[:, 1, 2] = fy * a, -fy * ya * a
+    Jp[:, 2, 2] = -a * a
+    cov_lm = np.asarray(cov_lm, float)
+    if cov_lm.ndim == 3:
+        C = R @ cov_lm @ R.T  # landmark covariance in the camera frame
+        S = Jp @ C @ Jp.transpose(0, 2, 1)
+    else:
+        S = np.zeros((n, 3, 3))
+        S[:, 0, 0] = S[:, 1, 1] = (fx * np.broadcast_to(cov_lm, (n,)) * a) ** 2
+    s_px2 = np.broadcast_to(np.asarray(sigma_px, float) ** 2, (n,))
+    S[:, 0, 0] += s_px2
+    S[:, 1, 1] += s_px2
+    S[:, 2, 2] += (sigma_z / (z * z)) ** 2
+    L = np.linalg.cholesky(np.linalg.inv(S))  # S⁻¹ = L Lᵀ: whitened = Lᵀ r
+    Lt = L.transpose(0, 2, 1)
+    # d(u, v, 1/z)/dξ = Jp · [-[P]x | I]
+    J = np.empty((n, 3, 6))
+    J[:, 0] = np.stack([-xa * ya, 1 + xa * xa, -ya, a, np.zeros(n), -xa * a], axis=1) * fx
+    J[:, 1] = np.stack([-(1 + ya * ya), xa * ya, xa, np.zeros(n), a, -ya * a], axis=1) * fy
+    J[:, 2] = np.stack([-ya * a, xa * a, np.zeros(n), np.zeros(n), np.zeros(n), -a * a], axis=1)
+    return np.einsum("nij,nj->ni", Lt, r), Lt @ J
+
+
+def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera, sigma_px,
+                        sigma_z: np.ndarray, cov_lm: np.ndarray, iterations: int = 5,
                         huber: float = 1.345) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Motion-only Gauss–Newton on pixel and inverse-depth residuals (vectorised, Huber-weighted).
 
     pose: camera-to-world start; X (N,3) landmark world points; uv (N,2) measured (undistorted)
-    pixels; z (N,) measured depths with noise sigma_z (N,); sigma_lm (N,) landmark position sigma
-    (m, added to the pixel noise as f·σ/z). Residuals per point: (u, v) in pixels and 1/z in
-    1/m with σ = σ_z / z² — the RGB-D analogue of a stereo reprojection error, so the depth's
-    larger noise no longer pulls the pose as the 3-D point distance does. Returns (pose, whitened
-    error norm per point, 6x6 information of the pose: right perturbation pose·Exp(η), η = (ω, v),
-    GTSAM's Pose3 order).
+    pixels with noise ``sigma_px`` (px, scalar or (N,)); z (N,) measured depths with noise sigma_z
+    (N,); ``cov_lm`` the landmarks' world covariances (N,3,3) or an isotropic sigma (N,) (m).
+    Residuals per point: (u, v) in pixels and 1/z in 1/m, whitened by their full 3x3 covariance
+    (:func:`reprojection_residuals`) — the RGB-D analogue of a stereo reprojection error, so the
+    depth's larger noise no longer pulls the pose as the 3-D point distance does. Returns (pose,
+    whitened error norm per point, 6x6 information of the pose: right perturbation pose·Exp(η),
+    η = (ω, v), GTSAM's Pose3 order).
     """
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     Tcw = inv(pose)
     R, t = Tcw[:3, :3].copy(), Tcw[:3, 3].copy()
-    s_inv = sigma_z / (z * z)
     e = np.zeros(len(X))
     H = np.zeros((6, 6))
-    n = len(X)
     for _ in range(iterations):
-        P = X @ R.T + t
-        x, y = P[:, 0], P[:, 1]
-        a = 1.0 / np.maximum(P[:, 2], 1e-3)  # inverse depth of the prediction
-        s_pix = np.sqrt(sigma_px**2 + (fx * sigma_lm * a) ** 2)
-        r = np.stack([(uv[:, 0] - (fx * x * a + cx)) / s_pix, (uv[:, 1] - (fy * y * a + cy)) / s_pix,
-                      (1.0 / z - a) / s_inv], axis=1)
+        r, J = reprojection_residuals(R, t, X, uv, z, camera, sigma_px, sigma_z, cov_lm)
         e = np.linalg.norm(r, axis=1)
         w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
-        # Jacobians of the predictions (u, v, 1/z) w.r.t. xi = (omega, v), left perturbation of Tcw
-        # (p <- p + omega x p + v), written out: no (N, 3, 3) products
-        J = np.empty((n, 3, 6))
-        xa, ya = x * a, y * a
-        J[:, 0] = np.stack([-xa * ya, 1 + xa * xa, -ya, a, np.zeros(n), -xa * a], axis=1) * (fx / s_pix)[:, None]
-        J[:, 1] = np.stack([-(1 + ya * ya), xa * ya, xa, np.zeros(n), a, -ya * a], axis=1) * (fy / s_pix)[:, None]
-        J[:, 2] = np.stack([-ya * a, xa * a, np.zeros(n), np.zeros(n), np.zeros(n), -a * a], axis=1) / s_inv[:, None]
         Jw = J * w[:, None, None]
         H = np.einsum("nki,nkj->ij", Jw, J)
         g = np.einsum("nki,nk->i", Jw, r)

@@ -385,7 +385,7 @@ def test_detect_then_compute_equals_detect_and_compute(which):
         img = cv2.imread(str(need(DATA / "kitti" / "odometry_06_head51") / "sequences" / "06" / "image_0" /
                              "000010.png"), cv2.IMREAD_GRAYSCALE)
     assert fc.grid_rows * fc.grid_cols > 1
-    uv, desc, resp = orb_features(img, fc)
+    uv, desc, resp, octave = orb_features(img, fc)
     kps, ref = _orb(fc, 2 * fc.n_features).detectAndCompute(img, None)
     ref_uv = cv2.KeyPoint_convert(kps).astype(np.float64)
     ref_resp = np.array([k.response for k in kps], dtype=np.float32)
@@ -393,3 +393,4 @@ def test_detect_then_compute_equals_detect_and_compute(which):
     assert len(uv) > 500
     assert np.array_equal(uv, ref_uv[keep]) and np.array_equal(resp, ref_resp[keep])
     assert np.array_equal(desc, ref[keep])
+    assert np.array_equal(octave, np.array([k.octave for k in kps])[keep])

@@ -1,0 +1,156 @@
+"""Tracking against the landmark map: the reprojection refine's noise model (exact, hand-built scenes)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv
+from rgbdslam.landmarks.map import LandmarkMap
+from rgbdslam.landmarks.tracking import refine_reprojection, reprojection_residuals
+
+CAM = Camera(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
+def _pose(rotvec, t):
+    P = np.eye(4)
+    P[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    P[:3, 3] = t
+    return P
+
+
+def _scene(n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(1.0, 4.0, n)])
+
+
+def _seen(P, X):
+    Tcw = inv(P)
+    Pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
+    return Pc, CAM.project(Pc), Pc[:, 2]
+
+
+def _ray_covariance(X, centre, along, across):
+    """World covariances with sigma ``along`` the ray from ``centre`` and ``across`` it."""
+    d = X - centre
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return across**2 * np.eye(3) + (along**2 - across**2) * d[:, :, None] * d[:, None, :]
+
+
+def _err(A, B):
+    return np.linalg.norm((inv(A) @ B)[:3, 3])
+
+
+def test_landmark_uncertainty_along_the_ray_does_not_reach_the_pixels():
+    # hand-worked: a landmark straight ahead (x = y = 0) with covariance only along z has no pixel
+    # variance from it, only the key point's; its inverse depth gets (sigma_z_lm / z^2)^2 added
+    X = np.array([[0.0, 0.0, 2.0]])
+    cov = np.diag([0.0, 0.0, 0.05**2])[None]
+    r, J = reprojection_residuals(np.eye(3), np.zeros(3), X, np.array([[CAM.cx + 1.5, CAM.cy - 3.0]]),
+                                  np.array([1 / 0.51]), CAM, 1.5, np.array([0.01]), cov)
+    # pixels whitened by sigma_px = 1.5 alone; the 1/z residual 0.51 - 0.5 by sqrt(frame² + landmark²):
+    # frame 0.01 m at z = 1/0.51 -> 0.01 * 0.51², landmark 0.05 m at z = 2 -> 0.05 / 4
+    assert np.allclose(r[0, :2], [1.0, -2.0])
+    assert np.isclose(r[0, 2], 0.01 / np.hypot(0.01 * 0.51**2, 0.05 / 4))
+    # a landmark off-axis: its ray uncertainty still leaves the pixels alone (the ray projects to one pixel)
+    X = np.array([[1.0, -0.5, 2.0]])
+    cov = _ray_covariance(X, np.zeros(3), 0.05, 0.0)
+    Pc, uv, z = _seen(np.eye(4), X)
+    r, _ = reprojection_residuals(np.eye(3), np.zeros(3), X, uv + [0.7, 0.0], z, CAM, 0.7, np.array([0.01]), cov)
+    assert np.isclose(r[0, 0], 1.0) and np.isclose(r[0, 1], 0.0)
+
+
+def test_full_landmark_covariance_keeps_depth_errors_of_the_map_out_of_the_pose():
+    # landmarks displaced along the rays of the camera that mapped them (depth noise, 3 cm), with a
+    # covariance saying so; a camera 20 cm away sees them with exact pixels and exact depths: the refine
+    # with the full covariance recovers its pose to sub-mm, the isotropic sigma sqrt(trace/3) does not
+    rng = np.random.default_rng(1)
+    X = _scene(400)
+    mapper = np.eye(4)
+    d = X - mapper[:3, 3]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    Xn = X + d * rng.normal(scale=0.03, size=(len(X), 1))
+    cov = _ray_covariance(Xn, mapper[:3, 3], 0.03, 0.0005)
+    P = _pose([0.02, -0.05, 0.01], [0.2, -0.05, 0.05])
+    _, uv, z = _seen(P, X)
+    start = P @ _pose([0.005, -0.004, 0.002], [0.01, 0.01, -0.01])
+    sz = np.full(len(X), 0.002)
+    full, _, H = refine_reprojection(start, Xn, uv, z, CAM, 0.5, sz, cov, 10)
+    iso, _, _ = refine_reprojection(start, Xn, uv, z, CAM, 0.5, sz, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), 10)
+    assert _err(full, P) < 5e-4
+    assert _err(iso, P) > 3 * _err(full, P)
+    assert np.all(np.linalg.eigvalsh(H) > 0)
+
+
+def test_sigma_by_octave_weights_the_sharp_key_points():
+    # half the key points (pyramid level 0) are exact, the other half (level 7) off by ~3 px: with
+    # sigma = sigma_px * 1.2^octave the pose comes from the sharp ones; with one sigma for all it does not
+    rng = np.random.default_rng(2)
+    X = _scene(300)
+    P = _pose([0.01, 0.03, -0.02], [0.05, 0.02, -0.1])
+    _, uv, z = _seen(P, X)
+    octave = np.where(np.arange(len(X)) % 2 == 0, 0, 7)
+    uv_n = uv + (octave == 7)[:, None] * rng.normal(scale=3.0, size=uv.shape)
+    sz, cov = np.full(len(X), 0.02), np.zeros(len(X))
+    by_octave, _, _ = refine_reprojection(P, X, uv_n, z, CAM, 1.2 ** octave, sz, cov, 10, huber=100.0)
+    flat, _, _ = refine_reprojection(P, X, uv_n, z, CAM, 1.0, sz, cov, 10, huber=100.0)
+    assert _err(by_octave, P) < 0.25 * _err(flat, P)
+
+
+def test_tracker_sigma_px_follows_the_orb_octave():
+    from types import SimpleNamespace
+
+    from rgbdslam.config import LandmarksConfig
+    from rgbdslam.landmarks.stage import LandmarkTracker
+
+    t = LandmarkTracker(LandmarksConfig(sigma_px=0.8, sigma_px_scale=1.2), CAM)
+    feats = SimpleNamespace(uv=np.zeros((3, 2)), octave=np.array([0, 1, 3], np.int8))
+    assert np.allclose(t._sigma_px(feats), [0.8, 0.96, 0.8 * 1.728])
+    t = LandmarkTracker(LandmarksConfig(sigma_px=0.8), CAM)  # scale 1: one sigma
+    assert t._sigma_px(feats) == 0.8
+
+
+def test_isotropic_landmark_sigma_is_the_earlier_model():
+    # hand-worked: f·σ_lm/z added to the pixels' sigma, nothing to the inverse depth's
+    X = np.array([[0.5, 0.2, 2.0]])
+    Pc, uv, z = _seen(np.eye(4), X)
+    r, _ = reprojection_residuals(np.eye(3), np.zeros(3), X, uv + [1.0, 2.0], np.array([1 / 0.51]), CAM, 1.0,
+                                  np.array([0.01]), np.array([0.004]))
+    s_px = np.hypot(1.0, 525.0 * 0.004 / 2.0)
+    assert np.allclose(r[0], [1.0 / s_px, 2.0 / s_px, 0.01 / (0.01 * 0.51**2)])
+
+
+def test_map_observe_can_count_without_moving_and_move_without_counting():
+    m = LandmarkMap("single", kalman=True, process_noise=0.0)
+    ids = m.add(np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 32), np.uint8), 0, 0)
+    m.observe(ids, None, None, 5)  # seen at frame 5, positions kept
+    assert np.all(m.seen[ids] == 2) and np.all(m.last[ids] == 5) and np.allclose(m.pos[ids], 0)
+    m.observe(ids, np.ones((2, 3)), np.tile(np.eye(3), (2, 1, 1)), 6, count=False)  # Kalman only: the mean
+    assert np.all(m.seen[ids] == 2) and np.all(m.last[ids] == 5) and np.allclose(m.pos[ids], 0.5)
+
+
+def test_adaptive_noise_follows_the_frames_own_pixel_noise():
+    # pixels with 0.3 px noise, sigma_px configured 1: the adaptive refine finds the scale of its
+    # whitened residuals (~0.3) and its information grows accordingly; the pose stays as good
+    from types import SimpleNamespace
+
+    from rgbdslam.landmarks.tracking import MapMatch, estimate_pose
+
+    rng = np.random.default_rng(4)
+    X = _scene(400, seed=5)
+    m = LandmarkMap("single")
+    ids = m.add(X, np.tile(np.eye(3) * 1e-8, (len(X), 1, 1)), np.zeros((len(X), 32), np.uint8), 0, 0)
+    P = _pose([0.02, 0.01, -0.03], [0.1, 0.0, 0.05])
+    Pc, uv, z = _seen(P, X)
+    dz = rng.normal(scale=0.01, size=len(X))  # depth noise as configured (sigma 1 cm): its scale stays ~1
+    feats = SimpleNamespace(uv=uv + rng.normal(scale=0.3, size=uv.shape), pts=Pc * (1 + dz / Pc[:, 2])[:, None])
+    match = MapMatch(np.arange(len(X)), ids, len(X))
+    sig = np.full(len(X), 0.01)
+    out = {}
+    for adaptive in (False, True):
+        out[adaptive] = estimate_pose(m, feats, match, P, sig, 0.03, 50, 10, "uniform", 1.0, np.random.default_rng(0),
+                                      "reprojection", CAM, 1.0, 3.0, True, adaptive)
+    gain = np.trace(out[True].information) / np.trace(out[False].information)
+    assert 5.0 < gain < 15.0  # (1 / 0.3)² ≈ 11 on the pixel-dominated directions
+    assert _err(out[True].pose, P) < 2e-3 and _err(out[False].pose, P) < 2e-3
