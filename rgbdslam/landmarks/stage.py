@@ -132,19 +132,18 @@ class LandmarkTracker:
             old = self._revisit(index, feats, pose if res is None else res.pose, pose)
             if old is not None:
                 res = old
-        # the registration's pose as a prediction: its covariance is the last output's plus this step's
-        C_pred = None
-        if information is not None:
-            C_pred = np.linalg.inv(information * c.fuse_scale)
-            if c.mode == "filter" and self._cov is not None:
-                C_pred = C_pred + self._cov
-        if res is None or res.information is None or C_pred is None:
-            self._cov = C_pred if res is None else None
+        # the registration's pose as a prediction: its information (mode 'filter': its covariance is
+        # the last output's plus this step's; the covariances are only needed there)
+        filt = c.mode == "filter"
+        H_pred = None if information is None else information * c.fuse_scale
+        if H_pred is not None and filt and self._cov is not None:
+            H_pred = np.linalg.inv(np.linalg.inv(H_pred) + self._cov)
+        if res is None or res.information is None or H_pred is None:
+            self._cov = np.linalg.inv(H_pred) if filt and res is None and H_pred is not None else None
             return pose if res is None else self._accept(index, feats, res)
         if c.mode in ("fuse", "filter"):
-            H_pred = np.linalg.inv(C_pred)
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
-            self._cov = np.linalg.inv(H_pred + res.information)
+            self._cov = np.linalg.inv(H_pred + res.information) if filt else None
         return self._accept(index, feats, res)
 
     def _accept(self, index: int, feats, res) -> np.ndarray:

@@ -108,30 +108,15 @@ def test_ransac_samples_old_landmarks_first():
 
 
 # ----------------------------------------------------------------------------- pose refine, fusion, local BA
-from rgbdslam.geometry.camera import Camera  # noqa: E402
 from rgbdslam.geometry.se3 import inv  # noqa: E402
-
-CAM = Camera(525.0, 525.0, 319.5, 239.5, 640, 480)
-
-
-def _pose(rotvec, t):
-    from scipy.spatial.transform import Rotation
-
-    P = np.eye(4)
-    P[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    P[:3, 3] = t
-    return P
-
-
-def _scene(n=300, seed=0):
-    rng = np.random.default_rng(seed)
-    return np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(1.0, 4.0, n)])
+from tests.landmarks.scenes import CAM, seen  # noqa: E402
+from tests.landmarks.scenes import pose as _pose  # noqa: E402
+from tests.landmarks.scenes import scene as _scene  # noqa: E402
 
 
 def _observe(P, X):
-    Tcw = inv(P)
-    Pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
-    return CAM.project(Pc), Pc[:, 2]
+    _, uv, z = seen(P, X)
+    return uv, z
 
 
 def test_reprojection_refine_recovers_the_exact_pose():

@@ -3,32 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
 from rgbdslam.landmarks.map import LandmarkMap
 from rgbdslam.landmarks.tracking import refine_reprojection, reprojection_residuals
-
-CAM = Camera(525.0, 525.0, 319.5, 239.5, 640, 480)
-
-
-def _pose(rotvec, t):
-    P = np.eye(4)
-    P[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    P[:3, 3] = t
-    return P
-
-
-def _scene(n=300, seed=0):
-    rng = np.random.default_rng(seed)
-    return np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(1.0, 4.0, n)])
-
-
-def _seen(P, X):
-    Tcw = inv(P)
-    Pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
-    return Pc, CAM.project(Pc), Pc[:, 2]
+from tests.landmarks.scenes import CAM
+from tests.landmarks.scenes import pose as _pose
+from tests.landmarks.scenes import scene as _scene
+from tests.landmarks.scenes import seen as _seen
 
 
 def _ray_covariance(X, centre, along, across):

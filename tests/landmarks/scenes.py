@@ -1,0 +1,31 @@
+"""Hand-built scenes shared by the landmark tests: a pinhole camera, poses from a rotation vector,
+random points in front of the camera, and what a camera at a pose sees of them."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.se3 import inv
+
+CAM = Camera(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
+def pose(rotvec, t) -> np.ndarray:
+    P = np.eye(4)
+    P[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    P[:3, 3] = t
+    return P
+
+
+def scene(n: int = 300, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(1.0, 4.0, n)])
+
+
+def seen(P: np.ndarray, X: np.ndarray):
+    """Camera-frame points, pixels and depths of world points ``X`` from camera-to-world pose ``P``."""
+    Tcw = inv(P)
+    Pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
+    return Pc, CAM.project(Pc), Pc[:, 2]
