@@ -36,6 +36,9 @@ from rgbdslam.io.worker import end, exit_now, lower_priority, receive
 
 CACHE_MB = 512  # keyframe images kept for re-integration (640x480: ~1.5 MB each); beyond, they are read again
 REBUILD_FRACTION = 0.5  # more keyframes than this share moved: rebuild the map instead of de-/re-integrating
+SCRATCH_BLOCKS_PER_KEYFRAME = 1500  # TSDF blocks one 640x480 keyframe touches (~1150 on fr1/rpy), preallocated
+SCRATCH_MAX_BLOCKS = 16000  # at most (94 MB) for a scratch volume; beyond, its hash map grows
+REDO_CHUNK = 32  # keyframes taken out and put in again together (their images held meanwhile)
 SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)
 
 
@@ -87,6 +90,8 @@ class MapState:
         self.tsdf = None
         self.cloud = None
         self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
+        self.lag = cfg.live_lag
+        self.waiting: dict[int, np.ndarray] = {}  # the newest keyframes, not in the map yet -> their latest pose
         # keyframes' prepared images for re-integration, up to cache_mb (then read again with load)
         self.cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.cache_bytes = 0
@@ -124,11 +129,15 @@ class MapState:
         fused = sorted(self.used)
         return self.tsdf, self.cloud, fused, sum(self.n_depth[i] for i in fused)
 
-    def _volume(self, tsdf: bool = True, cloud: bool = True):
-        """A new, empty TSDF (None without a mesh or when not ``tsdf``) and voxel cloud (None when not ``cloud``)."""
+    def _volume(self, tsdf: bool = True, cloud: bool = True, blocks: int = 0):
+        """A new, empty TSDF (None without a mesh or when not ``tsdf``; ``blocks`` preallocated, at
+        least ``mapping.tsdf_initial_blocks``) and voxel cloud (None when not ``cloud``)."""
+        import dataclasses
+
         from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf
 
-        return ((_Tsdf(self.cfg, self.camera) if self.cfg.mesh and tsdf else None),
+        cfg = self.cfg if blocks <= self.cfg.tsdf_initial_blocks else dataclasses.replace(self.cfg, tsdf_initial_blocks=blocks)
+        return ((_Tsdf(cfg, self.camera) if self.cfg.mesh and tsdf else None),
                 VoxelCloud(self.cfg.voxel_size) if cloud else None)
 
     def _prepared(self, index: int, rgb=None, depth=None) -> tuple[np.ndarray, np.ndarray]:
@@ -164,28 +173,59 @@ class MapState:
         integrate_frame(tsdf, cloud, *prepared, pose, self.camera, self.cfg)
 
     def add(self, index: int, rgb, depth, pose) -> None:
-        if self.cloud is None:
+        """A new keyframe at ``pose``. It waits (``mapping.live_lag`` keyframes, :attr:`waiting`)
+        before it goes into the map: the newest keyframes' poses move with every loop closure, and
+        a keyframe integrated once at a settled pose costs one integration where one moved later
+        costs three (de-integration, re-integration and the merges)."""
+        prepared = self._prepared(index, rgb, depth)
+        self.waiting[index] = pose
+        if len(self.waiting) > self.lag:
+            first = next(iter(self.waiting))
+            self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"), prepared if first == index else None)
+
+    def _put(self, poses: dict[int, np.ndarray], parts: tuple[str, ...], prepared=None) -> None:
+        """Integrate the keyframes ``poses`` (not in the map yet) at those poses into the ``parts``
+        of the map ("cloud", "tsdf"); with ``prepared``: the images of the only keyframe."""
+        if "cloud" in parts and self.cloud is None:  # the first keyframe
             self.tsdf, self.cloud = self._volume()
-        self._integrate(self.tsdf, self.cloud, pose, self._prepared(index, rgb, depth))
-        self.used[index] = pose
-        self.stats["integrated"] += 1
-        if self.stats["integrated"] % SIZE_LOG_EVERY == 0:  # how the map grows (docs/benchmarks.md "Memory")
-            from rgbdslam.mapping.fusion import _rss_mb
+        tsdf = self.tsdf if "tsdf" in parts else None
+        cloud = self.cloud if "cloud" in parts else None
+        if tsdf is None and cloud is None:  # the TSDF part without a mesh: the cloud part did it all
+            return
+        for i, pose in poses.items():
+            self._integrate(tsdf, cloud, pose, prepared if prepared is not None else self._prepared(i))
+            if "tsdf" not in parts and self.tsdf is not None:
+                continue  # the TSDF part follows (the end: the cloud goes first)
+            self.used[i] = pose
+            self.stats["integrated"] += 1
+            if self.stats["integrated"] % SIZE_LOG_EVERY == 0:  # how the map grows (docs/benchmarks.md "Memory")
+                from rgbdslam.mapping.fusion import _rss_mb
 
-            self.stats.setdefault("size_log", []).append(
-                {"keyframes": self.stats["integrated"], "rss_mb": round(_rss_mb(), 1),
-                 **{k: round(v, 1) if isinstance(v, float) else v for k, v in self.sizes().items()}})
+                self.stats.setdefault("size_log", []).append(
+                    {"keyframes": self.stats["integrated"], "rss_mb": round(_rss_mb(), 1),
+                     **{k: round(v, 1) if isinstance(v, float) else v for k, v in self.sizes().items()}})
 
-    def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None, between=None) -> int:
+    def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None, between=None,
+                flush: bool = False) -> int:
         """Bring the map to ``poses`` (keyframes without one stay where they are; only the keyframes
-        in ``keep``, if given); returns how many keyframes moved or left.
+        in ``keep``, if given); returns how many keyframes in the map moved or left. The waiting
+        keyframes take their new poses (they are not in the map yet: nothing to redo); with
+        ``flush`` (the end) they are integrated at them.
 
         ``between(fused)``, if given, is called when the cloud is at the poses and before the TSDF
         is (``fused``: the keyframes the map then holds): at the end of a run the cloud goes to the
         run, which removes its outliers and makes the 2-D map while the TSDF is redone here."""
+        for i in list(self.waiting):
+            if keep is not None and i not in keep:
+                del self.waiting[i]
+                self.box.pop(i, None)
+                self._uncache(i)
+            elif i in poses:
+                self.waiting[i] = poses[i]
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
         move = [i for i in want if self._shift(i, want[i]) > self.tol_m]
+        put = dict(self.waiting) if flush else {}
         n = len(drop) + len(move)
         rebuild = n > REBUILD_FRACTION * len(self.used)
         if n:
@@ -195,20 +235,28 @@ class MapState:
             self.stats["reintegrated"] += len(want) if rebuild else len(move)
         for parts in ((("cloud", "tsdf"),) if between is None else (("cloud",), None, ("tsdf",))):
             if parts is None:
-                between(sorted(want))
-            elif n:
+                between(sorted(set(want) | set(put)))
+                continue
+            if n:
                 self._redo(parts, want, drop + move, rebuild)
+            if put:
+                self._put(put, parts)
         for i in drop:
             del self.used[i]
             self.box.pop(i, None)
             self._uncache(i)
         self.used.update(want if rebuild else {i: want[i] for i in move})  # a rebuild put every keyframe at its pose
+        if flush:
+            self.stats["final_waiting"] = len(put)
+            self.waiting.clear()
         return n
 
     def _redo(self, parts: tuple[str, ...], want: dict[int, np.ndarray], redo: list[int], rebuild: bool) -> None:
         """The ``parts`` of the map ("cloud", "tsdf") made again from the keyframes ``want`` at
         their poses (``rebuild``), or with the keyframes ``redo`` taken out at the pose they are in
-        the map at and put in again at their ``want`` pose (those that have one)."""
+        the map at (integrated into a scratch volume that is subtracted) and integrated again at
+        their ``want`` pose (those that have one) straight into the map: Open3D's running weighted
+        mean is what adding a one-frame volume gives."""
         tsdf = "tsdf" in parts and self.tsdf is not None
         cloud = "cloud" in parts
         if not (tsdf or cloud):  # no mesh
@@ -220,19 +268,21 @@ class MapState:
             self.tsdf = t if tsdf else self.tsdf
             self.cloud = c if cloud else self.cloud
             return
-        old_t, old_c = self._volume(tsdf, cloud)
-        new_t, new_c = self._volume(tsdf, cloud)
-        for i in redo:
-            prepared = self._prepared(i)
-            self._integrate(old_t, old_c, self.used[i], prepared)
-            if i in want:
-                self._integrate(new_t, new_c, want[i], prepared)
-        if tsdf:
-            merge_tsdf(self.tsdf.vol, old_t.vol, sign=-1)
-            merge_tsdf(self.tsdf.vol, new_t.vol, sign=+1)
-        if cloud:
-            add_cloud(self.cloud, old_c, sign=-1)
-            add_cloud(self.cloud, new_c, sign=+1)
+        for k in range(0, len(redo), REDO_CHUNK):  # the images of a chunk are held (read once when not cached)
+            chunk = {i: self._prepared(i) for i in redo[k:k + REDO_CHUNK]}
+            # the scratch volume sized for the keyframes it takes (a growing hash map costs ~70 % more per frame)
+            old_t, old_c = self._volume(tsdf, cloud, blocks=min(SCRATCH_BLOCKS_PER_KEYFRAME * len(chunk),
+                                                                SCRATCH_MAX_BLOCKS))
+            for i, prepared in chunk.items():
+                self._integrate(old_t, old_c, self.used[i], prepared)
+            if tsdf:
+                merge_tsdf(self.tsdf.vol, old_t.vol, sign=-1)
+            if cloud:
+                add_cloud(self.cloud, old_c, sign=-1)
+            del old_t, old_c
+            for i, prepared in chunk.items():
+                if i in want:
+                    self._integrate(self.tsdf if tsdf else None, self.cloud if cloud else None, want[i], prepared)
 
 
 def _pack_depth(depth: np.ndarray, scale: float) -> np.ndarray:
@@ -280,6 +330,18 @@ class _SequenceImages:
         return frame.rgb, (read_depth_png(png) if png is not None and png.is_file() else frame.depth)
 
 
+def limit_threads(n: int) -> None:
+    """At most ``n`` threads (0: as many as there are cores) for Open3D's (oneTBB) and OpenCV's
+    parallel loops in this process. While tracking the map process keeps to one: it is niced, and
+    a second thread that waits for the core tracking uses stalls the first at every join."""
+    import cv2
+    import open3d as o3d
+
+    if hasattr(o3d.utility, "set_max_threads"):
+        o3d.utility.set_max_threads(n)
+    cv2.setNumThreads(n if n else -1)
+
+
 def _process(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None) -> None:
     """The map process's body: :func:`_serve`, then exit without the interpreter's teardown (freeing
     Open3D's and NumPy's modules takes longer than the map's last step; the run waits for it)."""
@@ -294,6 +356,7 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
     lower_priority(cfg.live_nice)  # tracking first
+    limit_threads(1)  # one core for the map while tracking; all of them at the end (_finish)
     state = MapState(cfg, camera, load)
     try:
         while True:
@@ -347,8 +410,11 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     from rgbdslam.mapping.fusion import _peak_rss_mb, check_depth, cloud_points, write_mesh
     from rgbdslam.ui import console
 
+    limit_threads(0)  # tracking is over: the redo, the TSDF and the mesh may use every core
     t0 = time.perf_counter()
     shift = state.shift_mm(poses)
+    state.stats["final_shift_mm"] = {int(i): round(float(s), 2) for i, s in zip((i for i in state.used if i in poses), shift)
+                                     if s > 1e3 * state.tol_m}
     if len(shift):
         state.stats["final_shift_median_mm"] = float(np.median(shift))
         state.stats["final_shift_max_mm"] = float(shift.max())
@@ -366,7 +432,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
         results.put(("cloud", (points, colors, fused)))
         state.stats["cloud_points"] = time.perf_counter() - t1
 
-    state.stats["final_moved"] = state.refresh(poses, keep, between=send_cloud)
+    state.stats["final_moved"] = state.refresh(poses, keep, between=send_cloud, flush=True)
     state.stats["final_s"] = time.perf_counter() - t0 - state.stats["cloud_points"]
     tsdf, _, fused, _ = state.result()
     state.stats.update(state.sizes())

@@ -78,7 +78,7 @@ def test_merging_two_volumes_equals_integrating_all_frames_into_one(synth):
 
 
 def test_moved_and_dropped_keyframes_are_reintegrated_to_the_final_poses(synth):
-    cfg = MappingConfig()
+    cfg = MappingConfig(live_lag=0)
     gt = synth.groundtruth()
     load = lambda i: (synth.load(i).rgb, synth.load(i).depth)  # noqa: E731
     live = MapState(cfg, synth.camera, load)
@@ -114,7 +114,7 @@ def _shifted_map(synth, cfg, frames, shifted, axis: int, metres: float):
 
 
 def test_most_keyframes_moved_rebuilds_and_still_matches(synth):
-    cfg = MappingConfig()
+    cfg = MappingConfig(live_lag=0)
     live, gt = _shifted_map(synth, cfg, (0, 3, 6), (0, 3, 6), 0, 0.05)
     live.refresh({i: gt.poses[i] for i in (0, 3)})  # during tracking, after a loop: 6 stays
     assert live.stats["rebuilds"] == 1 and live.used[6] is not None
@@ -153,7 +153,7 @@ def test_run_writes_the_live_map_and_it_matches_fusing_afterwards(tmp_path, desk
 
 @pytest.mark.parametrize("cache_mb", [0, 64])
 def test_reintegration_takes_the_cached_images_or_reads_them_again(synth, cache_mb):
-    cfg = MappingConfig()
+    cfg = MappingConfig(live_lag=0)
     gt = synth.groundtruth()
     reads = []
 
@@ -223,7 +223,7 @@ def test_points_box_holds_every_point_of_a_real_keyframe(desk9):
 def test_the_end_gives_the_cloud_before_the_tsdf_is_redone(synth):
     """At the end of a run the cloud goes to the run first (it makes cloud.ply and the 2-D map
     meanwhile); both parts still equal fusing the final poses."""
-    cfg = MappingConfig()
+    cfg = MappingConfig(live_lag=0)
     live, gt = _shifted_map(synth, cfg, (0, 3, 6, 9), (9,), 2, 0.03)
     final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
     fresh = _fresh(synth, cfg, {i: final[i] for i in (0, 3, 9)})
@@ -241,7 +241,7 @@ def test_the_end_gives_the_cloud_before_the_tsdf_is_redone(synth):
 
 
 def test_without_a_mesh_the_map_is_the_cloud_alone(synth):
-    cfg = MappingConfig(mesh=False)
+    cfg = MappingConfig(mesh=False, live_lag=0)
     live, gt = _shifted_map(synth, cfg, (0, 5, 10), (0, 5, 10), 0, 0.02)
     seen = []
     assert live.refresh({i: gt.poses[i] for i in (0, 5, 10)}, between=seen.append) == 3  # a rebuild
@@ -252,3 +252,41 @@ def test_without_a_mesh_the_map_is_the_cloud_alone(synth):
         integrate_frame(None, fresh, *prepare_frame(f.rgb, f.depth, _Undistorter(synth.camera, True), cfg),
                         gt.poses[i], synth.camera, cfg)
     np.testing.assert_allclose(np.sort(live.cloud.result()[0], axis=0), np.sort(fresh.result()[0], axis=0), atol=1e-9)
+
+
+def test_the_newest_keyframes_wait_and_enter_the_map_once_at_their_final_poses(synth):
+    """``live_lag``: the newest keyframes are not integrated while loop closures still move them;
+    a pose update only changes the pose they will be integrated at, and the end integrates them
+    once (no de-integration) - the map still equals fusing the final poses."""
+    cfg = MappingConfig(live_lag=2)
+    kfs = (0, 3, 6, 9, 11)
+    live, gt = _shifted_map(synth, cfg, kfs, (9, 11), 0, 0.04)  # 9 and 11 still wait: not in the map
+    assert sorted(live.used) == [0, 3, 6] and list(live.waiting) == [9, 11]
+    assert live.stats["integrated"] == 3
+    final = {i: gt.poses[i] for i in kfs}
+    assert live.refresh(final) == 0  # during tracking: nothing in the map moved, 9 and 11 take the new poses
+    assert live.stats["deintegrated"] == 0 and live.stats["integrated"] == 3
+    assert all(live.waiting[i] is final[i] for i in (9, 11))
+    seen = []
+
+    def between(fused):
+        seen.append(fused)
+        _same_map(_fresh(synth, cfg, final), (_fresh(synth, cfg, final)[0], live.cloud), synth, cfg)
+
+    assert live.refresh(final, between=between, flush=True) == 0
+    assert seen == [list(kfs)] and not live.waiting and live.stats["final_waiting"] == 2
+    assert live.stats["integrated"] == 5 and live.stats["deintegrated"] == 0 and live.stats["reintegrated"] == 0
+    tsdf, cloud, fused, _ = live.result()
+    assert fused == list(kfs)
+    _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
+
+
+def test_a_waiting_keyframe_of_a_segment_left_out_never_enters_the_map(synth):
+    cfg = MappingConfig(live_lag=3)
+    live, gt = _shifted_map(synth, cfg, (0, 4, 8, 11), (), 0, 0.0)
+    assert sorted(live.used) == [0] and list(live.waiting) == [4, 8, 11]
+    final = {i: gt.poses[i] for i in (0, 4, 8, 11)}
+    live.refresh(final, keep={0, 4, 11}, flush=True)
+    tsdf, cloud, fused, _ = live.result()
+    assert fused == [0, 4, 11] and 8 not in live.box and 8 not in live.cache
+    _same_map(_fresh(synth, cfg, {i: final[i] for i in (0, 4, 11)}), (tsdf, cloud), synth, cfg)
