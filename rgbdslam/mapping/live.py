@@ -172,16 +172,25 @@ class MapState:
 
         integrate_frame(tsdf, cloud, *prepared, pose, self.camera, self.cfg)
 
-    def add(self, index: int, rgb, depth, pose) -> None:
+    def add(self, index: int, rgb, depth, pose, settle: bool = True) -> None:
         """A new keyframe at ``pose``. It waits (``mapping.live_lag`` keyframes, :attr:`waiting`)
         before it goes into the map: the newest keyframes' poses move with every loop closure, and
         a keyframe integrated once at a settled pose costs one integration where one moved later
-        costs three (de-integration, re-integration and the merges)."""
+        costs three (de-integration, re-integration and the merges). Without ``settle`` it only
+        waits: the map process integrates (:meth:`settle`) when no pose update is queued."""
         prepared = self._prepared(index, rgb, depth)
         self.waiting[index] = pose
-        if len(self.waiting) > self.lag:
-            first = next(iter(self.waiting))
-            self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"), prepared if first == index else None)
+        while settle and self.unsettled():
+            self.settle(prepared if next(iter(self.waiting)) == index else None)
+
+    def unsettled(self) -> bool:
+        """True when more keyframes wait than ``mapping.live_lag``."""
+        return len(self.waiting) > self.lag
+
+    def settle(self, prepared=None) -> None:
+        """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images)."""
+        first = next(iter(self.waiting))
+        self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"), prepared)
 
     def _put(self, poses: dict[int, np.ndarray], parts: tuple[str, ...], prepared=None) -> None:
         """Integrate the keyframes ``poses`` (not in the map yet) at those poses into the ``parts``
@@ -360,38 +369,40 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
     state = MapState(cfg, camera, load)
     try:
         while True:
-            job = jobs.get()
+            try:  # a keyframe to integrate: only when no job waits (a pose update first: the keyframe then
+                job = jobs.get_nowait() if state.unsettled() else jobs.get()  # goes in at its newest pose)
+            except queue.Empty:
+                job = ("settle",)
             if job is None:
                 return
             t0, c0 = time.perf_counter(), time.process_time()
-            n_skipped = 0
-            if job[0] == "poses":  # coalesce: add what is queued already, apply only the newest poses
-                while True:
-                    try:
-                        nxt = jobs.get_nowait()
-                    except queue.Empty:
-                        break
-                    if nxt is None:
-                        return
-                    if nxt[0] == "add":
-                        state.add(*nxt[1:])
-                        continue
-                    state.stats["pose_updates_skipped"] += 1
-                    n_skipped += job[0] == "poses"
-                    job = nxt
-                    if job[0] == "finish":
-                        break
-            if job[0] == "add":
-                state.add(*job[1:])
-            elif job[0] == "poses":
-                state.refresh(job[1])
+            batch = [job]
+            while job[0] not in ("finish", "settle"):  # everything queued: the keyframes, the newest poses
+                try:
+                    job = jobs.get_nowait()
+                except queue.Empty:
+                    break
+                if job is None:
+                    return
+                batch.append(job)
+            n_poses = sum(j[0] == "poses" for j in batch)
+            finish = batch[-1] if batch[-1][0] == "finish" else None
+            for j in batch:
+                if j[0] == "add":
+                    state.add(*j[1:], settle=False)
+            if job[0] == "settle":
+                state.settle()
+            elif n_poses:
+                state.stats["pose_updates_skipped"] += n_poses - (finish is None)
+                if finish is None:
+                    state.refresh(next(j for j in reversed(batch) if j[0] == "poses")[1])
             state.stats["busy_s"] += time.perf_counter() - t0
             state.stats["busy_cpu_s"] += time.process_time() - c0  # all its threads (Open3D's too)
-            if job[0] == "poses" and applied is not None:
+            if n_poses and applied is not None:
                 with applied.get_lock():
-                    applied.value += 1 + n_skipped
-            if job[0] == "finish":
-                results.put(("ok", _finish(state, results, *job[1:])))
+                    applied.value += n_poses
+            if finish is not None:
+                results.put(("ok", _finish(state, results, *finish[1:])))
                 return
     except BaseException as e:  # noqa: BLE001 - the driver reports it (OSError as itself: a full disk names its file)
         from rgbdslam.errors import RgbdslamError

@@ -290,3 +290,43 @@ def test_a_waiting_keyframe_of_a_segment_left_out_never_enters_the_map(synth):
     tsdf, cloud, fused, _ = live.result()
     assert fused == [0, 4, 11] and 8 not in live.box and 8 not in live.cache
     _same_map(_fresh(synth, cfg, {i: final[i] for i in (0, 4, 11)}), (tsdf, cloud), synth, cfg)
+
+
+def test_the_map_process_applies_queued_poses_before_it_integrates(synth, tmp_path):
+    """The map process's loop (:func:`rgbdslam.mapping.live._serve`, here in this process on real
+    queues): keyframes that are queued together with a pose update go into the map at the
+    update's poses, never at the poses they came with (which would be redone); the map at the
+    end is the one fusing the final poses gives."""
+    import queue
+    import signal
+
+    from rgbdslam.mapping.live import _serve
+
+    cfg = MappingConfig(live_lag=0, live_nice=0, map2d=False)
+    gt = synth.groundtruth()
+    off = np.eye(4)
+    off[0, 3] = 0.05  # the front end's poses, 5 cm off
+    kfs = (0, 1, 2, 3)  # overlapping views: a mesh (voxels seen by 2 frames)
+    jobs, results = queue.Queue(), queue.Queue()
+    for i in kfs:
+        f = synth.load(i)
+        jobs.put(("add", i, f.rgb, f.depth, gt.poses[i] @ off))
+    final = {i: gt.poses[i] for i in kfs}
+    jobs.put(("poses", final))  # a loop closure found them
+    jobs.put(("finish", final, None, str(tmp_path), False))
+    old = signal.getsignal(signal.SIGINT)
+    try:
+        _serve(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth), jobs, results)
+    finally:
+        signal.signal(signal.SIGINT, old)
+        import open3d as o3d
+
+        o3d.utility.set_max_threads(0)
+    status, (points, _, fused) = results.get_nowait()
+    status_end, out = results.get_nowait()
+    assert (status, status_end) == ("cloud", "ok") and fused == list(kfs)
+    t = out["timings"]
+    assert t["integrated"] == 4 and t["deintegrated"] == 0 and t["reintegrated"] == 0 and t["final_moved"] == 0
+    _, cloud = _fresh(synth, cfg, final)
+    np.testing.assert_allclose(np.sort(points, axis=0), np.sort(cloud.result()[0], axis=0), atol=1e-9)
+    assert out["n_vertices"] > 0 and (tmp_path / "mesh.ply").is_file()
