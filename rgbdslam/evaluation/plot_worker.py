@@ -3,9 +3,9 @@
 Drawing the three plots of a run (``evaluation/plots.py``) costs ~0.5 s of CPU after the last
 frame, and importing matplotlib with its fonts another ~0.6 s (2-core machine,
 docs/benchmarks.md "Scale"). The process is started with the run, imports matplotlib and draws a
-throw-away figure (font cache, Agg) while the frames are tracked, at a lower priority
-(``os.nice(nice)``, ``mapping.live_nice`` as the map process) so that tracking keeps its speed; after the last frame it
-draws the plots while the run waits for the map. The numbers (ATE, RPE) are computed by the run
+throw-away figure (font cache, Agg) while the frames are tracked, in a thread at a lower
+priority (niceness + ``nice``, ``mapping.live_nice`` as the map process) so that tracking keeps its speed; after the
+last frame its main thread, at the run's priority, draws the plots while the run waits for the map. The numbers (ATE, RPE) are computed by the run
 itself: only the drawing is here.
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rgbdslam.io.worker import end, exit_now, lower_priority, receive
+from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive
 
 
 class PlotWorker:
@@ -72,9 +72,8 @@ def _serve(jobs, results, nice: int) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle: it stops us
-    lower_priority(nice)
     try:
-        _warm_up()
+        in_niced_thread(nice, _warm_up)  # while tracking: niced; the plots after it at the run's priority
         job = jobs.get()
         if job is not None:
             from rgbdslam.evaluation.report import write_plots

@@ -47,3 +47,45 @@ def lower_priority(nice: int) -> None:
             os.nice(nice)
         except (AttributeError, OSError):  # pragma: no cover - no nice() (Windows) or not allowed
             pass
+
+
+def lower_thread_priority(nice: int) -> None:
+    """Yield the CPU to tracking in the calling *thread* only (Linux schedules threads: a thread's
+    niceness is its own). A process cannot take back a lower priority without privileges, but
+    its other threads keep theirs: the helper's work while tracking runs in a niced thread and
+    the work the user waits for after the last frame in the process's main thread, at the
+    priority of the run. Where threads have no niceness of their own: the whole process (:func:`lower_priority`)."""
+    if nice <= 0:
+        return
+    import sys
+    import threading
+
+    if sys.platform.startswith("linux"):
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(os.PRIO_PROCESS, 0) + nice)
+            return
+        except (AttributeError, OSError):  # pragma: no cover - not allowed
+            pass
+    lower_priority(nice)  # pragma: no cover - elsewhere
+
+
+def in_niced_thread(nice: int, work):
+    """``work()`` in a thread of its own at niceness + ``nice`` (:func:`lower_thread_priority`);
+    its result, or its exception raised here."""
+    import threading
+
+    out: dict = {}
+
+    def body():
+        try:
+            lower_thread_priority(nice)
+            out["value"] = work()
+        except BaseException as e:  # noqa: BLE001 - raised again in the calling thread
+            out["error"] = e
+
+    t = threading.Thread(target=body, name="niced", daemon=True)
+    t.start()
+    t.join()
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")

@@ -32,7 +32,7 @@ import numpy as np
 from rgbdslam.config import MappingConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
-from rgbdslam.io.worker import end, exit_now, lower_priority, receive
+from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive
 
 CACHE_MB = 512  # keyframe images kept for re-integration (640x480: ~1.5 MB each); beyond, they are read again
 REBUILD_FRACTION = 0.5  # more keyframes than this share moved: rebuild the map instead of de-/re-integrating
@@ -359,55 +359,65 @@ def _process(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=No
 
 
 def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None) -> None:
-    """The map process: keyframes and pose updates from ``jobs``; at ``finish`` the map is
-    brought to the final poses, written, and its :class:`FuseResult` put on ``results``."""
+    """The map process: keyframes and pose updates from ``jobs`` (:func:`_track`, in a thread
+    niced by ``mapping.live_nice``: tracking first); at ``finish`` the map is brought to the
+    final poses, written, and its :class:`FuseResult` put on ``results`` — in the main thread,
+    at the run's priority and with every core (the user waits for it now)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
-    lower_priority(cfg.live_nice)  # tracking first
-    limit_threads(1)  # one core for the map while tracking; all of them at the end (_finish)
     state = MapState(cfg, camera, load)
     try:
-        while True:
-            try:  # a keyframe to integrate: only when no job waits (a pose update first: the keyframe then
-                job = jobs.get_nowait() if state.unsettled() else jobs.get()  # goes in at its newest pose)
-            except queue.Empty:
-                job = ("settle",)
-            if job is None:
-                return
-            t0, c0 = time.perf_counter(), time.process_time()
-            batch = [job]
-            while job[0] not in ("finish", "settle"):  # everything queued: the keyframes, the newest poses
-                try:
-                    job = jobs.get_nowait()
-                except queue.Empty:
-                    break
-                if job is None:
-                    return
-                batch.append(job)
-            n_poses = sum(j[0] == "poses" for j in batch)
-            finish = batch[-1] if batch[-1][0] == "finish" else None
-            for j in batch:
-                if j[0] == "add":
-                    state.add(*j[1:], settle=False)
-            if job[0] == "settle":
-                state.settle()
-            elif n_poses:
-                state.stats["pose_updates_skipped"] += n_poses - (finish is None)
-                if finish is None:
-                    state.refresh(next(j for j in reversed(batch) if j[0] == "poses")[1])
-            state.stats["busy_s"] += time.perf_counter() - t0
-            state.stats["busy_cpu_s"] += time.process_time() - c0  # all its threads (Open3D's too)
-            if n_poses and applied is not None:
-                with applied.get_lock():
-                    applied.value += n_poses
-            if finish is not None:
-                results.put(("ok", _finish(state, results, *finish[1:])))
-                return
+        limit_threads(1)  # one core for the map while tracking
+        finish = in_niced_thread(cfg.live_nice, lambda: _track(state, jobs, applied))
+        if finish is not None:
+            limit_threads(0)  # tracking is over: the redo, the TSDF and the mesh may use every core
+            results.put(("ok", _finish(state, results, *finish[1:])))
     except BaseException as e:  # noqa: BLE001 - the driver reports it (OSError as itself: a full disk names its file)
         from rgbdslam.errors import RgbdslamError
 
         results.put(("error", e if isinstance(e, (RgbdslamError, OSError)) else RuntimeError(f"{type(e).__name__}: {e}")))
+
+
+def _track(state: MapState, jobs, applied=None):
+    """The map while tracking: keyframes and pose updates from ``jobs`` until ``finish`` (returned)
+    or None (returns None). Every job queued is taken before a keyframe is integrated: a pose
+    update is applied first and the keyframes waiting go in at their newest poses."""
+    while True:
+        try:  # a keyframe to integrate: only when no job waits
+            job = jobs.get_nowait() if state.unsettled() else jobs.get()
+        except queue.Empty:
+            job = ("settle",)
+        if job is None:
+            return None
+        t0, c0 = time.perf_counter(), time.process_time()
+        batch = [job]
+        while job[0] not in ("finish", "settle"):  # everything queued: the keyframes, the newest poses
+            try:
+                job = jobs.get_nowait()
+            except queue.Empty:
+                break
+            if job is None:
+                return None
+            batch.append(job)
+        n_poses = sum(j[0] == "poses" for j in batch)
+        finish = batch[-1] if batch[-1][0] == "finish" else None
+        for j in batch:
+            if j[0] == "add":
+                state.add(*j[1:], settle=False)
+        if job[0] == "settle":
+            state.settle()
+        elif n_poses:
+            state.stats["pose_updates_skipped"] += n_poses - (finish is None)
+            if finish is None:
+                state.refresh(next(j for j in reversed(batch) if j[0] == "poses")[1])
+        state.stats["busy_s"] += time.perf_counter() - t0
+        state.stats["busy_cpu_s"] += time.process_time() - c0  # all its threads (Open3D's too)
+        if n_poses and applied is not None:
+            with applied.get_lock():
+                applied.value += n_poses
+        if finish is not None:
+            return finish
 
 
 def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: bool) -> dict:
@@ -421,7 +431,6 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     from rgbdslam.mapping.fusion import _peak_rss_mb, check_depth, cloud_points, write_mesh
     from rgbdslam.ui import console
 
-    limit_threads(0)  # tracking is over: the redo, the TSDF and the mesh may use every core
     t0 = time.perf_counter()
     shift = state.shift_mm(poses)
     state.stats["final_shift_mm"] = {int(i): round(float(s), 2) for i, s in zip((i for i in state.used if i in poses), shift)
