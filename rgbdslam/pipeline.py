@@ -125,6 +125,7 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     """After the last frame: the final pose graph, the outputs, evaluation, plots and map."""
     record.stage = "pose graph"
     t_end = time.perf_counter()  # the last frame is tracked: what follows is what the user waits for on top
+    c_end = time.process_time()
     final = slam.finish()
     after = {"pose_graph": time.perf_counter() - t_end}
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
@@ -142,6 +143,7 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     post_process(summary, slam, final, gt, out_dir, cfg, run.interrupted, progress, console, record,
                  groundtruth_name(seq), plotter)
     after["total"] = time.perf_counter() - t_end
+    after["cpu"] = time.process_time() - c_end  # CPU seconds of this process (its helpers' are in map.timings)
     summary["after_tracking_s"] = {k: round(v, 3) for k, v in after.items()}
     record.stage = "end"
     record.write(summary, final=True)  # only now: "finished" (or "interrupted" from the tracking loop)

@@ -99,6 +99,8 @@ RUN_VARIANTS = {  # --variants: key -> (row name, extra arguments of `rgbdslam r
     "default": ("map fused while tracking (default)", []),
     "nice0": ("map fused while tracking, map process at tracking's priority (mapping.live_nice=0)",
               ["--set", "mapping.live_nice=0"]),
+    "lag0": ("map fused while tracking, every keyframe into the map at once (mapping.live_lag=0)",
+             ["--set", "mapping.live_lag=0"]),
     "tol1": ("map fused while tracking, mapping.live_tolerance=1 (1 voxel)", ["--set", "mapping.live_tolerance=1"]),
     "after": ("map fused after the run (mapping.live=false)", ["--set", "mapping.live=false"]),
     "nomap": ("no map (--no-map)", ["--no-map"]),
@@ -133,20 +135,23 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
             f"{a.get(k, float('nan')):.2f}" for k in ("pose_graph", "outputs", "evaluation", "map", "plots", "recording",
                                                       "total"))
             + f" | {rest:.2f} | {t.get('final_s', float('nan')):.2f} | {t.get('cloud', float('nan')):.2f} | "
-              f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} |")
+              f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} | {t.get('final_waiting', '-')} | "
+              f"{a.get('cpu', float('nan')):.2f} | {t.get('final_cpu_s', float('nan')):.2f} |")
     cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in keys
-            if k in ("default", "nice0", "tol1")]
+            if k in ("default", "nice0", "lag0", "tol1")]
     live_lines = []
     for name, out in runs.items():  # what the map process did, in the runs with a live map
         info = json.loads((out / "run.json").read_text())
         t = (info.get("map") or {}).get("timings") or {}
         if "integrated" in t:
             live_lines.append(
-                f"* {name}: {t.get('integrated')} keyframes integrated while tracking, {t.get('refreshes')} pose "
+                f"* {name}: {t.get('integrated', 0) - t.get('final_waiting', 0)} keyframes integrated while tracking "
+                f"({t.get('final_waiting', 0)} at the end), {t.get('refreshes')} pose "
                 f"updates applied ({t.get('pose_updates_skipped')} coalesced), {t.get('deintegrated')} keyframes "
                 f"de-integrated, {t.get('reintegrated')} re-integrated, {t.get('rebuilds')} rebuilds; busy "
                 f"{t.get('busy_s', 0):.1f} s ({t.get('busy_cpu_s', float('nan')):.1f} s of CPU) during "
-                f"{info['wall_time_s']:.1f} s of tracking.")
+                f"{info['wall_time_s']:.1f} s of tracking; keyframes moved more than the tolerance at the end (mm): "
+                f"{t.get('final_shift_mm', '-')}.")
     lines = [
         *[f"**Whole-command rate / tracking rate: {r:.2f}** (target >= 0.8; wall {w:.1f} s) - {name}"
           for name, r, w in ratios],
@@ -163,8 +168,9 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
         "| run | tracking | final pose graph | outputs | evaluation (+ plots when drawn in the run) | waiting for the map "
         "| waiting for the plot process | Rerun | total "
         "| wall − first frame − tracking − total (the exit, less the first frame's own tracking time) | map: bring to final poses "
-        "| map: cloud (outliers, cloud.ply) | map: mesh | map: 2-D map |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| map: cloud (outliers, cloud.ply) | map: mesh | map: 2-D map | keyframes still waiting at the end (integrated once) "
+        "| CPU s of the run process after the last frame | CPU s of the map process after the last frame |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *after_rows,
         "",
         "Map process:",

@@ -431,7 +431,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     from rgbdslam.mapping.fusion import _peak_rss_mb, check_depth, cloud_points, write_mesh
     from rgbdslam.ui import console
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     shift = state.shift_mm(poses)
     state.stats["final_shift_mm"] = {int(i): round(float(s), 2) for i, s in zip((i for i in state.used if i in poses), shift)
                                      if s > 1e3 * state.tol_m}
@@ -463,6 +463,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
         path, out["n_vertices"], out["n_triangles"] = write_mesh(Path(stage), tsdf, len(fused), state.cfg, console)
         out["mesh_path"] = str(path) if path is not None else None
         state.stats["mesh"] = time.perf_counter() - t0
+    state.stats["final_cpu_s"] = time.process_time() - c0  # CPU of every thread of the map process after the last frame
     out["timings"] = {k: round(v, 3) if isinstance(v, float) else v for k, v in state.stats.items()}
     out["peak_rss_mb"] = _peak_rss_mb()
     return out
