@@ -13,9 +13,14 @@ one fusing the final poses gives, up to the quarter-voxel tolerance and float ro
 (docs/mapping.md, "Fusion while tracking", has the measured difference), and memory is that of
 one map, not of one volume per keyframe.
 
-All the work happens in the map process (:class:`LiveMap`, niced: ``mapping.live_nice``); the
-tracking thread only enqueues. Pose updates are coalesced: when several are waiting, only the
-newest is applied. A keyframe's prepared images are cached for re-integration (up to
+The newest ``mapping.live_lag`` keyframes wait before they go into the map (their poses still move
+with every loop closure; at the end they are integrated once, at their final poses).
+
+All the work happens in the map process (:class:`LiveMap`); the tracking thread only enqueues.
+While tracking the map process works in a thread niced by ``mapping.live_nice``, after the last
+frame in its main thread at the run's priority. It takes every queued job before it integrates a
+keyframe: pose updates are coalesced (when several are waiting, only the newest is applied) and
+come before the integration of keyframes queued with them. A keyframe's prepared images are cached for re-integration (up to
 :data:`CACHE_MB`; beyond, ``load`` reads them again). At the end the cloud is brought to the final
 poses first and sent to the run, then the TSDF and the mesh (:func:`_finish`). An error in the
 process is raised by :meth:`LiveMap.finish`.
