@@ -296,6 +296,11 @@ class LandmarksConfig:
     ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
     ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
     ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
+    # where local BA runs: 'process' = in a worker process while tracking goes on (GTSAM holds the GIL,
+    # a thread would stop tracking), written back at the next keyframe (waiting for it there);
+    # 'deferred' = on the tracking thread, written back at the next keyframe (the same results as
+    # 'process'); 'sync' = on the tracking thread, written back at once
+    ba_worker: Literal["process", "deferred", "sync"] = "process"
     # one bundle adjustment over every keyframe and its landmarks after the final pose graph
     # (stereo-style factors as local BA, the pose graph's loop edges as relative-pose factors)
     global_ba: bool = False  # bundle adjustment over all keyframes after the pose graph (run end)

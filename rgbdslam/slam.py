@@ -196,7 +196,7 @@ class SLAM:
             self.landmarks.log(self.observer, frame.index, result.features, is_kf)
         return pose
 
-    def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray) -> None:
+    def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray | None = None) -> None:
         """Write local-BA keyframe poses back: each keyframe's frames follow it rigidly (their pose
         relative to it kept), so do the front end's reference frames; the pose graph's odometry edges
         are re-measured between the refined keyframes (the current keyframe, not yet a node, gets its
@@ -330,6 +330,11 @@ class SLAM:
 
         Non-keyframes follow their keyframe: final = optimised(kf) · odo(kf)⁻¹ · odo(frame).
         """
+        if self.landmarks is not None:  # the local BA still in flight (landmarks.ba_worker) is written back
+            refined = self.landmarks.flush()
+            if refined:
+                self._move_keyframes(refined)
+            self.landmarks.close()
         odo = self.odometry()
         if self.graph is None or not self.state.keyframes:
             return odo
