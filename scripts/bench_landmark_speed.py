@@ -14,7 +14,9 @@ every variant, then repeat 2, ..., so a change of the machine's load hits all of
 ``--code NAME=DIR`` also runs every variant from another checkout's ``rgbdslam`` package (e.g. an
 unpacked ``git archive`` of main: the code before a change), interleaved too. Per variant: the
 median (and range) of frames/s over the repeats (whole tracking loop, images included), its ratio
-to the default's median, the ATE, the per-stage medians (ms) from run.json, the local BA's median
+to the default's median, the CPU time per frame of the run's process (all its threads, start-up
+and the end of the run included: less sensitive to the machine's load than frames/s) and of its
+child processes (the local BA process), the ATE, the per-stage medians (ms) from run.json, the local BA's median
 ms per keyframe; ``uptime``'s load before and after. ``--profile VARIANT`` runs that variant once
 more under cProfile and prints the 30 most expensive functions (own time).
 """
@@ -51,12 +53,15 @@ if sys.argv[5]:
 s = run_sequence(sys.argv[2], sys.argv[3], cfg, progress=False)
 if sys.argv[5]:
     pr.disable(); pstats.Stats(pr, stream=sys.stderr).sort_stats("tottime").print_stats(30)
+import resource
+me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
 ev = s.get("evaluation") or {}
 lm = s.get("landmarks") or {}
 print("RESULT " + json.dumps({"fps": s["fps"], "processing_fps": s["processing_fps"],
       "ate": (ev.get("ate") or {}).get("rmse"), "timings": s.get("timings", {}),
       "ba_ms": lm.get("local_ba_median_ms"), "ba_runs": lm.get("local_ba_runs"),
-      "keyframes": len(s.get("keyframes", []))}))
+      "keyframes": len(s.get("keyframes", [])), "frames": s["frames"],
+      "cpu_s": me.ru_utime + me.ru_stime, "child_cpu_s": kids.ru_utime + kids.ru_stime}))
 """
 
 
@@ -93,7 +98,10 @@ def summarise(runs: dict[str, list[dict]]) -> list[dict]:
             v = [r["timings"][k]["median_ms"] for r in rs if k in r["timings"]]
             stages[k] = float(np.median(v))
         ba = [r["ba_ms"] for r in rs if r.get("ba_ms")]
-        rows.append({"variant": name, "fps": float(np.median(fps)), "fps_min": min(fps), "fps_max": max(fps),
+        cpu = [1e3 * r["cpu_s"] / r["frames"] for r in rs]
+        kid = [1e3 * r["child_cpu_s"] / r["frames"] for r in rs]
+        rows.append({"variant": name, "cpu_ms": float(np.median(cpu)), "child_cpu_ms": float(np.median(kid)),
+                     "fps": float(np.median(fps)), "fps_min": min(fps), "fps_max": max(fps),
                      "ratio": float(np.median(fps)) / base, "ate": sorted({round(r["ate"], 5) for r in rs if r["ate"]}),
                      "stages_ms": stages, "ba_ms": float(np.median(ba)) if ba else None,
                      "keyframes": rs[0]["keyframes"], "repeats": len(rs)})
@@ -102,11 +110,14 @@ def summarise(runs: dict[str, list[dict]]) -> list[dict]:
 
 def markdown(rows: list[dict], command: str, machine: str) -> str:
     stages = sorted({k for r in rows for k in r["stages_ms"]})
-    head = ("| variant | frames/s median (range) | × default | ATE (m) | local BA ms/keyframe | "
+    head = ("| variant | frames/s median (range) | × default | CPU ms/frame: run process (× default) | "
+            "+ BA process | ATE (m) | local BA ms/keyframe | "
             + " | ".join(f"{s} ms" for s in stages) + " |")
-    out = [f"Command: `{command}`  ", f"Machine: {machine}", "", head, "|" + "---|" * (5 + len(stages))]
+    out = [f"Command: `{command}`  ", f"Machine: {machine}", "", head, "|" + "---|" * (7 + len(stages))]
+    cpu0 = next((r["cpu_ms"] for r in rows if r["variant"] == "default"), float("nan"))
     for r in rows:
         out.append(f"| {r['variant']} | {r['fps']:.1f} ({r['fps_min']:.1f}–{r['fps_max']:.1f}) | {r['ratio']:.2f} | "
+                   f"{r['cpu_ms']:.1f} ({r['cpu_ms'] / cpu0:.2f}) | {r['child_cpu_ms']:.1f} | "
                    + ", ".join(f"{a:.4f}" for a in r["ate"]) + " | "
                    + (f"{r['ba_ms']:.0f}" if r["ba_ms"] else "") + " | "
                    + " | ".join(f"{r['stages_ms'][s]:.1f}" if s in r["stages_ms"] else "" for s in stages) + " |")
