@@ -91,7 +91,10 @@ class LandmarkTracker:
 
             self.ba = LocalBA(cfg, camera)
             if cfg.ba_worker == "process":
-                self._worker = BAWorker(cfg, camera)
+                try:
+                    self._worker = BAWorker(cfg, camera)
+                except (AssertionError, OSError):  # e.g. inside a daemonic process: solved here, same results
+                    self._worker = None
 
     def _sigma(self, z: np.ndarray) -> np.ndarray:
         return self.cfg.depth_noise_a + self.cfg.depth_noise_b * z * z
