@@ -168,32 +168,6 @@ def _so3_exp(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
 
 
-def _inverse_sym3(S: np.ndarray) -> np.ndarray:
-    """Inverses of symmetric positive definite 3x3 matrices (N, 3, 3) by the adjugate, vectorised."""
-    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
-    d, e, f = S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    det = a * A + b * B + c * C
-    out = np.empty_like(S)
-    out[:, 0, 0], out[:, 1, 1], out[:, 2, 2] = A, a * f - c * c, a * d - b * b
-    out[:, 0, 1] = out[:, 1, 0] = B
-    out[:, 0, 2] = out[:, 2, 0] = C
-    out[:, 1, 2] = out[:, 2, 1] = b * c - a * e
-    return out / det[:, None, None]
-
-
-def _cholesky3(S: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factors L (N, 3, 3), S = L Lᵀ, of symmetric positive definite 3x3 matrices, vectorised."""
-    L = np.zeros_like(S)
-    l00 = np.sqrt(S[:, 0, 0])
-    l10, l20 = S[:, 1, 0] / l00, S[:, 2, 0] / l00
-    l11 = np.sqrt(S[:, 1, 1] - l10 * l10)
-    l21 = (S[:, 2, 1] - l20 * l10) / l11
-    L[:, 0, 0], L[:, 1, 0], L[:, 2, 0], L[:, 1, 1], L[:, 2, 1] = l00, l10, l20, l11, l21
-    L[:, 2, 2] = np.sqrt(S[:, 2, 2] - l20 * l20 - l21 * l21)
-    return L
-
-
 def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera,
                            sigma_px, sigma_z: np.ndarray, cov_lm: np.ndarray):
     """Whitened residuals (N, 3) of the measured (u, v, 1/z) against landmarks X (N, 3) seen by the
@@ -230,7 +204,7 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
     S[:, 0, 0] += s_px2
     S[:, 1, 1] += s_px2
     S[:, 2, 2] += (sigma_z / (z * z)) ** 2
-    L = _cholesky3(_inverse_sym3(S))  # S⁻¹ = L Lᵀ: whitened = Lᵀ r (closed forms: ~10x LAPACK's per-matrix calls)
+    L = np.linalg.cholesky(np.linalg.inv(S))  # S⁻¹ = L Lᵀ: whitened = Lᵀ r
     Lt = L.transpose(0, 2, 1)
     # d(u, v, 1/z)/dξ = Jp · [-[P]x | I]
     J = np.empty((n, 3, 6))
