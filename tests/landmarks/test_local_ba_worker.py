@@ -98,3 +98,25 @@ def test_process_and_deferred_local_ba_give_the_same_trajectory(desk9):
         assert np.array_equal(a, b)
     # the BA moved the trajectory (deferred vs sync: written back one keyframe later, not the same)
     assert not np.allclose(out["deferred"][0], out["sync"][0], atol=1e-9)
+
+
+def _tracker_in_daemon(out) -> None:
+    from rgbdslam.landmarks.stage import LandmarkTracker
+
+    t = LandmarkTracker(LandmarksConfig(local_ba=True, ba_worker="process"), CAM)
+    out.put(t._worker is None)
+
+
+def test_inside_a_daemonic_process_the_ba_is_solved_on_the_tracking_thread():
+    """A daemonic process may not start the BA process: the tracker falls back to solving the
+    same deferred problems itself (the same results) instead of failing."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    p = ctx.Process(target=_tracker_in_daemon, args=(out,), daemon=True)
+    p.start()
+    try:
+        assert out.get(timeout=120) is True
+    finally:
+        p.join(timeout=30)
