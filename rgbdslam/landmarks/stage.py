@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.se3 import inv, rotation_angle
+from rgbdslam.geometry.se3 import inv, project_to_so3, rotation_angle
 from rgbdslam.landmarks.kalman import observation_covariance
 from rgbdslam.landmarks.map import LandmarkMap
 from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
@@ -236,6 +236,9 @@ class LandmarkTracker:
             refined_prev = self.flush()
             if last in refined_prev:  # this frame was tracked from the last keyframe's old pose
                 pose = refined_prev[last] @ inv(self._ba_old[last]) @ pose
+                # a rotation again: corrections chained keyframe after keyframe (each from the last
+                # one's pose) otherwise grow its rounding error geometrically (det 0.998 after 35 keyframes)
+                pose[:3, :3] = project_to_so3(pose[:3, :3])
                 refined_prev[index] = pose
         matched_feat = np.zeros(len(feats.valid), bool)
         lm_idx, lm_ids = np.zeros(0, np.int64), np.zeros(0, np.int64)
