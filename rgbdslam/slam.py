@@ -190,6 +190,14 @@ class SLAM:
                 self._move_keyframes(refined, pose)
             self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
         else:
+            refined = self.landmarks.handover(frame.index, pose)  # landmarks.ba_handover: the BA due now
+            if refined:
+                t0 = time.perf_counter()
+                pose = refined.pop(frame.index, pose)
+                result.pose = pose
+                self.frontend.correct_last(pose)
+                self._move_keyframes(refined, pose)
+                self.state.add_time("local_ba", time.perf_counter() - t0)
             self.landmarks.record_frame(frame.index, result.features, pose)
         self.landmarks.end_frame(frame.index)
         if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:

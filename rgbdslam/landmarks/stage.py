@@ -86,6 +86,7 @@ class LandmarkTracker:
         self._worker = None  # ba_worker 'process': the BA process
         self._ba_old: dict[int, np.ndarray] = {}  # the keyframe poses the pending BA started from
         self._ba_pending = None  # ba_worker 'deferred' / 'process': the BA made at the last keyframe (result or in flight)
+        self._ba_index = -1  # the keyframe the pending BA was made at
         self._flush_ms = 0.0  # the last write-back's time on the tracking thread (counted with the next launch)
         if cfg.local_ba:
             from rgbdslam.landmarks.local_ba import BAWorker, LocalBA
@@ -232,14 +233,8 @@ class LandmarkTracker:
         deferred = self.ba is not None and c.ba_worker != "sync"
         refined_prev: dict[int, np.ndarray] = {}
         if deferred:
-            last = self.keyframes[-1].index if self.keyframes else None
-            refined_prev = self.flush()
-            if last in refined_prev:  # this frame was tracked from the last keyframe's old pose
-                pose = refined_prev[last] @ inv(self._ba_old[last]) @ pose
-                # a rotation again: corrections chained keyframe after keyframe (each from the last
-                # one's pose) otherwise grow its rounding error geometrically (det 0.998 after 35 keyframes)
-                pose[:3, :3] = project_to_so3(pose[:3, :3])
-                refined_prev[index] = pose
+            refined_prev = self.handover(index, pose, due=True)
+            pose = refined_prev.get(index, pose)
         matched_feat = np.zeros(len(feats.valid), bool)
         lm_idx, lm_ids = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if self._last is not None and self._last[0] == index:
@@ -282,6 +277,22 @@ class LandmarkTracker:
             self.kf_pose[k] = P
         return refined
 
+    def handover(self, index: int, pose: np.ndarray, due: bool = False) -> dict[int, np.ndarray]:
+        """At frame ``index`` (pose ``pose``): the pending BA written back when it is due
+        (``ba_handover`` frames after its keyframe, or ``due``: at a keyframe). Returns the refined
+        poses; this frame, tracked from the newest keyframe's old pose, moves with it (under ``index``)."""
+        if self._ba_pending is None or not (due or 0 < self.cfg.ba_handover <= index - self._ba_index):
+            return {}
+        last = self.keyframes[-1].index
+        refined = self.flush()
+        if last in refined:
+            pose = refined[last] @ inv(self._ba_old[last]) @ pose
+            # a rotation again: corrections chained keyframe after keyframe (each from the last
+            # one's pose) otherwise grow its rounding error geometrically (det 0.998 after 35 keyframes)
+            pose[:3, :3] = project_to_so3(pose[:3, :3])
+            refined[index] = pose
+        return refined
+
     def _launch_ba(self) -> None:
         """Make the local BA of the window ending at the newest keyframe and start it (process) or
         solve it now (deferred); :meth:`flush` writes it back."""
@@ -291,6 +302,7 @@ class LandmarkTracker:
         p = make_problem(self.cfg, self.map, self.keyframes, self.kf_pose)
         if p is not None:
             self._ba_old = p.poses
+            self._ba_index = self.keyframes[-1].index
             if self._worker is not None:
                 self._worker.submit(p)
                 self._ba_pending = "submitted"
