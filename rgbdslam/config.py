@@ -296,6 +296,13 @@ class LandmarksConfig:
     ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
     ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
     ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
+    # where local BA runs: 'sync' = on the tracking thread, written back at once; 'process' = in a
+    # helper process while tracking goes on (GTSAM holds the GIL, a thread would stop tracking),
+    # written back later (ba_handover; waiting for it then): faster, but not the same poses (7-Scenes
+    # worse, docs/slam.md); 'deferred' = as 'process' but solved on the tracking thread (same results)
+    ba_worker: Literal["sync", "process", "deferred"] = "sync"
+    # process / deferred: frames after its keyframe the BA is written back; 0 = at the next keyframe
+    ba_handover: int = 0
     # one bundle adjustment over every keyframe and its landmarks after the final pose graph
     # (stereo-style factors as local BA, the pose graph's loop edges as relative-pose factors)
     global_ba: bool = False  # bundle adjustment over all keyframes after the pose graph (run end)
@@ -595,7 +602,7 @@ MAXIMA = {
     "landmarks.global_ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
     "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
-    "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
+    "landmarks.ba_handover": 10**4, "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
     "landmarks.revisit_max_correction_deg": 360.0,
     "landmarks.seed": C_INT_MAX,
 }

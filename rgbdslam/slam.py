@@ -190,13 +190,21 @@ class SLAM:
                 self._move_keyframes(refined, pose)
             self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
         else:
+            refined = self.landmarks.handover(frame.index, pose)  # landmarks.ba_handover: the BA due now
+            if refined:
+                t0 = time.perf_counter()
+                pose = refined.pop(frame.index, pose)
+                result.pose = pose
+                self.frontend.correct_last(pose)
+                self._move_keyframes(refined, pose)
+                self.state.add_time("local_ba", time.perf_counter() - t0)
             self.landmarks.record_frame(frame.index, result.features, pose)
         self.landmarks.end_frame(frame.index)
         if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
             self.landmarks.log(self.observer, frame.index, result.features, is_kf)
         return pose
 
-    def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray) -> None:
+    def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray | None = None) -> None:
         """Write local-BA keyframe poses back: each keyframe's frames follow it rigidly (their pose
         relative to it kept), so do the front end's reference frames; the pose graph's odometry edges
         are re-measured between the refined keyframes (the current keyframe, not yet a node, gets its
@@ -330,6 +338,11 @@ class SLAM:
 
         Non-keyframes follow their keyframe: final = optimised(kf) · odo(kf)⁻¹ · odo(frame).
         """
+        if self.landmarks is not None:  # the local BA still in flight (landmarks.ba_worker) is written back
+            refined = self.landmarks.flush()
+            if refined:
+                self._move_keyframes(refined)
+            self.landmarks.close()
         odo = self.odometry()
         if self.graph is None or not self.state.keyframes:
             return odo

@@ -14,7 +14,8 @@ from rgbdslam.geometry.rigid import fit_rigid, fit_rigid_batch
 
 def _errors2(Ts: np.ndarray, S: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Squared residuals (B, N) of hypotheses Ts (B, 4, 4) on pairs S, D (N, 3)."""
-    pred = np.matmul(Ts[:, None, :3, :3], S[None, :, :, None])[..., 0] + Ts[:, None, :3, 3]
+    # one (N,3)@(3,3) product per hypothesis: 2-3x faster than B·N stacked 3x3 @ 3x1 products (same sums)
+    pred = S[None] @ np.swapaxes(Ts[:, :3, :3], 1, 2) + Ts[:, None, :3, 3]
     diff = pred - D[None]
     return np.einsum("bni,bni->bn", diff, diff)
 

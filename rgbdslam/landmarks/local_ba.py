@@ -15,6 +15,8 @@ slide along the rays. Huber kernel; Levenberg–Marquardt, ``ba_iterations`` ite
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 import gtsam
@@ -75,6 +77,114 @@ def solve(graph, values, pose_ids, iterations: int):
         return None
 
 
+@dataclass
+class BAProblem:
+    """One local BA, as plain arrays (built on the tracking thread, solved anywhere: it pickles)."""
+
+    obs: list  # (keyframe, landmark ids, uv (n,2), z (n,)): the observations of the optimised landmarks
+    use: np.ndarray  # (L,) the optimised landmark ids
+    pos: np.ndarray  # (L, 3) their positions when the problem was made (the snapshot)
+    cov: np.ndarray  # (L, 3, 3) their Kalman covariances (the prior)
+    poses: dict  # {keyframe: 4x4} every keyframe in the graph, at its pose then
+    fixed: set  # keyframes held
+    window: set  # the window's keyframes (the ones that may move)
+
+
+@dataclass
+class BAResult:
+    poses: dict  # {keyframe: refined pose} of the window's moved keyframes (empty: dropped)
+    use: np.ndarray  # the optimised landmark ids
+    before: np.ndarray  # (L, 3) their positions in the problem
+    after: np.ndarray  # (L, 3) their refined positions
+    error: tuple  # graph error before / after
+    fixed: list  # the held keyframes
+    rejected: bool = False  # a keyframe moved further than ba_max_move: nothing is written
+    seconds: float = 0.0  # the solve's wall time (where it ran)
+
+
+def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int, np.ndarray]) -> BAProblem | None:
+    """The local BA over the last ``ba_window`` keyframes of ``keyframes`` (module doc): which
+    landmarks, which observations, which keyframes are held; None when there is nothing to optimise."""
+    c = cfg
+    if len(keyframes) < 2:
+        return None
+    window = keyframes[-c.ba_window:]
+    older = keyframes[:-c.ba_window]
+    win_ids = np.unique(np.concatenate([k.lm for k in window]))
+    win_ids = win_ids[lmap.alive[win_ids]]
+    if not len(win_ids):
+        return None
+    # observations: (keyframe, landmark id, u, v, z) of window + older keyframes on those landmarks
+    obs = []
+    for k in window + older:
+        sel = np.isin(k.lm, win_ids)
+        if sel.any():
+            obs.append((k.index, k.lm[sel], k.uv[sel], k.z[sel]))
+    counts = np.bincount(np.concatenate([o[1] for o in obs]), minlength=lmap.n)
+    use = win_ids[counts[win_ids] >= 2]
+    if len(use) > c.ba_max_landmarks:  # the best-observed ones (the cost is Python-side factor building)
+        use = use[np.argsort(-counts[use], kind="stable")[: c.ba_max_landmarks]]
+    if len(use) < 10:
+        return None
+    # a keyframe with few observations of the optimised landmarks is left out: it would be
+    # barely constrained (on fr1/rpy such a keyframe swung by metres)
+    n_obs = {o[0]: int(np.isin(o[1], use).sum()) for o in obs}
+    obs = [o for o in obs if n_obs[o[0]] >= c.ba_min_observations]
+    win_idx = {k.index for k in window if n_obs.get(k.index, 0) >= c.ba_min_observations}
+    fixed = {o[0] for o in obs if o[0] not in win_idx}
+    if not fixed:
+        fixed = {min(win_idx)} if win_idx else set()
+    if len(win_idx - fixed) == 0:
+        return None
+    used = []
+    for kf, lm, uv, z in obs:
+        sel = np.isin(lm, use)
+        if sel.any():
+            used.append((kf, lm[sel], uv[sel], z[sel]))
+    poses_used = set()  # (in this order, as before the split: the factor graph's order is kept)
+    for o in used:
+        poses_used.add(o[0])
+    poses = {kf: np.array(kf_pose[kf]) for kf in poses_used}
+    return BAProblem(used, use, lmap.pos[use].astype(np.float64), lmap.cov[use].copy(), poses, fixed, win_idx)
+
+
+def solve_problem(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem) -> BAResult | None:
+    """Build the factor graph of ``p`` and solve it (GTSAM holds the GIL: on the tracking thread
+    this stops tracking, hence :class:`BAWorker`); None when the system is indeterminate."""
+    import time
+
+    c = cfg
+    t0 = time.perf_counter()
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for kf, lm, uv, z in p.obs:
+        factors.add(graph, kf, lm, uv, z)
+    for kf, P in p.poses.items():
+        values.insert(X(kf), gtsam.Pose3(P))
+        if kf in p.fixed:
+            graph.add(gtsam.NonlinearEqualityPose3(X(kf), gtsam.Pose3(P)))
+    for i, x, C in zip(p.use, p.pos, p.cov):
+        values.insert(L(i), x)
+        if c.ba_landmark_prior:  # the Kalman estimate (every frame's observations, not only keyframes')
+            graph.add(gtsam.PriorFactorPoint3(L(i), x, gtsam.noiseModel.Gaussian.Covariance(
+                C + (c.ba_prior_floor ** 2 + 1e-12) * np.eye(3))))
+    result = solve(graph, values, sorted(p.poses), c.ba_iterations)
+    if result is None:  # an indeterminate system: keep the map as it is
+        return None
+    error = (graph.error(values), graph.error(result))
+    out = {kf: result.atPose3(X(kf)).matrix() for kf in p.poses if kf in p.window and kf not in p.fixed}
+    fixed = sorted(p.fixed & set(p.poses))
+    after = np.array([result.atPoint3(L(i)) for i in p.use]).reshape(-1, 3)
+    res = BAResult(out, p.use, p.pos, after, error, fixed, seconds=time.perf_counter() - t0)
+    for kf, P in out.items():  # a keyframe moved further than a tracking error: a bad solution, dropped
+        d = np.linalg.inv(p.poses[kf]) @ P
+        if np.linalg.norm(d[:3, 3]) > c.ba_max_move or \
+                np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1))) > c.ba_max_move_deg:
+            res.poses, res.rejected = {}, True
+            break
+    return res
+
+
 class LocalBA:
     def __init__(self, cfg: LandmarksConfig, camera: Camera):
         self.cfg = cfg
@@ -89,69 +199,76 @@ class LocalBA:
     def run(self, lmap, keyframes: list, kf_pose: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """Optimise; writes landmark positions into ``lmap`` and returns ``{keyframe: refined pose}``
         for the window's keyframes (empty when there was nothing to optimise)."""
-        c = self.cfg
-        if len(keyframes) < 2:
+        p = make_problem(self.cfg, lmap, keyframes, kf_pose)
+        if p is None:
             return {}
-        window = keyframes[-c.ba_window:]
-        older = keyframes[:-c.ba_window]
-        win_ids = np.unique(np.concatenate([k.lm for k in window]))
-        win_ids = win_ids[lmap.alive[win_ids]]
-        if not len(win_ids):
+        return self.apply(lmap, solve_problem(self.cfg, self.factors, p))
+
+    def apply(self, lmap, res: BAResult | None) -> dict[int, np.ndarray]:
+        """Write a solved BA into ``lmap``: each landmark still alive moves by what the BA moved it
+        (its position now + (refined − position in the problem): the Kalman updates since the problem
+        was made are kept; exactly the refined position when there were none). Returns the refined poses."""
+        if res is None:
             return {}
-        # observations: (keyframe, landmark id, u, v, z) of window + older keyframes on those landmarks
-        obs = []
-        for k in window + older:
-            sel = np.isin(k.lm, win_ids)
-            if sel.any():
-                obs.append((k.index, k.lm[sel], k.uv[sel], k.z[sel]))
-        counts = np.bincount(np.concatenate([o[1] for o in obs]), minlength=lmap.n)
-        use = win_ids[counts[win_ids] >= 2]
-        if len(use) > c.ba_max_landmarks:  # the best-observed ones (the cost is Python-side factor building)
-            use = use[np.argsort(-counts[use], kind="stable")[: c.ba_max_landmarks]]
-        if len(use) < 10:
+        self.last_error = res.error
+        if res.rejected:
+            self.rejected += 1
             return {}
-        # a keyframe with few observations of the optimised landmarks is left out: it would be
-        # barely constrained (on fr1/rpy such a keyframe swung by metres)
-        n_obs = {o[0]: int(np.isin(o[1], use).sum()) for o in obs}
-        obs = [o for o in obs if n_obs[o[0]] >= c.ba_min_observations]
-        win_idx = {k.index for k in window if n_obs.get(k.index, 0) >= c.ba_min_observations}
-        fixed = {o[0] for o in obs if o[0] not in win_idx}
-        if not fixed:
-            fixed = {min(win_idx)} if win_idx else set()
-        if len(win_idx - fixed) == 0:
-            return {}
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        poses_used = set()
-        for kf, lm, uv, z in obs:
-            sel = np.isin(lm, use)
-            if not sel.any():
-                continue
-            poses_used.add(kf)
-            self.factors.add(graph, kf, lm[sel], uv[sel], z[sel])
-        for kf in poses_used:
-            values.insert(X(kf), gtsam.Pose3(kf_pose[kf]))
-            if kf in fixed:
-                graph.add(gtsam.NonlinearEqualityPose3(X(kf), gtsam.Pose3(kf_pose[kf])))
-        for i in use:
-            values.insert(L(i), lmap.pos[i].astype(np.float64))
-            if c.ba_landmark_prior:  # the Kalman estimate (every frame's observations, not only keyframes')
-                graph.add(gtsam.PriorFactorPoint3(L(i), lmap.pos[i].astype(np.float64), gtsam.noiseModel.Gaussian.Covariance(
-                    lmap.cov[i] + (c.ba_prior_floor ** 2 + 1e-12) * np.eye(3))))
-        result = solve(graph, values, sorted(poses_used), c.ba_iterations)
-        if result is None:  # an indeterminate system: keep the map as it is
-            return {}
-        self.last_error = (graph.error(values), graph.error(result))
-        out = {kf: result.atPose3(X(kf)).matrix() for kf in poses_used if kf in win_idx and kf not in fixed}
-        for kf, P in out.items():  # a keyframe moved further than a tracking error: a bad solution, dropped
-            d = np.linalg.inv(kf_pose[kf]) @ P
-            if np.linalg.norm(d[:3, 3]) > c.ba_max_move or \
-                    np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1))) > c.ba_max_move_deg:
-                self.rejected += 1
-                return {}
-        for i in use:
-            lmap.pos[i] = result.atPoint3(L(i))
-        self.last_moved = sorted(out)
-        self.last_fixed = sorted(fixed & poses_used)
-        self.last_landmarks = use
-        return out
+        alive = lmap.alive[res.use]
+        ids, before, after = res.use[alive], res.before[alive], res.after[alive]
+        now = lmap.pos[ids]
+        lmap.pos[ids] = np.where(now == before, after, now + (after - before))
+        self.last_moved = sorted(res.poses)
+        self.last_fixed = res.fixed
+        self.last_landmarks = res.use
+        return res.poses
+
+
+class BAWorker:
+    """Local BA in a process of its own (GTSAM's optimize holds the GIL, so a thread would stop
+    tracking): :meth:`submit` a :class:`BAProblem`, :meth:`result` waits for its :class:`BAResult`
+    (the process's error raised here), :meth:`close` ends it. One problem in flight at a time."""
+
+    def __init__(self, cfg: LandmarksConfig, camera: Camera):
+        import multiprocessing as mp
+        import weakref
+
+        from rgbdslam.io.worker import end
+
+        ctx = mp.get_context("spawn")
+        self._jobs = ctx.Queue()
+        self._results = ctx.Queue()
+        self._proc = ctx.Process(target=_serve, name="rgbdslam-local-ba", daemon=True,
+                                 args=(cfg, camera, self._jobs, self._results))
+        self._proc.start()
+        self.pending = False
+        self._finalizer = weakref.finalize(self, end, self._proc, self._jobs)
+
+    def submit(self, problem: BAProblem) -> None:
+        self._jobs.put(problem)
+        self.pending = True
+
+    def result(self) -> BAResult | None:
+        from rgbdslam.io.worker import receive
+
+        self.pending = False
+        status, value = receive(self._results, self._proc, "local BA process")
+        if status == "error":
+            raise value
+        return value
+
+    def close(self) -> None:
+        self._finalizer()
+
+
+def _serve(cfg: LandmarksConfig, camera: Camera, jobs, results) -> None:
+    """The BA process: one :class:`BAResult` (or None) per problem until ``None`` comes."""
+    from rgbdslam.io.worker import exit_now
+
+    factors = StereoFactors(cfg, camera)
+    while (p := jobs.get()) is not None:
+        try:
+            results.put(("ok", solve_problem(cfg, factors, p)))
+        except Exception as e:  # noqa: BLE001 - sent to the run, raised there
+            results.put(("error", e))
+    exit_now(results)

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.se3 import inv, rotation_angle
+from rgbdslam.geometry.se3 import inv, project_to_so3, rotation_angle
 from rgbdslam.landmarks.kalman import observation_covariance
 from rgbdslam.landmarks.map import LandmarkMap
 from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
@@ -46,7 +46,8 @@ class LandmarkStats:
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
     ba_runs: int = 0
-    ba_ms: list[float] = field(default_factory=list)
+    ba_ms: list[float] = field(default_factory=list)  # the solves (where they ran)
+    ba_wait_ms: list[float] = field(default_factory=list)  # deferred BA: what making / collecting it cost tracking
 
 
 def _close(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
@@ -82,10 +83,20 @@ class LandmarkTracker:
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
         self.last_ba_moved: list[int] = []
         self.ba = None
+        self._worker = None  # ba_worker 'process': the BA process
+        self._ba_old: dict[int, np.ndarray] = {}  # the keyframe poses the pending BA started from
+        self._ba_pending = None  # ba_worker 'deferred' / 'process': the BA made at the last keyframe (result or in flight)
+        self._ba_index = -1  # the keyframe the pending BA was made at
+        self._flush_ms = 0.0  # the last write-back's time on the tracking thread (counted with the next launch)
         if cfg.local_ba:
-            from rgbdslam.landmarks.local_ba import LocalBA
+            from rgbdslam.landmarks.local_ba import BAWorker, LocalBA
 
             self.ba = LocalBA(cfg, camera)
+            if cfg.ba_worker == "process":
+                try:
+                    self._worker = BAWorker(cfg, camera)
+                except (AssertionError, OSError):  # e.g. inside a daemonic process: solved here, same results
+                    self._worker = None
 
     def _sigma(self, z: np.ndarray) -> np.ndarray:
         return self.cfg.depth_noise_a + self.cfg.depth_noise_b * z * z
@@ -212,8 +223,18 @@ class LandmarkTracker:
 
     def add_keyframe(self, index: int, feats, pose: np.ndarray) -> dict[int, np.ndarray]:
         """New landmarks from the keyframe's unmatched depth-valid features; local BA. Returns the
-        window keyframes' refined poses ``{keyframe: pose}`` (empty without local BA or when it did not run)."""
+        window keyframes' refined poses ``{keyframe: pose}`` (empty without local BA or when it did not run).
+
+        ``ba_worker`` 'process' / 'deferred': the BA made at the previous keyframe is written back
+        first (waiting for the process), and this keyframe, which hangs from that one, moves with it
+        (its refined pose is in the answer under ``index``); then this keyframe's BA is made and
+        handed to the process (or solved), to be written back at the next keyframe or at :meth:`flush`."""
         c = self.cfg
+        deferred = self.ba is not None and c.ba_worker != "sync"
+        refined_prev: dict[int, np.ndarray] = {}
+        if deferred:
+            refined_prev = self.handover(index, pose, due=True)
+            pose = refined_prev.get(index, pose)
         matched_feat = np.zeros(len(feats.valid), bool)
         lm_idx, lm_ids = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if self._last is not None and self._last[0] == index:
@@ -244,6 +265,9 @@ class LandmarkTracker:
         self._last_matches = None
         if self.ba is None:
             return {}
+        if deferred:
+            self._launch_ba()
+            return refined_prev
         t0 = time.perf_counter()
         refined = self.ba.run(self.map, self.keyframes, self.kf_pose)
         self.stats.ba_ms.append(1e3 * (time.perf_counter() - t0))
@@ -252,6 +276,67 @@ class LandmarkTracker:
         for k, P in refined.items():
             self.kf_pose[k] = P
         return refined
+
+    def handover(self, index: int, pose: np.ndarray, due: bool = False) -> dict[int, np.ndarray]:
+        """At frame ``index`` (pose ``pose``): the pending BA written back when it is due
+        (``ba_handover`` frames after its keyframe, or ``due``: at a keyframe). Returns the refined
+        poses; this frame, tracked from the newest keyframe's old pose, moves with it (under ``index``)."""
+        if self._ba_pending is None or not (due or 0 < self.cfg.ba_handover <= index - self._ba_index):
+            return {}
+        last = self.keyframes[-1].index
+        refined = self.flush()
+        if last in refined:
+            pose = refined[last] @ inv(self._ba_old[last]) @ pose
+            # a rotation again: corrections chained keyframe after keyframe (each from the last
+            # one's pose) otherwise grow its rounding error geometrically (det 0.998 after 35 keyframes)
+            pose[:3, :3] = project_to_so3(pose[:3, :3])
+            refined[index] = pose
+        return refined
+
+    def _launch_ba(self) -> None:
+        """Make the local BA of the window ending at the newest keyframe and start it (process) or
+        solve it now (deferred); :meth:`flush` writes it back."""
+        from rgbdslam.landmarks.local_ba import make_problem, solve_problem
+
+        t0 = time.perf_counter()
+        p = make_problem(self.cfg, self.map, self.keyframes, self.kf_pose)
+        if p is not None:
+            self._ba_old = p.poses
+            self._ba_index = self.keyframes[-1].index
+            if self._worker is not None:
+                self._worker.submit(p)
+                self._ba_pending = "submitted"
+            else:
+                self._ba_pending = solve_problem(self.cfg, self.ba.factors, p)
+        self.stats.ba_wait_ms.append(self._flush_ms + 1e3 * (time.perf_counter() - t0))  # this keyframe's share
+        self._flush_ms = 0.0
+
+    def flush(self) -> dict[int, np.ndarray]:
+        """Write back the local BA still pending (``ba_worker`` 'process' / 'deferred'; waits for the
+        process): landmark positions, keyframe anchors; returns the refined poses ``{keyframe: pose}``
+        (empty when none was pending or it was dropped). Called at each keyframe and at the run's end."""
+        if self._ba_pending is None:
+            self.last_ba_moved = []
+            return {}
+        t0 = time.perf_counter()
+        res = self._worker.result() if self._ba_pending == "submitted" else self._ba_pending
+        self._ba_pending = None
+        refined = self.ba.apply(self.map, res)
+        if res is not None:
+            self.stats.ba_ms.append(1e3 * res.seconds)
+        self.stats.ba_runs += 1
+        self._flush_ms = 1e3 * (time.perf_counter() - t0)
+        self.last_ba_moved = sorted(refined)
+        for k, P in refined.items():
+            self.kf_pose[k] = P
+        return dict(refined)
+
+    def close(self) -> None:
+        """End the BA process (if any); a pending BA is dropped."""
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
+            self._ba_pending = None
 
     def log(self, observer, index: int, feats, is_kf: bool) -> None:
         """Send the map to a Rerun observer (landmarks by age, this frame's map matches, BA moves)."""
@@ -303,5 +388,8 @@ class LandmarkTracker:
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),
             "local_ba_runs": s.ba_runs,
             "local_ba_median_ms": float(np.median(s.ba_ms)) if s.ba_ms else 0.0,
+            "local_ba_worker": self.cfg.ba_worker if self.ba is not None else None,
+            # deferred BA: the tracking thread's share (making the problem, waiting, writing back), per keyframe
+            "local_ba_tracking_median_ms": float(np.median(s.ba_wait_ms)) if s.ba_wait_ms else 0.0,
             **({"global_ba": self.global_ba_stats} if self.global_ba_stats else {}),
         }
