@@ -19,9 +19,9 @@ from scipy.spatial import cKDTree
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
-from rgbdslam.landmarks.kalman import observation_covariance
+from rgbdslam.landmarks.kalman import observation_covariance, with_pose_drift
 from rgbdslam.landmarks.map import LandmarkMap
-from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
+from rgbdslam.landmarks.tracking import estimate_pose, match_to_map, refine_reprojection
 
 
 @dataclass
@@ -45,6 +45,7 @@ class LandmarkStats:
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
+    anchor_edges: int = 0  # landmark-to-keyframe edges given to the pose graph
     ba_runs: int = 0
     ba_ms: list[float] = field(default_factory=list)
 
@@ -105,6 +106,7 @@ class LandmarkTracker:
         zw = P @ pose[:3, :3].T + pose[:3, 3]
         R = observation_covariance(P, pose[:3, :3], self.camera.fx, self.cfg.sigma_px, self.cfg.depth_noise_a,
                                    self.cfg.depth_noise_b)
+        R = with_pose_drift(R, frame - self.map.first[ids], self.cfg.drift_sigma)
         self.map.observe(ids, zw, R, frame, count)
 
     def track(self, index: int, feats, pose: np.ndarray, information: np.ndarray | None = None) -> np.ndarray:
@@ -189,6 +191,37 @@ class LandmarkTracker:
             ok = np.linalg.norm(P - self.map.pos[l], axis=1) < c.ransac_threshold
             res.feat, res.lm = np.concatenate([res.feat, f[ok]]), np.concatenate([res.lm, l[ok]])
         return res
+
+    def anchor_edges(self, index: int, feats, pose: np.ndarray, nodes) -> list:
+        """Landmark-to-keyframe edges of keyframe ``index`` at ``pose`` (its final pose): for every
+        keyframe ``a`` in ``nodes`` that made at least ``anchor_min_landmarks`` of this frame's map
+        inliers ``anchor_age`` or more frames earlier, the pose refined on those landmarks alone
+        (reprojection Gauss-Newton from ``pose``) gives the edge a -> index,
+        T = kf_pose[a]⁻¹ · pose_a_landmarks, with the refine's information × ``anchor_info_scale``.
+        The landmarks hold the coordinates ``a`` gave them, so the pose graph pulls the whole revisit
+        (not one frame) back to them; the edges go in as loop edges (robust kernel)."""
+        from rgbdslam.loop.detector import LoopEdge
+
+        c = self.cfg
+        if not c.anchor_edges or self._last is None or self._last[0] != index:
+            return []
+        _, f, lm = self._last
+        anchor = self.map.anchor[lm]
+        old = (index - self.map.first[lm] >= c.anchor_age) & np.isin(anchor, list(nodes))
+        edges = []
+        for a in np.unique(anchor[old]):
+            sel = old & (anchor == a)
+            if sel.sum() < c.anchor_min_landmarks or int(a) not in self.kf_pose:
+                continue
+            fs, ls = f[sel], lm[sel]
+            P, _, H = refine_reprojection(pose, self.map.pos[ls], feats.uv[fs], feats.pts[fs, 2], self.camera,
+                                          c.sigma_px, self._sigma(feats.pts[fs, 2]), self.map.cov[ls])
+            if not _close(pose, P, c.max_correction, c.max_correction_deg):
+                continue  # as a map pose: further than a tracking error is a wrong association
+            edges.append(LoopEdge(int(a), int(index), inv(self.kf_pose[int(a)]) @ P, H * c.anchor_info_scale,
+                                  int(sel.sum()), 0.0))
+        self.stats.anchor_edges += len(edges)
+        return edges
 
     def record_frame(self, index: int, feats, pose: np.ndarray) -> None:
         """Keep a non-keyframe's map inliers for the global BA, relative to the last keyframe (the
@@ -298,6 +331,7 @@ class LandmarkTracker:
         return {
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
             "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
+            "anchor_edges": s.anchor_edges,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),
