@@ -260,6 +260,10 @@ class LandmarksConfig:
     # the map pose's key point and depth noise rescaled per frame by the robust scale of its residuals
     adaptive_noise: bool = False
     fuse_scale: float = 1.0  # fuse/filter modes: the registration's information is multiplied by this
+    # fuse/filter: the map pose's information divided by the median (last this many frames) of the two poses'
+    # disagreement Mahalanobis² / 5.35 when above 1 (0 = off): the map pose only gets the weight its
+    # agreement with the registration supports
+    consistency_window: int = 0
     old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
     # z sigma_px / f; process noise per step (m)
@@ -292,6 +296,9 @@ class LandmarksConfig:
     anchor_age: int = 50  # frames: a landmark made this long before the keyframe counts for an anchor edge
     anchor_min_landmarks: int = 20  # landmarks of one old keyframe the keyframe must see for its edge
     anchor_info_scale: float = 1.0  # the edge's information (the refine's Gauss-Newton one) times this
+    # Hamming bonus of a landmark first seen old_age frames or more ago when features choose their landmark
+    # (an old landmark beats a younger copy of itself made along the drift; the max_hamming gate is unchanged)
+    match_old_bonus: int = 0
     # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
@@ -605,7 +612,8 @@ MAXIMA = {
     "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
     "landmarks.revisit_max_correction_deg": 360.0,
     "landmarks.drift_sigma": 10.0, "landmarks.anchor_age": 10**9, "landmarks.anchor_min_landmarks": 10**6,
-    "landmarks.anchor_info_scale": 1e6,
+    "landmarks.anchor_info_scale": 1e6, "landmarks.match_old_bonus": 256,
+    "landmarks.consistency_window": 10**6,
     "landmarks.seed": C_INT_MAX,
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)

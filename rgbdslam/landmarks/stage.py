@@ -46,8 +46,12 @@ class LandmarkStats:
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
     anchor_edges: int = 0  # landmark-to-keyframe edges given to the pose graph
+    consistency: list[float] = field(default_factory=list)  # per fused frame: median chi2 / 5.35
     ba_runs: int = 0
     ba_ms: list[float] = field(default_factory=list)
+
+
+CHI2_MEDIAN_6DOF = 5.348  # median of a chi-square distribution with 6 degrees of freedom
 
 
 def _close(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
@@ -82,6 +86,7 @@ class LandmarkTracker:
         self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
         self.last_ba_moved: list[int] = []
+        self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
         self.ba = None
         if cfg.local_ba:
             from rgbdslam.landmarks.local_ba import LocalBA
@@ -119,7 +124,8 @@ class LandmarkTracker:
         self._pending = None
         if self.map.size == 0:
             return pose
-        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
+        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth,
+                         old_before=index - c.old_age + 1, old_bonus=c.match_old_bonus)
         self._last_matches = m
         res = None
         if len(m.lm) >= c.min_inliers:
@@ -144,9 +150,29 @@ class LandmarkTracker:
             self._cov = np.linalg.inv(H_pred) if filt and res is None and H_pred is not None else None
             return pose if res is None else self._accept(index, feats, res)
         if c.mode in ("fuse", "filter"):
+            if c.consistency_window > 0:
+                res.information = res.information / self._consistency(pose, H_pred, res.pose, res.information)
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
         return self._accept(index, feats, res)
+
+    def _consistency(self, P_reg: np.ndarray, H_reg: np.ndarray, P_map: np.ndarray, H_map: np.ndarray) -> float:
+        """How much less sure than its information says the map pose is: the two poses' disagreement
+        η = Log(P_reg⁻¹ P_map) has the covariance H_reg⁻¹ + H_map⁻¹ when both informations are right,
+        so its Mahalanobis² has the median 5.35 (χ², 6 dof). The median over the last
+        ``consistency_window`` frames divided by 5.35 (at least 1; 1 until 5 frames are in) is the
+        factor the map pose's information is divided by — the excess is put on the map pose, whose
+        errors on real frames (landmarks made from drifting poses, rolling shutter) its residuals do
+        not show (docs/slam.md "Consistency-scaled fusion")."""
+        import gtsam
+
+        eta = gtsam.Pose3.Logmap(gtsam.Pose3(inv(P_reg) @ P_map))
+        C = np.linalg.inv(H_reg) + np.linalg.inv(H_map)
+        self._chi2.append(float(eta @ np.linalg.solve(C, eta)))
+        del self._chi2[: max(0, len(self._chi2) - self.cfg.consistency_window)]
+        k = float(np.median(self._chi2)) / CHI2_MEDIAN_6DOF if len(self._chi2) >= 5 else 1.0
+        self.stats.consistency.append(k)
+        return max(1.0, k)
 
     def _accept(self, index: int, feats, res) -> np.ndarray:
         """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
@@ -332,6 +358,7 @@ class LandmarkTracker:
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
             "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
             "anchor_edges": s.anchor_edges,
+            "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),

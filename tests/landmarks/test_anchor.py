@@ -89,3 +89,51 @@ def test_anchor_edges_reach_the_pose_graph_on_real_frames(desk9, tmp_path):
     s = run_sequence(desk9, tmp_path / "run", cfg, progress=False)
     assert s["tracked"] == 9 and s["landmarks"]["anchor_edges"] >= 1
     assert s["evaluation"]["ate"]["rmse"] < 0.03
+
+
+def test_old_landmark_wins_its_feature_over_a_younger_copy_with_the_bonus():
+    """Two landmarks project onto the same feature: an old one (made at frame 0) 8 bits from its
+    descriptor, a young copy (frame 90) 2 bits. Plain matching takes the copy; with a 10-bit bonus
+    for landmarks made before frame 50 the old one wins; the bonus does not open the max_hamming gate."""
+    from rgbdslam.landmarks.map import LandmarkMap
+    from rgbdslam.landmarks.tracking import match_to_map
+
+    P = _pose([0, 0, 0], [0, 0, 0])
+    X = np.array([[0.1, 0.05, 2.0], [0.1, 0.05, 2.0005]])
+    d = np.zeros((1, 32), np.uint8)
+    old, young = d.copy(), d.copy()
+    old[0, 0], young[0, 0] = 0xFF, 0x03  # 8 and 2 bits from the feature's descriptor
+    lmap = LandmarkMap(store="single", min_seen=1)
+    lmap.add(X[:1], np.eye(3)[None] * 1e-6, old, 0, 0)
+    lmap.add(X[1:], np.eye(3)[None] * 1e-6, young, 90, 90)
+    lmap.end_step(90)
+    feats = _frame(P, X[:1], d)
+    plain = match_to_map(lmap, feats, P, CAM, 10.0, 50, 5.0)
+    bonus = match_to_map(lmap, feats, P, CAM, 10.0, 50, 5.0, old_before=50, old_bonus=10)
+    assert plain.lm.tolist() == [1] and bonus.lm.tolist() == [0]
+    gated = match_to_map(lmap, feats, P, CAM, 10.0, 5, 5.0, old_before=50, old_bonus=10)
+    assert gated.lm.tolist() == [1]  # the old one is 8 bits away: beyond max_hamming 5 despite the bonus
+
+
+def test_consistency_scale_is_the_median_disagreement_over_its_chi2_median():
+    """H_reg = H_map = 2 I: the disagreement's covariance is I, so its Mahalanobis² is |η|². With
+    |η|² = 4 · 5.348 the map's information is divided by 4 once 5 frames are in (1 before); a
+    disagreement within the informations (|η|² = 1) never raises the map's weight (factor 1)."""
+    import gtsam
+
+    from rgbdslam.landmarks.stage import CHI2_MEDIAN_6DOF
+
+    eta = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 0.0])
+    eta *= np.sqrt(4 * CHI2_MEDIAN_6DOF / (eta @ eta))
+    A = _pose([0.1, 0, 0], [1.0, 2.0, 0.5])
+    B = A @ gtsam.Pose3.Expmap(eta).matrix()
+    tr = LandmarkTracker(LandmarksConfig(enabled=True, consistency_window=7), CAM)
+    ks = [tr._consistency(A, 2 * np.eye(6), B, 2 * np.eye(6)) for _ in range(6)]
+    assert ks[:4] == [1.0] * 4 and np.allclose(ks[4:], 4.0)
+    small = A @ gtsam.Pose3.Expmap(np.array([0, 0, 0, 1.0, 0, 0])).matrix()
+    tr2 = LandmarkTracker(LandmarksConfig(enabled=True, consistency_window=7), CAM)
+    assert [tr2._consistency(A, 2 * np.eye(6), small, 2 * np.eye(6)) for _ in range(6)] == [1.0] * 6
+    assert np.isclose(tr2.stats.consistency[-1], 1.0 / CHI2_MEDIAN_6DOF)
+    for _ in range(6):  # the window keeps the last 7: after 7 large ones the median is the large one
+        tr2._consistency(A, 2 * np.eye(6), B, 2 * np.eye(6))
+    assert len(tr2._chi2) == 7 and np.isclose(tr2.stats.consistency[-1], 4.0)
