@@ -260,9 +260,9 @@ class LandmarksConfig:
     # the map pose's key point and depth noise rescaled per frame by the robust scale of its residuals
     adaptive_noise: bool = False
     fuse_scale: float = 1.0  # fuse/filter modes: the registration's information is multiplied by this
-    # fuse/filter: the map pose's information divided by the median (last this many frames) of the two poses'
-    # disagreement Mahalanobis² / 5.35 when above 1 (0 = off): the map pose only gets the weight its
-    # agreement with the registration supports
+    # fuse/filter: when the two poses' disagreement (its Mahalanobis² median over the last this many frames,
+    # / 5.35) is k > 1 times what their informations say, the map pose's covariance grows until it explains
+    # the excess (0 = off): the map pose only gets the weight its agreement with the registration supports
     consistency_window: int = 0
     old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it

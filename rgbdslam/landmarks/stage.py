@@ -157,22 +157,32 @@ class LandmarkTracker:
         return self._accept(index, feats, res)
 
     def _consistency(self, P_reg: np.ndarray, H_reg: np.ndarray, P_map: np.ndarray, H_map: np.ndarray) -> float:
-        """How much less sure than its information says the map pose is: the two poses' disagreement
-        η = Log(P_reg⁻¹ P_map) has the covariance H_reg⁻¹ + H_map⁻¹ when both informations are right,
-        so its Mahalanobis² has the median 5.35 (χ², 6 dof). The median over the last
-        ``consistency_window`` frames divided by 5.35 (at least 1; 1 until 5 frames are in) is the
-        factor the map pose's information is divided by — the excess is put on the map pose, whose
-        errors on real frames (landmarks made from drifting poses, rolling shutter) its residuals do
-        not show (docs/slam.md "Consistency-scaled fusion")."""
+        """The factor the map pose's information is divided by (≥ 1). The two poses' disagreement
+        η = Log(P_reg⁻¹ P_map) has the covariance C = H_reg⁻¹ + H_map⁻¹ when both informations are
+        right, so its Mahalanobis² has the median 5.35 (χ², 6 dof). k = the median over the last
+        ``consistency_window`` frames / 5.35 says the disagreement is k times the assumed one; the
+        excess is put on the map pose (its errors on real frames — landmarks made from drifting poses,
+        rolling shutter — do not show in its residuals, the registration's are already calibrated by
+        ``fuse_scale``): with r = tr(C⁻¹ H_map⁻¹) / 6, the map's share of the whitened disagreement,
+        Σ_reg + s Σ_map is k times C for 1 - r + s r = k, s = 1 + (k - 1) / r (medians of k and r;
+        1 while k ≤ 1 or fewer than 5 frames are in; docs/slam.md "Consistency-scaled fusion")."""
         import gtsam
 
         eta = gtsam.Pose3.Logmap(gtsam.Pose3(inv(P_reg) @ P_map))
-        C = np.linalg.inv(H_reg) + np.linalg.inv(H_map)
-        self._chi2.append(float(eta @ np.linalg.solve(C, eta)))
+        S_map = np.linalg.inv(H_map)
+        C = np.linalg.inv(H_reg) + S_map
+        share = float(np.trace(np.linalg.solve(C, S_map))) / 6.0  # the map's part of the whitened disagreement
+        self._chi2.append((float(eta @ np.linalg.solve(C, eta)), share))
         del self._chi2[: max(0, len(self._chi2) - self.cfg.consistency_window)]
-        k = float(np.median(self._chi2)) / CHI2_MEDIAN_6DOF if len(self._chi2) >= 5 else 1.0
+        if len(self._chi2) < 5:
+            return 1.0
+        k = float(np.median([m for m, _ in self._chi2])) / CHI2_MEDIAN_6DOF
         self.stats.consistency.append(k)
-        return max(1.0, k)
+        if k <= 1.0:
+            return 1.0
+        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share)
+        r = max(float(np.median([x for _, x in self._chi2])), 1e-3)
+        return 1.0 + (k - 1.0) / r
 
     def _accept(self, index: int, feats, res) -> np.ndarray:
         """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
