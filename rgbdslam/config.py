@@ -258,12 +258,12 @@ class LandmarksConfig:
     # which frames' observations update the landmarks (Kalman): every map-tracked frame or keyframes only
     observe: Literal["frames", "keyframes"] = "frames"
     # the map pose's key point and depth noise rescaled per frame by the robust scale of its residuals
-    adaptive_noise: bool = False
-    fuse_scale: float = 1.0  # fuse/filter modes: the registration's information is multiplied by this
+    adaptive_noise: bool = True
+    fuse_scale: float = 0.4  # fuse/filter modes: the registration's information is multiplied by this (calibrated)
     # fuse/filter: when the two poses' disagreement (its Mahalanobis² median over the last this many frames,
     # / 5.35) is k > 1 times what their informations say, the map pose's covariance grows until it explains
     # the excess (0 = off): the map pose only gets the weight its agreement with the registration supports
-    consistency_window: int = 0
+    consistency_window: int = 30
     old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
     # z sigma_px / f; process noise per step (m)
