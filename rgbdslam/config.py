@@ -258,8 +258,12 @@ class LandmarksConfig:
     # which frames' observations update the landmarks (Kalman): every map-tracked frame or keyframes only
     observe: Literal["frames", "keyframes"] = "frames"
     # the map pose's key point and depth noise rescaled per frame by the robust scale of its residuals
-    adaptive_noise: bool = False
-    fuse_scale: float = 1.0  # fuse/filter modes: the registration's information is multiplied by this
+    adaptive_noise: bool = True
+    fuse_scale: float = 0.4  # fuse/filter modes: the registration's information is multiplied by this (calibrated)
+    # fuse/filter: when the two poses' disagreement (its Mahalanobis² median over the last this many frames,
+    # / 5.35) is k > 1 times what their informations say, the map pose's covariance grows until it explains
+    # the excess (0 = off): the map pose only gets the weight its agreement with the registration supports
+    consistency_window: int = 30
     old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
     # z sigma_px / f; process noise per step (m)
@@ -269,6 +273,9 @@ class LandmarksConfig:
     sigma_px: float = 1.0  # pixels: key point noise across the ray
     sigma_px_scale: float = 1.0  # key point noise of ORB pyramid level o: sigma_px * sigma_px_scale^o (1 = same)
     process_noise: float = 0.0002  # metres per step: Kalman process noise of a landmark position
+    # metres per sqrt(frame): the observing pose's drift since the landmark was made, added to each
+    # re-observation's covariance (sigma^2 * age): later, drifted observations move old landmarks less
+    drift_sigma: float = 0.0
     min_seen: int = 3  # landmarks seen fewer times cull_after frames after they were made are culled
     cull_after: int = 30  # frames after its creation a rarely seen landmark is culled (see min_seen)
     store: Literal["single", "multi"] = "multi"  # landmark store: one k-d tree or the logarithmic method
@@ -282,6 +289,16 @@ class LandmarksConfig:
     revisit_min_inliers: int = 20  # old landmarks that must agree on the revisit pose
     revisit_max_correction: float = 0.1  # metres: a revisit pose further from the registration's is rejected
     revisit_max_correction_deg: float = 5.0  # degrees: see revisit_max_correction
+    # landmark-to-keyframe edges: a keyframe that sees anchor_min_landmarks landmarks made by one keyframe at
+    # least anchor_age frames earlier gets a pose-graph edge to that keyframe from its pose against them
+    # (robust, as a loop edge), so a revisit as a whole follows the old landmarks
+    anchor_edges: bool = False
+    anchor_age: int = 50  # frames: a landmark made this long before the keyframe counts for an anchor edge
+    anchor_min_landmarks: int = 20  # landmarks of one old keyframe the keyframe must see for its edge
+    anchor_info_scale: float = 1.0  # the edge's information (the refine's Gauss-Newton one) times this
+    # Hamming bonus of a landmark first seen old_age frames or more ago when features choose their landmark
+    # (an old landmark beats a younger copy of itself made along the drift; the max_hamming gate is unchanged)
+    match_old_bonus: int = 0
     # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
@@ -604,6 +621,9 @@ MAXIMA = {
     "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
     "landmarks.ba_handover": 10**4, "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
     "landmarks.revisit_max_correction_deg": 360.0,
+    "landmarks.drift_sigma": 10.0, "landmarks.anchor_age": 10**9, "landmarks.anchor_min_landmarks": 10**6,
+    "landmarks.anchor_info_scale": 1e6, "landmarks.match_old_bonus": 256,
+    "landmarks.consistency_window": 10**6,
     "landmarks.seed": C_INT_MAX,
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)

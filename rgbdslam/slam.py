@@ -151,6 +151,9 @@ class SLAM:
             pose = self._update_map(frame, result, pose, is_kf)
         if is_kf:
             self._add_keyframe(frame, result, pose, depth)
+            if self.landmarks is not None and self.graph is not None:  # old landmarks -> their keyframes
+                for e in self.landmarks.anchor_edges(frame.index, result.features, pose, self.graph.guess):
+                    self.graph.add_loop(e)
         rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
         st.records.append(rec)
         if is_kf:

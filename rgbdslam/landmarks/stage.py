@@ -19,9 +19,9 @@ from scipy.spatial import cKDTree
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, project_to_so3, rotation_angle
-from rgbdslam.landmarks.kalman import observation_covariance
+from rgbdslam.landmarks.kalman import observation_covariance, with_pose_drift
 from rgbdslam.landmarks.map import LandmarkMap
-from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
+from rgbdslam.landmarks.tracking import estimate_pose, match_to_map, refine_reprojection
 
 
 @dataclass
@@ -45,9 +45,14 @@ class LandmarkStats:
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
+    anchor_edges: int = 0  # landmark-to-keyframe edges given to the pose graph
+    consistency: list[float] = field(default_factory=list)  # per fused frame: median chi2 / 5.35
     ba_runs: int = 0
     ba_ms: list[float] = field(default_factory=list)  # the solves (where they ran)
     ba_wait_ms: list[float] = field(default_factory=list)  # deferred BA: what making / collecting it cost tracking
+
+
+CHI2_MEDIAN_6DOF = 5.348  # median of a chi-square distribution with 6 degrees of freedom
 
 
 def _close(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
@@ -82,6 +87,7 @@ class LandmarkTracker:
         self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
         self.last_ba_moved: list[int] = []
+        self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
         self.ba = None
         self._worker = None  # ba_worker 'process': the BA process
         self._ba_old: dict[int, np.ndarray] = {}  # the keyframe poses the pending BA started from
@@ -116,6 +122,7 @@ class LandmarkTracker:
         zw = P @ pose[:3, :3].T + pose[:3, 3]
         R = observation_covariance(P, pose[:3, :3], self.camera.fx, self.cfg.sigma_px, self.cfg.depth_noise_a,
                                    self.cfg.depth_noise_b)
+        R = with_pose_drift(R, frame - self.map.first[ids], self.cfg.drift_sigma)
         self.map.observe(ids, zw, R, frame, count)
 
     def track(self, index: int, feats, pose: np.ndarray, information: np.ndarray | None = None) -> np.ndarray:
@@ -128,7 +135,8 @@ class LandmarkTracker:
         self._pending = None
         if self.map.size == 0:
             return pose
-        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
+        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth,
+                         old_before=index - c.old_age + 1, old_bonus=c.match_old_bonus)
         self._last_matches = m
         res = None
         if len(m.lm) >= c.min_inliers:
@@ -153,9 +161,39 @@ class LandmarkTracker:
             self._cov = np.linalg.inv(H_pred) if filt and res is None and H_pred is not None else None
             return pose if res is None else self._accept(index, feats, res)
         if c.mode in ("fuse", "filter"):
+            if c.consistency_window > 0:
+                res.information = res.information / self._consistency(pose, H_pred, res.pose, res.information)
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
         return self._accept(index, feats, res)
+
+    def _consistency(self, P_reg: np.ndarray, H_reg: np.ndarray, P_map: np.ndarray, H_map: np.ndarray) -> float:
+        """The factor the map pose's information is divided by (≥ 1). The two poses' disagreement
+        η = Log(P_reg⁻¹ P_map) has the covariance C = H_reg⁻¹ + H_map⁻¹ when both informations are
+        right, so its Mahalanobis² has the median 5.35 (χ², 6 dof). k = the median over the last
+        ``consistency_window`` frames / 5.35 says the disagreement is k times the assumed one; the
+        excess is put on the map pose (its errors on real frames — landmarks made from drifting poses,
+        rolling shutter — do not show in its residuals, the registration's are already calibrated by
+        ``fuse_scale``): with r = tr(C⁻¹ H_map⁻¹) / 6, the map's share of the whitened disagreement,
+        Σ_reg + s Σ_map is k times C for 1 - r + s r = k, s = 1 + (k - 1) / r (medians of k and r;
+        1 while k ≤ 1 or fewer than 5 frames are in; docs/slam.md "Consistency-scaled fusion")."""
+        import gtsam
+
+        eta = gtsam.Pose3.Logmap(gtsam.Pose3(inv(P_reg) @ P_map))
+        S_map = np.linalg.inv(H_map)
+        C = np.linalg.inv(H_reg) + S_map
+        share = float(np.trace(np.linalg.solve(C, S_map))) / 6.0  # the map's part of the whitened disagreement
+        self._chi2.append((float(eta @ np.linalg.solve(C, eta)), share))
+        del self._chi2[: max(0, len(self._chi2) - self.cfg.consistency_window)]
+        if len(self._chi2) < 5:
+            return 1.0
+        k = float(np.median([m for m, _ in self._chi2])) / CHI2_MEDIAN_6DOF
+        self.stats.consistency.append(k)
+        if k <= 1.0:
+            return 1.0
+        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share)
+        r = max(float(np.median([x for _, x in self._chi2])), 1e-3)
+        return 1.0 + (k - 1.0) / r
 
     def _accept(self, index: int, feats, res) -> np.ndarray:
         """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
@@ -200,6 +238,37 @@ class LandmarkTracker:
             ok = np.linalg.norm(P - self.map.pos[l], axis=1) < c.ransac_threshold
             res.feat, res.lm = np.concatenate([res.feat, f[ok]]), np.concatenate([res.lm, l[ok]])
         return res
+
+    def anchor_edges(self, index: int, feats, pose: np.ndarray, nodes) -> list:
+        """Landmark-to-keyframe edges of keyframe ``index`` at ``pose`` (its final pose): for every
+        keyframe ``a`` in ``nodes`` that made at least ``anchor_min_landmarks`` of this frame's map
+        inliers ``anchor_age`` or more frames earlier, the pose refined on those landmarks alone
+        (reprojection Gauss-Newton from ``pose``) gives the edge a -> index,
+        T = kf_pose[a]⁻¹ · pose_a_landmarks, with the refine's information × ``anchor_info_scale``.
+        The landmarks hold the coordinates ``a`` gave them, so the pose graph pulls the whole revisit
+        (not one frame) back to them; the edges go in as loop edges (robust kernel)."""
+        from rgbdslam.loop.detector import LoopEdge
+
+        c = self.cfg
+        if not c.anchor_edges or self._last is None or self._last[0] != index:
+            return []
+        _, f, lm = self._last
+        anchor = self.map.anchor[lm]
+        old = (index - self.map.first[lm] >= c.anchor_age) & np.isin(anchor, list(nodes))
+        edges = []
+        for a in np.unique(anchor[old]):
+            sel = old & (anchor == a)
+            if sel.sum() < c.anchor_min_landmarks or int(a) not in self.kf_pose:
+                continue
+            fs, ls = f[sel], lm[sel]
+            P, _, H = refine_reprojection(pose, self.map.pos[ls], feats.uv[fs], feats.pts[fs, 2], self.camera,
+                                          c.sigma_px, self._sigma(feats.pts[fs, 2]), self.map.cov[ls])
+            if not _close(pose, P, c.max_correction, c.max_correction_deg):
+                continue  # as a map pose: further than a tracking error is a wrong association
+            edges.append(LoopEdge(int(a), int(index), inv(self.kf_pose[int(a)]) @ P, H * c.anchor_info_scale,
+                                  int(sel.sum()), 0.0))
+        self.stats.anchor_edges += len(edges)
+        return edges
 
     def record_frame(self, index: int, feats, pose: np.ndarray) -> None:
         """Keep a non-keyframe's map inliers for the global BA, relative to the last keyframe (the
@@ -383,6 +452,8 @@ class LandmarkTracker:
         return {
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
             "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
+            "anchor_edges": s.anchor_edges,
+            "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),

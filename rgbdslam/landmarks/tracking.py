@@ -62,9 +62,12 @@ def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin:
 
 
 def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, max_hamming: int,
-                 max_depth: float, k: int = 6, first_before: int | None = None) -> MapMatch:
+                 max_depth: float, k: int = 6, first_before: int | None = None, old_before: int | None = None,
+                 old_bonus: int = 0) -> MapMatch:
     """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px
-    (``first_before``: only landmarks first seen before that frame — the revisit search)."""
+    (``first_before``: only landmarks first seen before that frame — the revisit search;
+    ``old_bonus``: landmarks first seen before frame ``old_before`` compete for a feature with their
+    Hamming distance lowered by this much — an old landmark wins over a younger copy of itself)."""
     ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
     if first_before is not None:
         old = lmap.first[ids] < first_before
@@ -85,7 +88,11 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     for w in range(4):
         ham += np.bitwise_count(fw[:, None, w] ^ lw[nn_safe, w]).astype(np.int32)
     ham = np.where(has, ham, 1 << 20)
-    best = ham.argmin(axis=1)
+    if old_bonus and old_before is not None:  # among the candidates within the gate, old landmarks preferred
+        pref = np.where(ham <= max_hamming, ham - old_bonus * (lmap.first[ids] < old_before)[nn_safe], 1 << 20)
+        best = np.where(pref.min(axis=1) < (1 << 20), pref.argmin(axis=1), ham.argmin(axis=1))
+    else:
+        best = ham.argmin(axis=1)
     hb = ham[np.arange(len(fi)), best]
     ok = hb <= max_hamming
     f_idx, l_idx, hb = fi[ok], nn_safe[np.arange(len(fi)), best][ok], hb[ok]
