@@ -69,6 +69,11 @@ class FeaturesConfig:
     grid_rows: int = 1  # >1 enables bucketing: features spread over a grid
     grid_cols: int = 1  # columns of the bucketing grid (see grid_rows)
     undistort: bool = True  # undistort key point positions with the camera's distortion before registration
+    # colour and depth images taken at different moments (Frame.depth_delay; TUM freiburg1: 0-14 ms):
+    # ignore = each key point's depth read at its own pixel; predict = read where its scene point was
+    # at the depth time, the camera's motion over the delay from the constant-velocity model
+    # (geometry/depth_time.py, docs/slam.md "Colour/depth time offset")
+    depth_delay: Literal["ignore", "predict"] = "ignore"
 
 
 @dataclass

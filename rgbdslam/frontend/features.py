@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from rgbdslam.config import FeaturesConfig, MatchingConfig
 from rgbdslam.datasets.base import Frame
 from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.depth_time import depth_at_colour_time
 
 
 @dataclass
@@ -36,6 +37,10 @@ class FrameFeatures:
     response: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (N,) ORB response
     octave: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))  # (N,) ORB pyramid level (scale^octave px)
     depth_noise: Any = None  # the frame's DepthNoise (stereo) or None: covariance of pts
+    # pose of the camera when the depth image was taken, in the camera at the colour time (4x4,
+    # X_colour = depth_motion @ X_depth), or None (taken together): :func:`lift` reads each key
+    # point's depth where its scene point was at the depth time (geometry/depth_time.py)
+    depth_motion: np.ndarray | None = None
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
 
@@ -191,9 +196,11 @@ def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:
     return frame
 
 
-def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig) -> FrameFeatures:
+def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
+                     depth_motion: np.ndarray | None = None) -> FrameFeatures:
     """ORB on the colour image of ``frame`` (``features`` section), lifted to 3-D with its depth
-    (within the ``matching`` section's depth range).
+    (within the ``matching`` section's depth range); ``depth_motion``: the camera's motion from the
+    colour to the depth image's time (see :class:`FrameFeatures`), None = taken together.
 
     Uses ``frame.detections`` when they were made ahead in this frame's image with the same
     features config."""
@@ -214,6 +221,7 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig) -> Fr
         response=det.response,
         octave=det.octave,
         depth_noise=frame.depth_noise,
+        depth_motion=depth_motion,
     )
     lift(feats, frame.depth, camera, mc)
     return feats
@@ -223,7 +231,10 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     """(Re)compute ``features.pts`` / ``features.valid`` from a metric depth image, in place.
 
     Depth is read at the rounded distorted key-point location; points outside
-    ``[matching.min_depth, matching.max_depth]`` or without depth are invalid (NaN).
+    ``[matching.min_depth, matching.max_depth]`` or without depth are invalid (NaN). With
+    ``features.depth_motion`` the depth is read where the key point's scene point was when the
+    depth image was taken, and brought to the colour time
+    (:func:`rgbdslam.geometry.depth_time.depth_at_colour_time`).
     """
     n = len(features.uv)
     raw = features.uv_raw if len(features.uv_raw) == n else features.uv
@@ -231,6 +242,8 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     u = np.clip(np.rint(raw[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.rint(raw[:, 1]).astype(int), 0, h - 1)
     z = depth[v, u].astype(np.float64) if n else np.zeros(0)
+    if features.depth_motion is not None and n:
+        z = _depth_at_colour_time(features, depth, camera, z)
     valid = np.isfinite(z) & (z >= mc.min_depth) & (z <= mc.max_depth)
     pts = np.full((n, 3), np.nan)
     if valid.any():
@@ -239,3 +252,13 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     features.valid = valid
     features._tree = None
     features._tree_index = None
+
+
+def _depth_at_colour_time(features: FrameFeatures, depth: np.ndarray, camera: Camera, z: np.ndarray) -> np.ndarray:
+    """The key points' depths at the colour time; the first guess is the depth at the key point
+    itself, else the median of those (a point off a surface edge reads its neighbour's)."""
+    good = np.isfinite(z) & (z > 0)
+    if not good.any():
+        return z
+    z0 = np.where(good, z, np.median(z[good]))
+    return depth_at_colour_time(features.uv, depth, camera, features.depth_motion, z0)

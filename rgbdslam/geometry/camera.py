@@ -35,6 +35,16 @@ class Camera:
         out = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, np.array(self.dist), P=self.K)
         return out.reshape(-1, 2)
 
+    def distort_points(self, uv: np.ndarray) -> np.ndarray:
+        """Ideal pinhole pixel coordinates (N,2) -> distorted pixel coordinates (N,2) (the
+        inverse of :meth:`undistort_points`)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if not self.has_distortion or len(uv) == 0:
+            return uv
+        xy1 = np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy, np.ones(len(uv))])
+        out, _ = cv2.projectPoints(xy1.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, np.array(self.dist))
+        return out.reshape(-1, 2)
+
     def backproject(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Ideal pixel coordinates (N,2) and depth (N,) in metres -> camera points (N,3)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)

@@ -1,0 +1,112 @@
+"""Depth read at the colour image's time (geometry/depth_time.py): hand-worked cases, and the
+front end on a synthetic sequence whose depth images are taken 10 ms after the colour ones."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rgbdslam.geometry.camera import CAMERAS, Camera
+from rgbdslam.geometry.depth_time import depth_at_colour_time, sample_depth
+from rgbdslam.geometry.se3 import make_pose
+
+CAM = Camera(500.0, 500.0, 320.0, 240.0, 640, 480)
+
+
+def test_camera_distort_points_inverts_undistort():
+    cam = CAMERAS["fr1"]
+    uv = np.array([[20.0, 30.0], [320.0, 240.0], [600.0, 450.0], [100.0, 400.0]])
+    np.testing.assert_allclose(cam.distort_points(cam.undistort_points(uv)), uv, atol=0.02)
+    np.testing.assert_array_equal(CAM.distort_points(uv), uv)  # no distortion: unchanged
+
+
+def test_sample_depth_rounds_and_gives_zero_outside():
+    depth = np.arange(12, dtype=np.float32).reshape(3, 4)
+    z = sample_depth(depth, np.array([[0.4, 0.4], [2.6, 1.2], [3.0, 2.0], [-0.6, 0.0], [4.0, 0.0], [np.nan, 1.0]]))
+    np.testing.assert_array_equal(z, [0.0, 7.0, 11.0, 0.0, 0.0, 0.0])
+
+
+def test_camera_nearer_at_the_depth_time_reads_less_and_gets_it_back():
+    """A wall 2 m ahead; when the depth image is taken the camera is 5 cm nearer, so the image reads
+    1.95 m everywhere: the key points' depth at the colour time is 1.95 + 0.05 = 2.0 m."""
+    depth = np.full((480, 640), 1.95, np.float32)
+    D = make_pose(np.eye(3), [0.0, 0.0, 0.05])  # depth-time camera in the colour-time camera
+    uv = np.array([[320.0, 240.0], [100.0, 50.0], [600.0, 400.0]])
+    z = depth_at_colour_time(uv, depth, CAM, D, z0=np.full(3, 1.95))
+    np.testing.assert_allclose(z, 2.0, atol=1e-9)
+
+
+def test_turned_camera_reads_the_depth_across_an_edge():
+    """The depth-time camera is turned about y by θ with tan θ = 0.02: the scene point on the colour
+    image's centre is seen at u = cx - f·tan θ = 310 in the depth image. Depth there (u < 315) is
+    1 m, to the right 2 m: the plain lookup at u = 320 reads the wrong side (2 m); the compensation
+    reads 1 m along the depth camera's ray (-tan θ, 0, 1), which the rotation takes back onto the
+    colour ray at z = cos θ·1 + sin θ·tan θ = 1/cos θ = sqrt(1 + 0.02²)."""
+    t = 0.02
+    c, s = 1 / np.sqrt(1 + t * t), t / np.sqrt(1 + t * t)
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[:, :315] = 1.0
+    uv = np.array([[320.0, 240.0]])
+    assert sample_depth(depth, uv)[0] == 2.0  # what the key point's own pixel says
+    z = depth_at_colour_time(uv, depth, CAM, make_pose(R, [0, 0, 0]), z0=np.array([2.0]))
+    np.testing.assert_allclose(z, [np.sqrt(1 + t * t)], rtol=1e-12)
+
+
+def test_no_depth_where_the_point_was_gives_zero():
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[:, :315] = 0.0  # hole where the point is at the depth time
+    t = 0.02
+    c, s = 1 / np.sqrt(1 + t * t), t / np.sqrt(1 + t * t)
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    z = depth_at_colour_time(np.array([[320.0, 240.0], [400.0, 240.0]]), depth, CAM, make_pose(R, [0, 0, 0]),
+                             z0=np.array([2.0, 2.0]))
+    assert z[0] == 0.0 and z[1] > 1.9
+
+
+def test_identity_motion_reads_the_key_points_own_pixel():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 4.0, (480, 640)).astype(np.float32)
+    uv = rng.uniform([0, 0], [639, 479], (200, 2))
+    z = depth_at_colour_time(uv, depth, CAM, np.eye(4), z0=np.full(200, 2.0))
+    np.testing.assert_array_equal(z, sample_depth(depth, uv))
+
+
+@pytest.fixture(scope="module")
+def delayed_rpy(tmp_path_factory):
+    from rgbdslam.datasets.synthetic import generate_sequence
+
+    out = tmp_path_factory.mktemp("delay") / "rpy_d10"
+    generate_sequence(out, frames=40, motion="rpy", width=320, height=240, seed=0, depth_delay=0.010)
+    return out
+
+
+def test_generator_writes_the_depth_stamps_and_the_reader_the_delay(delayed_rpy):
+    from rgbdslam.datasets import open_sequence
+
+    seq = open_sequence(delayed_rpy)
+    f = seq.load(5)
+    assert f.depth_delay == pytest.approx(0.010, abs=2e-6)
+    np.testing.assert_allclose(seq.depth_timestamps - seq.timestamps, 0.010, atol=2e-6)
+
+
+def test_front_end_with_a_10ms_depth_delay_tracks_only_when_compensated(delayed_rpy):
+    """rpy motion, no noise, 320x240, depth 10 ms late: ignoring the delay drifts by a centimetre over
+    40 frames; the constant-velocity compensation (features.depth_delay = predict) roughly halves it."""
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.evaluation.ate import ate
+    from rgbdslam.io.trajectory import Trajectory
+    from rgbdslam.frontend.odometry import build_frontend
+
+    seq = open_sequence(delayed_rpy)
+    gt = seq.groundtruth()
+    errs = {}
+    for mode in ("ignore", "predict"):
+        cfg = load_config(None, [f"features.depth_delay={mode}"])
+        fe = build_frontend(cfg, seq.camera)
+        poses = np.stack([fe.track(seq.load(i)).pose for i in range(len(seq))])
+        errs[mode] = ate(gt, Trajectory(seq.timestamps, poses)).rmse
+    # measured: ignore 11.1 mm, predict 6.3 mm (the noise-free sequence without delay: ~1-2 mm)
+    assert errs["predict"] < 0.008, errs
+    assert errs["ignore"] > 1.5 * errs["predict"], errs
