@@ -74,6 +74,10 @@ class FeaturesConfig:
     # at the depth time, the camera's motion over the delay from the constant-velocity model
     # (geometry/depth_time.py, docs/slam.md "Colour/depth time offset")
     depth_delay: Literal["ignore", "predict"] = "ignore"
+    # rolling shutter: seconds from reading the first image row to the last (0 = global shutter); each
+    # key point is moved to the frame's time (the middle row's) with the constant-velocity model
+    # (geometry/depth_time.py row_motions, docs/slam.md "Rolling shutter")
+    rolling_shutter: float = 0.0
 
 
 @dataclass

@@ -9,6 +9,8 @@ constant-velocity model of the previous ground-truth poses (``cv``, what the tra
 its own poses), where the scene point was at the depth time (geometry/depth_time.py). A scan of an
 extra offset added to every delay shows where the residual is smallest: if the stamps are right, at 0.
 
+The residual's component along the current key point's viewing ray is reported (the depth's share;
+across the ray the key points' pixel error dominates): median and RMS over the inliers (|r| < gate).
 Per frame: |ω|·Δt (the rotation over the frame's own delay, deg) against the median inlier residual.
 
 Usage::
@@ -93,16 +95,18 @@ def main(argv=None) -> int:
             T = inv(Pc[i]) @ Pc[i - 1]
             r = feats[i - 1].pts[ia] @ T[:3, :3].T + T[:3, 3] - feats[i].pts[ib]
             e = np.linalg.norm(r, axis=1)
+            ray = np.abs(np.einsum("ij,ij->i", r, feats[i].pts[ib]) / np.linalg.norm(feats[i].pts[ib], axis=1))
             inl = e < a.gate
             if inl.sum() >= 10:
-                per_frame[i] = np.median(e[inl])
-            allr.append(e[inl])
+                per_frame[i] = np.median(ray[inl])
+            allr.append(ray[inl])
             ninl += int(inl.sum())
         allr = np.concatenate(allr)
         return per_frame, np.median(allr), np.sqrt(np.mean(allr ** 2)), ninl
 
     base, med0, rms0, n0 = residuals(lifted("ignore", 0.0))
-    print(f"ignore (depth at the key point's pixel):  median {1e3 * med0:.2f} mm  RMS {1e3 * rms0:.2f} mm  inliers {n0}")
+    print(f"ignore (depth at the key point's pixel):  along the ray: median {1e3 * med0:.2f} mm  RMS {1e3 * rms0:.2f} mm  "
+          f"inliers {n0}")
     ok = np.isfinite(base)
     c = np.corrcoef(rot_delay[ok], base[ok])[0, 1]
     print(f"  correlation of the per-frame median residual with |w|*dt: {c:+.2f}")

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from rgbdslam.config import FeaturesConfig, MatchingConfig
 from rgbdslam.datasets.base import Frame
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.depth_time import depth_at_colour_time
+from rgbdslam.geometry.depth_time import depth_at_colour_time, row_motions, shutter_corrected_pixels
 
 
 @dataclass
@@ -41,6 +41,12 @@ class FrameFeatures:
     # X_colour = depth_motion @ X_depth), or None (taken together): :func:`lift` reads each key
     # point's depth where its scene point was at the depth time (geometry/depth_time.py)
     depth_motion: np.ndarray | None = None
+    # rolling shutter (features.rolling_shutter): each key point's row pose in the camera at the
+    # frame's time, rotation (N,3,3) and translation (N,3), and its pixel as observed (N,2, ideal);
+    # ``uv`` then holds the pixels at the frame's time and :func:`lift` moves the points likewise
+    row_R: np.ndarray | None = None
+    row_t: np.ndarray | None = None
+    uv_observed: np.ndarray | None = None
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
 
@@ -197,10 +203,14 @@ def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:
 
 
 def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
-                     depth_motion: np.ndarray | None = None) -> FrameFeatures:
+                     depth_motion: np.ndarray | None = None,
+                     velocity: tuple[np.ndarray, float] | None = None) -> FrameFeatures:
     """ORB on the colour image of ``frame`` (``features`` section), lifted to 3-D with its depth
     (within the ``matching`` section's depth range); ``depth_motion``: the camera's motion from the
-    colour to the depth image's time (see :class:`FrameFeatures`), None = taken together.
+    colour to the depth image's time (see :class:`FrameFeatures`), None = taken together;
+    ``velocity`` ``(V, dt)``: the camera's constant-velocity motion V over dt seconds, with which a
+    rolling shutter (``features.rolling_shutter`` > 0 s) is undone: every key point is moved to
+    where it would be seen at the frame's time (its row's time taken from the readout).
 
     Uses ``frame.detections`` when they were made ahead in this frame's image with the same
     features config."""
@@ -223,6 +233,10 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
         depth_noise=frame.depth_noise,
         depth_motion=depth_motion,
     )
+    if fc.rolling_shutter > 0 and velocity is not None and velocity[1] > 0 and len(uv):
+        feats.row_R, feats.row_t = row_motions(det.uv_raw[:, 1], camera.height, fc.rolling_shutter, *velocity)
+        feats.uv_observed = uv
+        feats.uv = shutter_corrected_pixels(uv, camera, feats.row_R)
     lift(feats, frame.depth, camera, mc)
     return feats
 
@@ -246,7 +260,10 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
         z = _depth_at_colour_time(features, depth, camera, z)
     valid = np.isfinite(z) & (z >= mc.min_depth) & (z <= mc.max_depth)
     pts = np.full((n, 3), np.nan)
-    if valid.any():
+    if valid.any() and features.row_R is not None:  # rolling shutter: each point from its row's pose
+        X = camera.backproject(features.uv_observed[valid], z[valid])
+        pts[valid] = np.einsum("nij,nj->ni", features.row_R[valid], X) + features.row_t[valid]
+    elif valid.any():
         pts[valid] = camera.backproject(features.uv[valid], z[valid])
     features.pts = pts
     features.valid = valid
@@ -261,4 +278,5 @@ def _depth_at_colour_time(features: FrameFeatures, depth: np.ndarray, camera: Ca
     if not good.any():
         return z
     z0 = np.where(good, z, np.median(z[good]))
-    return depth_at_colour_time(features.uv, depth, camera, features.depth_motion, z0)
+    uv = features.uv if features.uv_observed is None else features.uv_observed
+    return depth_at_colour_time(uv, depth, camera, features.depth_motion, z0)

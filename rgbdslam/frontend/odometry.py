@@ -109,10 +109,29 @@ class Frontend:
         V, gap, _ = self._velocity
         return last.pose @ scale_motion(V, (index - last.features.index) / gap)
 
+    def _time_velocity(self) -> tuple[np.ndarray, float] | None:
+        """The constant-velocity model as (motion, seconds it took), for the rolling shutter."""
+        if self._velocity is None or not self.rc.constant_velocity:
+            return None
+        V, _, dt = self._velocity
+        return (V, dt) if dt > 0 else None
+
     def _depth_motion(self, frame: Frame) -> np.ndarray | None:
         """The camera's motion from the colour to the depth image's time (``features.depth_delay``
         = predict): the constant-velocity model scaled to the frame's ``depth_delay``; None when
         there is no delay, no velocity yet, or the compensation is off."""
+        import os
+        if os.environ.get("XGT"):
+            import sys; sys.path.insert(0, "/work/wt-realerr/scripts")
+            from diag_depth_delay import pose_at
+            from rgbdslam.io.trajectory import read_tum
+            if not hasattr(self, "_xgt"):
+                self._xgt = read_tum(os.environ["XGT"])
+            d = frame.depth_delay * float(os.environ.get("XSCALE", "1")) + float(os.environ.get("XDELAY", "0"))
+            if d == 0:
+                return None
+            P = pose_at(self._xgt, [frame.timestamp, frame.timestamp + d])
+            return inv(P[0]) @ P[1]
         if self.fc.depth_delay == "ignore" or not frame.depth_delay or self._velocity is None:
             return None
         V, _, dt = self._velocity
@@ -130,7 +149,7 @@ class Frontend:
     def track(self, frame: Frame) -> TrackResult:
         rc = self.rc
         t0 = time.perf_counter()
-        feats = extract_features(frame, self.fc, self.mc, self._depth_motion(frame))
+        feats = extract_features(frame, self.fc, self.mc, self._depth_motion(frame), self._time_velocity())
         timings = {"features": time.perf_counter() - t0, "matching": 0.0, "registration": 0.0, "fusion": 0.0}
         need = max(3, rc.min_points)
         if not self.refs:

@@ -68,3 +68,27 @@ def depth_at_colour_time(uv: np.ndarray, depth: np.ndarray, camera: Camera, D: n
         out = np.where(ok, zc, 0.0)
         z = np.where(ok, zc, z)  # the next pass starts from this answer (translation: the pixel depends on z)
     return out
+
+
+def row_motions(rows: np.ndarray, height: int, readout: float, V: np.ndarray, dt: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Rolling shutter: the pose of the camera when image row ``rows`` (N,) was read, in the camera
+    at the frame's time stamp (taken as the middle row's time), under the constant-velocity motion
+    ``V`` (4x4) over ``dt`` seconds, the rows read from top to bottom in ``readout`` seconds. Row v
+    is read τ = (v - height/2) / height · readout after the middle row; its pose is V scaled by τ/dt
+    on SE(3) (rotation vector and translation). Returns ``(R (N,3,3), t (N,3))``."""
+    from scipy.spatial.transform import Rotation
+
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1)
+    f = (rows - 0.5 * height) / height * readout / dt
+    rv = Rotation.from_matrix(np.asarray(V, dtype=np.float64)[:3, :3]).as_rotvec()
+    R = Rotation.from_rotvec(f[:, None] * rv[None, :]).as_matrix().reshape(-1, 3, 3)
+    return R, f[:, None] * np.asarray(V, dtype=np.float64)[None, :3, 3]
+
+
+def shutter_corrected_pixels(uv: np.ndarray, camera: Camera, R: np.ndarray) -> np.ndarray:
+    """Ideal pixels (N,2) seen along the rays of ``uv`` (N,2) turned by the row rotations ``R``
+    (N,3,3): where the key points would be in an image taken all at once at the reference time
+    (rotation alone: a pixel's shift does not depend on its depth)."""
+    rays = camera.backproject(uv, np.ones(len(uv)))
+    return camera.project(np.einsum("nij,nj->ni", R, rays))
