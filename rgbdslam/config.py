@@ -76,8 +76,10 @@ class FeaturesConfig:
     depth_delay: Literal["ignore", "predict"] = "ignore"
     # rolling shutter: seconds from reading the first image row to the last (0 = global shutter); each
     # key point is moved to the frame's time (the middle row's) with the constant-velocity model
-    # (geometry/depth_time.py row_motions, docs/slam.md "Rolling shutter")
-    rolling_shutter: float = 0.0
+    # (geometry/depth_time.py row_motions, docs/slam.md "Rolling shutter"); None = the camera's own
+    # (Camera.readout: fr1 and the 7-Scenes camera file 0.0175 s, measured without ground truth by
+    # scripts/calibrate_rolling_shutter.py; others 0)
+    rolling_shutter: float | None = None
 
 
 @dataclass
@@ -546,7 +548,7 @@ MAXIMA = {
     "dataset.stride": 10**6, "dataset.prefetch": 64, "dataset.reader_threads": 64,
     # features: OpenCV's ORB takes C ints; n_features x n_features Hamming matrices (~1 GB at 10000)
     "features.n_features": 10_000, "features.fast_threshold": 255, "features.grid_rows": 64,
-    "features.grid_cols": 64,
+    "features.grid_cols": 64, "features.rolling_shutter": 0.1,
     # matching: RANSAC hypotheses are drawn and scored at once (~3 kB each); cv2 gets 10x as maxIters
     "matching.prefilter_threshold": 1e3, "matching.prefilter_iterations": 20_000,
     "matching.min_depth": 1e3, "matching.max_depth": 1e3,

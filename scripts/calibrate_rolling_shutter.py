@@ -1,84 +1,117 @@
-"""Rolling-shutter readout time of an RGB-D camera from its own frames, without ground truth.
+"""Rolling-shutter readout time of an RGB-D camera from its own recording, without ground truth.
 
-A rolling shutter reads the image rows one after the other; under rotation the key points of
-the rows read later are displaced (``features.rolling_shutter``, docs/slam.md "Rolling shutter").
-Undone with the right readout time, consecutive frames' 3-D key points agree better under one rigid
-motion. For each candidate readout the front end tracks the sequence with it, and every frame's
-registration against the previous one is scored by the RMS reprojection error (pixels, each
-capped at 10 px) of its inliers: the previous frame's 3-D points moved by the registration and
-projected, against the current key points (the rolling shutter displaces pixels; the 3-D residual
-is dominated by the depth noise along the rays); the readout with the smallest median residual is the estimate. Only the
-images are used (no ground truth): it can run on a camera's own recording.
+A rolling shutter reads the image rows one after the other; under rotation the rows read later see
+the scene from a turned camera, and a yaw shears the image, which the registration takes partly for
+a roll (``features.rolling_shutter``, docs/slam.md "Rolling shutter"). Its error does not average
+out: the odometry's rotation drifts. Loop closures measure the same relative poses independently
+of the chain of frames between them, so the readout that makes the odometry agree best with the
+loop-closure edges is the estimate: for each candidate readout the whole pipeline runs
+(``rgbdslam.pipeline.run_sequence``, map fusion off), and each loop edge of ``posegraph.g2o`` is
+compared with the relative pose of its two keyframes in ``odometry.tum`` (before the pose graph).
+Printed per readout: the median and RMS rotation (deg) and translation (mm) of those discrepancies.
+The readout with the smallest median rotation discrepancy is the estimate. Ground truth is not
+used (the ATE is printed for information only when the sequence has one).
+
+What does *not* work as a criterion (measured on fr1/rpy, docs/benchmarks.md): the residuals of
+consecutive frames' registrations (3-D or reprojected) — neighbouring frames share nearly the same
+distortion, which the registration absorbs.
 
 Usage::
 
-    .venv/bin/python scripts/calibrate_rolling_shutter.py SEQUENCE [--readouts 0,0.01,...] [--set K=V ...]
+    .venv/bin/python scripts/calibrate_rolling_shutter.py SEQUENCE [--readouts 0,0.01,...] [--work DIR]
+        [--set K=V ...]
+
+The same criterion for another camera parameter: ``--camera-key fx,fy --values 520,530,540`` writes a
+copy of the camera file ``dataset.camera_file`` (``--set``) per value with those keys set to it
+(e.g. the colour focal length of 7-Scenes' unregistered Kinect), ``--key CONFIG.KEY --values ...``
+any config key.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from rgbdslam.config import load_config  # noqa: E402
-from rgbdslam.datasets import open_sequence  # noqa: E402
-from rgbdslam.frontend.odometry import build_frontend  # noqa: E402
-from rgbdslam.frontend.pairwise import build_pair_registration  # noqa: E402
 from rgbdslam.geometry.se3 import inv  # noqa: E402
 
 
-def score(frames, cfg, readout: float) -> tuple[float, float, int]:
-    """(median over frames of the RMS inlier reprojection error in px, mean inliers, frames scored) with the
-    front end's key points for ``readout`` seconds."""
-    c = load_config(None, [f"features.rolling_shutter={readout}"])
-    c.features, c.matching, c.registration = (type(cfg.features)(**{**vars(cfg.features), "rolling_shutter": readout}),
-                                              cfg.matching, cfg.registration)
-    fe = build_frontend(c, frames[0].camera)
-    pair = build_pair_registration(c)
-    res, inl = [], []
-    prev = None
-    for f in frames:
-        tr = fe.track(f)
-        if tr.lost:
-            prev = None
-            continue
-        if prev is not None:
-            r = pair(prev[0], tr.features, inv(tr.pose) @ prev[1])
-            if r is not None and r.n_inliers >= 10:
-                a, b = r.pairs[:, 0], r.pairs[:, 1]
-                P = prev[0].pts[a] @ r.T[:3, :3].T + r.T[:3, 3]  # reference points in the current frame
-                px = np.linalg.norm(f.camera.project(P) - tr.features.uv[b], axis=1)
-                res.append(float(np.sqrt(np.mean(np.minimum(px, 10.0) ** 2))))
-                inl.append(r.n_inliers)
-        prev = (tr.features, tr.pose)
-    return float(np.median(res)), float(np.mean(inl)), len(res)
+def loop_discrepancies(run: Path) -> np.ndarray:
+    """(K, 2): per loop edge of ``run``'s pose graph, the translation (m) and rotation (deg) between
+    the edge's measured relative pose and the one of its keyframes in the run's odometry."""
+    from rgbdslam.io.trajectory import read_tum
+    from rgbdslam.posegraph.graph_io import read_graph
+
+    g = read_graph(run / "posegraph.g2o")
+    odo = read_tum(run / "odometry.tum")
+    ids = [int(x) for x in g.ids]
+    rank = {v: k for k, v in enumerate(sorted(ids))}
+    out = []
+    for k in range(g.n_edges):
+        i, j = ids[g.edges_i[k]], ids[g.edges_j[k]]
+        if abs(rank[i] - rank[j]) == 1:
+            continue  # an odometry edge
+        E = inv(inv(odo.poses[i]) @ odo.poses[j]) @ g.meas[k]
+        out.append((np.linalg.norm(E[:3, 3]), np.degrees(np.linalg.norm(Rotation.from_matrix(E[:3, :3]).as_rotvec()))))
+    return np.array(out).reshape(-1, 2)
+
+
+def camera_variant(a, value: float, work: Path) -> Path:
+    """A copy of the camera file of ``--set dataset.camera_file=...`` with ``--camera-key`` set to ``value``."""
+    import yaml
+
+    src = next((s.split("=", 1)[1] for s in a.set if s.startswith("dataset.camera_file=")), None)
+    if src is None:
+        raise SystemExit("--camera-key needs --set dataset.camera_file=FILE")
+    data = yaml.safe_load(Path(src).read_text())
+    for k in a.camera_key.split(","):
+        data[k] = value
+    out = work / f"camera_{value:g}.yaml"
+    out.write_text(yaml.safe_dump(data))
+    return out
 
 
 def main(argv=None) -> int:
+    from rgbdslam.pipeline import run_sequence
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sequence", type=Path)
-    ap.add_argument("--readouts", default="0,0.01,0.02,0.03,0.04")
-    ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--readouts", "--values", dest="values", default="0,0.005,0.01,0.015,0.02,0.025,0.03")
+    ap.add_argument("--key", default="features.rolling_shutter", help="the config key the values are for")
+    ap.add_argument("--camera-key", default=None, help="camera-file keys (comma-separated) the values are for")
+    ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--set", action="append", default=[])
     a = ap.parse_args(argv)
-    cfg = load_config(None, list(a.set))
-    seq = open_sequence(a.sequence, cfg.dataset)
-    n = len(seq) if a.max_frames is None else min(len(seq), a.max_frames)
-    frames = [seq.load(i) for i in range(n)]
+    work = a.work or Path(tempfile.mkdtemp(prefix="calibrate_rs_"))
     best = None
-    for r in [float(x) for x in a.readouts.split(",")]:
-        med, inl, k = score(frames, cfg, r)
-        print(f"readout {1e3 * r:5.1f} ms: median inlier RMS reprojection error {med:.4f} px, mean inliers {inl:.0f} "
-              f"({k} frame pairs)", flush=True)
+    work.mkdir(parents=True, exist_ok=True)
+    what = a.camera_key or a.key
+    for r in [float(x) for x in a.values.split(",")]:
+        sets = [*a.set, f"{a.key}={r}"] if a.camera_key is None else [*a.set, f"dataset.camera_file={camera_variant(a, r, work)}"]
+        cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *sets])
+        s = run_sequence(a.sequence, work / f"value_{r:g}", cfg, progress=False)
+        d = loop_discrepancies(work / f"value_{r:g}")
+        ate = ((s.get("evaluation") or {}).get("ate") or {}).get("rmse")
+        if len(d) == 0:
+            print(f"{what} {r:g}: no loop closures; nothing to compare")
+            continue
+        med = float(np.median(d[:, 1]))
+        print(f"{what} {r:g}: {len(d)} loop edges vs odometry: rotation median {med:.2f} deg, RMS "
+              f"{np.sqrt(np.mean(d[:, 1] ** 2)):.2f} deg; translation median {1e3 * np.median(d[:, 0]):.1f} mm, RMS "
+              f"{1e3 * np.sqrt(np.mean(d[:, 0] ** 2)):.1f} mm" + ("" if ate is None else f"   (ATE {ate:.4f} m, "
+                                                                   f"evaluation only)"), flush=True)
         if best is None or med < best[1]:
             best = (r, med)
-    print(f"smallest residual at a readout of {1e3 * best[0]:.1f} ms")
+    if best is not None:
+        print(f"smallest loop/odometry rotation discrepancy at {what} = {best[0]:g}")
     return 0
 
 

@@ -741,7 +741,8 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
         out / "camera.yaml",
         (f"camera: {camera}\n" if cam is CAMERAS[camera] else "")
         + f"fx: {cam.fx!r}\nfy: {cam.fy!r}\ncx: {cam.cx!r}\ncy: {cam.cy!r}\n"
-        f"width: {cam.width}\nheight: {cam.height}\ndist: [{', '.join(repr(float(d)) for d in cam.dist)}]\n",
+        f"width: {cam.width}\nheight: {cam.height}\ndist: [{', '.join(repr(float(d)) for d in cam.dist)}]\n"
+        "rolling_shutter: 0.0\n",  # rendered with a global shutter (a named camera's readout does not apply)
     )
     scene = Scene(seed)
     rays = Rays(cam)

@@ -209,7 +209,7 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
     (within the ``matching`` section's depth range); ``depth_motion``: the camera's motion from the
     colour to the depth image's time (see :class:`FrameFeatures`), None = taken together;
     ``velocity`` ``(V, dt)``: the camera's constant-velocity motion V over dt seconds, with which a
-    rolling shutter (``features.rolling_shutter`` > 0 s) is undone: every key point is moved to
+    rolling shutter (``features.rolling_shutter``, None = the camera's ``readout``; > 0 s) is undone: every key point is moved to
     where it would be seen at the frame's time (its row's time taken from the readout).
 
     Uses ``frame.detections`` when they were made ahead in this frame's image with the same
@@ -233,8 +233,9 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
         depth_noise=frame.depth_noise,
         depth_motion=depth_motion,
     )
-    if fc.rolling_shutter > 0 and velocity is not None and velocity[1] > 0 and len(uv):
-        feats.row_R, feats.row_t = row_motions(det.uv_raw[:, 1], camera.height, fc.rolling_shutter, *velocity)
+    readout = camera.readout if fc.rolling_shutter is None else fc.rolling_shutter
+    if readout > 0 and velocity is not None and velocity[1] > 0 and len(uv):
+        feats.row_R, feats.row_t = row_motions(det.uv_raw[:, 1], camera.height, readout, *velocity)
         feats.uv_observed = uv
         feats.uv = shutter_corrected_pixels(uv, camera, feats.row_R)
     lift(feats, frame.depth, camera, mc)

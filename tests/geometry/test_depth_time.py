@@ -110,3 +110,96 @@ def test_front_end_with_a_10ms_depth_delay_tracks_only_when_compensated(delayed_
     # measured: ignore 11.1 mm, predict 6.3 mm (the noise-free sequence without delay: ~1-2 mm)
     assert errs["predict"] < 0.008, errs
     assert errs["ignore"] > 1.5 * errs["predict"], errs
+
+
+# ------------------------------------------------------------------ rolling shutter
+
+
+def test_row_motions_scale_the_velocity_by_each_rows_time():
+    """V: 0.03 rad about y and 3 cm along x in 1/30 s; readout 30 ms over 480 rows. Row 0 is read
+    15 ms before the middle row: factor -0.015 * 30 = -0.45 (rotation -0.0135 rad, t -13.5 mm);
+    row 240 is the middle (identity); row 480 +0.45."""
+    from rgbdslam.geometry.depth_time import row_motions
+
+    a = 0.03
+    V = make_pose(np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]), [0.03, 0, 0])
+    R, t = row_motions(np.array([0.0, 240.0, 480.0]), 480, 0.030, V, 1 / 30)
+    for k, f in enumerate([-0.45, 0.0, 0.45]):
+        b = a * f
+        np.testing.assert_allclose(R[k], [[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]], atol=1e-12)
+        np.testing.assert_allclose(t[k], [0.03 * f, 0, 0], atol=1e-12)
+
+
+def test_shutter_corrected_pixel_of_a_turned_row():
+    """The centre pixel's ray (0, 0, 1) turned by b about y is (sin b, 0, cos b): u = cx + f tan b."""
+    from rgbdslam.geometry.depth_time import shutter_corrected_pixels
+
+    b = 0.0135
+    R = np.array([[[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]]])
+    uv = shutter_corrected_pixels(np.array([[320.0, 240.0]]), CAM, R)
+    np.testing.assert_allclose(uv, [[320.0 + 500.0 * np.tan(b), 240.0]], atol=1e-9)
+
+
+def _frame(rows: np.ndarray, depth: float = 2.0):
+    """A blank frame with one key point per row in ``rows`` (column 320), with ready detections."""
+    from rgbdslam.config import FeaturesConfig
+    from rgbdslam.datasets.base import Frame
+    from rgbdslam.frontend.features import Detections
+
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    uv = np.column_stack([np.full(len(rows), 320.0), rows])
+    det = Detections(uv, np.zeros((len(rows), 32), np.uint8), np.ones(len(rows), np.float32), len(rows),
+                     FeaturesConfig(), rgb, np.zeros(len(rows), np.int8))
+    return Frame(0, 0.0, rgb, np.full((480, 640), depth, np.float32), CAM, detections=det)
+
+
+def test_extract_features_moves_each_key_point_to_the_frames_time():
+    """Rotation about y at 0.9 rad/s, readout 30 ms: the key point on row 0 (read 15 ms early) is
+    moved by R(-0.0135) about y, its 3-D point too (depth 2 m along its observed ray); the middle
+    row's stays; ``features.rolling_shutter = 0`` leaves both alone; None takes the camera's readout."""
+    import dataclasses
+
+    from rgbdslam.config import FeaturesConfig, MatchingConfig
+    from rgbdslam.frontend.features import extract_features, lift
+
+    a = 0.03
+    V = make_pose(np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]), [0, 0, 0])
+    frame = _frame(np.array([0.0, 240.0]))
+    mc = MatchingConfig()
+
+    def features(fc):  # the ready detections are used only when made with the same features config
+        frame.detections = dataclasses.replace(frame.detections, config=fc)
+        return extract_features(frame, fc, mc, velocity=(V, 1 / 30))
+
+    f = features(FeaturesConfig(rolling_shutter=0.030))
+    b = -0.0135
+    # the ray (0, -0.48, 1) of row 0 turned: (sin b, -0.48, cos b) -> u = cx + f tan b, v = cy - 240 / cos b
+    np.testing.assert_allclose(f.uv[0], [320.0 + 500.0 * np.tan(b), 240.0 - 240.0 / np.cos(b)], atol=1e-9)
+    np.testing.assert_allclose(f.uv[1], [320.0, 240.0], atol=1e-12)
+    X = CAM.backproject(np.array([[320.0, 0.0]]), np.array([2.0]))[0]
+    Rb = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    np.testing.assert_allclose(f.pts[0], Rb @ X, atol=1e-12)
+    np.testing.assert_allclose(f.pts[1], [0.0, 0.0, 2.0], atol=1e-12)
+    lift(f, frame.depth, CAM, mc)  # a re-lift (DIF) keeps the correction
+    np.testing.assert_allclose(f.pts[0], Rb @ X, atol=1e-12)
+    off = features(FeaturesConfig(rolling_shutter=0.0))
+    np.testing.assert_allclose(off.pts[0], X, atol=1e-12)
+    frame.camera = dataclasses.replace(CAM, readout=0.030)  # None: the camera's own readout
+    auto = features(FeaturesConfig())
+    np.testing.assert_allclose(auto.pts[0], Rb @ X, atol=1e-12)
+
+
+def test_camera_file_rolling_shutter(tmp_path):
+    from rgbdslam.datasets.camera_file import read_camera_file
+    from rgbdslam.errors import InputError
+
+    p = tmp_path / "cam.yaml"
+    p.write_text("camera: fr1\n")
+    assert read_camera_file(p).camera.readout == CAMERAS["fr1"].readout
+    p.write_text("fx: 500\nfy: 500\ncx: 320\ncy: 240\nrolling_shutter: 0.02\n")
+    assert read_camera_file(p).camera.readout == 0.02
+    p.write_text("camera: fr1\nrolling_shutter: 0\n")
+    assert read_camera_file(p).camera.readout == 0.0
+    p.write_text("camera: fr1\nrolling_shutter: 0.5\n")
+    with pytest.raises(InputError, match="rolling_shutter must be the readout time"):
+        read_camera_file(p)
