@@ -120,18 +120,6 @@ class Frontend:
         """The camera's motion from the colour to the depth image's time (``features.depth_delay``
         = predict): the constant-velocity model scaled to the frame's ``depth_delay``; None when
         there is no delay, no velocity yet, or the compensation is off."""
-        import os
-        if os.environ.get("XGT"):
-            import sys; sys.path.insert(0, "/work/wt-realerr/scripts")
-            from diag_depth_delay import pose_at
-            from rgbdslam.io.trajectory import read_tum
-            if not hasattr(self, "_xgt"):
-                self._xgt = read_tum(os.environ["XGT"])
-            d = frame.depth_delay * float(os.environ.get("XSCALE", "1")) + float(os.environ.get("XDELAY", "0"))
-            if d == 0:
-                return None
-            P = pose_at(self._xgt, [frame.timestamp, frame.timestamp + d])
-            return inv(P[0]) @ P[1]
         if self.fc.depth_delay == "ignore" or not frame.depth_delay or self._velocity is None:
             return None
         V, _, dt = self._velocity
