@@ -209,8 +209,9 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
     (within the ``matching`` section's depth range); ``depth_motion``: the camera's motion from the
     colour to the depth image's time (see :class:`FrameFeatures`), None = taken together;
     ``velocity`` ``(V, dt)``: the camera's constant-velocity motion V over dt seconds, with which a
-    rolling shutter (``features.rolling_shutter``, None = the camera's ``readout``; > 0 s) is undone: every key point is moved to
-    where it would be seen at the frame's time (its row's time taken from the readout).
+    rolling shutter (``features.rolling_shutter``, None = the camera's ``readout``; > 0 s) is
+    undone: every key point is moved to where it would be seen at the frame's time (its row's time
+    taken from the readout; the pixel of a point without depth turned by the row's rotation alone).
 
     Uses ``frame.detections`` when they were made ahead in this frame's image with the same
     features config."""
@@ -264,6 +265,7 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     if valid.any() and features.row_R is not None:  # rolling shutter: each point from its row's pose
         X = camera.backproject(features.uv_observed[valid], z[valid])
         pts[valid] = np.einsum("nij,nj->ni", features.row_R[valid], X) + features.row_t[valid]
+        features.uv[valid] = camera.project(pts[valid])  # with the row's translation: the pixel at the frame's time
     elif valid.any():
         pts[valid] = camera.backproject(features.uv[valid], z[valid])
     features.pts = pts
