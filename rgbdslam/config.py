@@ -80,6 +80,10 @@ class FeaturesConfig:
     # (Camera.readout: fr1 and the 7-Scenes camera file 0.0175 s, measured without ground truth by
     # scripts/calibrate_rolling_shutter.py; others 0)
     rolling_shutter: float | None = None
+    # the motion the rolling shutter is undone with: predict = the constant-velocity model (before
+    # the frame is registered); own = then again with the frame's own motion once it is tracked
+    # (for the later frames, the landmark map and loop closure; no second registration)
+    shutter_velocity: Literal["predict", "own"] = "predict"
 
 
 @dataclass

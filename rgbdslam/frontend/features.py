@@ -47,6 +47,7 @@ class FrameFeatures:
     row_R: np.ndarray | None = None
     row_t: np.ndarray | None = None
     uv_observed: np.ndarray | None = None
+    readout: float = 0.0  # the readout (s) the rolling shutter was undone with
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
 
@@ -237,6 +238,7 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
     readout = camera.readout if fc.rolling_shutter is None else fc.rolling_shutter
     if readout > 0 and velocity is not None and velocity[1] > 0 and len(uv):
         feats.row_R, feats.row_t = row_motions(det.uv_raw[:, 1], camera.height, readout, *velocity)
+        feats.readout = readout
         feats.uv_observed = uv
         feats.uv = shutter_corrected_pixels(uv, camera, feats.row_R)
     lift(feats, frame.depth, camera, mc)
@@ -272,6 +274,18 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     features.valid = valid
     features._tree = None
     features._tree_index = None
+
+
+def reshutter(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: MatchingConfig,
+              V: np.ndarray, dt: float) -> None:
+    """Undo the rolling shutter of ``features`` (made with a readout) again with another motion
+    ``V`` over ``dt`` seconds, in place: the row poses, the pixels and the 3-D points."""
+    if features.row_R is None or not dt > 0:
+        return
+    readout = features.readout
+    features.row_R, features.row_t = row_motions(features.uv_raw[:, 1], camera.height, readout, V, dt)
+    features.uv = shutter_corrected_pixels(features.uv_observed, camera, features.row_R)
+    lift(features, depth, camera, mc)
 
 
 def _depth_at_colour_time(features: FrameFeatures, depth: np.ndarray, camera: Camera, z: np.ndarray) -> np.ndarray:

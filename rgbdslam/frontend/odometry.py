@@ -28,7 +28,7 @@ import numpy as np
 
 from rgbdslam.config import Config, FeaturesConfig, MatchingConfig, RegistrationConfig
 from rgbdslam.datasets.base import Frame
-from rgbdslam.frontend.features import FrameFeatures, extract_features, lift
+from rgbdslam.frontend.features import FrameFeatures, extract_features, lift, reshutter
 from rgbdslam.frontend.pairwise import PairRegistration, RegistrationResult, build_pair_registration
 from rgbdslam.frontend.pose_fusion import fuse_candidates
 from rgbdslam.geometry.camera import Camera
@@ -184,6 +184,10 @@ class Frontend:
         miss = inv(pred) @ pose  # how far the prediction was off: translation + rotation at 2 m
         self._prediction_error = float(np.linalg.norm(miss[:3, 3]) + 2.0 * rotation_angle(miss[:3, :3]))
         self._velocity = (relative, frame.index - last.features.index, frame.timestamp - last.features.timestamp)
+        if self.fc.shutter_velocity == "own" and feats.row_R is not None:
+            # the rolling shutter undone again with this frame's own motion (centred half a frame
+            # back, the prediction's 1.5): what the later frames, the map and loop closure see
+            reshutter(feats, frame.depth, self.camera, self.mc, *self._velocity[::2])
         self._n_lost = 0
         self.refs.append(_Ref(feats, pose))
         timings["fusion"] = time.perf_counter() - t1

@@ -184,6 +184,14 @@ def test_extract_features_moves_each_key_point_to_the_frames_time():
     np.testing.assert_allclose(f.pts[0], Rb @ X, atol=1e-12)
     off = features(FeaturesConfig(rolling_shutter=0.0))
     np.testing.assert_allclose(off.pts[0], X, atol=1e-12)
+    from rgbdslam.frontend.features import reshutter
+
+    again = features(FeaturesConfig(rolling_shutter=0.030))
+    reshutter(again, frame.depth, CAM, mc, np.eye(4), 1 / 30)  # no motion after all: nothing to undo
+    np.testing.assert_allclose(again.uv, [[320.0, 0.0], [320.0, 240.0]], atol=1e-12)
+    np.testing.assert_allclose(again.pts[0], X, atol=1e-12)
+    reshutter(again, frame.depth, CAM, mc, V, 1 / 30)  # the same motion again: the same answer as before
+    np.testing.assert_allclose(again.pts, f.pts, atol=1e-12)
     frame.camera = dataclasses.replace(CAM, readout=0.030)  # None: the camera's own readout
     auto = features(FeaturesConfig())
     np.testing.assert_allclose(auto.pts[0], Rb @ X, atol=1e-12)
