@@ -397,6 +397,9 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
               help="Start further along the motion's path by this fraction (loop: 0.5 = the other side of the room).")
 @click.option("--time-offset", type=float, default=0.0, show_default=True,
               help="Seconds added to every time stamp (a second session of the same scene).")
+@click.option("--depth-delay", type=float, default=0.0, show_default=True, metavar="SECONDS",
+              help="Depth images taken this long after the colour ones (negative: before), as TUM's freiburg1 "
+                   "Kinect does (0-14 ms): depth rendered at the later pose, depth.txt stamped with it.")
 @click.option("--stereo", "baseline", type=float, default=None, metavar="BASELINE",
               help="Render a grey stereo pair per frame instead, the right camera BASELINE metres to the right "
                    "(same scene and trajectory as the RGB-D sequence of the same options).")
@@ -404,7 +407,8 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
               help="With --stereo: KITTI odometry or EuRoC/ASL folder layout.")
 @click.option("--blur", type=float, default=None, metavar="MS",
               help="Motion blur: exposure time in ms (0 = sharp, at most 33.3). Default: 16 for figure8, 0 otherwise.")
-def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase, time_offset, baseline, layout, blur):
+def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase, time_offset, depth_delay, baseline,
+          layout, blur):
     """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout), or with
     --stereo a stereo sequence (KITTI or EuRoC layout)."""
     if baseline is not None:
@@ -413,15 +417,16 @@ def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase,
         if dropout or drift:
             raise InputError("--dropout and --drift simulate an RGB-D depth sensor; a --stereo sequence has no depth "
                              "images (leave them out)")
-        if phase or time_offset:
-            raise InputError("--phase and --time-offset are for RGB-D sequences (sessions); leave them out with --stereo")
+        if phase or time_offset or depth_delay:
+            raise InputError("--phase, --time-offset and --depth-delay are for RGB-D sequences; leave them out with "
+                             "--stereo")
         synth_stereo_command(out, baseline=baseline, layout=layout, frames=frames, motion=motion, noise=noise,
                              seed=seed, camera=camera, width=size[0], height=size[1], blur=blur)
         return
     from rgbdslam.datasets.synthetic import synth_command
 
     synth_command(out, frames=frames, motion=motion, noise=noise, dropout=dropout, drift=drift, seed=seed,
-                  camera=camera, width=size[0], height=size[1], phase=phase, time_offset=time_offset, blur=blur)
+                  camera=camera, width=size[0], height=size[1], phase=phase, time_offset=time_offset, blur=blur, depth_delay=depth_delay)
 
 
 # ------------------------------------------------------------------------------- posegraph

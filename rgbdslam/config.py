@@ -69,6 +69,21 @@ class FeaturesConfig:
     grid_rows: int = 1  # >1 enables bucketing: features spread over a grid
     grid_cols: int = 1  # columns of the bucketing grid (see grid_rows)
     undistort: bool = True  # undistort key point positions with the camera's distortion before registration
+    # colour and depth images taken at different moments (Frame.depth_delay; TUM freiburg1: 0-14 ms):
+    # ignore = each key point's depth read at its own pixel; predict = read where its scene point was
+    # at the depth time, the camera's motion over the delay from the constant-velocity model
+    # (geometry/depth_time.py, docs/slam.md "Colour/depth time offset")
+    depth_delay: Literal["ignore", "predict"] = "ignore"
+    # rolling shutter: seconds from reading the first image row to the last (0 = global shutter); each
+    # key point is moved to the frame's time (the middle row's) with the constant-velocity model
+    # (geometry/depth_time.py row_motions, docs/slam.md "Rolling shutter"); None = the camera's own
+    # (Camera.readout: fr1 and the 7-Scenes camera file 0.0175 s, measured without ground truth by
+    # scripts/calibrate_rolling_shutter.py; others 0)
+    rolling_shutter: float | None = None
+    # the motion the rolling shutter is undone with: predict = the constant-velocity model (before
+    # the frame is registered); own = then again with the frame's own motion once it is tracked
+    # (for the later frames, the landmark map and loop closure; no second registration)
+    shutter_velocity: Literal["predict", "own"] = "predict"
 
 
 @dataclass
@@ -564,7 +579,7 @@ MAXIMA = {
     "dataset.stride": 10**6, "dataset.prefetch": 64, "dataset.reader_threads": 64,
     # features: OpenCV's ORB takes C ints; n_features x n_features Hamming matrices (~1 GB at 10000)
     "features.n_features": 10_000, "features.fast_threshold": 255, "features.grid_rows": 64,
-    "features.grid_cols": 64,
+    "features.grid_cols": 64, "features.rolling_shutter": 0.1,
     # matching: RANSAC hypotheses are drawn and scored at once (~3 kB each); cv2 gets 10x as maxIters
     "matching.prefilter_threshold": 1e3, "matching.prefilter_iterations": 20_000,
     "matching.min_depth": 1e3, "matching.max_depth": 1e3,

@@ -216,6 +216,9 @@ def main(argv=None) -> int:
     ap.add_argument("--blur", type=float, default=None, metavar="MS",
                     help="render the synthetic sequences with this exposure (ms; 0 = sharp) instead of each motion's "
                          "default (figure8: 16 ms, others sharp); the names then say it")
+    ap.add_argument("--depth-delay", type=float, default=0.0, metavar="S",
+                    help="render the synthetic depth images this many seconds after the colour ones (rgbdslam synth "
+                         "--depth-delay; TUM fr1-like); the names then say it")
     ap.add_argument("--variant", action="append", default=[])
     ap.add_argument("--no-open3d", action="store_true")
     ap.add_argument("--open3d-only", action="store_true",
@@ -268,11 +271,14 @@ def main(argv=None) -> int:
     if not a.skip_synthetic:
         for motion in a.motions.split(","):
             for seed in [int(s) for s in a.seeds.split(",")]:
-                tag = "" if a.blur is None else f"_blur{a.blur:g}"
+                tag = ("" if a.blur is None else f"_blur{a.blur:g}") + (f"_delay{a.depth_delay:g}" if a.depth_delay else "")
                 d = work / f"{motion}_s{seed}_{a.frames}{tag}"
                 if not (d / "groundtruth.txt").exists():
-                    generate_sequence(d, frames=a.frames, motion=motion, noise=True, seed=seed, blur=a.blur)
-                seqs.append((f"{motion}{'' if a.blur is None else f' blur {a.blur:g} ms'} seed {seed}", d))
+                    generate_sequence(d, frames=a.frames, motion=motion, noise=True, seed=seed, blur=a.blur,
+                                      depth_delay=a.depth_delay)
+                label = ("" if a.blur is None else f" blur {a.blur:g} ms") + \
+                    (f" depth {1e3 * a.depth_delay:g} ms late" if a.depth_delay else "")
+                seqs.append((f"{motion}{label} seed {seed}", d))
     rows = []
     for name, d in seqs:
         for vname, sets in ({} if a.open3d_only else variants).items():

@@ -26,6 +26,9 @@ class Frame:
     depth: np.ndarray  # (H, W) float32 metres, 0 = no measurement
     camera: Camera
     name: str = ""  # e.g. the colour file's relative path, for messages
+    # seconds from the colour image's time to the depth image's (TUM freiburg1: 0-14 ms; 0 = taken
+    # together); features.depth_delay compensates the camera's motion over it
+    depth_delay: float = 0.0
     # key points found ahead of time (frontend.features.detect, run in the reader thread), or None
     detections: Any = field(default=None, repr=False, compare=False)
     # stereo sources only: the rectified right image, and the depth noise model of the depth

@@ -11,6 +11,8 @@ sequence folder) gives the colour camera and, optionally, how the depth images r
     size: [640, 480]       # or width: / height:
     distortion: [0, 0, 0, 0, 0]   # OpenCV k1 k2 p1 p2 [k3] (alias: dist)
     depth_scale: 1000      # raw depth units per metre (TUM 5000, millimetres 1000)
+    rolling_shutter: 0.0175  # seconds from the first row read to the last (0 = global shutter;
+                           # scripts/calibrate_rolling_shutter.py measures it from a recording)
     # depth images not registered to colour (two sensors): the depth camera and the pose of the
     # depth camera in the colour camera's frame; the reader then re-projects every depth image
     # into the colour image (DepthRegistration)
@@ -37,7 +39,8 @@ from rgbdslam.io.text import read_text
 
 CAMERA_FILE = "camera.yaml"
 _INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "size", "dist", "distortion")
-KNOWN_KEYS = {"camera", *_INTRINSIC_KEYS, "depth_scale", "depth_camera", "depth_to_color"}
+KNOWN_KEYS = {"camera", *_INTRINSIC_KEYS, "depth_scale", "depth_camera", "depth_to_color", "rolling_shutter"}
+MAX_READOUT = 0.1  # seconds: a rolling shutter's readout is shorter than a frame
 
 
 @dataclass(frozen=True)
@@ -80,7 +83,7 @@ def _camera(data: dict, where: str, base: Camera | None, name: str) -> Camera:
     vals: dict = {}
     if base is not None:
         vals = dict(fx=base.fx, fy=base.fy, cx=base.cx, cy=base.cy, width=base.width, height=base.height,
-                    dist=base.dist)
+                    dist=base.dist, readout=base.readout)
     for k in ("fx", "fy", "cx", "cy", "width", "height"):
         if k in data:
             vals[k] = data[k]
@@ -97,7 +100,8 @@ def _camera(data: dict, where: str, base: Camera | None, name: str) -> Camera:
     try:
         dist = tuple(float(x) for x in (vals.get("dist") if vals.get("dist") is not None else (0.0,) * 5))
         cam = Camera(float(vals["fx"]), float(vals["fy"]), float(vals["cx"]), float(vals["cy"]),
-                     int(vals.get("width", 640)), int(vals.get("height", 480)), dist, name)
+                     int(vals.get("width", 640)), int(vals.get("height", 480)), dist, name,
+                     _readout(data.get("rolling_shutter", vals.get("readout", 0.0)), where))
     except (TypeError, ValueError, OverflowError):
         raise InputError(f"{where}: intrinsics must be numbers (dist a list of 5 numbers)") from None
     if len(dist) not in (4, 5, 8):
@@ -109,6 +113,14 @@ def _camera(data: dict, where: str, base: Camera | None, name: str) -> Camera:
                          f"cy within ±{MAX_PIXELS:g} pixels, dist within ±{MAX_DIST:g}, every value finite; got "
                          f"fx {cam.fx}, fy {cam.fy}, cx {cam.cx}, cy {cam.cy}, {cam.width}x{cam.height}")
     return cam
+
+
+def _readout(value, where: str) -> float:
+    """The ``rolling_shutter`` key: the readout time in seconds, 0 to :data:`MAX_READOUT`."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= MAX_READOUT:
+        raise InputError(f"{where}: rolling_shutter must be the readout time in seconds from 0 (global shutter) "
+                         f"to {MAX_READOUT:g}; got {value!r}")
+    return float(value)
 
 
 def _extrinsic(value, where: str) -> np.ndarray:

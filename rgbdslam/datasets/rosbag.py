@@ -518,7 +518,8 @@ class RosbagSequence(Sequence):
                              f"pass --camera FILE matching the images")
         if self.registration is not None:
             depth = self.registration(depth)
-        return Frame(i, float(self._timestamps[i]), rgb, depth, cam, f"{self.color.topic}#{ci}")
+        return Frame(i, float(self._timestamps[i]), rgb, depth, cam, f"{self.color.topic}#{ci}",
+                     depth_delay=float(self.depth_timestamps[i] + self._cfg.offset - self._timestamps[i]))
 
     def groundtruth(self) -> Trajectory | None:
         """A TUM trajectory given by ``dataset.groundtruth`` (bags rarely carry one)."""

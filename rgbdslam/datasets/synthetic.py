@@ -536,6 +536,7 @@ def dropout_mask(shape: tuple[int, int], fraction: float, rng: np.random.Generat
 MAX_SIZE = 4096  # pixels per image side
 MAX_FRAMES = 100_000  # ~55 min at 30 Hz
 MAX_EXPOSURE_MS = 1000.0 / FPS  # the shutter cannot stay open longer than a frame
+MAX_DEPTH_DELAY = 1.0 / FPS  # seconds between a frame's colour and depth images, at most a frame
 GENERATED = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml", "synthetic.yaml")
 
 
@@ -544,7 +545,7 @@ def _is_int(v) -> bool:
 
 
 def validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera, phase=0.0,
-                        time_offset=0.0, blur=None) -> None:
+                        time_offset=0.0, blur=None, depth_delay=0.0) -> None:
     """Check every parameter of :func:`generate_sequence` before anything is written; an
     InputError names the parameter (as the ``synth`` option) and its valid range."""
     if not _is_int(frames) or not 1 <= frames <= MAX_FRAMES:
@@ -568,6 +569,10 @@ def validate_parameters(frames, motion, width, height, noise, dropout, drift, se
         raise InputError(f"--phase must be a fraction in [0, 1) (got {phase!r})")
     if isinstance(time_offset, bool) or not isinstance(time_offset, (int, float)) or not 0.0 <= time_offset <= 1e6:
         raise InputError(f"--time-offset must be seconds from 0 to 1e6 (got {time_offset!r})")
+    if isinstance(depth_delay, bool) or not isinstance(depth_delay, (int, float)) \
+            or not abs(depth_delay) <= MAX_DEPTH_DELAY:
+        raise InputError(f"--depth-delay must be seconds from -{MAX_DEPTH_DELAY:g} to {MAX_DEPTH_DELAY:g} (one frame "
+                         f"at {FPS:g} Hz) (got {depth_delay!r})")
     if blur is not None and (isinstance(blur, bool) or not isinstance(blur, (int, float))
                              or not 0.0 <= blur <= MAX_EXPOSURE_MS):
         raise InputError(f"--blur must be an exposure time in milliseconds from 0 (sharp) to {MAX_EXPOSURE_MS:.1f} "
@@ -678,6 +683,7 @@ def generate_sequence(
     phase: float = 0.0,
     time_offset: float = 0.0,
     blur: float | None = None,
+    depth_delay: float = 0.0,
 ) -> dict:
     """Render a synthetic sequence into ``out_dir`` (TUM layout) and return a summary.
 
@@ -690,12 +696,16 @@ def generate_sequence(
     stamps: two sequences of one seed are two sessions in the same scene. ``blur``: exposure time
     in ms of a box shutter centred on each frame's time (:func:`render_exposure`; the colour image
     is blurred along its motion, the depth stays the frame's exact depth); None = the motion's
-    default (:data:`DEFAULT_EXPOSURE_MS`: 16 ms for figure8, sharp otherwise). Written: ``rgb/``,
+    default (:data:`DEFAULT_EXPOSURE_MS`: 16 ms for figure8, sharp otherwise). ``depth_delay``
+    (s): each depth image is rendered at the pose that much later than the colour image (the
+    ground truth stays at the colour times) and depth.txt carries its later stamp, as TUM's
+    freiburg1 Kinect (colour and depth exposed 0-14 ms apart). Written: ``rgb/``,
     ``depth/`` (16-bit, 5000 per metre), ``rgb.txt``, ``depth.txt``, ``groundtruth.txt``,
     ``camera.yaml`` (read by the TUM reader), ``synthetic.yaml`` (these parameters; with blur its
     exposure and streak lengths, with the revisit motion its visits' frame ranges).
     """
-    validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera, phase, time_offset, blur)
+    validate_parameters(frames, motion, width, height, noise, dropout, drift, seed, camera, phase, time_offset, blur,
+                        depth_delay)
     start = time.perf_counter()
     out = Path(out_dir)
     _check_output(out)
@@ -705,6 +715,8 @@ def generate_sequence(
                   dropout=float(dropout), drift=float(drift), seed=int(seed), camera=camera)
     if phase or time_offset:  # only then: earlier sequences' synthetic.yaml stay as they were
         params.update(phase=float(phase), time_offset=float(time_offset))
+    if depth_delay:
+        params.update(depth_delay=float(depth_delay))
     params.update(motion_parameters(motion, frames, resolve_blur(motion, blur)))
     # rendered into a temporary sibling folder that replaces ``out`` only when complete: a
     # failure or Ctrl-C part-way leaves an earlier sequence in ``out`` as it was
@@ -729,7 +741,8 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
         out / "camera.yaml",
         (f"camera: {camera}\n" if cam is CAMERAS[camera] else "")
         + f"fx: {cam.fx!r}\nfy: {cam.fy!r}\ncx: {cam.cx!r}\ncy: {cam.cy!r}\n"
-        f"width: {cam.width}\nheight: {cam.height}\ndist: [{', '.join(repr(float(d)) for d in cam.dist)}]\n",
+        f"width: {cam.width}\nheight: {cam.height}\ndist: [{', '.join(repr(float(d)) for d in cam.dist)}]\n"
+        "rolling_shutter: 0.0\n",  # rendered with a global shutter (a named camera's readout does not apply)
     )
     scene = Scene(seed)
     rays = Rays(cam)
@@ -737,11 +750,14 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
     stamps = EPOCH + params.get("time_offset", 0.0) + np.arange(frames) / FPS
     names = [f"{ts:.6f}.png" for ts in stamps]
     exposure = exposure_frames(params.get("motion_blur", {}).get("exposure_ms", 0.0))
+    delay = params.get("depth_delay", 0.0)
     pose_at = lambda u: trajectory_at(params["motion"], u, frames, params.get("phase", 0.0))  # noqa: E731
     streaks = []
     with frame_progress(frames, f"rendering {frames} frames", enabled=progress) as advance:
         for k in range(frames):
             *rendered, streak = render_exposure(scene, rays, pose_at, k, exposure)
+            if delay:  # the depth image of the pose ``delay`` later
+                rendered[1] = scene.render(rays, pose_at(np.array([k + delay * FPS]))[0])[1]
             streaks.append(streak)
             _write_frame(out, names[k], rendered, noise, dropout, drift, rng)
             advance()
@@ -749,7 +765,7 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
     atomic_write_text(out / "synthetic.yaml", yaml.safe_dump({"generator": "rgbdslam synthetic v1", **params}, sort_keys=False))
     header = "# timestamp filename\n"
     atomic_write_text(out / "rgb.txt", "# color images (synthetic)\n" + header + "".join(f"{t:.6f} rgb/{n}\n" for t, n in zip(stamps, names)))
-    atomic_write_text(out / "depth.txt", "# depth maps (synthetic)\n" + header + "".join(f"{t:.6f} depth/{n}\n" for t, n in zip(stamps, names)))
+    atomic_write_text(out / "depth.txt", "# depth maps (synthetic)\n" + header + "".join(f"{t + delay:.6f} depth/{n}\n" for t, n in zip(stamps, names)))
     write_tum(Trajectory(stamps, poses), out / "groundtruth.txt")
 
 

@@ -126,6 +126,7 @@ class RgbdFileSequence(Sequence):
         depth_correction: float = 1.0,
         depth_timestamps: np.ndarray | None = None,
         invalid_depth: int | None = None,
+        depth_offset: float = 0.0,
     ) -> None:
         self.root = Path(root)
         self.name = name
@@ -139,6 +140,7 @@ class RgbdFileSequence(Sequence):
         self.depth_timestamps = (
             self._timestamps.copy() if depth_timestamps is None else np.asarray(depth_timestamps, dtype=np.float64)
         )
+        self.depth_offset = float(depth_offset)  # dataset.offset: added to the depth stamps (their clock's offset)
         self.rgb_files = list(rgb_files)
         self.depth_files = list(depth_files)
         if depth_scale <= 0:
@@ -172,7 +174,8 @@ class RgbdFileSequence(Sequence):
             name = str(rgb_path.relative_to(self.root))
         except ValueError:
             name = str(rgb_path)
-        return Frame(i, float(self._timestamps[i]), rgb, depth, self.camera, name)
+        return Frame(i, float(self._timestamps[i]), rgb, depth, self.camera, name,
+                     depth_delay=float(self.depth_timestamps[i] + self.depth_offset - self._timestamps[i]))
 
 
 # ------------------------------------------------------------------ TUM lists and camera
@@ -390,6 +393,7 @@ class TumSequence(RgbdFileSequence):
             depth_scale=pick_depth_scale(cfg, setup, TUM_DEPTH_SCALE),
             depth_correction=cfg.depth_correction,
             depth_timestamps=ts_d[ib],
+            depth_offset=cfg.offset,
         )
 
     def groundtruth(self) -> Trajectory | None:

@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from rgbdslam.config import FeaturesConfig, MatchingConfig
 from rgbdslam.datasets.base import Frame
 from rgbdslam.geometry.camera import Camera
+from rgbdslam.geometry.depth_time import depth_at_colour_time, row_motions, shutter_corrected_pixels
 
 
 @dataclass
@@ -36,6 +37,17 @@ class FrameFeatures:
     response: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (N,) ORB response
     octave: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int8))  # (N,) ORB pyramid level (scale^octave px)
     depth_noise: Any = None  # the frame's DepthNoise (stereo) or None: covariance of pts
+    # pose of the camera when the depth image was taken, in the camera at the colour time (4x4,
+    # X_colour = depth_motion @ X_depth), or None (taken together): :func:`lift` reads each key
+    # point's depth where its scene point was at the depth time (geometry/depth_time.py)
+    depth_motion: np.ndarray | None = None
+    # rolling shutter (features.rolling_shutter): each key point's row pose in the camera at the
+    # frame's time, rotation (N,3,3) and translation (N,3), and its pixel as observed (N,2, ideal);
+    # ``uv`` then holds the pixels at the frame's time and :func:`lift` moves the points likewise
+    row_R: np.ndarray | None = None
+    row_t: np.ndarray | None = None
+    uv_observed: np.ndarray | None = None
+    readout: float = 0.0  # the readout (s) the rolling shutter was undone with
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
 
@@ -191,9 +203,16 @@ def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:
     return frame
 
 
-def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig) -> FrameFeatures:
+def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
+                     depth_motion: np.ndarray | None = None,
+                     velocity: tuple[np.ndarray, float] | None = None) -> FrameFeatures:
     """ORB on the colour image of ``frame`` (``features`` section), lifted to 3-D with its depth
-    (within the ``matching`` section's depth range).
+    (within the ``matching`` section's depth range); ``depth_motion``: the camera's motion from the
+    colour to the depth image's time (see :class:`FrameFeatures`), None = taken together;
+    ``velocity`` ``(V, dt)``: the camera's constant-velocity motion V over dt seconds, with which a
+    rolling shutter (``features.rolling_shutter``, None = the camera's ``readout``; > 0 s) is
+    undone: every key point is moved to where it would be seen at the frame's time (its row's time
+    taken from the readout; the pixel of a point without depth turned by the row's rotation alone).
 
     Uses ``frame.detections`` when they were made ahead in this frame's image with the same
     features config."""
@@ -214,7 +233,14 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig) -> Fr
         response=det.response,
         octave=det.octave,
         depth_noise=frame.depth_noise,
+        depth_motion=depth_motion,
     )
+    readout = camera.readout if fc.rolling_shutter is None else fc.rolling_shutter
+    if readout > 0 and velocity is not None and velocity[1] > 0 and len(uv):
+        feats.row_R, feats.row_t = row_motions(det.uv_raw[:, 1], camera.height, readout, *velocity)
+        feats.readout = readout
+        feats.uv_observed = uv
+        feats.uv = shutter_corrected_pixels(uv, camera, feats.row_R)
     lift(feats, frame.depth, camera, mc)
     return feats
 
@@ -223,7 +249,10 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     """(Re)compute ``features.pts`` / ``features.valid`` from a metric depth image, in place.
 
     Depth is read at the rounded distorted key-point location; points outside
-    ``[matching.min_depth, matching.max_depth]`` or without depth are invalid (NaN).
+    ``[matching.min_depth, matching.max_depth]`` or without depth are invalid (NaN). With
+    ``features.depth_motion`` the depth is read where the key point's scene point was when the
+    depth image was taken, and brought to the colour time
+    (:func:`rgbdslam.geometry.depth_time.depth_at_colour_time`).
     """
     n = len(features.uv)
     raw = features.uv_raw if len(features.uv_raw) == n else features.uv
@@ -231,11 +260,40 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     u = np.clip(np.rint(raw[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.rint(raw[:, 1]).astype(int), 0, h - 1)
     z = depth[v, u].astype(np.float64) if n else np.zeros(0)
+    if features.depth_motion is not None and n:
+        z = _depth_at_colour_time(features, depth, camera, z)
     valid = np.isfinite(z) & (z >= mc.min_depth) & (z <= mc.max_depth)
     pts = np.full((n, 3), np.nan)
-    if valid.any():
+    if valid.any() and features.row_R is not None:  # rolling shutter: each point from its row's pose
+        X = camera.backproject(features.uv_observed[valid], z[valid])
+        pts[valid] = np.einsum("nij,nj->ni", features.row_R[valid], X) + features.row_t[valid]
+        features.uv[valid] = camera.project(pts[valid])  # with the row's translation: the pixel at the frame's time
+    elif valid.any():
         pts[valid] = camera.backproject(features.uv[valid], z[valid])
     features.pts = pts
     features.valid = valid
     features._tree = None
     features._tree_index = None
+
+
+def reshutter(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: MatchingConfig,
+              V: np.ndarray, dt: float) -> None:
+    """Undo the rolling shutter of ``features`` (made with a readout) again with another motion
+    ``V`` over ``dt`` seconds, in place: the row poses, the pixels and the 3-D points."""
+    if features.row_R is None or not dt > 0:
+        return
+    readout = features.readout
+    features.row_R, features.row_t = row_motions(features.uv_raw[:, 1], camera.height, readout, V, dt)
+    features.uv = shutter_corrected_pixels(features.uv_observed, camera, features.row_R)
+    lift(features, depth, camera, mc)
+
+
+def _depth_at_colour_time(features: FrameFeatures, depth: np.ndarray, camera: Camera, z: np.ndarray) -> np.ndarray:
+    """The key points' depths at the colour time; the first guess is the depth at the key point
+    itself, else the median of those (a point off a surface edge reads its neighbour's)."""
+    good = np.isfinite(z) & (z > 0)
+    if not good.any():
+        return z
+    z0 = np.where(good, z, np.median(z[good]))
+    uv = features.uv if features.uv_observed is None else features.uv_observed
+    return depth_at_colour_time(uv, depth, camera, features.depth_motion, z0)

@@ -25,16 +25,15 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from rgbdslam.config import Config, FeaturesConfig, MatchingConfig, RegistrationConfig
 from rgbdslam.datasets.base import Frame
-from rgbdslam.frontend.features import FrameFeatures, extract_features, lift
+from rgbdslam.frontend.features import FrameFeatures, extract_features, lift, reshutter
 from rgbdslam.frontend.pairwise import PairRegistration, RegistrationResult, build_pair_registration
 from rgbdslam.frontend.pose_fusion import fuse_candidates
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.rigid import fit_rigid, residuals
-from rgbdslam.geometry.se3 import inv, rotation_angle, transform_points
+from rgbdslam.geometry.se3 import inv, rotation_angle, scale_motion, transform_points
 
 
 @dataclass
@@ -67,14 +66,10 @@ class _Ref:
     pose: np.ndarray
 
 
-def _scale_motion(V: np.ndarray, factor: float) -> np.ndarray:
-    """The rigid motion V scaled on SE(3) by ``factor`` (rotation vector and translation)."""
-    if factor == 1.0:
-        return V
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(V[:3, :3]).as_rotvec() * factor).as_matrix()
-    out[:3, 3] = V[:3, 3] * factor
-    return out
+def _motion(prev: _Ref, last: _Ref) -> tuple[np.ndarray, int, float]:
+    """The constant-velocity model between two tracked frames: motion, index gap, time gap."""
+    return (inv(prev.pose) @ last.pose, last.features.index - prev.features.index,
+            last.features.timestamp - prev.features.timestamp)
 
 
 class Frontend:
@@ -89,7 +84,8 @@ class Frontend:
         self.register = register
         self.mp = max(1, rc.mp) if register.strategy.multi_reference else 1
         self.refs: deque[_Ref] = deque(maxlen=self.mp)
-        self._velocity: tuple[np.ndarray, int] | None = None  # (motion between last two tracked, index gap)
+        # (motion between the last two tracked frames, their index gap, their time gap in s)
+        self._velocity: tuple[np.ndarray, int, float] | None = None
         self._n_lost = 0  # consecutive lost frames
         self._prediction_error = np.inf  # how far the last tracked frame was from its prediction (m)
         self.n_newest_guided = 0  # frames whose newest reference was matched around the prediction
@@ -110,8 +106,26 @@ class Frontend:
         last = self.refs[-1]
         if not self.rc.constant_velocity or self._velocity is None:
             return last.pose
-        V, gap = self._velocity
-        return last.pose @ _scale_motion(V, (index - last.features.index) / gap)
+        V, gap, _ = self._velocity
+        return last.pose @ scale_motion(V, (index - last.features.index) / gap)
+
+    def _time_velocity(self) -> tuple[np.ndarray, float] | None:
+        """The constant-velocity model as (motion, seconds it took), for the rolling shutter."""
+        if self._velocity is None or not self.rc.constant_velocity:
+            return None
+        V, _, dt = self._velocity
+        return (V, dt) if dt > 0 else None
+
+    def _depth_motion(self, frame: Frame) -> np.ndarray | None:
+        """The camera's motion from the colour to the depth image's time (``features.depth_delay``
+        = predict): the constant-velocity model scaled to the frame's ``depth_delay``; None when
+        there is no delay, no velocity yet, or the compensation is off."""
+        if self.fc.depth_delay == "ignore" or not frame.depth_delay or self._velocity is None:
+            return None
+        V, _, dt = self._velocity
+        if not dt > 0:
+            return None
+        return scale_motion(V, frame.depth_delay / dt)
 
     def set_depth(self, index: int, depth: np.ndarray) -> None:
         """Replace a kept reference frame's depth (e.g. DIF output) and re-lift its 3-D points."""
@@ -123,7 +137,7 @@ class Frontend:
     def track(self, frame: Frame) -> TrackResult:
         rc = self.rc
         t0 = time.perf_counter()
-        feats = extract_features(frame, self.fc, self.mc)
+        feats = extract_features(frame, self.fc, self.mc, self._depth_motion(frame), self._time_velocity())
         timings = {"features": time.perf_counter() - t0, "matching": 0.0, "registration": 0.0, "fusion": 0.0}
         need = max(3, rc.min_points)
         if not self.refs:
@@ -169,7 +183,11 @@ class Frontend:
         relative = inv(last.pose) @ pose
         miss = inv(pred) @ pose  # how far the prediction was off: translation + rotation at 2 m
         self._prediction_error = float(np.linalg.norm(miss[:3, 3]) + 2.0 * rotation_angle(miss[:3, :3]))
-        self._velocity = (relative, frame.index - last.features.index)
+        self._velocity = (relative, frame.index - last.features.index, frame.timestamp - last.features.timestamp)
+        if self.fc.shutter_velocity == "own" and feats.row_R is not None:
+            # the rolling shutter undone again with this frame's own motion (centred half a frame
+            # back, the prediction's 1.5): what the later frames, the map and loop closure see
+            reshutter(feats, frame.depth, self.camera, self.mc, *self._velocity[::2])
         self._n_lost = 0
         self.refs.append(_Ref(feats, pose))
         timings["fusion"] = time.perf_counter() - t1
@@ -313,7 +331,7 @@ class Frontend:
         last.pose = np.array(pose, dtype=np.float64)
         if len(self.refs) > 1:
             prev = self.refs[-2]
-            self._velocity = (inv(prev.pose) @ last.pose, last.features.index - prev.features.index)
+            self._velocity = _motion(prev, last)
 
     def move_references(self, poses: dict[int, np.ndarray]) -> None:
         """New poses ``{frame index: pose}`` for reference frames moved by the back end (local BA)."""
@@ -323,7 +341,7 @@ class Frontend:
                 r.pose = np.array(P, dtype=np.float64)
         if len(self.refs) > 1 and self._velocity is not None:  # the constant-velocity model follows
             prev, last = self.refs[-2], self.refs[-1]
-            self._velocity = (inv(prev.pose) @ last.pose, last.features.index - prev.features.index)
+            self._velocity = _motion(prev, last)
 
     def predict_pose(self, index: int) -> np.ndarray | None:
         """Constant-velocity prediction of frame ``index``'s pose (for writing lost frames)."""

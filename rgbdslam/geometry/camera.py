@@ -18,6 +18,9 @@ class Camera:
     height: int = 480
     dist: tuple[float, ...] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
     name: str = ""
+    # rolling shutter: seconds from reading the first row to the last (0 = global shutter or unknown);
+    # features.rolling_shutter (None) takes it from here (docs/slam.md "Rolling shutter")
+    readout: float = 0.0
 
     @property
     def K(self) -> np.ndarray:
@@ -35,6 +38,16 @@ class Camera:
         out = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, np.array(self.dist), P=self.K)
         return out.reshape(-1, 2)
 
+    def distort_points(self, uv: np.ndarray) -> np.ndarray:
+        """Ideal pinhole pixel coordinates (N,2) -> distorted pixel coordinates (N,2) (the
+        inverse of :meth:`undistort_points`)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if not self.has_distortion or len(uv) == 0:
+            return uv
+        xy1 = np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy, np.ones(len(uv))])
+        out, _ = cv2.projectPoints(xy1.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, np.array(self.dist))
+        return out.reshape(-1, 2)
+
     def backproject(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Ideal pixel coordinates (N,2) and depth (N,) in metres -> camera points (N,3)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
@@ -50,9 +63,12 @@ class Camera:
         return np.stack([self.fx * P[:, 0] / z + self.cx, self.fy * P[:, 1] / z + self.cy], axis=1)
 
 
-# Known cameras (TUM RGB-D calibration page; Kraft et al. 2016 for the PUT Kinect v1)
+# Known cameras (TUM RGB-D calibration page; Kraft et al. 2016 for the PUT Kinect v1). Rolling-shutter
+# readout only where measured (fr1); 0 = not compensated
 CAMERAS: dict[str, Camera] = {
-    "fr1": Camera(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633), "fr1"),
+    # fr1's rolling shutter readout (17.5 ms): the readout that makes fr1/rpy's odometry agree best with its
+    # loop closures, measured without ground truth (scripts/calibrate_rolling_shutter.py, docs/slam.md)
+    "fr1": Camera(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633), "fr1", 0.0175),
     "fr2": Camera(520.9, 521.0, 325.1, 249.7, 640, 480, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172), "fr2"),
     "fr3": Camera(535.4, 539.2, 320.1, 247.6, 640, 480, (0.0, 0.0, 0.0, 0.0, 0.0), "fr3"),
     "ros_default": Camera(525.0, 525.0, 319.5, 239.5, 640, 480, (0.0, 0.0, 0.0, 0.0, 0.0), "ros_default"),

@@ -42,6 +42,17 @@ def motion_between(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(rotation_angle(rel[:3, :3])))
 
 
+def scale_motion(V: np.ndarray, factor: float) -> np.ndarray:
+    """The rigid motion V scaled on SE(3) by ``factor`` (rotation vector and translation scaled
+    alike): the constant-velocity motion over ``factor`` times V's time span."""
+    if factor == 1.0:
+        return V
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(V[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = V[:3, 3] * factor
+    return out
+
+
 def project_to_so3(M: np.ndarray) -> np.ndarray:
     """Closest rotation to a 3x3 matrix in the Frobenius norm (chordal projection)."""
     U, _, Vt = np.linalg.svd(M)

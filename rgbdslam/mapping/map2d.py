@@ -304,9 +304,10 @@ def write_map2d(grid: Map2D, out_dir: str | Path, trajectory: Trajectory | None 
         "occupied_thresh": 0.65,
         "free_thresh": 0.196,
         "mode": "trinary",
-        # to 1e-9 (nm, nrad): the floor fit's last digits follow the summation order of the cloud, which
-        # differs between the map fused while tracking and `rgbdslam fuse` of the same run
-        "rgbdslam_world_to_map": [[round(float(v), 9) + 0.0 for v in r] for r in grid.world_to_map],
+        # to 1e-6 (µm, µrad): the floor fit's last digits follow the summation order of the cloud, which
+        # differs between the map fused while tracking and `rgbdslam fuse` of the same run (by ~1e-9:
+        # rounded to 1e-9 a value could still fall on either side, as on fr1/desk)
+        "rgbdslam_world_to_map": [[round(float(v), 6) + 0.0 for v in r] for r in grid.world_to_map],
         "rgbdslam_up_source": grid.up_source,
         "rgbdslam_floor_source": grid.floor_source,
     }

@@ -15,6 +15,7 @@ from rgbdslam.config import load_config
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.rosbag import RosbagSequence, decode_depth
 from rgbdslam.datasets.tum import TumSequence
+from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.geometry.depth_registration import DepthRegistration
 from rgbdslam.io.trajectory import read_tum
 from rgbdslam.pipeline import run_sequence
@@ -26,7 +27,9 @@ FRAMES = 30
 
 
 def _cfg(*extra):
-    return load_config(None, ["mapping.enabled=false", "output.plots=false", f"dataset.max_frames={FRAMES}", *extra])
+    # a bag's CameraInfo has no rolling-shutter readout: the runs use fr1's, as the folder run does
+    return load_config(None, ["mapping.enabled=false", "output.plots=false", f"dataset.max_frames={FRAMES}",
+                              f"features.rolling_shutter={CAMERAS['fr1'].readout}", *extra])
 
 
 @pytest.fixture(scope="module")
