@@ -539,6 +539,9 @@ class LiveMap:
                 self._stop()  # it may still be writing into the folder that is about to be removed
                 raise
             self._proc.join(timeout=30)
+            # the map process has ended: a job still in the pipe (a keyframe sent while an interrupted run
+            # was winding down) has no reader, and the interpreter's exit must not wait to flush it
+            self._jobs.cancel_join_thread()
             timings.update(mesh["timings"])
             return FuseResult(out_dir=stage, cloud_path=Path(cloud_path),
                               mesh_path=Path(mesh["mesh_path"]) if mesh["mesh_path"] else None,
