@@ -44,11 +44,36 @@ class TrackingLost(RgbdslamError):
 _interrupted = False
 
 
+IMPORT_MACHINERY = "<frozen importlib"  # the code name of importlib's own frames
+REDELIVER_S = 0.02  # a Ctrl-C that arrived inside the import machinery is raised again this much later
+
+
 def on_sigint(signum, frame) -> None:
-    """SIGINT handler of the command line: remember the interruption, then raise as Python's own."""
+    """SIGINT handler of the command line: remember the interruption, then raise as Python's own.
+
+    Not inside the import machinery: a KeyboardInterrupt raised between importlib's taking of the
+    global import lock and its ``try`` (or in its weak-reference callback, whose exceptions Python
+    only prints) leaves that lock held, and the next import in any other thread waits forever (a
+    run hung after Ctrl-C that way). There the signal is sent again a moment later, when the import
+    is done."""
     global _interrupted
+    f = frame
+    while f is not None:
+        if f.f_code.co_filename.startswith(IMPORT_MACHINERY):
+            _redeliver(signum)
+            return
+        f = f.f_back
     _interrupted = True
     raise KeyboardInterrupt
+
+
+def _redeliver(signum) -> None:
+    import os
+    import threading
+
+    t = threading.Timer(REDELIVER_S, os.kill, (os.getpid(), signum))
+    t.daemon = True
+    t.start()
 
 
 def was_interrupted() -> bool:

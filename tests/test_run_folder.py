@@ -83,6 +83,31 @@ def test_ctrl_c_in_a_real_process_is_never_a_traceback(desk9, tmp_path, delay):
         assert _status(run)["status"] == "interrupted"
 
 
+def test_a_ctrl_c_inside_the_import_machinery_is_raised_again_after_it():
+    """The handler called from a frame of importlib's own code (compiled under its code name) does
+    not raise there — a KeyboardInterrupt there can leave the global import lock held — but sends
+    the signal again; raised anywhere else it is the KeyboardInterrupt, as before."""
+    from rgbdslam import errors
+
+    got = []
+    old = signal.signal(signal.SIGINT, lambda s, f: got.append(s))
+    try:
+        was = errors._interrupted
+        code = compile("errors.on_sigint(signal.SIGINT, sys._getframe())", "<frozen importlib._bootstrap>", "exec")
+        exec(code, {"errors": errors, "signal": signal, "sys": sys})  # returns: nothing raised
+        assert errors._interrupted == was  # not yet an interruption
+        deadline = time.monotonic() + 5
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert got == [signal.SIGINT]  # sent again, to whatever handler is in place then
+        with pytest.raises(KeyboardInterrupt):
+            errors.on_sigint(signal.SIGINT, sys._getframe())
+        assert errors._interrupted
+    finally:
+        errors._interrupted = False
+        signal.signal(signal.SIGINT, old)
+
+
 # ----------------------------------------------------------------------------- class 4: lock
 
 _HOLD = """
