@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import multiprocessing as mp
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterable, Iterator
 
 from rgbdslam.engine.base import DEFAULT_RETRIES, Engine, EngineError
+from rgbdslam.io.worker import spawn_context
 
 _SHARED: dict[str, Any] = {}
 
@@ -42,7 +42,7 @@ class LocalEngine(Engine):
     def _pool_map(self, fn, jobs, shared) -> Iterator[tuple[int, Any]]:
         todo = dict(enumerate(jobs))
         attempts = {k: 0 for k in todo}
-        ctx = mp.get_context("spawn")
+        ctx = spawn_context()
         while todo:
             pool = ProcessPoolExecutor(min(self.workers, len(todo)), mp_context=ctx,
                                        initializer=_init_worker if shared is not None else None,

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive
+from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive, spawn_context
 
 
 class PlotWorker:
@@ -21,9 +21,7 @@ class PlotWorker:
     paths of the written plots (its error raised here), :meth:`close` ends it (also unused)."""
 
     def __init__(self, nice: int = 10):
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")
+        ctx = spawn_context()
         self._jobs = ctx.Queue()
         self._results = ctx.Queue()
         self._proc = ctx.Process(target=_serve, name="rgbdslam-plots", daemon=True, args=(self._jobs, self._results, nice))

@@ -6,6 +6,32 @@ from __future__ import annotations
 import os
 import queue
 
+_QUIET = "ignore:resource_tracker:UserWarning"
+
+
+def spawn_context():
+    """multiprocessing's ``spawn`` context, with its resource tracker (the process that unlinks
+    the named semaphores of the queues) started without warnings.
+
+    An interrupted run ends at once (``os._exit``, docs/robustness.md): the queues' semaphores are
+    then unlinked by the tracker, which is what it is for, but it also warns about each one
+    ("leaked semaphore", or an ``[Errno 2]`` when the other end had unlinked it) *after* the run's
+    last line. The tracker is a separate interpreter started with the ``-W`` options of
+    ``sys.warnoptions``: it is started here, once, with its own warnings ignored."""
+    import multiprocessing as mp
+    import sys
+    from multiprocessing import resource_tracker
+
+    added = _QUIET not in sys.warnoptions
+    if added:
+        sys.warnoptions.append(_QUIET)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        if added:
+            sys.warnoptions.remove(_QUIET)
+    return mp.get_context("spawn")
+
 
 def receive(results, proc, what: str) -> tuple[str, object]:
     """The next ``(status, value)`` from ``results``; an RgbdslamError naming ``what`` when the

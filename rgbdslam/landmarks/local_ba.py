@@ -230,12 +230,11 @@ class BAWorker:
     (the process's error raised here), :meth:`close` ends it. One problem in flight at a time."""
 
     def __init__(self, cfg: LandmarksConfig, camera: Camera):
-        import multiprocessing as mp
         import weakref
 
-        from rgbdslam.io.worker import end
+        from rgbdslam.io.worker import end, spawn_context
 
-        ctx = mp.get_context("spawn")
+        ctx = spawn_context()
         self._jobs = ctx.Queue()
         self._results = ctx.Queue()
         self._proc = ctx.Process(target=_serve, name="rgbdslam-local-ba", daemon=True,

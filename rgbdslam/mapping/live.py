@@ -484,9 +484,9 @@ class LiveMap:
     frames are tracked."""
 
     def __init__(self, cfg: MappingConfig, camera: Camera, root: str, dataset_cfg, depth_dir: str | None):
-        import multiprocessing as mp
+        from rgbdslam.io.worker import spawn_context
 
-        ctx = mp.get_context("spawn")
+        ctx = spawn_context()
         self.cfg = cfg
         self._jobs = ctx.Queue()
         self._results = ctx.Queue()

@@ -32,3 +32,30 @@ def test_an_error_in_the_niced_thread_is_raised_in_the_caller():
 
     with pytest.raises(ValueError, match="boom"):
         in_niced_thread(3, fail)
+
+
+def test_a_process_that_ends_at_once_leaves_no_resource_tracker_warning(tmp_path):
+    """An interrupted run ends with ``os._exit`` while its queues' semaphores still exist: the
+    resource tracker unlinks them without printing anything after the run's last line. Without
+    the quiet start (plain ``mp.get_context("spawn")``) the same script prints the tracker's
+    "leaked semaphore" warning."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "leak.py"
+    script.write_text(
+        "import os, sys\n"
+        "import multiprocessing as mp\n"
+        "from rgbdslam.io.worker import spawn_context\n"
+        "if __name__ == '__main__':\n"
+        "    ctx = spawn_context() if sys.argv[1] == 'quiet' else mp.get_context('spawn')\n"
+        "    q = ctx.Queue()\n"
+        "    q.put(1)\n"
+        "    print('last line', file=sys.stderr, flush=True)\n"
+        "    os._exit(0)\n")
+    for mode, warned in (("quiet", False), ("plain", True)):
+        p = subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stderr
+        lines = p.stderr.strip().splitlines()
+        assert lines[0] == "last line"
+        assert any("resource_tracker" in line for line in lines) is warned, (mode, p.stderr)
