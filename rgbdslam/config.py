@@ -96,6 +96,13 @@ class MatchingConfig:
     prefilter_iterations: int = 200  # RANSAC iterations of the pre-filter
     min_depth: float = 0.1  # metres: key points with depth outside [min_depth, max_depth] are not used
     max_depth: float = 6.0  # metres: see min_depth
+    # key points at depth discontinuities (issue 17): a key point whose (2r+1)^2 depth neighbourhood
+    # has a missing pixel or one differing from its own depth by more than depth_edge_jump * z is
+    # flagged (FrameFeatures.edge); 0 = off. Its depth may belong to the other surface (a
+    # misregistered or late depth image, mixed pixels along an outline)
+    depth_edge_radius: int = 0
+    depth_edge_jump: float = 0.05  # relative depth jump that makes a depth edge
+    depth_edge_use: Literal["all", "landmarks"] = "all"  # flagged points: no depth anywhere, or only not in the landmark map
 
 
 @dataclass
@@ -520,6 +527,7 @@ POSITIVE = {
     "features.n_features", "features.n_levels", "features.fast_threshold", "features.grid_rows",
     "features.grid_cols",
     "matching.ratio", "matching.prefilter_threshold", "matching.prefilter_iterations", "matching.max_depth",
+    "matching.depth_edge_jump",
     "registration.ransac_iterations", "registration.ransac_threshold", "registration.max_iterations",
     "registration.e_start", "registration.e_min", "registration.mp", "registration.alpha",
     "registration.reject_translation", "registration.reject_rotation", "registration.pregate",
@@ -583,6 +591,7 @@ MAXIMA = {
     # matching: RANSAC hypotheses are drawn and scored at once (~3 kB each); cv2 gets 10x as maxIters
     "matching.prefilter_threshold": 1e3, "matching.prefilter_iterations": 20_000,
     "matching.min_depth": 1e3, "matching.max_depth": 1e3,
+    "matching.depth_edge_radius": 32, "matching.depth_edge_jump": 10.0,
     "registration.ransac_iterations": 20_000, "registration.ransac_threshold": 10.0,
     "registration.max_iterations": 1000, "registration.e_start": 100.0, "registration.e_min": 100.0,
     "registration.mp": 64, "registration.alpha": 100.0, "registration.min_error": 100.0,

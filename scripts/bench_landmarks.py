@@ -224,6 +224,8 @@ def main(argv=None) -> int:
     ap.add_argument("--open3d-only", action="store_true",
                     help="only Open3D's odometry on the loop-type sequences (its rows join a run's with --report)")
     ap.add_argument("--skip-real", action="store_true")
+    ap.add_argument("--real", default="rpy,7scenes",
+                    help="which real sequences to run (comma list of rpy, 7scenes; default both)")
     ap.add_argument("--skip-synthetic", action="store_true")
     ap.add_argument("--skip-default", action="store_true",
                     help="do not run the default configuration (its rows come from an earlier --json via --report)")
@@ -263,10 +265,10 @@ def main(argv=None) -> int:
     seqs: list[tuple[str, Path]] = []
     if not a.skip_real:
         rpy = a.data / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
-        if rpy.is_dir():
+        if rpy.is_dir() and "rpy" in a.real.split(","):
             seqs.append(("fr1/rpy head200", rpy))
         ss = a.sevenscenes or a.data / "7scenes" / "frames_0000_0299"
-        if ss.is_dir():  # the 7-Scenes reader with the colour camera of configs/7scenes_camera.yaml
+        if ss.is_dir() and "7scenes" in a.real.split(","):  # the 7-Scenes reader with the colour camera of configs/7scenes_camera.yaml
             seqs.append(("7-Scenes redkitchen 0-299", ss))
     if not a.skip_synthetic:
         for motion in a.motions.split(","):

@@ -52,12 +52,20 @@ def gradient(rgb: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(np.hypot(gx, gy), (5, 5), 1.5)
 
 
-def score(samples, f: float, cx: float, cy: float, tx: float, ty: float) -> float:
+def score(samples, f: float, cx: float, cy: float, tx: float, ty: float, T: np.ndarray | None = None,
+          fy: float | None = None) -> float:
+    """Mean colour gradient where the depth outlines land: the depth camera's points moved by
+    t = (tx, ty, 0) (or by the whole 4x4 depth-to-colour ``T``, rotation included) and projected
+    with the colour focal length ``f`` (``fy``: its y focal length, default ``f``)."""
+    fy = f if fy is None else fy
     total, n = 0.0, 0
     for P, grad in samples:
+        if T is not None:
+            P = P @ T[:3, :3].T + T[:3, 3]
+            tx = ty = 0.0
         z = P[:, 2]
         u = np.round(f * (P[:, 0] + tx) / z + cx).astype(np.int64)
-        v = np.round(f * (P[:, 1] + ty) / z + cy).astype(np.int64)
+        v = np.round(fy * (P[:, 1] + ty) / z + cy).astype(np.int64)
         ok = (u >= 0) & (u < grad.shape[1]) & (v >= 0) & (v < grad.shape[0])
         total += float(grad[v[ok], u[ok]].sum())
         n += int(ok.sum())
@@ -72,6 +80,9 @@ def main() -> int:
     ap.add_argument("--tx", default="-0.06:0.06:0.005", help="depth-to-colour x translation lo:hi:step (m)")
     ap.add_argument("--ty", default="-0.03:0.03:0.005", help="depth-to-colour y translation lo:hi:step (m)")
     ap.add_argument("--out", default=None, help="write a camera file with the best values")
+    ap.add_argument("--check", nargs="+", default=[], metavar="CAMERA_FILE",
+                    help="also score these camera files (colour intrinsics + depth_to_color, rotation included), "
+                         "e.g. a published calibration, on the same frames")
     a = ap.parse_args()
 
     def rng(text):
@@ -95,6 +106,14 @@ def main() -> int:
     print(f"as recorded (colour = depth camera, no offset): score {base:.2f}")
     for s, f, tx, ty in results[:5]:
         print(f"score {s:.2f}: colour focal {f:g}, depth-to-colour t = ({tx:+.3f}, {ty:+.3f}, 0) m")
+    for path in a.check:
+        from rgbdslam.datasets.camera_file import read_camera_file
+
+        setup = read_camera_file(path)
+        c, T = setup.camera, setup.depth_to_color if setup.depth_to_color is not None else np.eye(4)
+        print(f"score {score(samples, c.fx, c.cx, c.cy, 0.0, 0.0, T=T, fy=c.fy):.2f}: {path} (colour focal {c.fx:g}, "
+              f"t = ({T[0, 3]:+.4f}, {T[1, 3]:+.4f}, {T[2, 3]:+.4f}) m, rotation "
+              f"{np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))):.2f} deg)")
     _, f, tx, ty = results[0]
     if a.out:
         data = {

@@ -48,6 +48,8 @@ class FrameFeatures:
     row_t: np.ndarray | None = None
     uv_observed: np.ndarray | None = None
     readout: float = 0.0  # the readout (s) the rolling shutter was undone with
+    # (N,) bool: the key point sits at a depth discontinuity (matching.depth_edge_radius; all False when off)
+    edge: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
 
@@ -69,6 +71,12 @@ class FrameFeatures:
     def words(self) -> np.ndarray:
         """Descriptors as (N, 4) uint64 words (a view, no copy) for popcount matching."""
         return descriptor_words(self.desc)
+
+    @property
+    def map_valid(self) -> np.ndarray:
+        """(N,) bool: depth-valid and not at a depth edge (:attr:`edge`): the features the landmark
+        map matches and makes landmarks from."""
+        return self.valid & ~self.edge if len(self.edge) == len(self.valid) else self.valid
 
     @property
     def n_valid(self) -> int:
@@ -263,6 +271,11 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     if features.depth_motion is not None and n:
         z = _depth_at_colour_time(features, depth, camera, z)
     valid = np.isfinite(z) & (z >= mc.min_depth) & (z <= mc.max_depth)
+    features.edge = np.zeros(n, bool)
+    if mc.depth_edge_radius > 0 and n:
+        features.edge = depth_edges(depth, u, v, mc.depth_edge_radius, mc.depth_edge_jump) & valid
+        if mc.depth_edge_use == "all":
+            valid &= ~features.edge
     pts = np.full((n, 3), np.nan)
     if valid.any() and features.row_R is not None:  # rolling shutter: each point from its row's pose
         X = camera.backproject(features.uv_observed[valid], z[valid])
@@ -274,6 +287,25 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     features.valid = valid
     features._tree = None
     features._tree_index = None
+
+
+def depth_edges(depth: np.ndarray, u: np.ndarray, v: np.ndarray, radius: int, jump: float) -> np.ndarray:
+    """(N,) bool: pixel (u, v) lies at a depth discontinuity — some pixel of its (2r+1)² window
+    (``radius`` r; clipped at the image border) has no depth (0 or not finite) or differs from the
+    pixel's own depth z by more than ``jump`` · z. A depth read there may belong to the other
+    surface: a depth image registered a few pixels off the colour image, a late depth image under
+    motion, or the mixed pixels along an outline. A pixel without depth itself is not flagged."""
+    d = np.asarray(depth)
+    h, w = d.shape[:2]
+    z = d[v, u].astype(np.float64)
+    r = np.arange(-radius, radius + 1)
+    vv = np.clip(v[:, None, None] + r[None, :, None], 0, h - 1)
+    uu = np.clip(u[:, None, None] + r[None, None, :], 0, w - 1)
+    nb = d[vv, uu].reshape(len(u), -1).astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(nb) | (nb <= 0) | (np.abs(nb - z[:, None]) > jump * z[:, None])
+    has = np.isfinite(z) & (z > 0)
+    return has & bad.any(axis=1)
 
 
 def reshutter(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: MatchingConfig,

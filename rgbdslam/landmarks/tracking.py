@@ -72,7 +72,7 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     if first_before is not None:
         old = lmap.first[ids] < first_before
         ids, uv = ids[old], uv[old]
-    fi = np.flatnonzero(feats.valid)
+    fi = np.flatnonzero(feats.map_valid)
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv)
     if len(ids) == 0 or len(fi) == 0:
         return empty

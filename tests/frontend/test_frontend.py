@@ -394,3 +394,42 @@ def test_detect_then_compute_equals_detect_and_compute(which):
     assert np.array_equal(uv, ref_uv[keep]) and np.array_equal(resp, ref_resp[keep])
     assert np.array_equal(desc, ref[keep])
     assert np.array_equal(octave, np.array([k.octave for k in kps])[keep])
+
+
+def test_depth_edges_by_hand():
+    """A 2 m wall with a 1 m box in its left half, a hole at (7, 7): radius 1, jump 5 %."""
+    from rgbdslam.frontend.features import depth_edges
+
+    d = np.full((10, 10), 2.0)
+    d[:, :4] = 1.0  # columns 0-3 near, 4-9 far: the outline runs between columns 3 and 4
+    d[7, 7] = 0.0
+    d[1, 8] = 2.09  # 4.5 % of 2 m: noise, not an edge
+    u = np.array([1, 3, 4, 6, 7, 8, 9, 7, 0])
+    v = np.array([1, 1, 1, 1, 6, 7, 0, 7, 9])
+    edge = depth_edges(d, u, v, radius=1, jump=0.05)
+    # (1,1) inside the box; (3,1) and (4,1) on either side of the outline; (6,1) on the wall;
+    # (7,6) and (8,7) next to the hole; (9,0) at the corner beside the 2.09 pixel (|0.09| <= 0.1);
+    # (7,7) is the hole itself (no depth: not flagged); (0,9) at the border (clipped window, box only)
+    np.testing.assert_array_equal(edge, [False, True, True, False, True, True, False, False, False])
+    # radius 2 reaches the outline from (6,1)? no (columns 4-8); from column 5 yes
+    assert depth_edges(d, np.array([5, 6]), np.array([1, 1]), radius=2, jump=0.05).tolist() == [True, False]
+    # a larger jump tolerance keeps the 2.09 step smooth and a 1 m step an edge (50 % of 2 m > 40 %)
+    assert depth_edges(d, np.array([4]), np.array([4]), radius=1, jump=0.4).tolist() == [True]
+    assert depth_edges(d, np.array([4]), np.array([4]), radius=1, jump=1.01).tolist() == [False]
+
+
+@pytest.mark.data
+def test_depth_edge_points_lose_depth_or_only_their_landmarks(desk):
+    _, frames = desk
+    cfg = Config()
+    plain = extract_features(frames[0], cfg.features, cfg.matching)
+    assert not plain.edge.any()
+    cfg.matching.depth_edge_radius = 2
+    f = extract_features(frames[0], cfg.features, cfg.matching)
+    assert 0 < f.edge.sum() < 0.5 * plain.valid.sum()  # a real desk frame has outlines, most points are not on them
+    np.testing.assert_array_equal(f.valid, plain.valid & ~f.edge)
+    np.testing.assert_array_equal(f.map_valid, f.valid)
+    cfg.matching.depth_edge_use = "landmarks"
+    g = extract_features(frames[0], cfg.features, cfg.matching)
+    np.testing.assert_array_equal(g.valid, plain.valid)  # the registration keeps them
+    np.testing.assert_array_equal(g.map_valid, plain.valid & ~g.edge)
