@@ -76,11 +76,18 @@ class FrameFeatures:
     def map_valid(self) -> np.ndarray:
         """(N,) bool: depth-valid and not at a depth edge (:attr:`edge`): the features the landmark
         map matches and makes landmarks from."""
-        return self.valid & ~self.edge if len(self.edge) == len(self.valid) else self.valid
+        return map_valid(self)
 
     @property
     def n_valid(self) -> int:
         return int(np.count_nonzero(self.valid))
+
+
+def map_valid(feats) -> np.ndarray:
+    """``feats.valid`` without the key points flagged at depth edges (``feats.edge``, when it has one
+    flag per feature): the features the landmark map matches and makes landmarks from."""
+    edge = getattr(feats, "edge", None)
+    return feats.valid & ~edge if edge is not None and len(edge) == len(feats.valid) else feats.valid
 
 
 def descriptor_words(desc: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, project_to_so3, rotation_angle
 from rgbdslam.landmarks.kalman import observation_covariance, with_pose_drift
 from rgbdslam.landmarks.map import LandmarkMap
+from rgbdslam.frontend.features import map_valid
 from rgbdslam.landmarks.tracking import estimate_pose, match_to_map, refine_reprojection
 
 
@@ -312,7 +313,7 @@ class LandmarkTracker:
         m = self._last_matches
         if m is not None and len(m.feat):  # every descriptor match (inlier or not) keeps its feature out
             matched_feat[m.feat] = True
-        new = np.flatnonzero(feats.map_valid & ~matched_feat & (np.nan_to_num(feats.pts[:, 2]) < c.max_depth))
+        new = np.flatnonzero(map_valid(feats) & ~matched_feat & (np.nan_to_num(feats.pts[:, 2]) < c.max_depth))
         if len(new) and m is not None and m.cand_uv is not None and len(m.cand_uv) and c.new_min_distance > 0:
             # where a landmark already projects, no second one is made (it would compete with the old one)
             d, _ = cKDTree(m.cand_uv).query(feats.uv[new], k=1, distance_upper_bound=c.new_min_distance)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from rgbdslam.frontend.features import map_valid
 from rgbdslam.geometry.ransac import ransac_rigid
 from rgbdslam.geometry.rigid import fit_rigid
 from rgbdslam.geometry.se3 import inv
@@ -72,7 +73,7 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     if first_before is not None:
         old = lmap.first[ids] < first_before
         ids, uv = ids[old], uv[old]
-    fi = np.flatnonzero(feats.map_valid)
+    fi = np.flatnonzero(map_valid(feats))
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv)
     if len(ids) == 0 or len(fi) == 0:
         return empty
