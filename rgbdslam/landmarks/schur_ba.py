@@ -1,0 +1,295 @@
+"""The local bundle adjustment of :mod:`rgbdslam.landmarks.local_ba` solved in NumPy (``ba_solver: schur``).
+
+The same problem as the GTSAM graph — one stereo-style factor per (keyframe, landmark)
+observation (depth as a virtual disparity, the correlated pixel/disparity covariance, Huber),
+one Gaussian prior per landmark (its Kalman estimate), the older keyframes held — and the same
+Levenberg–Marquardt as GTSAM's ``LevenbergMarquardtOptimizer`` with its default parameters
+(λ₀ = 1e-5, ×/÷ 10, identity damping, step accepted when the model fidelity exceeds 1e-3, a λ
+search stopped when the cost changes by less than ``relativeErrorTol`` · cost, the same outer
+convergence test), so the two follow the same path and agree to rounding (tested against GTSAM).
+
+What is cheaper is the linear algebra. The problem is tiny in poses (a handful of free
+keyframes) and large in landmarks; GTSAM eliminates every landmark as a variable of its own
+(per-variable overhead dominates at this size). Here every observation is linearised at once
+(arrays of (N, 3, 6) and (N, 3, 3) Jacobians) and the landmarks are eliminated in closed form:
+the Schur complement
+
+    S = H_pp + λI − Σ_l H_pl (H_ll + λI)⁻¹ H_lp,
+
+a dense 6K × 6K system (K free keyframes) built from the observation pairs that share a
+landmark, is solved by Cholesky; the landmark steps follow by back substitution, 3 × 3 each.
+
+Residuals (whitened). The factor's covariance C = [[s², s², 0], [s², s² + σ_d², 0], [0, 0, s²]]
+(s = σ_px, σ_d the disparity noise) has C⁻¹ = WᵀW with W = [[1/s, 0, 0], [−1/σ_d, 1/σ_d, 0],
+[0, 0, 1/s]], so the whitened residual is (e_uL / s, (e_uR − e_uL) / σ_d, e_v / s): the left
+pixel, the disparity, the row. Pose perturbations are GTSAM's: right, ξ = (ω, v), retracted by
+the exponential map.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
+
+# GTSAM's LevenbergMarquardtParams defaults (the ones local_ba.solve keeps)
+LAMBDA_INITIAL = 1e-5
+LAMBDA_FACTOR = 10.0
+LAMBDA_UPPER = 1e5
+MIN_MODEL_FIDELITY = 1e-3
+ABSOLUTE_ERROR_TOL = 1e-5
+
+
+def _skew(p: np.ndarray) -> np.ndarray:
+    """(N, 3) -> (N, 3, 3) cross-product matrices."""
+    S = np.zeros((len(p), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -p[:, 2], p[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = p[:, 2], -p[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -p[:, 1], p[:, 0]
+    return S
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """(K, 6) tangent vectors (ω, v) -> (K, 4, 4): GTSAM's ``Pose3.Expmap`` (R = exp ω, t = J_l(ω) v)."""
+    xi = np.asarray(xi, float).reshape(-1, 6)
+    w, v = xi[:, :3], xi[:, 3:]
+    th2 = np.einsum("ni,ni->n", w, w)
+    th = np.sqrt(th2)
+    small = th2 < 1e-10
+    ths = np.where(small, 1.0, th)
+    A = np.where(small, 1.0 - th2 / 6.0, np.sin(ths) / ths)
+    B = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / (ths * ths))
+    Cc = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / (ths * ths * ths))
+    K = _skew(w)
+    KK = K @ K
+    eye = np.eye(3)
+    T = np.zeros((len(xi), 4, 4))
+    T[:, :3, :3] = eye + A[:, None, None] * K + B[:, None, None] * KK
+    V = eye + B[:, None, None] * K + Cc[:, None, None] * KK
+    T[:, :3, 3] = np.einsum("nij,nj->ni", V, v)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _huber_loss(e: np.ndarray, k: float) -> np.ndarray:
+    a = np.abs(e)
+    return np.where(a <= k, 0.5 * e * e, k * (a - 0.5 * k))
+
+
+class SchurBA:
+    """One local BA problem in arrays (built once; :meth:`optimize` runs LM on it).
+
+    ``poses`` (P, 4, 4) camera-to-world of every keyframe in the problem, ``free`` (P,) bool which
+    of them move; observations ``obs_pose`` (N,) index into ``poses``, ``obs_lm`` (N,) into the
+    landmarks ``X0`` (L, 3); ``meas`` (N, 3) = (u_left, v, z) measured; ``sigma_d`` (N,) the
+    disparity noise (px) of each observation; ``prior_info`` (L, 3, 3) the priors' information
+    (None: no priors); camera (fx, fy, cx, cy) and ``fb`` = fx · baseline; ``sigma_px``; ``huber``.
+    """
+
+    def __init__(self, poses, free, obs_pose, obs_lm, meas, sigma_d, X0, prior_info, fx, fy, cx, cy, fb,
+                 sigma_px, huber):
+        self.poses = np.asarray(poses, float).copy()
+        self.free = np.asarray(free, bool)
+        self.slot = np.cumsum(self.free) - 1  # pose -> free slot
+        self.K = int(self.free.sum())
+        self.op, self.ol = np.asarray(obs_pose, np.int64), np.asarray(obs_lm, np.int64)
+        self.um, self.vm, self.zm = meas[:, 0], meas[:, 1], meas[:, 2]
+        self.X0 = np.asarray(X0, float)
+        self.L = len(self.X0)
+        self.prior = prior_info
+        self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fb
+        self.s, self.sd, self.k = float(sigma_px), np.asarray(sigma_d, float), float(huber)
+        self.dm = fb / self.zm  # measured disparity
+        # the observations sorted by landmark (sums per landmark by reduceat) and by free pose
+        self.by_lm = np.argsort(self.ol, kind="stable")
+        self.lm_starts = np.flatnonzero(np.r_[True, np.diff(self.ol[self.by_lm]) != 0])
+        self.lm_ids = self.ol[self.by_lm][self.lm_starts]  # every landmark has >= 1 observation
+        self.of = np.flatnonzero(self.free[self.op])
+        self.of = self.of[np.argsort(self.slot[self.op[self.of]], kind="stable")]
+        self.oslot = self.slot[self.op[self.of]]
+        self.p_starts = np.flatnonzero(np.r_[True, np.diff(self.oslot) != 0]) if len(self.of) else np.zeros(0, int)
+        self.p_ids = self.oslot[self.p_starts]
+        self.olf = self.ol[self.of]
+        # H_pl as a dense (K, L) grid of 6x3 blocks: one observation per (keyframe, landmark) is assigned,
+        # repeated pairs are summed
+        cell = self.oslot * self.L + self.olf
+        self.unique_cells = len(np.unique(cell)) == len(cell)
+        self.cell = cell
+
+    # ------------------------------------------------------------------ model
+    def _project(self, poses: np.ndarray, X: np.ndarray):
+        """Camera points (N, 3) of every observation and the rotations (N, 3, 3) used."""
+        R = poses[self.op, :3, :3]
+        t = poses[self.op, :3, 3]
+        P = np.einsum("nji,nj->ni", R, X[self.ol] - t)  # Rᵀ (X − t)
+        return P, R
+
+    def _residuals(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals (N, 3) and the cheirality mask (z <= 0: GTSAM's constant error)."""
+        z = P[:, 2]
+        bad = z <= 0
+        zs = np.where(bad, 1.0, z)
+        e_u = self.fx * P[:, 0] / zs + self.cx - self.um
+        e_v = self.fy * P[:, 1] / zs + self.cy - self.vm
+        e_d = self.dm - self.fb / zs  # (u_R − u_L) predicted − measured
+        r = np.stack([e_u / self.s, e_d / self.sd, e_v / self.s], axis=1)
+        if bad.any():  # GTSAM returns (2 fx, 2 fx, 2 fx) unwhitened, no Jacobian
+            c = 2.0 * self.fx
+            r[bad] = np.stack([np.full(bad.sum(), c / self.s), np.zeros(bad.sum()), np.full(bad.sum(), c / self.s)],
+                              axis=1)
+        return r, bad
+
+    def error(self, poses: np.ndarray, X: np.ndarray) -> float:
+        """The graph's error: Σ Huber(‖whitened‖) + ½ Σ priors' Mahalanobis² (GTSAM's ``graph.error``)."""
+        P, _ = self._project(poses, X)
+        r, _ = self._residuals(P)
+        e = float(_huber_loss(np.sqrt(np.einsum("ni,ni->n", r, r)), self.k).sum())
+        if self.prior is not None:
+            d = X - self.X0
+            e += 0.5 * float(np.einsum("ni,nij,nj->", d, self.prior, d))
+        return e
+
+    def _linearize(self, poses: np.ndarray, X: np.ndarray):
+        """Whitened, Huber-reweighted (√w) residuals b (N, 3) and Jacobians A_p (N, 3, 6), A_l (N, 3, 3)."""
+        P, R = self._project(poses, X)
+        r, bad = self._residuals(P)
+        z = np.where(bad, 1.0, P[:, 2])
+        iz = 1.0 / z
+        x, y = P[:, 0], P[:, 1]
+        n = len(P)
+        D = np.zeros((n, 3, 3))  # d(whitened residual)/d(camera point)
+        D[:, 0, 0], D[:, 0, 2] = self.fx * iz / self.s, -self.fx * x * iz * iz / self.s
+        D[:, 1, 2] = self.fb * iz * iz / self.sd
+        D[:, 2, 1], D[:, 2, 2] = self.fy * iz / self.s, -self.fy * y * iz * iz / self.s
+        D[bad] = 0.0
+        Jp = np.empty((n, 3, 6))
+        Jp[:, :, :3] = D @ _skew(P)  # d P / d ω = [P]x (right perturbation)
+        Jp[:, :, 3:] = -D  # d P / d v = −I
+        Jl = D @ R.transpose(0, 2, 1)  # d P / d X = Rᵀ
+        norm = np.sqrt(np.einsum("ni,ni->n", r, r))
+        sw = np.sqrt(np.where(norm <= self.k, 1.0, self.k / np.maximum(norm, 1e-300)))
+        return r * sw[:, None], Jp * sw[:, None, None], Jl * sw[:, None, None]
+
+    # ------------------------------------------------------------------ linear algebra
+    def _sum_lm(self, v: np.ndarray) -> np.ndarray:
+        """Per-landmark sums (L, ...) of per-observation values ``v`` (N, ...)."""
+        out = np.zeros((self.L, *v.shape[1:]))
+        out[self.lm_ids] = np.add.reduceat(v[self.by_lm], self.lm_starts, axis=0)
+        return out
+
+    def _normal(self, b, Jp, Jl, X):
+        """The undamped normal equations' blocks: H_pp (K, 6, 6), H_pl (6K, 3L) dense, H_ll
+        (L, 3, 3), gradients g_p (K, 6), g_l (L, 3) (H δ = −g)."""
+        K, L = self.K, self.L
+        JpT = Jp[self.of].transpose(0, 2, 1)
+        Hpp = np.zeros((K, 6, 6))
+        gp = np.zeros((K, 6))
+        if len(self.of):
+            Hpp[self.p_ids] = np.add.reduceat(JpT @ Jp[self.of], self.p_starts, axis=0)
+            gp[self.p_ids] = np.add.reduceat(JpT @ b[self.of, :, None], self.p_starts, axis=0)[..., 0]
+        blocks = JpT @ Jl[self.of]  # (M, 6, 3)
+        Hpl = np.zeros((K * L, 6, 3))
+        if self.unique_cells:
+            Hpl[self.cell] = blocks
+        else:
+            np.add.at(Hpl, self.cell, blocks)
+        Hpl = Hpl.reshape(K, L, 6, 3).transpose(0, 2, 1, 3).reshape(6 * K, 3 * L)
+        JlT = Jl.transpose(0, 2, 1)
+        Hll = self._sum_lm(JlT @ Jl)
+        gl = self._sum_lm((JlT @ b[:, :, None])[..., 0])
+        if self.prior is not None:
+            Hll += self.prior
+            gl += (self.prior @ (X - self.X0)[:, :, None])[..., 0]
+        return Hpp, Hpl, Hll, gp, gl
+
+    def _solve(self, Hpp, Hpl, Hll, gp, gl, lam: float):
+        """The damped step (δ_p (K, 6), δ_l (L, 3)); None when the system is not positive definite."""
+        K, L = self.K, self.L
+        try:
+            Hinv = np.linalg.inv(Hll + lam * np.eye(3))
+        except np.linalg.LinAlgError:
+            return None
+        # Y = H_pl (H_ll + λ)⁻¹, block by block
+        Y = (Hpl.reshape(6 * K, L, 1, 3) @ Hinv[None]).reshape(6 * K, 3 * L)
+        S = -(Y @ Hpl.T)
+        for k in range(K):
+            S[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hpp[k]
+        S[np.diag_indices(6 * K)] += lam
+        rhs = -gp.reshape(-1) + Y @ gl.reshape(-1)
+        try:
+            dp = cho_solve(cho_factor(S, lower=True, check_finite=False), rhs, check_finite=False)
+        except (LinAlgError, ValueError):
+            return None
+        if not np.all(np.isfinite(dp)):
+            return None
+        t = gl + (Hpl.T @ dp).reshape(L, 3)
+        dl = -(Hinv @ t[:, :, None])[..., 0]
+        return dp.reshape(K, 6), dl
+
+    def _linear_error(self, b, Jp, Jl, X, dp, dl) -> float:
+        """½ ‖A δ − (−b)‖² over the undamped linear system (GTSAM's ``GaussianFactorGraph.error``)."""
+        a = b + (Jl @ dl[self.ol][:, :, None])[..., 0]
+        of = self.of
+        a[of] += (Jp[of] @ dp[self.oslot][:, :, None])[..., 0]
+        e = 0.5 * float(np.einsum("ni,ni->", a, a))
+        if self.prior is not None:
+            d = X - self.X0 + dl
+            e += 0.5 * float(np.einsum("ni,nij,nj->", d, self.prior, d))
+        return e
+
+    def _retract(self, poses, X, dp, dl):
+        new = poses.copy()
+        if self.K:
+            new[self.free] = poses[self.free] @ se3_exp(dp)
+        return new, X + dl
+
+    # ------------------------------------------------------------------ Levenberg-Marquardt
+    def optimize(self, max_iterations: int, relative_tol: float):
+        """GTSAM's LM loop (module doc); returns (poses, X, initial error, final error, iterations)."""
+        poses, X = self.poses, self.X0.copy()
+        err0 = err = self.error(poses, X)
+        lam, it = LAMBDA_INITIAL, 0
+        if err <= 0 or max_iterations <= 0:
+            return poses, X, err0, err, it
+        new_err = err
+        while True:
+            cur = new_err
+            b, Jp, Jl = self._linearize(poses, X)
+            Hpp, Hpl, Hll, gp, gl = self._normal(b, Jp, Jl, X)
+            old_lin = self._linear_error(b, Jp, Jl, X, np.zeros((self.K, 6)), np.zeros((self.L, 3)))
+            while True:  # tryLambda until it returns true
+                success = stop = False
+                step = self._solve(Hpp, Hpl, Hll, gp, gl, lam)
+                if step is not None:
+                    dp, dl = step
+                    new_lin = self._linear_error(b, Jp, Jl, X, dp, dl)
+                    lin_change = old_lin - new_lin
+                    if lin_change >= 0:
+                        cand_poses, cand_X = self._retract(poses, X, dp, dl)
+                        cand_err = self.error(cand_poses, cand_X)
+                        change = err - cand_err
+                        if lin_change > np.finfo(float).eps * old_lin:
+                            success = change / lin_change > MIN_MODEL_FIDELITY
+                        if abs(change) < relative_tol * err:
+                            stop = True
+                if success:
+                    poses, X, err = cand_poses, cand_X, cand_err
+                    lam /= LAMBDA_FACTOR
+                    it += 1
+                    break
+                if stop:
+                    break
+                lam *= LAMBDA_FACTOR
+                if lam >= LAMBDA_UPPER:
+                    break
+            new_err = err
+            if not (it < max_iterations and not _converged(relative_tol, cur, new_err) and np.isfinite(cur)):
+                break
+        return poses, X, err0, err, it
+
+
+def _converged(relative_tol: float, cur: float, new: float) -> bool:
+    """GTSAM's ``checkConvergence`` (errorTol 0, absoluteErrorTol 1e-5)."""
+    if new <= 0:
+        return True
+    dec = cur - new
+    return (relative_tol and dec / cur <= relative_tol) or dec <= ABSOLUTE_ERROR_TOL
