@@ -127,9 +127,11 @@ def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int,
     if not len(win_ids):
         return None
     # observations: (keyframe, landmark id, u, v, z) of window + older keyframes on those landmarks
+    in_win = np.zeros(lmap.n, bool)  # membership by lookup (ids < lmap.n): what np.isin gives, cheaper
+    in_win[win_ids] = True
     obs = []
     for k in window + older:
-        sel = np.isin(k.lm, win_ids)
+        sel = in_win[k.lm]
         if sel.any():
             obs.append((k.index, k.lm[sel], k.uv[sel], k.z[sel]))
     counts = np.bincount(np.concatenate([o[1] for o in obs]), minlength=lmap.n)
@@ -140,7 +142,9 @@ def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int,
         return None
     # a keyframe with few observations of the optimised landmarks is left out: it would be
     # barely constrained (on fr1/rpy such a keyframe swung by metres)
-    n_obs = {o[0]: int(np.isin(o[1], use).sum()) for o in obs}
+    in_use = np.zeros(lmap.n, bool)
+    in_use[use] = True
+    n_obs = {o[0]: int(in_use[o[1]].sum()) for o in obs}
     obs = [o for o in obs if n_obs[o[0]] >= c.ba_min_observations]
     win_idx = {k.index for k in window if n_obs.get(k.index, 0) >= c.ba_min_observations}
     fixed = {o[0] for o in obs if o[0] not in win_idx}
@@ -150,7 +154,7 @@ def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int,
         return None
     used = []
     for kf, lm, uv, z in obs:
-        sel = np.isin(lm, use)
+        sel = in_use[lm]
         if sel.any():
             used.append((kf, lm[sel], uv[sel], z[sel]))
     poses_used = set()  # (in this order, as before the split: the factor graph's order is kept)

@@ -149,25 +149,35 @@ class SchurBA:
         return e
 
     def _linearize(self, poses: np.ndarray, X: np.ndarray):
-        """Whitened, Huber-reweighted (√w) residuals b (N, 3) and Jacobians A_p (N, 3, 6), A_l (N, 3, 3)."""
+        """Whitened, Huber-reweighted (√w) residuals b (N, 3) and Jacobians A_p (N, 3, 6), A_l (N, 3, 3),
+        written out per entry: d(whitened)/d(camera point) D = [[d00, 0, d02], [0, 0, d12], [0, d21, d22]],
+        A_p = D [[P]x | −I] (right perturbation), A_l = D Rᵀ."""
         P, R = self._project(poses, X)
         r, bad = self._residuals(P)
+        norm = np.sqrt(np.einsum("ni,ni->n", r, r))
+        sw = np.sqrt(np.where(norm <= self.k, 1.0, self.k / np.maximum(norm, 1e-300)))
+        sw = np.where(bad, 0.0, sw)  # behind the camera: no Jacobian (the residual keeps its weight below)
         z = np.where(bad, 1.0, P[:, 2])
         iz = 1.0 / z
         x, y = P[:, 0], P[:, 1]
+        d00, d02 = sw * self.fx * iz / self.s, -sw * self.fx * x * iz * iz / self.s
+        d12 = sw * self.fb * iz * iz / self.sd
+        d21, d22 = sw * self.fy * iz / self.s, -sw * self.fy * y * iz * iz / self.s
+        px, py, pz = x, y, P[:, 2]
         n = len(P)
-        D = np.zeros((n, 3, 3))  # d(whitened residual)/d(camera point)
-        D[:, 0, 0], D[:, 0, 2] = self.fx * iz / self.s, -self.fx * x * iz * iz / self.s
-        D[:, 1, 2] = self.fb * iz * iz / self.sd
-        D[:, 2, 1], D[:, 2, 2] = self.fy * iz / self.s, -self.fy * y * iz * iz / self.s
-        D[bad] = 0.0
-        Jp = np.empty((n, 3, 6))
-        Jp[:, :, :3] = D @ _skew(P)  # d P / d ω = [P]x (right perturbation)
-        Jp[:, :, 3:] = -D  # d P / d v = −I
-        Jl = D @ R.transpose(0, 2, 1)  # d P / d X = Rᵀ
-        norm = np.sqrt(np.einsum("ni,ni->n", r, r))
-        sw = np.sqrt(np.where(norm <= self.k, 1.0, self.k / np.maximum(norm, 1e-300)))
-        return r * sw[:, None], Jp * sw[:, None, None], Jl * sw[:, None, None]
+        Jp = np.zeros((n, 3, 6))
+        Jp[:, 0, 0], Jp[:, 0, 1], Jp[:, 0, 2] = -d02 * py, d02 * px - d00 * pz, d00 * py
+        Jp[:, 1, 0], Jp[:, 1, 1] = -d12 * py, d12 * px
+        Jp[:, 2, 0], Jp[:, 2, 1], Jp[:, 2, 2] = d21 * pz - d22 * py, d22 * px, -d21 * px
+        Jp[:, 0, 3], Jp[:, 0, 5] = -d00, -d02
+        Jp[:, 1, 5] = -d12
+        Jp[:, 2, 4], Jp[:, 2, 5] = -d21, -d22
+        Jl = np.empty((n, 3, 3))  # rows of D Rᵀ: combinations of R's columns
+        Jl[:, 0] = d00[:, None] * R[:, :, 0] + d02[:, None] * R[:, :, 2]
+        Jl[:, 1] = d12[:, None] * R[:, :, 2]
+        Jl[:, 2] = d21[:, None] * R[:, :, 1] + d22[:, None] * R[:, :, 2]
+        sr = np.sqrt(np.where(norm <= self.k, 1.0, self.k / np.maximum(norm, 1e-300)))
+        return r * sr[:, None], Jp, Jl
 
     # ------------------------------------------------------------------ linear algebra
     def _sum_lm(self, v: np.ndarray) -> np.ndarray:
@@ -183,9 +193,11 @@ class SchurBA:
         JpT = Jp[self.of].transpose(0, 2, 1)
         Hpp = np.zeros((K, 6, 6))
         gp = np.zeros((K, 6))
-        if len(self.of):
-            Hpp[self.p_ids] = np.add.reduceat(JpT @ Jp[self.of], self.p_starts, axis=0)
-            gp[self.p_ids] = np.add.reduceat(JpT @ b[self.of, :, None], self.p_starts, axis=0)[..., 0]
+        ends = np.r_[self.p_starts[1:], len(self.of)]
+        Jf, bf = Jp[self.of].reshape(-1, 6), b[self.of].reshape(-1)
+        for k, i0, i1 in zip(self.p_ids, 3 * self.p_starts, 3 * ends):  # one GEMM per free keyframe
+            Hpp[k] = Jf[i0:i1].T @ Jf[i0:i1]
+            gp[k] = Jf[i0:i1].T @ bf[i0:i1]
         blocks = JpT @ Jl[self.of]  # (M, 6, 3)
         Hpl = np.zeros((K * L, 6, 3))
         if self.unique_cells:
@@ -209,7 +221,9 @@ class SchurBA:
         except np.linalg.LinAlgError:
             return None
         # Y = H_pl (H_ll + λ)⁻¹, block by block
-        Y = (Hpl.reshape(6 * K, L, 1, 3) @ Hinv[None]).reshape(6 * K, 3 * L)
+        H3 = Hpl.reshape(6 * K, L, 3)
+        Y = (H3[:, :, 0, None] * Hinv[None, :, 0] + H3[:, :, 1, None] * Hinv[None, :, 1]
+             + H3[:, :, 2, None] * Hinv[None, :, 2]).reshape(6 * K, 3 * L)
         S = -(Y @ Hpl.T)
         for k in range(K):
             S[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hpp[k]
