@@ -70,6 +70,21 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     return T
 
 
+def _inverse_sym3(H: np.ndarray) -> np.ndarray | None:
+    """Inverses of symmetric 3x3 matrices (N, 3, 3) by the adjugate; None if one is not invertible
+    (a non-positive or non-finite determinant: H_ll + λI is positive definite when well posed)."""
+    a, b, c = H[:, 0, 0], H[:, 0, 1], H[:, 0, 2]
+    d, e, f = H[:, 1, 1], H[:, 1, 2], H[:, 2, 2]
+    A = np.empty_like(H)
+    A[:, 0, 0], A[:, 0, 1], A[:, 0, 2] = d * f - e * e, c * e - b * f, b * e - c * d
+    A[:, 1, 1], A[:, 1, 2], A[:, 2, 2] = a * f - c * c, b * c - a * e, a * d - b * b
+    A[:, 1, 0], A[:, 2, 0], A[:, 2, 1] = A[:, 0, 1], A[:, 0, 2], A[:, 1, 2]
+    det = a * A[:, 0, 0] + b * A[:, 0, 1] + c * A[:, 0, 2]
+    if not np.all(np.isfinite(det) & (det > 0)):
+        return None
+    return A / det[:, None, None]
+
+
 def _huber_loss(e: np.ndarray, k: float) -> np.ndarray:
     a = np.abs(e)
     return np.where(a <= k, 0.5 * e * e, k * (a - 0.5 * k))
@@ -114,13 +129,18 @@ class SchurBA:
         cell = self.oslot * self.L + self.olf
         self.unique_cells = len(np.unique(cell)) == len(cell)
         self.cell = cell
+        self._last = None  # (poses, X, camera points, rotations) of the last projection
 
     # ------------------------------------------------------------------ model
     def _project(self, poses: np.ndarray, X: np.ndarray):
-        """Camera points (N, 3) of every observation and the rotations (N, 3, 3) used."""
+        """Camera points (N, 3) of every observation and the rotations (N, 3, 3) used (the last
+        evaluation is kept: LM linearises where it last computed the error)."""
+        if self._last is not None and self._last[0] is poses and self._last[1] is X:
+            return self._last[2], self._last[3]
         R = poses[self.op, :3, :3]
         t = poses[self.op, :3, 3]
         P = np.einsum("nji,nj->ni", R, X[self.ol] - t)  # Rᵀ (X − t)
+        self._last = (poses, X, P, R)
         return P, R
 
     def _residuals(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,61 +201,58 @@ class SchurBA:
 
     # ------------------------------------------------------------------ linear algebra
     def _sum_lm(self, v: np.ndarray) -> np.ndarray:
-        """Per-landmark sums (L, ...) of per-observation values ``v`` (N, ...)."""
-        out = np.zeros((self.L, *v.shape[1:]))
-        out[self.lm_ids] = np.add.reduceat(v[self.by_lm], self.lm_starts, axis=0)
-        return out
+        """Per-landmark sums (L,) of per-observation values ``v`` (N,)."""
+        return np.bincount(self.ol, weights=v, minlength=self.L)
 
     def _normal(self, b, Jp, Jl, X):
-        """The undamped normal equations' blocks: H_pp (K, 6, 6), H_pl (6K, 3L) dense, H_ll
-        (L, 3, 3), gradients g_p (K, 6), g_l (L, 3) (H δ = −g)."""
+        """The undamped normal equations' blocks: H_pp (K, 6, 6), H_pl as G (L, 3, 6K) (G[l] = H_lp,
+        the landmark's rows), H_ll (L, 3, 3), gradients g_p (K, 6), g_l (L, 3) (H δ = −g)."""
         K, L = self.K, self.L
-        JpT = Jp[self.of].transpose(0, 2, 1)
+        Jpo = Jp[self.of]
         Hpp = np.zeros((K, 6, 6))
         gp = np.zeros((K, 6))
         ends = np.r_[self.p_starts[1:], len(self.of)]
-        Jf, bf = Jp[self.of].reshape(-1, 6), b[self.of].reshape(-1)
+        Jf, bf = Jpo.reshape(-1, 6), b[self.of].reshape(-1)
         for k, i0, i1 in zip(self.p_ids, 3 * self.p_starts, 3 * ends):  # one GEMM per free keyframe
             Hpp[k] = Jf[i0:i1].T @ Jf[i0:i1]
             gp[k] = Jf[i0:i1].T @ bf[i0:i1]
-        blocks = JpT @ Jl[self.of]  # (M, 6, 3)
-        Hpl = np.zeros((K * L, 6, 3))
+        blocks = Jl[self.of].transpose(0, 2, 1) @ Jpo  # H_lp per observation (M, 3, 6)
+        G = np.zeros((L, 3, K, 6))
         if self.unique_cells:
-            Hpl[self.cell] = blocks
+            G[self.olf, :, self.oslot, :] = blocks
         else:
-            np.add.at(Hpl, self.cell, blocks)
-        Hpl = Hpl.reshape(K, L, 6, 3).transpose(0, 2, 1, 3).reshape(6 * K, 3 * L)
-        JlT = Jl.transpose(0, 2, 1)
-        Hll = self._sum_lm(JlT @ Jl)
-        gl = self._sum_lm((JlT @ b[:, :, None])[..., 0])
+            np.add.at(G, (self.olf, slice(None), self.oslot, slice(None)), blocks)
+        # H_ll and g_l entry by entry (6 + 3 sums per landmark)
+        Hll = np.empty((L, 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                Hll[:, i, j] = Hll[:, j, i] = self._sum_lm(np.einsum("nk,nk->n", Jl[:, :, i], Jl[:, :, j]))
+        gl = np.stack([self._sum_lm(np.einsum("nk,nk->n", Jl[:, :, i], b)) for i in range(3)], axis=1)
         if self.prior is not None:
             Hll += self.prior
             gl += (self.prior @ (X - self.X0)[:, :, None])[..., 0]
-        return Hpp, Hpl, Hll, gp, gl
+        return Hpp, G.reshape(L, 3, 6 * K), Hll, gp, gl
 
-    def _solve(self, Hpp, Hpl, Hll, gp, gl, lam: float):
+    def _solve(self, Hpp, G, Hll, gp, gl, lam: float):
         """The damped step (δ_p (K, 6), δ_l (L, 3)); None when the system is not positive definite."""
         K, L = self.K, self.L
-        try:
-            Hinv = np.linalg.inv(Hll + lam * np.eye(3))
-        except np.linalg.LinAlgError:
+        Hinv = _inverse_sym3(Hll + lam * np.eye(3))
+        if Hinv is None:
             return None
-        # Y = H_pl (H_ll + λ)⁻¹, block by block
-        H3 = Hpl.reshape(6 * K, L, 3)
-        Y = (H3[:, :, 0, None] * Hinv[None, :, 0] + H3[:, :, 1, None] * Hinv[None, :, 1]
-             + H3[:, :, 2, None] * Hinv[None, :, 2]).reshape(6 * K, 3 * L)
-        S = -(Y @ Hpl.T)
+        YT = Hinv @ G  # ((H_ll + λ)⁻¹ H_lp) per landmark (L, 3, 6K)
+        Gf, Yf = G.reshape(3 * L, 6 * K), YT.reshape(3 * L, 6 * K)
+        S = -(Gf.T @ Yf)  # Σ_l H_pl (H_ll + λ)⁻¹ H_lp
         for k in range(K):
             S[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hpp[k]
         S[np.diag_indices(6 * K)] += lam
-        rhs = -gp.reshape(-1) + Y @ gl.reshape(-1)
+        rhs = -gp.reshape(-1) + Yf.T @ gl.reshape(-1)
         try:
             dp = cho_solve(cho_factor(S, lower=True, check_finite=False), rhs, check_finite=False)
         except (LinAlgError, ValueError):
             return None
         if not np.all(np.isfinite(dp)):
             return None
-        t = gl + (Hpl.T @ dp).reshape(L, 3)
+        t = gl + (Gf @ dp).reshape(L, 3)
         dl = -(Hinv @ t[:, :, None])[..., 0]
         return dp.reshape(K, 6), dl
 
