@@ -114,21 +114,17 @@ class SchurBA:
         self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fb
         self.s, self.sd, self.k = float(sigma_px), np.asarray(sigma_d, float), float(huber)
         self.dm = fb / self.zm  # measured disparity
-        # the observations sorted by landmark (sums per landmark by reduceat) and by free pose
-        self.by_lm = np.argsort(self.ol, kind="stable")
-        self.lm_starts = np.flatnonzero(np.r_[True, np.diff(self.ol[self.by_lm]) != 0])
-        self.lm_ids = self.ol[self.by_lm][self.lm_starts]  # every landmark has >= 1 observation
+        # the observations of free keyframes, grouped by keyframe (H_pp: one GEMM per keyframe)
         self.of = np.flatnonzero(self.free[self.op])
         self.of = self.of[np.argsort(self.slot[self.op[self.of]], kind="stable")]
         self.oslot = self.slot[self.op[self.of]]
         self.p_starts = np.flatnonzero(np.r_[True, np.diff(self.oslot) != 0]) if len(self.of) else np.zeros(0, int)
         self.p_ids = self.oslot[self.p_starts]
         self.olf = self.ol[self.of]
-        # H_pl as a dense (K, L) grid of 6x3 blocks: one observation per (keyframe, landmark) is assigned,
-        # repeated pairs are summed
+        # H_lp as a dense grid of 3x6 blocks (landmark, keyframe): one observation per cell is
+        # assigned; a keyframe that sees a landmark twice has its blocks summed
         cell = self.oslot * self.L + self.olf
         self.unique_cells = len(np.unique(cell)) == len(cell)
-        self.cell = cell
         self._last = None  # (poses, X, camera points, rotations) of the last projection
 
     # ------------------------------------------------------------------ model
