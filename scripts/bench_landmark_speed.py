@@ -4,7 +4,7 @@ Usage::
 
     .venv/bin/python scripts/bench_landmark_speed.py [--sequence DIR] [--repeat 3] [--work DIR]
         [--variant NAME=KEY=VALUE[,KEY=VALUE...]] ... [--code NAME=DIR] ... [--json FILE]
-        [--profile VARIANT]
+        [--profile VARIANT] [--profile-cpu]
 
 Every run is a fresh ``python`` process running ``rgbdslam.pipeline.run_sequence`` on the sequence
 (default: TUM fr1/rpy head200; map fusion and plots off, as ``bench_landmarks.py``). The variants
@@ -18,7 +18,8 @@ to the default's median, the CPU time per frame of the run's process (all its th
 and the end of the run included: less sensitive to the machine's load than frames/s) and of its
 child processes (the local BA process), the ATE, the per-stage medians (ms) from run.json, the local BA's median
 ms per keyframe; ``uptime``'s load before and after. ``--profile VARIANT`` runs that variant once
-more under cProfile and prints the 30 most expensive functions (own time).
+more under cProfile and prints the 30 most expensive functions (own time); ``--profile-cpu`` times
+that profile in CPU time (``time.process_time``: the waiting of a loaded machine does not count).
 """
 
 from __future__ import annotations
@@ -48,8 +49,8 @@ from rgbdslam.pipeline import run_sequence
 sets = json.loads(sys.argv[4])
 cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *sets])
 if sys.argv[5]:
-    import cProfile, pstats
-    pr = cProfile.Profile(); pr.enable()
+    import cProfile, pstats, time
+    pr = cProfile.Profile(time.process_time) if sys.argv[5] == "cpu" else cProfile.Profile(); pr.enable()
 s = run_sequence(sys.argv[2], sys.argv[3], cfg, progress=False)
 if sys.argv[5]:
     pr.disable(); pstats.Stats(pr, stream=sys.stderr).sort_stats("tottime").print_stats(30)
@@ -65,10 +66,11 @@ print("RESULT " + json.dumps({"fps": s["fps"], "processing_fps": s["processing_f
 """
 
 
-def run_once(code: Path, seq: Path, out: Path, sets: list[str], profile: bool = False) -> dict:
+def run_once(code: Path, seq: Path, out: Path, sets: list[str], profile: bool | str = False) -> dict:
     env = dict(os.environ, OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
     p = subprocess.run([sys.executable, "-c", _CHILD, str(code), str(seq), str(out), json.dumps(sets),
-                        "1" if profile else ""], capture_output=True, text=True, env=env)
+                        ("cpu" if profile == "cpu" else "1") if profile else ""], capture_output=True, text=True,
+                       env=env)
     if p.returncode != 0:
         raise SystemExit(f"run {out.name} failed:\n{p.stderr[-3000:]}")
     if profile:
@@ -134,6 +136,7 @@ def main(argv=None) -> int:
     ap.add_argument("--code", action="append", default=[], help="NAME=DIR: also run from another checkout")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--profile", default=None, metavar="VARIANT")
+    ap.add_argument("--profile-cpu", action="store_true", help="time the profile in CPU time")
     a = ap.parse_args(argv)
     variants = dict(DEFAULT_VARIANTS) if not a.variant else {"default": []}
     for v in a.variant:
@@ -155,7 +158,7 @@ def main(argv=None) -> int:
                 print(f"repeat {k + 1}: {name:32s} {r['fps']:5.1f} frames/s  ATE {r['ate']:.4f}  load {load()}",
                       flush=True)
     if a.profile:
-        run_once(ROOT, a.sequence, work / "profile", variants[a.profile], profile=True)
+        run_once(ROOT, a.sequence, work / "profile", variants[a.profile], profile="cpu" if a.profile_cpu else True)
     rows = summarise(runs)
     machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
                f"{time.strftime('%Y-%m-%d %H:%M')} UTC, shared; load average (1, 5, 15 min) {load0} at the start, "

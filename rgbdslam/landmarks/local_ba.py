@@ -35,10 +35,21 @@ class StereoFactors:
 
     def __init__(self, cfg: LandmarksConfig, camera: Camera):
         self.cfg = cfg
+        self.camera = camera
         self.fb = camera.fx * cfg.ba_baseline
         self.K = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, cfg.ba_baseline)
         self.huber = gtsam.noiseModel.mEstimator.Huber.Create(cfg.ba_huber)
         self._models: dict[int, object] = {}
+
+    @staticmethod
+    def binned(sd: np.ndarray) -> np.ndarray:
+        """The disparity noise each observation's shared model has: ``sd`` rounded to a power of 1.01."""
+        return 1.01 ** np.round(np.log(np.maximum(sd, 1e-6)) / np.log(1.01))
+
+    def disparity_sigma(self, z: np.ndarray) -> np.ndarray:
+        """Disparity noise (px) of depth ``z`` (m): f b σ_z / z², σ_z = a + b_z z² (unbinned)."""
+        c = self.cfg
+        return self.fb * (c.depth_noise_a + c.depth_noise_b * z * z) / (z * z)
 
     def _model(self, sd: float):
         b = int(np.round(np.log(max(sd, 1e-6)) / np.log(1.01)))
@@ -53,9 +64,7 @@ class StereoFactors:
     def add(self, graph, kf: int, lm: np.ndarray, uv: np.ndarray, z: np.ndarray, body=None) -> int:
         """Factors of keyframe ``kf`` seeing landmarks ``lm`` at pixels ``uv`` with depth ``z``;
         ``body`` (4x4): the observing camera's pose relative to the keyframe (a frame hanging from it)."""
-        c = self.cfg
-        sz = c.depth_noise_a + c.depth_noise_b * z * z
-        sd = self.fb * sz / (z * z)  # disparity noise (px)
+        sd = self.disparity_sigma(z)
         extra = (False, False) if body is None else (False, False, gtsam.Pose3(body))
         for j in range(len(lm)):
             meas = gtsam.StereoPoint2(uv[j, 0], uv[j, 0] - self.fb / z[j], uv[j, 1])
@@ -63,12 +72,15 @@ class StereoFactors:
         return len(lm)
 
 
+RELATIVE_ERROR_TOL = 1e-4  # LM stops when an iteration lowers the error by less than this share
+
+
 def solve(graph, values, pose_ids, iterations: int):
     """Levenberg–Marquardt with the landmarks eliminated first and the poses last (the Schur
     complement of BA: ~10x faster than plain COLAMD); None when the system is indeterminate."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
-    params.setRelativeErrorTol(1e-4)
+    params.setRelativeErrorTol(RELATIVE_ERROR_TOL)
     poses = gtsam.KeyVector([X(kf) for kf in pose_ids])
     params.setOrdering(gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, poses))
     try:
@@ -115,9 +127,11 @@ def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int,
     if not len(win_ids):
         return None
     # observations: (keyframe, landmark id, u, v, z) of window + older keyframes on those landmarks
+    in_win = np.zeros(lmap.n, bool)  # membership by lookup (ids < lmap.n): what np.isin gives, cheaper
+    in_win[win_ids] = True
     obs = []
     for k in window + older:
-        sel = np.isin(k.lm, win_ids)
+        sel = in_win[k.lm]
         if sel.any():
             obs.append((k.index, k.lm[sel], k.uv[sel], k.z[sel]))
     counts = np.bincount(np.concatenate([o[1] for o in obs]), minlength=lmap.n)
@@ -128,7 +142,9 @@ def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int,
         return None
     # a keyframe with few observations of the optimised landmarks is left out: it would be
     # barely constrained (on fr1/rpy such a keyframe swung by metres)
-    n_obs = {o[0]: int(np.isin(o[1], use).sum()) for o in obs}
+    in_use = np.zeros(lmap.n, bool)
+    in_use[use] = True
+    n_obs = {o[0]: int(in_use[o[1]].sum()) for o in obs}
     obs = [o for o in obs if n_obs[o[0]] >= c.ba_min_observations]
     win_idx = {k.index for k in window if n_obs.get(k.index, 0) >= c.ba_min_observations}
     fixed = {o[0] for o in obs if o[0] not in win_idx}
@@ -138,7 +154,7 @@ def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int,
         return None
     used = []
     for kf, lm, uv, z in obs:
-        sel = np.isin(lm, use)
+        sel = in_use[lm]
         if sel.any():
             used.append((kf, lm[sel], uv[sel], z[sel]))
     poses_used = set()  # (in this order, as before the split: the factor graph's order is kept)
@@ -149,12 +165,34 @@ def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int,
 
 
 def solve_problem(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem) -> BAResult | None:
-    """Build the factor graph of ``p`` and solve it (GTSAM holds the GIL: on the tracking thread
-    this stops tracking, hence :class:`BAWorker`); None when the system is indeterminate."""
+    """Solve ``p`` (``ba_solver``: 'schur' = NumPy, :mod:`rgbdslam.landmarks.schur_ba`; 'gtsam' = the
+    factor graph; the same LM, the same result to rounding); None when the system is indeterminate.
+    Either holds the GIL on the tracking thread (GTSAM's optimize does), hence :class:`BAWorker`."""
     import time
 
-    c = cfg
     t0 = time.perf_counter()
+    solved = (_solve_schur if cfg.ba_solver == "schur" else _solve_gtsam)(cfg, factors, p)
+    if solved is None:  # an indeterminate system: keep the map as it is
+        return None
+    out, after, error = solved
+    res = BAResult(out, p.use, p.pos, after, error, sorted(p.fixed & set(p.poses)),
+                   seconds=time.perf_counter() - t0)
+    for kf, P in out.items():  # a keyframe moved further than a tracking error: a bad solution, dropped
+        d = np.linalg.inv(p.poses[kf]) @ P
+        if np.linalg.norm(d[:3, 3]) > cfg.ba_max_move or \
+                np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1))) > cfg.ba_max_move_deg:
+            res.poses, res.rejected = {}, True
+            break
+    return res
+
+
+def _prior_covariance(cfg: LandmarksConfig, C: np.ndarray) -> np.ndarray:
+    """The landmark prior's covariance: the Kalman one plus ``ba_prior_floor`` in quadrature."""
+    return C + (cfg.ba_prior_floor ** 2 + 1e-12) * np.eye(3)
+
+
+def _solve_gtsam(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem):
+    """GTSAM: (refined free poses {kf: 4x4}, refined landmarks (L, 3), (error before, after)) or None."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for kf, lm, uv, z in p.obs:
@@ -165,24 +203,45 @@ def solve_problem(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem) ->
             graph.add(gtsam.NonlinearEqualityPose3(X(kf), gtsam.Pose3(P)))
     for i, x, C in zip(p.use, p.pos, p.cov):
         values.insert(L(i), x)
-        if c.ba_landmark_prior:  # the Kalman estimate (every frame's observations, not only keyframes')
-            graph.add(gtsam.PriorFactorPoint3(L(i), x, gtsam.noiseModel.Gaussian.Covariance(
-                C + (c.ba_prior_floor ** 2 + 1e-12) * np.eye(3))))
-    result = solve(graph, values, sorted(p.poses), c.ba_iterations)
-    if result is None:  # an indeterminate system: keep the map as it is
+        if cfg.ba_landmark_prior:  # the Kalman estimate (every frame's observations, not only keyframes')
+            graph.add(gtsam.PriorFactorPoint3(L(i), x, gtsam.noiseModel.Gaussian.Covariance(_prior_covariance(cfg, C))))
+    result = solve(graph, values, sorted(p.poses), cfg.ba_iterations)
+    if result is None:
         return None
     error = (graph.error(values), graph.error(result))
     out = {kf: result.atPose3(X(kf)).matrix() for kf in p.poses if kf in p.window and kf not in p.fixed}
-    fixed = sorted(p.fixed & set(p.poses))
     after = np.array([result.atPoint3(L(i)) for i in p.use]).reshape(-1, 3)
-    res = BAResult(out, p.use, p.pos, after, error, fixed, seconds=time.perf_counter() - t0)
-    for kf, P in out.items():  # a keyframe moved further than a tracking error: a bad solution, dropped
-        d = np.linalg.inv(p.poses[kf]) @ P
-        if np.linalg.norm(d[:3, 3]) > c.ba_max_move or \
-                np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1))) > c.ba_max_move_deg:
-            res.poses, res.rejected = {}, True
-            break
-    return res
+    return out, after, error
+
+
+def schur_problem(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem):
+    """``p`` as a :class:`~rgbdslam.landmarks.schur_ba.SchurBA` and the keyframe of each of its poses."""
+    from rgbdslam.landmarks.schur_ba import SchurBA
+
+    kfs = list(p.poses)
+    pose_of = {kf: i for i, kf in enumerate(kfs)}
+    lm_of = np.full(int(p.use.max()) + 1, -1, np.int64)
+    lm_of[p.use] = np.arange(len(p.use))
+    op = np.concatenate([np.full(len(o[1]), pose_of[o[0]], np.int64) for o in p.obs])
+    ol = lm_of[np.concatenate([o[1] for o in p.obs])]
+    uv = np.concatenate([o[2] for o in p.obs]).reshape(-1, 2)
+    z = np.concatenate([o[3] for o in p.obs])
+    meas = np.stack([uv[:, 0], uv[:, 1], z], axis=1).astype(float)
+    sd = factors.binned(factors.disparity_sigma(z))
+    prior = np.linalg.inv(_prior_covariance(cfg, p.cov)) if cfg.ba_landmark_prior else None
+    free = np.array([kf not in p.fixed for kf in kfs])
+    cam = factors.camera
+    ba = SchurBA(np.array([p.poses[kf] for kf in kfs]), free, op, ol, meas, sd, p.pos, prior,
+                 cam.fx, cam.fy, cam.cx, cam.cy, factors.fb, cfg.sigma_px, cfg.ba_huber)
+    return ba, kfs
+
+
+def _solve_schur(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem):
+    """NumPy Schur-complement LM: the same (poses, landmarks, errors) as :func:`_solve_gtsam`."""
+    ba, kfs = schur_problem(cfg, factors, p)
+    poses, Xs, e0, e1, _ = ba.optimize(cfg.ba_iterations, RELATIVE_ERROR_TOL)
+    out = {kf: poses[i] for i, kf in enumerate(kfs) if kf in p.window and kf not in p.fixed}
+    return out, Xs, (e0, e1)
 
 
 class LocalBA:

@@ -176,6 +176,32 @@ def _so3_exp(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
 
 
+def _whitening(a, b, c, d, e, f):
+    """The rows of Lᵀ, L the Cholesky factor of S⁻¹ (S⁻¹ = L Lᵀ), for symmetric positive definite
+    3x3 matrices S = [[a, b, c], [b, d, e], [c, e, f]] given as arrays of their entries: the
+    adjugate inverse, then the 3x3 Cholesky recurrences (``cholesky(inv(S))`` to rounding, without
+    LAPACK's per-matrix calls). Returns (l00, l10, l20, l11, l21, l22): Lᵀ = [[l00, l10, l20],
+    [0, l11, l21], [0, 0, l22]]."""
+    A00, A01, A02 = d * f - e * e, c * e - b * f, b * e - c * d
+    A11, A12, A22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A00 + b * A01 + c * A02
+    l00 = np.sqrt(A00 / det)
+    l10, l20 = A01 / det / l00, A02 / det / l00
+    l11 = np.sqrt(A11 / det - l10 * l10)
+    l21 = (A12 / det - l20 * l10) / l11
+    l22 = np.sqrt(A22 / det - l20 * l20 - l21 * l21)
+    return l00, l10, l20, l11, l21, l22
+
+
+def whitening(S: np.ndarray) -> np.ndarray:
+    """Lᵀ (N, 3, 3) with S⁻¹ = L Lᵀ (L lower triangular) for symmetric positive definite ``S`` (N, 3, 3)."""
+    l00, l10, l20, l11, l21, l22 = _whitening(S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2])
+    Lt = np.zeros_like(S)
+    Lt[:, 0, 0], Lt[:, 0, 1], Lt[:, 0, 2] = l00, l10, l20
+    Lt[:, 1, 1], Lt[:, 1, 2], Lt[:, 2, 2] = l11, l21, l22
+    return Lt
+
+
 def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera,
                            sigma_px, sigma_z: np.ndarray, cov_lm: np.ndarray):
     """Whitened residuals (N, 3) of the measured (u, v, 1/z) against landmarks X (N, 3) seen by the
@@ -187,7 +213,8 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
     covariance ``cov_lm`` (N, 3, 3) carried through the projection, J_p Σ_lm J_pᵀ: the part of its
     uncertainty along the viewing ray goes into the inverse depth, not into the pixels. With an
     isotropic sigma ``cov_lm`` (N,) instead (the earlier model): f·σ/z added to each pixel's sigma,
-    nothing to the inverse depth's.
+    nothing to the inverse depth's. Whitening: Lᵀ with S⁻¹ = L Lᵀ (:func:`_whitening`). Every
+    step is written out per entry (the Jacobians are sparse): no per-point small-matrix products.
     """
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     n = len(X)
@@ -195,31 +222,55 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
     x, y = P[:, 0], P[:, 1]
     a = 1.0 / np.maximum(P[:, 2], 1e-3)  # inverse depth of the prediction
     xa, ya = x * a, y * a
-    r = np.stack([uv[:, 0] - (fx * xa + cx), uv[:, 1] - (fy * ya + cy), 1.0 / z - a], axis=1)
-    # d(u, v, 1/z)/dP (N, 3, 3)
-    Jp = np.zeros((n, 3, 3))
-    Jp[:, 0, 0], Jp[:, 0, 2] = fx * a, -fx * xa * a
-    Jp[:, 1, 1], Jp[:, 1, 2] = fy * a, -fy * ya * a
-    Jp[:, 2, 2] = -a * a
+    r0, r1, r2 = uv[:, 0] - (fx * xa + cx), uv[:, 1] - (fy * ya + cy), 1.0 / z - a
+    # d(u, v, 1/z)/dP = [[p, 0, q], [0, p2, q2], [0, 0, s]]
+    p, q = fx * a, -fx * xa * a
+    p2, q2 = fy * a, -fy * ya * a
+    s = -a * a
     cov_lm = np.asarray(cov_lm, float)
-    if cov_lm.ndim == 3:
+    if cov_lm.ndim == 3:  # S = J_p (R Σ Rᵀ) J_pᵀ
         C = R @ cov_lm @ R.T  # landmark covariance in the camera frame
-        S = Jp @ C @ Jp.transpose(0, 2, 1)
+        c00, c01, c02 = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2]
+        c11, c12, c22 = C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]
+        u0, u2 = p * c02 + q * c22, p2 * c12 + q2 * c22
+        S00 = p * (p * c00 + q * c02) + q * u0
+        S01 = p * (p2 * c01 + q2 * c02) + q * u2
+        S02 = s * u0
+        S11 = p2 * (p2 * c11 + q2 * c12) + q2 * u2
+        S12 = s * u2
+        S22 = s * s * c22
     else:
-        S = np.zeros((n, 3, 3))
-        S[:, 0, 0] = S[:, 1, 1] = (fx * np.broadcast_to(cov_lm, (n,)) * a) ** 2
-    s_px2 = np.broadcast_to(np.asarray(sigma_px, float) ** 2, (n,))
-    S[:, 0, 0] += s_px2
-    S[:, 1, 1] += s_px2
-    S[:, 2, 2] += (sigma_z / (z * z)) ** 2
-    L = np.linalg.cholesky(np.linalg.inv(S))  # S⁻¹ = L Lᵀ: whitened = Lᵀ r
-    Lt = L.transpose(0, 2, 1)
-    # d(u, v, 1/z)/dξ = Jp · [-[P]x | I]
+        S00 = S11 = (fx * np.broadcast_to(cov_lm, (n,)) * a) ** 2
+        S01 = S02 = S12 = S22 = np.zeros(n)
+    s_px2 = np.asarray(sigma_px, float) ** 2
+    l00, l10, l20, l11, l21, l22 = _whitening(S00 + s_px2, S01, S02, S11 + s_px2, S12,
+                                              S22 + (sigma_z / (z * z)) ** 2)
+    # d(u, v, 1/z)/dξ = Jp · [-[P]x | I], rows J0, J1, J2 (J0[4] = J1[3] = J2[2:5] = 0)
+    J0 = (-xa * ya * fx, (1 + xa * xa) * fx, -ya * fx, p, -xa * p)
+    J1 = (-(1 + ya * ya) * fy, xa * ya * fy, xa * fy, p2, -ya * p2)
+    J2 = (-ya * a, xa * a, s)
+    r = np.empty((n, 3))
+    r[:, 0] = l00 * r0 + l10 * r1 + l20 * r2
+    r[:, 1] = l11 * r1 + l21 * r2
+    r[:, 2] = l22 * r2
     J = np.empty((n, 3, 6))
-    J[:, 0] = np.stack([-xa * ya, 1 + xa * xa, -ya, a, np.zeros(n), -xa * a], axis=1) * fx
-    J[:, 1] = np.stack([-(1 + ya * ya), xa * ya, xa, np.zeros(n), a, -ya * a], axis=1) * fy
-    J[:, 2] = np.stack([-ya * a, xa * a, np.zeros(n), np.zeros(n), np.zeros(n), -a * a], axis=1)
-    return np.einsum("nij,nj->ni", Lt, r), Lt @ J
+    J[:, 0, 0] = l00 * J0[0] + l10 * J1[0] + l20 * J2[0]
+    J[:, 0, 1] = l00 * J0[1] + l10 * J1[1] + l20 * J2[1]
+    J[:, 0, 2] = l00 * J0[2] + l10 * J1[2]
+    J[:, 0, 3] = l00 * J0[3]
+    J[:, 0, 4] = l10 * J1[3]
+    J[:, 0, 5] = l00 * J0[4] + l10 * J1[4] + l20 * J2[2]
+    J[:, 1, 0] = l11 * J1[0] + l21 * J2[0]
+    J[:, 1, 1] = l11 * J1[1] + l21 * J2[1]
+    J[:, 1, 2] = l11 * J1[2]
+    J[:, 1, 3] = 0.0
+    J[:, 1, 4] = l11 * J1[3]
+    J[:, 1, 5] = l11 * J1[4] + l21 * J2[2]
+    J[:, 2, 0] = l22 * J2[0]
+    J[:, 2, 1] = l22 * J2[1]
+    J[:, 2, 2:5] = 0.0
+    J[:, 2, 5] = l22 * J2[2]
+    return r, J
 
 
 def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera, sigma_px,
@@ -244,9 +295,9 @@ def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.n
         r, J = reprojection_residuals(R, t, X, uv, z, camera, sigma_px, sigma_z, cov_lm)
         e = np.linalg.norm(r, axis=1)
         w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
-        Jw = J * w[:, None, None]
-        H = np.einsum("nki,nkj->ij", Jw, J)
-        g = np.einsum("nki,nk->i", Jw, r)
+        Jw = (J * w[:, None, None]).reshape(-1, 6)
+        H = Jw.T @ J.reshape(-1, 6)
+        g = Jw.T @ r.reshape(-1)
         try:
             xi = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:

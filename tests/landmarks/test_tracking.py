@@ -136,3 +136,51 @@ def test_adaptive_noise_follows_the_frames_own_pixel_noise():
     gain = np.trace(out[True].information) / np.trace(out[False].information)
     assert 5.0 < gain < 15.0  # (1 / 0.3)² ≈ 11 on the pixel-dominated directions
     assert _err(out[True].pose, P) < 2e-3 and _err(out[False].pose, P) < 2e-3
+
+
+def test_whitened_residuals_match_the_dense_model_and_their_jacobian_the_finite_differences():
+    """The per-entry residuals equal the dense model written plainly — S = J_p R Σ Rᵀ J_pᵀ +
+    diag(σ_px², σ_px², (σ_z/z²)²), whitened by Lᵀ with L = cholesky(S⁻¹) (LAPACK) — and the
+    whitened Jacobian equals finite differences of the whitened residual under p ← p + ω×p + v
+    (the whitening held at the linearisation point, as Gauss–Newton uses it)."""
+    from scipy.spatial.transform import Rotation
+
+    from rgbdslam.landmarks.tracking import whitening
+
+    rng = np.random.default_rng(5)
+    n = 40
+    R = Rotation.from_rotvec([0.1, -0.2, 0.05]).as_matrix()
+    t = np.array([0.05, -0.02, 0.1])
+    X = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.uniform(1, 3, n)])
+    P = X @ R.T + t
+    uv = CAM.project(P) + rng.normal(size=(n, 2))
+    z = P[:, 2] + rng.normal(scale=0.01, size=n)
+    A = rng.normal(scale=0.004, size=(n, 3, 3))
+    cov = A @ A.transpose(0, 2, 1) + 1e-6 * np.eye(3)
+    spx, sz = rng.uniform(0.7, 2.0, n), 0.001 + 0.002 * z * z
+    r, J = reprojection_residuals(R, t, X, uv, z, CAM, spx, sz, cov)
+
+    def dense(Pc):
+        a = 1.0 / Pc[:, 2]
+        e = np.stack([uv[:, 0] - (CAM.fx * Pc[:, 0] * a + CAM.cx), uv[:, 1] - (CAM.fy * Pc[:, 1] * a + CAM.cy),
+                      1.0 / z - a], axis=1)
+        return e, a
+
+    e, a = dense(P)
+    Jp = np.zeros((n, 3, 3))
+    Jp[:, 0, 0], Jp[:, 0, 2] = CAM.fx * a, -CAM.fx * P[:, 0] * a * a
+    Jp[:, 1, 1], Jp[:, 1, 2] = CAM.fy * a, -CAM.fy * P[:, 1] * a * a
+    Jp[:, 2, 2] = -a * a
+    S = Jp @ (R @ cov @ R.T) @ Jp.transpose(0, 2, 1) + np.array([np.diag([s * s, s * s, (q / (zz * zz)) ** 2])
+                                                                 for s, q, zz in zip(spx, sz, z)])
+    Lt = np.linalg.cholesky(np.linalg.inv(S)).transpose(0, 2, 1)
+    assert np.allclose(whitening(S), Lt, rtol=1e-12, atol=0)
+    assert np.allclose(r, np.einsum("nij,nj->ni", Lt, e), rtol=1e-11, atol=1e-12)
+    h = 1e-7
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = h
+        Pp = P + np.cross(xi[:3], P) + xi[3:]
+        Pm = P - np.cross(xi[:3], P) - xi[3:]
+        num = np.einsum("nij,nj->ni", Lt, (dense(Pp)[0] - dense(Pm)[0]) / (2 * h))
+        assert np.allclose(J[:, :, k], -num, rtol=1e-5, atol=1e-6 * np.abs(J).max())
