@@ -17,8 +17,9 @@ The newest ``mapping.live_lag`` keyframes wait before they go into the map (thei
 with every loop closure; at the end they are integrated once, at their final poses).
 
 All the work happens in the map process (:class:`LiveMap`); the tracking thread only enqueues.
-While tracking the map process works in a thread niced by ``mapping.live_nice``, after the last
-frame in its main thread at the run's priority. It takes every queued job before it integrates a
+While tracking the map process works in a thread niced by ``mapping.live_nice`` — in its main
+thread, at the run's priority, whenever it is more than ``mapping.live_backlog`` keyframes behind
+(:func:`_while_tracking`) — and after the last frame in its main thread. It takes every queued job before it integrates a
 keyframe: pose updates are coalesced (when several are waiting, only the newest is applied) and
 come before the integration of keyframes queued with them. A keyframe's prepared images are cached for re-integration (up to
 :data:`CACHE_MB`; beyond, ``load`` reads them again). At the end the cloud is brought to the final
@@ -106,7 +107,7 @@ class MapState:
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
                       "pose_updates_skipped": 0, "reloaded": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
                       "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0,
-                      "busy_cpu_s": 0.0}
+                      "busy_cpu_s": 0.0, "catch_ups": 0, "catch_up_s": 0.0, "catch_up_cpu_s": 0.0}
 
     def sizes(self) -> dict:
         """What the map holds (docs/benchmarks.md "Memory"): TSDF blocks in use and allocated (8^3
@@ -191,6 +192,10 @@ class MapState:
     def unsettled(self) -> bool:
         """True when more keyframes wait than ``mapping.live_lag``."""
         return len(self.waiting) > self.lag
+
+    def backlog(self) -> int:
+        """How many keyframes wait beyond ``mapping.live_lag``: the ones the map is behind by."""
+        return max(0, len(self.waiting) - self.lag)
 
     def settle(self, prepared=None) -> None:
         """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images)."""
@@ -364,8 +369,8 @@ def _process(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=No
 
 
 def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None) -> None:
-    """The map process: keyframes and pose updates from ``jobs`` (:func:`_track`, in a thread
-    niced by ``mapping.live_nice``: tracking first); at ``finish`` the map is brought to the
+    """The map process: keyframes and pose updates from ``jobs`` (:func:`_while_tracking`: in a
+    thread niced by ``mapping.live_nice`` while it keeps up); at ``finish`` the map is brought to the
     final poses, written, and its :class:`FuseResult` put on ``results`` — in the main thread,
     at the run's priority and with every core (the user waits for it now)."""
     import signal
@@ -374,7 +379,7 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
     state = MapState(cfg, camera, load)
     try:
         limit_threads(1)  # one core for the map while tracking
-        finish = in_niced_thread(cfg.live_nice, lambda: _track(state, jobs, applied))
+        finish = _while_tracking(state, cfg, jobs, applied)
         if finish is not None:
             limit_threads(0)  # tracking is over: the redo, the TSDF and the mesh may use every core
             results.put(("ok", _finish(state, results, *finish[1:])))
@@ -384,11 +389,40 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
         results.put(("error", e if isinstance(e, (RgbdslamError, OSError)) else RuntimeError(f"{type(e).__name__}: {e}")))
 
 
-def _track(state: MapState, jobs, applied=None):
+BEHIND, CAUGHT_UP = "behind", "caught up"  # what _track returns when its ``stop`` says so
+
+
+def _while_tracking(state: MapState, cfg: MappingConfig, jobs, applied=None):
+    """The map process while tracking: :func:`_track` in a thread niced by ``mapping.live_nice``
+    (tracking first) while the map keeps up; when more than ``mapping.live_backlog`` keyframes wait
+    beyond ``mapping.live_lag`` (the niced thread gets too little CPU: a busy machine), in this
+    thread, at the run's priority, until none does, then niced again. So what is left for after
+    the last frame stays bounded (``live_lag`` + ``live_backlog`` keyframes and the redo of the
+    last pose update) whatever the machine's load; on a machine with a free core the niced thread
+    keeps up and tracking keeps its speed. Returns the ``finish`` job or None (stopped)."""
+    bound = cfg.live_backlog
+    while True:
+        out = in_niced_thread(cfg.live_nice, lambda: _track(
+            state, jobs, applied, stop=(lambda: BEHIND if state.backlog() > bound else None) if cfg.live_nice else None))
+        if out != BEHIND:
+            return out
+        state.stats["catch_ups"] += 1
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = _track(state, jobs, applied, stop=lambda: CAUGHT_UP if not state.backlog() else None)
+        state.stats["catch_up_s"] += time.perf_counter() - t0
+        state.stats["catch_up_cpu_s"] += time.process_time() - c0
+        if out != CAUGHT_UP:
+            return out
+
+
+def _track(state: MapState, jobs, applied=None, stop: Callable[[], str | None] | None = None):
     """The map while tracking: keyframes and pose updates from ``jobs`` until ``finish`` (returned)
     or None (returns None). Every job queued is taken before a keyframe is integrated: a pose
-    update is applied first and the keyframes waiting go in at their newest poses."""
+    update is applied first and the keyframes waiting go in at their newest poses. ``stop()``,
+    asked before every step, ends it early with what it returns (:data:`BEHIND`, :data:`CAUGHT_UP`)."""
     while True:
+        if stop is not None and (why := stop()) is not None:
+            return why
         try:  # a keyframe to integrate: only when no job waits
             job = jobs.get_nowait() if state.unsettled() else jobs.get()
         except queue.Empty:
