@@ -376,9 +376,11 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
-    state = MapState(cfg, camera, load)
     try:
-        limit_threads(1)  # one core for the map while tracking
+        # Open3D's and OpenCV's imports (~1 s of CPU) niced too: they overlap the run's start-up and
+        # its first frames, which come first (before, they ran at the run's priority and, on a busy
+        # machine, delayed its first frame)
+        state = in_niced_thread(cfg.live_nice, lambda: _start(cfg, camera, load))
         finish = _while_tracking(state, cfg, jobs, applied)
         if finish is not None:
             limit_threads(0)  # tracking is over: the redo, the TSDF and the mesh may use every core
@@ -387,6 +389,13 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
         from rgbdslam.errors import RgbdslamError
 
         results.put(("error", e if isinstance(e, (RgbdslamError, OSError)) else RuntimeError(f"{type(e).__name__}: {e}")))
+
+
+def _start(cfg: MappingConfig, camera: Camera, load) -> MapState:
+    """The map process's state, Open3D imported, one core for the map while tracking."""
+    state = MapState(cfg, camera, load)
+    limit_threads(1)
+    return state
 
 
 BEHIND, CAUGHT_UP = "behind", "caught up"  # what _track returns when its ``stop`` says so
