@@ -539,6 +539,12 @@ class LiveMap:
                                  args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
                                        self._results, self._applied))
         self._proc.start()
+        # the cloud's end (outlier removal, cloud.ply, the 2-D map) in a third process that imports
+        # Open3D niced while tracking: in the run process that import (~1 s of CPU) came after the
+        # last frame, on the end's longest chain
+        from rgbdslam.io.worker import Helper
+
+        self._cloud = Helper("cloud process", "rgbdslam.mapping.live:_warm_cloud", cfg.live_nice)
 
     def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
         """A new keyframe (its depth as the map will use it) at its current world pose."""
@@ -563,24 +569,23 @@ class LiveMap:
         temporary folder moved into place at the end."""
         from pathlib import Path
 
-        from rgbdslam.mapping.fusion import FuseResult, staged, write_2d, write_cloud
+        from rgbdslam.mapping.staging import FuseResult, staged
 
-        def work(stage: Path) -> FuseResult:
+        def work(stage: Path):
             self._jobs.put(("finish", {int(k): np.array(v) for k, v in poses.items()}, keep, str(stage),
                             filtered_depth))
             try:
                 points, colors, fused = self._receive("cloud")
-                t0 = time.perf_counter()
-                cloud_path, points, colors = write_cloud(stage, points, colors, self.cfg)
-                points = points.astype(np.float32)
-                timings: dict = {"cloud": time.perf_counter() - t0}
                 acc = Path(root) / "accelerometer.txt"
-                map2d_path, grid = write_2d(stage, points, trajectory, self.cfg, acc if acc.is_file() else None,
-                                            timings)
+                self._cloud.submit("rgbdslam.mapping.live:_cloud_end", stage, points, colors, self.cfg, trajectory,
+                                   acc if acc.is_file() else None)
+                del points, colors
+                cloud_path, points, colors, map2d_path, grid, timings = self._cloud.result()
                 mesh = self._receive("ok")
             except BaseException:
-                self._stop()  # it may still be writing into the folder that is about to be removed
+                self._stop()  # they may still be writing into the folder that is about to be removed
                 raise
+            self._cloud.close()
             self._proc.join(timeout=30)
             # the map process has ended: a job still in the pipe (a keyframe sent while an interrupted run
             # was winding down) has no reader, and the interpreter's exit must not wait to flush it
@@ -611,10 +616,31 @@ class LiveMap:
             self._proc.terminate()
             self._proc.join()
         self._jobs.cancel_join_thread()
+        self._cloud.close()
 
     def abort(self) -> None:
-        """Stop the map process without a map (a failed or interrupted run)."""
+        """Stop the map process (and the cloud process) without a map (a failed or interrupted run)."""
         end(self._proc, self._jobs)
+        self._cloud.close()
+
+
+def _warm_cloud() -> None:
+    """The cloud process's imports, while tracking (:class:`rgbdslam.io.worker.Helper`)."""
+    import rgbdslam.mapping.fusion  # noqa: F401 - Open3D
+    import rgbdslam.mapping.map2d  # noqa: F401
+
+
+def _cloud_end(stage, points: np.ndarray, colors: np.ndarray, cfg: MappingConfig, trajectory, accelerometer):
+    """The cloud's part of the end, in the cloud process: outlier removal and ``stage``/cloud.ply,
+    the 2-D map; ``(cloud path, points (float32), colours, 2-D map path, Map2D, timings)``."""
+    from rgbdslam.mapping.fusion import write_2d, write_cloud
+
+    t0 = time.perf_counter()
+    cloud_path, points, colors = write_cloud(stage, points, colors, cfg)
+    points = points.astype(np.float32)
+    timings: dict = {"cloud": time.perf_counter() - t0}
+    map2d_path, grid = write_2d(stage, points, trajectory, cfg, accelerometer, timings)
+    return cloud_path, points, colors, map2d_path, grid, timings
 
 
 def add_cloud(dst, src, sign: int) -> None:
