@@ -129,9 +129,14 @@ class Helper:
         self.name = name
         self._jobs = ctx.Queue()
         self._results = ctx.Queue()
+        self._warm = ctx.Event()
         self._proc = ctx.Process(target=_helper, name=name, daemon=True,
-                                 args=(self._jobs, self._results, warm, nice))
+                                 args=(self._jobs, self._results, warm, nice, self._warm))
         self._proc.start()
+
+    def ready(self) -> bool:
+        """True when the warm-up is done (a job sent earlier would wait for its niced imports)."""
+        return self._warm.is_set()
 
     def submit(self, func: str, *args) -> None:
         self._jobs.put((func, args))
@@ -154,13 +159,14 @@ def _call(func: str, *args):
     return getattr(importlib.import_module(module), name)(*args)
 
 
-def _helper(jobs, results, warm: str, nice: int) -> None:
+def _helper(jobs, results, warm: str, nice: int, warmed) -> None:
     """The helper process's body (:class:`Helper`)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle: it stops us
     try:
         in_niced_thread(nice, lambda: _call(warm))
+        warmed.set()
         job = jobs.get()
         if job is not None:
             results.put(("ok", _call(job[0], *job[1])))

@@ -377,11 +377,14 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
     try:
-        # Open3D's and OpenCV's imports (~1 s of CPU) niced too: they overlap the run's start-up and
-        # its first frames, which come first (before, they ran at the run's priority and, on a busy
-        # machine, delayed its first frame)
-        state = in_niced_thread(cfg.live_nice, lambda: _start(cfg, camera, load))
-        finish = _while_tracking(state, cfg, jobs, applied)
+        # Open3D's and OpenCV's imports (~1 s of CPU) once the first keyframe is here, i.e. after the run
+        # has tracked its first frame: at start they competed with the run's own start-up (on a busy
+        # machine its first frame came 2-4 s later); niced, a busy machine starved them past the run
+        first = jobs.get()
+        if first is None:
+            return
+        state = _start(cfg, camera, load)
+        finish = _while_tracking(state, cfg, jobs, applied, first)
         if finish is not None:
             limit_threads(0)  # tracking is over: the redo, the TSDF and the mesh may use every core
             results.put(("ok", _finish(state, results, *finish[1:])))
@@ -401,41 +404,55 @@ def _start(cfg: MappingConfig, camera: Camera, load) -> MapState:
 BEHIND, CAUGHT_UP = "behind", "caught up"  # what _track returns when its ``stop`` says so
 
 
-def _while_tracking(state: MapState, cfg: MappingConfig, jobs, applied=None):
+def _queued(jobs) -> int:
+    """How many jobs wait in ``jobs`` (0 where a queue cannot tell)."""
+    try:
+        return jobs.qsize()
+    except NotImplementedError:  # pragma: no cover - macOS
+        return 0
+
+
+def _while_tracking(state: MapState, cfg: MappingConfig, jobs, applied=None, first=None):
     """The map process while tracking: :func:`_track` in a thread niced by ``mapping.live_nice``
     (tracking first) while the map keeps up; when more than ``mapping.live_backlog`` keyframes wait
     beyond ``mapping.live_lag`` (the niced thread gets too little CPU: a busy machine), in this
     thread, at the run's priority, until none does, then niced again. So what is left for after
     the last frame stays bounded (``live_lag`` + ``live_backlog`` keyframes and the redo of the
     last pose update) whatever the machine's load; on a machine with a free core the niced thread
-    keeps up and tracking keeps its speed. Returns the ``finish`` job or None (stopped)."""
+    keeps up and tracking keeps its speed. The jobs still queued count as keyframes behind too (a
+    niced thread that takes 50 queued keyframes first spends its little CPU on preparing them).
+    ``first``: a job already taken from ``jobs``. Returns the ``finish`` job or None (stopped)."""
     bound = cfg.live_backlog
     while True:
         out = in_niced_thread(cfg.live_nice, lambda: _track(
-            state, jobs, applied, stop=(lambda: BEHIND if state.backlog() > bound else None) if cfg.live_nice else None))
+            state, jobs, applied, first,
+            stop=(lambda: BEHIND if state.backlog() + _queued(jobs) > bound else None) if cfg.live_nice else None))
+        first = None
         if out != BEHIND:
             return out
         state.stats["catch_ups"] += 1
         t0, c0 = time.perf_counter(), time.process_time()
-        out = _track(state, jobs, applied, stop=lambda: CAUGHT_UP if not state.backlog() else None)
+        out = _track(state, jobs, applied, stop=lambda: CAUGHT_UP if not state.backlog() and not _queued(jobs) else None)
         state.stats["catch_up_s"] += time.perf_counter() - t0
         state.stats["catch_up_cpu_s"] += time.process_time() - c0
         if out != CAUGHT_UP:
             return out
 
 
-def _track(state: MapState, jobs, applied=None, stop: Callable[[], str | None] | None = None):
-    """The map while tracking: keyframes and pose updates from ``jobs`` until ``finish`` (returned)
-    or None (returns None). Every job queued is taken before a keyframe is integrated: a pose
-    update is applied first and the keyframes waiting go in at their newest poses. ``stop()``,
-    asked before every step, ends it early with what it returns (:data:`BEHIND`, :data:`CAUGHT_UP`)."""
+def _track(state: MapState, jobs, applied=None, first=None, stop: Callable[[], str | None] | None = None):
+    """The map while tracking: keyframes and pose updates from ``jobs`` (``first``: one already
+    taken from it) until ``finish`` (returned) or None (returns None). Every job queued is taken
+    before a keyframe is integrated: a pose update is applied first and the keyframes waiting go in
+    at their newest poses. ``stop()``, asked before every step, ends it early with what it returns
+    (:data:`BEHIND`, :data:`CAUGHT_UP`)."""
     while True:
-        if stop is not None and (why := stop()) is not None:
+        if first is None and stop is not None and (why := stop()) is not None:
             return why
         try:  # a keyframe to integrate: only when no job waits
-            job = jobs.get_nowait() if state.unsettled() else jobs.get()
+            job = first if first is not None else jobs.get_nowait() if state.unsettled() else jobs.get()
         except queue.Empty:
             job = ("settle",)
+        first = None
         if job is None:
             return None
         t0, c0 = time.perf_counter(), time.process_time()
@@ -577,10 +594,16 @@ class LiveMap:
             try:
                 points, colors, fused = self._receive("cloud")
                 acc = Path(root) / "accelerometer.txt"
-                self._cloud.submit("rgbdslam.mapping.live:_cloud_end", stage, points, colors, self.cfg, trajectory,
-                                   acc if acc.is_file() else None)
-                del points, colors
-                cloud_path, points, colors, map2d_path, grid, timings = self._cloud.result()
+                args = (stage, points, colors, self.cfg, trajectory, acc if acc.is_file() else None)
+                in_run = not self._cloud.ready()
+                if not in_run:
+                    self._cloud.submit("rgbdslam.mapping.live:_cloud_end", *args)
+                    del points, colors, args
+                    cloud_path, points, colors, map2d_path, grid, timings = self._cloud.result()
+                else:  # its niced imports are not done (a short run, a busy machine): here, as before
+                    self._cloud.close()
+                    cloud_path, points, colors, map2d_path, grid, timings = _cloud_end(*args)
+                timings["cloud_in_run"] = in_run
                 mesh = self._receive("ok")
             except BaseException:
                 self._stop()  # they may still be writing into the folder that is about to be removed

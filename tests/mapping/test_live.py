@@ -334,7 +334,7 @@ def test_the_map_process_applies_queued_poses_before_it_integrates(synth, tmp_pa
 
 def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_again(synth):
     """``mapping.live_backlog``: the map's work while tracking runs in a niced thread; when more
-    keyframes wait than ``live_lag`` + ``live_backlog`` (the niced thread got too little CPU), the
+    keyframes wait or are queued than ``live_lag`` + ``live_backlog`` (the niced thread got too little CPU), the
     map process's own thread, at the run's priority, integrates until none waits beyond the lag,
     then the work goes back to a niced thread. The niceness each keyframe was integrated at is
     read from the kernel (Linux: per thread)."""
@@ -347,7 +347,7 @@ def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_ag
 
     if not sys.platform.startswith("linux"):
         pytest.skip("threads have a niceness of their own on Linux only")
-    cfg = MappingConfig(live_lag=1, live_backlog=1, live_nice=3, map2d=False)
+    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False)
     gt = synth.groundtruth()
     state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
     nice_at: dict[int, int] = {}
@@ -360,7 +360,7 @@ def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_ag
 
     state.settle = recording
     jobs = queue.Queue()
-    final = {i: gt.poses[i] for i in range(6)}
+    final = {i: gt.poses[i] for i in range(7)}
 
     images = {i: (synth.load(i).rgb, synth.load(i).depth) for i in final}
 
@@ -378,10 +378,10 @@ def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_ag
         jobs.put(None)  # never: stop the map's loop, the test fails below
         return False
 
-    def feed():  # as tracking would: two keyframes, three at once (the map falls behind), one more
+    def feed():  # as tracking would: two keyframes, four at once (the map falls behind), one more
         add(0, 1)
-        if when(lambda: 0 in nice_at, lambda: add(2, 3, 4)) and when(lambda: 3 in nice_at, lambda: add(5)):
-            when(lambda: 4 in nice_at, lambda: jobs.put(("finish", final, None, "", False)))
+        if when(lambda: 0 in nice_at, lambda: add(2, 3, 4, 5)) and when(lambda: 4 in nice_at, lambda: add(6)):
+            when(lambda: 5 in nice_at, lambda: jobs.put(("finish", final, None, "", False)))
 
     helper = threading.Thread(target=feed, daemon=True)
     helper.start()
@@ -390,7 +390,7 @@ def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_ag
     helper.join()
     assert out is not None and out[0] == "finish"
     assert state.stats["catch_ups"] == 1
-    assert nice_at == {0: base + 3, 1: base, 2: base, 3: base, 4: base + 3}
-    assert sorted(state.used) == [0, 1, 2, 3, 4] and list(state.waiting) == [5]  # live_lag 1: 5 waits
+    assert nice_at == {0: base + 3, 1: base, 2: base, 3: base, 4: base, 5: base + 3}
+    assert sorted(state.used) == [0, 1, 2, 3, 4, 5] and list(state.waiting) == [6]  # live_lag 1: 6 waits
     state.refresh(final, flush=True)
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
