@@ -556,16 +556,18 @@ class LiveMap:
                                  args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
                                        self._results, self._applied))
         self._proc.start()
-        # the cloud's end (outlier removal, cloud.ply, the 2-D map) in a third process that imports
-        # Open3D niced while tracking: in the run process that import (~1 s of CPU) came after the
-        # last frame, on the end's longest chain
-        from rgbdslam.io.worker import Helper
-
-        self._cloud = Helper("cloud process", "rgbdslam.mapping.live:_warm_cloud", cfg.live_nice)
+        self._cloud = None  # the cloud process: started with the first keyframe (after the first frame)
 
     def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
         """A new keyframe (its depth as the map will use it) at its current world pose."""
         self._jobs.put(("add", int(index), rgb, depth, np.array(pose, dtype=np.float64)))
+        if self._cloud is None:
+            # the cloud's end (outlier removal, cloud.ply, the 2-D map) in a third process that imports
+            # Open3D niced while tracking: in the run process that import (~1 s of CPU) came after the
+            # last frame, on the end's longest chain; started now, not beside the run's own start-up
+            from rgbdslam.io.worker import Helper
+
+            self._cloud = Helper("cloud process", "rgbdslam.mapping.live:_warm_cloud", self.cfg.live_nice)
 
     def update_poses(self, poses: dict[int, np.ndarray]) -> None:
         """The keyframes' current poses (after a loop closure): moved keyframes are re-integrated."""
@@ -595,20 +597,20 @@ class LiveMap:
                 points, colors, fused = self._receive("cloud")
                 acc = Path(root) / "accelerometer.txt"
                 args = (stage, points, colors, self.cfg, trajectory, acc if acc.is_file() else None)
-                in_run = not self._cloud.ready()
+                in_run = self._cloud is None or not self._cloud.ready()
                 if not in_run:
                     self._cloud.submit("rgbdslam.mapping.live:_cloud_end", *args)
                     del points, colors, args
                     cloud_path, points, colors, map2d_path, grid, timings = self._cloud.result()
                 else:  # its niced imports are not done (a short run, a busy machine): here, as before
-                    self._cloud.close()
+                    self._close_cloud()
                     cloud_path, points, colors, map2d_path, grid, timings = _cloud_end(*args)
                 timings["cloud_in_run"] = in_run
                 mesh = self._receive("ok")
             except BaseException:
                 self._stop()  # they may still be writing into the folder that is about to be removed
                 raise
-            self._cloud.close()
+            self._close_cloud()
             self._proc.join(timeout=30)
             # the map process has ended: a job still in the pipe (a keyframe sent while an interrupted run
             # was winding down) has no reader, and the interpreter's exit must not wait to flush it
@@ -639,12 +641,16 @@ class LiveMap:
             self._proc.terminate()
             self._proc.join()
         self._jobs.cancel_join_thread()
-        self._cloud.close()
+        self._close_cloud()
+
+    def _close_cloud(self) -> None:
+        if self._cloud is not None:
+            self._cloud.close()
 
     def abort(self) -> None:
         """Stop the map process (and the cloud process) without a map (a failed or interrupted run)."""
         end(self._proc, self._jobs)
-        self._cloud.close()
+        self._close_cloud()
 
 
 def _warm_cloud() -> None:
