@@ -371,6 +371,9 @@ class MappingConfig:
     # the newest keyframes wait this many keyframes before they go into the map: their poses still
     # move with every loop closure; at the end they are integrated once at their final poses
     live_lag: int = 8
+    # a map process more than this many keyframes behind (beyond live_lag) works at tracking's priority
+    # until it has caught up: what is left for after the last frame stays bounded on a busy machine
+    live_backlog: int = 4
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0  # degrees: see select_translation
     undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing
@@ -569,7 +572,7 @@ BOUNDS = {
     # LSH bucket keys hold the table id above lsh_bits key bits in an int64
     "loop.lsh_bits": (1, 40),
     "mapping.floor_max_tilt_deg": (0.0, 90.0), "mapping.live_tolerance": (0.0, 10.0),
-    "mapping.live_nice": (0, 19), "mapping.live_lag": (0, 10000),
+    "mapping.live_nice": (0, 19), "mapping.live_lag": (0, 10000), "mapping.live_backlog": (0, 10000),
     "stereo.ratio": (0.0, 1.0), "stereo.max_hamming": (0, 256), "stereo.sgbm_scale": (0.1, 1.0),
     "stereo.max_disparity": (1, 1024), "stereo.sgbm_block_size": (1, 31),
     # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane

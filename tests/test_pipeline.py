@@ -558,3 +558,31 @@ def test_a_bad_option_is_one_line_too():
         lines = [ln for ln in res.output.splitlines() if ln.strip()]
         assert len(lines) == 1 and lines[0].startswith("error: ") and text in lines[0], res.output
         assert lines[0].endswith("--help')")
+
+
+@pytest.mark.data
+def test_the_first_frame_is_tracked_without_importing_scipy(desk9):
+    """SciPy's spatial module (0.3-0.7 s to import on the 2-core machine) is imported where it is
+    first used, after the first frame: a fresh interpreter opens a TUM sequence with its ground
+    truth, builds the SLAM pipeline and tracks frame 0, and SciPy is still not imported."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import rgbdslam.pipeline, rgbdslam.cli\n"
+        "from rgbdslam.config import load_config, resolve_preset\n"
+        "from rgbdslam.datasets import open_sequence\n"
+        "from rgbdslam.frontend.features import with_detections\n"
+        "from rgbdslam.slam import SLAM\n"
+        "cfg = load_config(resolve_preset('tum_fr1'))\n"
+        f"seq = open_sequence({str(desk9)!r}, cfg)\n"
+        "gt = seq.groundtruth()\n"
+        "slam = SLAM(cfg, seq.camera)\n"
+        "slam.track(with_detections(seq.load(0), cfg.features))\n"
+        "assert len(slam.state.records) == 1 and len(gt) > 0\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"

@@ -10,16 +10,18 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from rgbdslam.config import FeaturesConfig, MatchingConfig
 from rgbdslam.datasets.base import Frame
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.depth_time import depth_at_colour_time, row_motions, shutter_corrected_pixels
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 
 @dataclass
@@ -57,6 +59,8 @@ class FrameFeatures:
     def tree(self) -> cKDTree:
         """k-d tree of the depth-valid 3-D points (built once; reset by :func:`lift`)."""
         if self._tree is None:
+            from scipy.spatial import cKDTree  # here: SciPy's import is not on the way to the first frame
+
             self._tree_index = np.flatnonzero(self.valid)
             self._tree = cKDTree(self.pts[self._tree_index])
         return self._tree

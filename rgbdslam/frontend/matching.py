@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from rgbdslam.config import MatchingConfig
 from rgbdslam.frontend.features import FrameFeatures, descriptor_words
@@ -127,6 +126,8 @@ def guided_match(ref: FrameFeatures, cur: FrameFeatures, T0: np.ndarray, radius:
     vb = np.flatnonzero(cur.valid)
     if len(va) == 0 or len(vb) == 0:
         return np.zeros(0, int), np.zeros(0, int)
+    from scipy.spatial import cKDTree  # here: SciPy's import is not on the way to the first frame
+
     ta = cKDTree(transform_points(T0, ref.pts[va]))
     pairs = ta.sparse_distance_matrix(cur.tree, radius, output_type="ndarray")
     if len(pairs) == 0:

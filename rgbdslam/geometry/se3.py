@@ -1,9 +1,12 @@
-"""Small SE(3)/SO(3) helpers on 4x4 / 3x3 NumPy arrays."""
+"""Small SE(3)/SO(3) helpers on 4x4 / 3x3 NumPy arrays.
+
+Quaternions <-> matrices are NumPy here (not SciPy's ``Rotation``): every command reads or writes
+a trajectory before its first frame, and ``scipy.spatial`` costs 0.3-0.7 s to import on the
+2-core machine (docs/benchmarks.md "End cost"); SciPy is imported where it is needed."""
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -47,6 +50,8 @@ def scale_motion(V: np.ndarray, factor: float) -> np.ndarray:
     alike): the constant-velocity motion over ``factor`` times V's time span."""
     if factor == 1.0:
         return V
+    from scipy.spatial.transform import Rotation
+
     out = np.eye(4)
     out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(V[:3, :3]).as_rotvec() * factor).as_matrix()
     out[:3, 3] = V[:3, 3] * factor
@@ -65,14 +70,51 @@ def pose_from_tum(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
     t = np.atleast_2d(t)
     q = np.atleast_2d(q_xyzw)
     T = np.tile(np.eye(4), (len(t), 1, 1))
-    T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+    T[:, :3, :3] = quat_to_matrix(q)
     T[:, :3, 3] = t
     return T
+
+
+def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) of quaternions (N, 4; x y z w; normalised here)."""
+    q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1, 4)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = q.T
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.stack([x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw),
+                     2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw),
+                     2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2], axis=1).reshape(-1, 3, 3)
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (N, 4; x y z w) of rotation matrices (N, 3, 3), by the largest of the four
+    (Shepperd's method: the trace or the largest diagonal element picks the component computed
+    from a square root, the others follow from sums and differences of the off-diagonal terms)."""
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    d = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]], axis=1)
+    pick = d.argmax(axis=1)
+    q = np.empty((len(R), 4))
+    for i in range(3):  # x, y or z the largest
+        m = pick == i
+        j, k = (i + 1) % 3, (i + 2) % 3
+        Rm = R[m]
+        q[m, i] = 1 - d[m, 3] + 2 * Rm[:, i, i]
+        q[m, j] = Rm[:, j, i] + Rm[:, i, j]
+        q[m, k] = Rm[:, k, i] + Rm[:, i, k]
+        q[m, 3] = Rm[:, k, j] - Rm[:, j, k]
+    m = pick == 3  # w the largest
+    Rm = R[m]
+    q[m, 0] = Rm[:, 2, 1] - Rm[:, 1, 2]
+    q[m, 1] = Rm[:, 0, 2] - Rm[:, 2, 0]
+    q[m, 2] = Rm[:, 1, 0] - Rm[:, 0, 1]
+    q[m, 3] = 1 + d[m, 3]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def pose_to_tum(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Translation (N,3) and unit quaternion (N,4, x y z w, w >= 0) of poses (N,4,4)."""
     T = np.asarray(T).reshape(-1, 4, 4)
-    q = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+    q = matrix_to_quat(T[:, :3, :3])
     q[q[:, 3] < 0] *= -1
     return T[:, :3, 3].copy(), q

@@ -115,3 +115,63 @@ def in_niced_thread(nice: int, work):
     if "error" in out:
         raise out["error"]
     return out.get("value")
+
+
+class Helper:
+    """A helper process for one job after the last frame: started with the run, it runs ``warm``
+    (``"module:function"``: its imports, e.g. Open3D) in a thread niced by ``nice`` while the frames
+    are tracked; then one :meth:`submit` ted job, ``"module:function"`` called with its arguments in
+    its main thread at the run's priority; :meth:`result` gives the function's value (its error raised
+    here). Functions are named, not imported here: this module stays free of the package's stages."""
+
+    def __init__(self, name: str, warm: str, nice: int):
+        ctx = spawn_context()
+        self.name = name
+        self._jobs = ctx.Queue()
+        self._results = ctx.Queue()
+        self._warm = ctx.Event()
+        self._proc = ctx.Process(target=_helper, name=name, daemon=True,
+                                 args=(self._jobs, self._results, warm, nice, self._warm))
+        self._proc.start()
+
+    def ready(self) -> bool:
+        """True when the warm-up is done (a job sent earlier would wait for its niced imports)."""
+        return self._warm.is_set()
+
+    def submit(self, func: str, *args) -> None:
+        self._jobs.put((func, args))
+
+    def result(self):
+        status, value = receive(self._results, self._proc, self.name)
+        if status == "error":
+            raise value
+        return value
+
+    def close(self) -> None:
+        """End the process (at once when its job is done; without a job when none was sent)."""
+        end(self._proc, self._jobs)
+
+
+def _call(func: str, *args):
+    import importlib
+
+    module, name = func.split(":")
+    return getattr(importlib.import_module(module), name)(*args)
+
+
+def _helper(jobs, results, warm: str, nice: int, warmed) -> None:
+    """The helper process's body (:class:`Helper`)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle: it stops us
+    try:
+        in_niced_thread(nice, lambda: _call(warm))
+        warmed.set()
+        job = jobs.get()
+        if job is not None:
+            results.put(("ok", _call(job[0], *job[1])))
+    except BaseException as e:  # noqa: BLE001 - the run reports it (OSError as itself: a full disk names its file)
+        from rgbdslam.errors import RgbdslamError
+
+        results.put(("error", e if isinstance(e, (RgbdslamError, OSError)) else RuntimeError(f"{type(e).__name__}: {e}")))
+    exit_now(results)

@@ -18,12 +18,8 @@ the world-to-camera extrinsic, i.e. the inverse.
 from __future__ import annotations
 
 import json
-import os
 import resource
-import shutil
-import tempfile
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,57 +32,17 @@ from rgbdslam.datasets.base import Sequence, as_rgb
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
-from rgbdslam.io.atomic import atomic_path, interrupts_deferred, make_dirs
+from rgbdslam.io.atomic import interrupts_deferred
 from rgbdslam.io.images import read_image
 from rgbdslam.io.text import read_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
+from rgbdslam.mapping.staging import FuseResult, staged
 
 with interrupts_deferred():  # Ctrl-C during Open3D's start-up leaves its C++ state half made (exit 1
     import open3d as o3d  # and a page of memory statistics at exit): the interrupt waits for the import
 
 DEPTH_PNG_SCALE = 5000.0  # keyframes/depth_*.png units per metre
 STAMP_TOLERANCE = 1e-3  # seconds: a trajectory line belongs to a frame when the stamps agree this well
-# the files a fusion writes into its folder: all of them come from one fusion (see _commit)
-# (cloud.png and mesh.png are the renders of `fuse --render`: a new fusion removes older ones)
-MAP_FILES = ("cloud.ply", "mesh.ply", "map2d.png", "map2d.yaml", "map2d_preview.png", "cloud.png", "mesh.png")
-
-
-@dataclass
-class FuseResult:
-    """What :func:`fuse` wrote and what it cost."""
-
-    out_dir: Path
-    cloud_path: Path | None
-    mesh_path: Path | None
-    map2d_path: Path | None
-    frames: list[int]  # sequence indices that were fused
-    n_points: int
-    n_vertices: int
-    n_triangles: int
-    seconds: float
-    peak_rss_mb: float  # process peak resident memory (ru_maxrss) after fusing
-    rss_growth_mb: float  # peak RSS minus the RSS when fusion started (upper bound on fusion's own use)
-    timings: dict[str, float] = field(default_factory=dict)
-    cloud_points: np.ndarray | None = None  # (N, 3) float32, world frame
-    cloud_colors: np.ndarray | None = None  # (N, 3) uint8 RGB
-    map2d: Any = None  # Map2D when the 2-D map was made
-    sessions: dict[int, int] | None = None  # frames fused per session (a map joined over sessions)
-
-    def summary(self) -> dict[str, Any]:
-        return {
-            "frames_fused": len(self.frames),
-            "cloud_points": self.n_points,
-            "mesh_vertices": self.n_vertices,
-            "mesh_triangles": self.n_triangles,
-            "seconds": round(self.seconds, 3),
-            "peak_rss_mb": round(self.peak_rss_mb, 1),
-            "rss_growth_mb": round(self.rss_growth_mb, 1),
-            "timings": {k: round(v, 3) if isinstance(v, float) else v for k, v in self.timings.items()},
-            "cloud": str(self.cloud_path) if self.cloud_path else None,
-            "mesh": str(self.mesh_path) if self.mesh_path else None,
-            "map2d": str(self.map2d_path) if self.map2d_path else None,
-            **({"frames_fused_per_session": self.sessions} if self.sessions else {}),
-        }
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -275,21 +231,55 @@ class _Tsdf:
         return canonical_mesh(mesh)
 
 
+KEY_BITS = 21  # bits per axis of the packed keys of canonical_order and of the triangles (3 x 21 < 63)
+
+
+def canonical_order(rows: np.ndarray) -> np.ndarray:
+    """The order (indices) that sorts ``rows`` (N, 3 + C: x, y, z, then e.g. colour)
+    lexicographically by (qx, qy, qz, x, y, z, the other columns), where q is the position
+    quantised to ``2**KEY_BITS - 1`` steps over the rows' extent: identical rows end up next to
+    each other and the order depends on the rows only, not on where they stood.
+
+    One stable argsort of the packed (qx, qy, qz) key, then a lexsort over every column of the few
+    rows that share a key with another (marching cubes puts the vertices of every edge around a
+    voxel whose TSDF is exactly 0 on that voxel: 28 of 269k on fr1/rpy)."""
+    rows = np.asarray(rows, dtype=np.float64)
+    if len(rows) == 0:
+        return np.zeros(0, np.int64)
+    lo = rows[:, :3].min(axis=0)
+    extent = float((rows[:, :3].max(axis=0) - lo).max())
+    steps = (1 << KEY_BITS) - 1
+    q = np.zeros((len(rows), 3), np.int64) if extent == 0 else np.minimum(
+        np.floor((rows[:, :3] - lo) * (steps / extent)).astype(np.int64), steps - 1)
+    key = (q[:, 0] << (2 * KEY_BITS)) | (q[:, 1] << KEY_BITS) | q[:, 2]
+    order = np.argsort(key, kind="stable")
+    k = key[order]
+    same = np.zeros(len(k), bool)  # rows whose key another row shares (vertices on one voxel corner)
+    same[1:] = k[1:] == k[:-1]
+    same[:-1] |= same[1:].copy()
+    if same.any():  # order each run of equal keys by all the rows' values (runs stay where they are)
+        at = np.flatnonzero(same)
+        run = np.cumsum(np.r_[True, k[at[1:]] != k[at[:-1]]])
+        order[at] = order[at][np.lexsort((*rows[order[at]].T[::-1], run))]
+    return order
+
+
 def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
-    """The same mesh with its vertices in a fixed order (by x, y, z, then colour; copies of one
-    vertex welded) and its triangles (each rotated to start at its smallest vertex index, keeping its orientation) sorted:
-    the TSDF's hash map is walked by several threads, so marching cubes emits the same vertices
-    in a different order on every run, and mesh.ply would differ byte for byte."""
+    """The same mesh with its vertices in a fixed order (:func:`canonical_order`: by quantised
+    position, then x, y, z and colour; copies of one vertex welded) and its triangles (each
+    rotated to start at its smallest vertex index, keeping its orientation) sorted: the TSDF's
+    hash map is walked by several threads, so marching cubes emits the same vertices in a
+    different order on every run, and mesh.ply would differ byte for byte."""
     import open3d as o3d
 
     v = np.asarray(mesh.vertices)
     if len(v) == 0:
         return mesh
     c = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else np.zeros((len(v), 0))
-    # sorted unique rows (x first, then y, z, colours); marching cubes emits a vertex shared by
-    # neighbouring blocks once per block, and which copy a triangle names varies: weld them
+    # marching cubes may emit a vertex shared by neighbouring blocks once per block, and which copy
+    # a triangle names varies: weld them (identical rows are next to each other once sorted)
     rows = np.concatenate([v, c], axis=1)
-    order = np.lexsort(rows.T[::-1])  # what np.unique(axis=0) does, at half its cost
+    order = canonical_order(rows)
     rows = rows[order]
     first_copy = np.ones(len(rows), bool)
     first_copy[1:] = np.any(rows[1:] != rows[:-1], axis=1)
@@ -298,8 +288,11 @@ def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh
     uniq = rows[first_copy]
     tri = rank[np.asarray(mesh.triangles, dtype=np.int64)]
     first = np.argmin(tri, axis=1)  # cyclic rotation: same triangle, same winding
-    tri = np.stack([tri[np.arange(len(tri)), (first + k) % 3] for k in range(3)], axis=1)
-    tri = tri[np.lexsort(tri.T[::-1])]
+    tri = np.take_along_axis(tri, (first[:, None] + np.arange(3)) % 3, axis=1)
+    if len(uniq) < (1 << KEY_BITS):  # triangles sorted by (first, second, third) index: one packed key
+        tri = tri[np.argsort((tri[:, 0] << (2 * KEY_BITS)) | (tri[:, 1] << KEY_BITS) | tri[:, 2], kind="stable")]
+    else:
+        tri = tri[np.lexsort(tri.T[::-1])]
     # int32 and contiguous: Open3D converts other layouts element by element (40x slower)
     out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.ascontiguousarray(uniq[:, :3])),
                                     o3d.utility.Vector3iVector(tri.astype(np.int32)))
@@ -328,43 +321,6 @@ def validate_mapping(cfg: MappingConfig) -> None:
     """Check the mapping settings before anything is read or written, by the config's own rules
     (a MappingConfig made in Python has not been through ``load_config``)."""
     validate_section("mapping", cfg)
-
-
-STAGE_PREFIX = ".fusing-"  # + the fusing process's id: the temporary folder a map is made in
-
-
-def remove_stale_stages(out_dir: Path) -> None:
-    """Remove the temporary folders that fusions killed part-way left in ``out_dir`` (their
-    process is gone; a folder of a fusion still running is left alone)."""
-    for d in out_dir.glob(f"{STAGE_PREFIX}*"):
-        pid = d.name[len(STAGE_PREFIX):].split("-", 1)[0]
-        if pid.isdigit() and _alive(int(pid)):
-            continue
-        shutil.rmtree(d, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's process
-        return True
-    return True
-
-
-def _commit(stage: Path, out_dir: Path) -> None:
-    """Move the finished map files from ``stage`` into ``out_dir`` and remove the files of
-    :data:`MAP_FILES` this fusion did not make (an older mesh, a 2-D map made with other
-    settings), so the folder never mixes two fusions. Nothing is computed here, so nothing
-    can fail part-way: only renames, after every file was written completely."""
-    made = [name for name in MAP_FILES if (stage / name).is_file()]
-    with interrupts_deferred():  # a Ctrl-C waits for the renames: never half an old, half a new map
-        for name in made:
-            os.replace(stage / name, out_dir / name)
-        for name in MAP_FILES:
-            if name not in made and (out_dir / name).is_file():
-                (out_dir / name).unlink()
 
 
 # ----------------------------------------------------------------------------- fusion
@@ -412,32 +368,6 @@ def fuse(
     res.seconds = time.perf_counter() - t_start
     res.peak_rss_mb = _peak_rss_mb()
     res.rss_growth_mb = max(_peak_rss_mb() - rss0, 0.0)
-    return res
-
-
-def staged(out_dir: Path, work) -> FuseResult:
-    """Run ``work(stage)`` writing into a temporary folder inside ``out_dir``, then move its files
-    into place (:func:`_commit`); a failure or Ctrl-C part-way leaves the earlier map as it was."""
-    created = not out_dir.exists()
-    make_dirs(out_dir)
-    remove_stale_stages(out_dir)
-    stage = Path(tempfile.mkdtemp(prefix=f"{STAGE_PREFIX}{os.getpid()}-", dir=out_dir))
-    try:
-        res = work(stage)
-        _commit(stage, out_dir)
-    except BaseException as e:
-        shutil.rmtree(stage, ignore_errors=True)
-        if created and not any(out_dir.iterdir()):
-            out_dir.rmdir()  # a failed first fusion leaves no empty map folder
-        if isinstance(e, OSError) and e.filename and Path(e.filename).parent == stage:
-            # a full disk while writing: name the map file, not the temporary folder it was made in
-            raise OSError(e.errno, e.strerror, str(out_dir / Path(e.filename).name)) from None
-        raise
-    shutil.rmtree(stage, ignore_errors=True)
-    res.out_dir = out_dir
-    for attr in ("cloud_path", "mesh_path", "map2d_path"):
-        if getattr(res, attr) is not None:
-            setattr(res, attr, out_dir / getattr(res, attr).name)
     return res
 
 

@@ -17,8 +17,9 @@ The newest ``mapping.live_lag`` keyframes wait before they go into the map (thei
 with every loop closure; at the end they are integrated once, at their final poses).
 
 All the work happens in the map process (:class:`LiveMap`); the tracking thread only enqueues.
-While tracking the map process works in a thread niced by ``mapping.live_nice``, after the last
-frame in its main thread at the run's priority. It takes every queued job before it integrates a
+While tracking the map process works in a thread niced by ``mapping.live_nice`` — in its main
+thread, at the run's priority, whenever it is more than ``mapping.live_backlog`` keyframes behind
+(:func:`_while_tracking`) — and after the last frame in its main thread. It takes every queued job before it integrates a
 keyframe: pose updates are coalesced (when several are waiting, only the newest is applied) and
 come before the integration of keyframes queued with them. A keyframe's prepared images are cached for re-integration (up to
 :data:`CACHE_MB`; beyond, ``load`` reads them again). At the end the cloud is brought to the final
@@ -106,7 +107,7 @@ class MapState:
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
                       "pose_updates_skipped": 0, "reloaded": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
                       "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0,
-                      "busy_cpu_s": 0.0}
+                      "busy_cpu_s": 0.0, "catch_ups": 0, "catch_up_s": 0.0, "catch_up_cpu_s": 0.0}
 
     def sizes(self) -> dict:
         """What the map holds (docs/benchmarks.md "Memory"): TSDF blocks in use and allocated (8^3
@@ -191,6 +192,10 @@ class MapState:
     def unsettled(self) -> bool:
         """True when more keyframes wait than ``mapping.live_lag``."""
         return len(self.waiting) > self.lag
+
+    def backlog(self) -> int:
+        """How many keyframes wait beyond ``mapping.live_lag``: the ones the map is behind by."""
+        return max(0, len(self.waiting) - self.lag)
 
     def settle(self, prepared=None) -> None:
         """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images)."""
@@ -364,17 +369,22 @@ def _process(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=No
 
 
 def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None) -> None:
-    """The map process: keyframes and pose updates from ``jobs`` (:func:`_track`, in a thread
-    niced by ``mapping.live_nice``: tracking first); at ``finish`` the map is brought to the
+    """The map process: keyframes and pose updates from ``jobs`` (:func:`_while_tracking`: in a
+    thread niced by ``mapping.live_nice`` while it keeps up); at ``finish`` the map is brought to the
     final poses, written, and its :class:`FuseResult` put on ``results`` — in the main thread,
     at the run's priority and with every core (the user waits for it now)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
-    state = MapState(cfg, camera, load)
     try:
-        limit_threads(1)  # one core for the map while tracking
-        finish = in_niced_thread(cfg.live_nice, lambda: _track(state, jobs, applied))
+        # Open3D's and OpenCV's imports (~1 s of CPU) once the first keyframe is here, i.e. after the run
+        # has tracked its first frame: at start they competed with the run's own start-up (on a busy
+        # machine its first frame came 2-4 s later); niced, a busy machine starved them past the run
+        first = jobs.get()
+        if first is None:
+            return
+        state = _start(cfg, camera, load)
+        finish = _while_tracking(state, cfg, jobs, applied, first)
         if finish is not None:
             limit_threads(0)  # tracking is over: the redo, the TSDF and the mesh may use every core
             results.put(("ok", _finish(state, results, *finish[1:])))
@@ -384,15 +394,65 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
         results.put(("error", e if isinstance(e, (RgbdslamError, OSError)) else RuntimeError(f"{type(e).__name__}: {e}")))
 
 
-def _track(state: MapState, jobs, applied=None):
-    """The map while tracking: keyframes and pose updates from ``jobs`` until ``finish`` (returned)
-    or None (returns None). Every job queued is taken before a keyframe is integrated: a pose
-    update is applied first and the keyframes waiting go in at their newest poses."""
+def _start(cfg: MappingConfig, camera: Camera, load) -> MapState:
+    """The map process's state, Open3D imported, one core for the map while tracking."""
+    state = MapState(cfg, camera, load)
+    limit_threads(1)
+    return state
+
+
+BEHIND, CAUGHT_UP = "behind", "caught up"  # what _track returns when its ``stop`` says so
+
+
+def _queued(jobs) -> int:
+    """How many jobs wait in ``jobs`` (0 where a queue cannot tell)."""
+    try:
+        return jobs.qsize()
+    except NotImplementedError:  # pragma: no cover - macOS
+        return 0
+
+
+def _while_tracking(state: MapState, cfg: MappingConfig, jobs, applied=None, first=None):
+    """The map process while tracking: :func:`_track` in a thread niced by ``mapping.live_nice``
+    (tracking first) while the map keeps up; when more than ``mapping.live_backlog`` keyframes wait
+    beyond ``mapping.live_lag`` (the niced thread gets too little CPU: a busy machine), in this
+    thread, at the run's priority, until none does, then niced again. So what is left for after
+    the last frame stays bounded (``live_lag`` + ``live_backlog`` keyframes and the redo of the
+    last pose update) whatever the machine's load; on a machine with a free core the niced thread
+    keeps up and tracking keeps its speed. The jobs still queued count as keyframes behind too (a
+    niced thread that takes 50 queued keyframes first spends its little CPU on preparing them).
+    ``first``: a job already taken from ``jobs``. Returns the ``finish`` job or None (stopped)."""
+    bound = cfg.live_backlog
     while True:
+        out = in_niced_thread(cfg.live_nice, lambda: _track(
+            state, jobs, applied, first,
+            stop=(lambda: BEHIND if state.backlog() + _queued(jobs) > bound else None) if cfg.live_nice else None))
+        first = None
+        if out != BEHIND:
+            return out
+        state.stats["catch_ups"] += 1
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = _track(state, jobs, applied, stop=lambda: CAUGHT_UP if not state.backlog() and not _queued(jobs) else None)
+        state.stats["catch_up_s"] += time.perf_counter() - t0
+        state.stats["catch_up_cpu_s"] += time.process_time() - c0
+        if out != CAUGHT_UP:
+            return out
+
+
+def _track(state: MapState, jobs, applied=None, first=None, stop: Callable[[], str | None] | None = None):
+    """The map while tracking: keyframes and pose updates from ``jobs`` (``first``: one already
+    taken from it) until ``finish`` (returned) or None (returns None). Every job queued is taken
+    before a keyframe is integrated: a pose update is applied first and the keyframes waiting go in
+    at their newest poses. ``stop()``, asked before every step, ends it early with what it returns
+    (:data:`BEHIND`, :data:`CAUGHT_UP`)."""
+    while True:
+        if first is None and stop is not None and (why := stop()) is not None:
+            return why
         try:  # a keyframe to integrate: only when no job waits
-            job = jobs.get_nowait() if state.unsettled() else jobs.get()
+            job = first if first is not None else jobs.get_nowait() if state.unsettled() else jobs.get()
         except queue.Empty:
             job = ("settle",)
+        first = None
         if job is None:
             return None
         t0, c0 = time.perf_counter(), time.process_time()
@@ -496,10 +556,18 @@ class LiveMap:
                                  args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
                                        self._results, self._applied))
         self._proc.start()
+        self._cloud = None  # the cloud process: started with the first keyframe (after the first frame)
 
     def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
         """A new keyframe (its depth as the map will use it) at its current world pose."""
         self._jobs.put(("add", int(index), rgb, depth, np.array(pose, dtype=np.float64)))
+        if self._cloud is None:
+            # the cloud's end (outlier removal, cloud.ply, the 2-D map) in a third process that imports
+            # Open3D niced while tracking: in the run process that import (~1 s of CPU) came after the
+            # last frame, on the end's longest chain; started now, not beside the run's own start-up
+            from rgbdslam.io.worker import Helper
+
+            self._cloud = Helper("cloud process", "rgbdslam.mapping.live:_warm_cloud", self.cfg.live_nice)
 
     def update_poses(self, poses: dict[int, np.ndarray]) -> None:
         """The keyframes' current poses (after a loop closure): moved keyframes are re-integrated."""
@@ -520,24 +588,29 @@ class LiveMap:
         temporary folder moved into place at the end."""
         from pathlib import Path
 
-        from rgbdslam.mapping.fusion import FuseResult, staged, write_2d, write_cloud
+        from rgbdslam.mapping.staging import FuseResult, staged
 
-        def work(stage: Path) -> FuseResult:
+        def work(stage: Path):
             self._jobs.put(("finish", {int(k): np.array(v) for k, v in poses.items()}, keep, str(stage),
                             filtered_depth))
             try:
                 points, colors, fused = self._receive("cloud")
-                t0 = time.perf_counter()
-                cloud_path, points, colors = write_cloud(stage, points, colors, self.cfg)
-                points = points.astype(np.float32)
-                timings: dict = {"cloud": time.perf_counter() - t0}
                 acc = Path(root) / "accelerometer.txt"
-                map2d_path, grid = write_2d(stage, points, trajectory, self.cfg, acc if acc.is_file() else None,
-                                            timings)
+                args = (stage, points, colors, self.cfg, trajectory, acc if acc.is_file() else None)
+                in_run = self._cloud is None or not self._cloud.ready()
+                if not in_run:
+                    self._cloud.submit("rgbdslam.mapping.live:_cloud_end", *args)
+                    del points, colors, args
+                    cloud_path, points, colors, map2d_path, grid, timings = self._cloud.result()
+                else:  # its niced imports are not done (a short run, a busy machine): here, as before
+                    self._close_cloud()
+                    cloud_path, points, colors, map2d_path, grid, timings = _cloud_end(*args)
+                timings["cloud_in_run"] = in_run
                 mesh = self._receive("ok")
             except BaseException:
-                self._stop()  # it may still be writing into the folder that is about to be removed
+                self._stop()  # they may still be writing into the folder that is about to be removed
                 raise
+            self._close_cloud()
             self._proc.join(timeout=30)
             # the map process has ended: a job still in the pipe (a keyframe sent while an interrupted run
             # was winding down) has no reader, and the interpreter's exit must not wait to flush it
@@ -568,10 +641,35 @@ class LiveMap:
             self._proc.terminate()
             self._proc.join()
         self._jobs.cancel_join_thread()
+        self._close_cloud()
+
+    def _close_cloud(self) -> None:
+        if self._cloud is not None:
+            self._cloud.close()
 
     def abort(self) -> None:
-        """Stop the map process without a map (a failed or interrupted run)."""
+        """Stop the map process (and the cloud process) without a map (a failed or interrupted run)."""
         end(self._proc, self._jobs)
+        self._close_cloud()
+
+
+def _warm_cloud() -> None:
+    """The cloud process's imports, while tracking (:class:`rgbdslam.io.worker.Helper`)."""
+    import rgbdslam.mapping.fusion  # noqa: F401 - Open3D
+    import rgbdslam.mapping.map2d  # noqa: F401
+
+
+def _cloud_end(stage, points: np.ndarray, colors: np.ndarray, cfg: MappingConfig, trajectory, accelerometer):
+    """The cloud's part of the end, in the cloud process: outlier removal and ``stage``/cloud.ply,
+    the 2-D map; ``(cloud path, points (float32), colours, 2-D map path, Map2D, timings)``."""
+    from rgbdslam.mapping.fusion import write_2d, write_cloud
+
+    t0 = time.perf_counter()
+    cloud_path, points, colors = write_cloud(stage, points, colors, cfg)
+    points = points.astype(np.float32)
+    timings: dict = {"cloud": time.perf_counter() - t0}
+    map2d_path, grid = write_2d(stage, points, trajectory, cfg, accelerometer, timings)
+    return cloud_path, points, colors, map2d_path, grid, timings
 
 
 def add_cloud(dst, src, sign: int) -> None:

@@ -38,8 +38,6 @@ from rgbdslam.io.text import read_lines
 from rgbdslam.io.numbers import check_magnitude, check_stamps
 from rgbdslam.io.trajectory import Trajectory
 
-with interrupts_deferred():  # Ctrl-C during Open3D's start-up leaves its C++ state half made (exit 1
-    import open3d as o3d  # and a page of memory statistics at exit): the interrupt waits for the import
 
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
 MAX_CELLS = 25_000_000  # a 5000 x 5000 grid: 250 m x 250 m at 5 cm
@@ -115,6 +113,11 @@ def up_from_cameras(traj: Trajectory) -> np.ndarray:
 def find_floor(points: np.ndarray, up: np.ndarray, cfg: MappingConfig, max_planes: int = 6
                ) -> tuple[np.ndarray, float, str]:
     """Floor plane ``n . p + d = 0`` (n unit, pointing up) of a cloud; returns (n, d, source)."""
+    # Open3D imported here, not with the module: a run's process unpickles a Map2D made by its
+    # cloud process (rgbdslam.mapping.live) without paying Open3D's import (~1 s) after the last frame
+    with interrupts_deferred():  # Ctrl-C during Open3D's start-up leaves its C++ state half made (exit 1
+        import open3d as o3d  # and a page of memory statistics at exit): the interrupt waits for the import
+
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     voxel = max(cfg.grid_resolution, cfg.floor_distance)
     pc = pc.voxel_down_sample(voxel)

@@ -59,3 +59,51 @@ def test_a_process_that_ends_at_once_leaves_no_resource_tracker_warning(tmp_path
         lines = p.stderr.strip().splitlines()
         assert lines[0] == "last line"
         assert any("resource_tracker" in line for line in lines) is warned, (mode, p.stderr)
+
+
+_WARM_NICE: list[int] = []  # in the helper process: the niceness its warm-up ran at
+
+
+def _warm_up_here() -> None:
+    _WARM_NICE.append(_own_nice())
+
+
+def _job_here(a, b):
+    return a + b, _WARM_NICE[0], _own_nice(), os.getpid()
+
+
+def _failing_job(path):
+    from rgbdslam.errors import InputError
+
+    raise InputError(f"{path} is bad")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="threads have a niceness of their own on Linux")
+def test_a_helper_process_warms_up_niced_and_does_its_job_at_the_run_priority():
+    """:class:`rgbdslam.io.worker.Helper`: a real spawned process; its warm-up ran in a thread niced
+    by 5, the job in its main thread at the niceness the run had; the job's value comes back."""
+    from rgbdslam.io.worker import Helper
+
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    helper = Helper("test helper", "tests.io.test_worker:_warm_up_here", 5)
+    try:
+        helper.submit("tests.io.test_worker:_job_here", 2, 3)
+        total, warm_nice, job_nice, pid = helper.result()
+    finally:
+        helper.close()
+    assert total == 5 and pid != os.getpid()
+    assert warm_nice == min(base + 5, 19) and job_nice == base
+
+
+def test_a_helper_process_raises_its_jobs_error_in_the_run_and_ends_without_a_job():
+    from rgbdslam.errors import InputError
+    from rgbdslam.io.worker import Helper
+
+    helper = Helper("test helper", "tests.io.test_worker:_warm_up_here", 0)
+    helper.submit("tests.io.test_worker:_failing_job", "cloud.ply")
+    with pytest.raises(InputError, match="cloud.ply is bad"):
+        helper.result()
+    helper.close()
+    idle = Helper("idle helper", "tests.io.test_worker:_warm_up_here", 0)
+    idle.close()  # no job: it ends anyway
+    assert not idle._proc.is_alive() and not helper._proc.is_alive()

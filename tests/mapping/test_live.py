@@ -330,3 +330,67 @@ def test_the_map_process_applies_queued_poses_before_it_integrates(synth, tmp_pa
     _, cloud = _fresh(synth, cfg, final)
     np.testing.assert_allclose(np.sort(points, axis=0), np.sort(cloud.result()[0], axis=0), atol=1e-9)
     assert out["n_vertices"] > 0 and (tmp_path / "mesh.ply").is_file()
+
+
+def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_again(synth):
+    """``mapping.live_backlog``: the map's work while tracking runs in a niced thread; when more
+    keyframes wait or are queued than ``live_lag`` + ``live_backlog`` (the niced thread got too little CPU), the
+    map process's own thread, at the run's priority, integrates until none waits beyond the lag,
+    then the work goes back to a niced thread. The niceness each keyframe was integrated at is
+    read from the kernel (Linux: per thread)."""
+    import os
+    import queue
+    import sys
+    import threading
+
+    from rgbdslam.mapping.live import _while_tracking
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("threads have a niceness of their own on Linux only")
+    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False)
+    gt = synth.groundtruth()
+    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+    nice_at: dict[int, int] = {}
+    settle = state.settle
+
+    def recording(prepared=None):  # the real step, and the niceness of the thread that took it
+        first = next(iter(state.waiting))
+        settle(prepared)
+        nice_at[first] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    state.settle = recording
+    jobs = queue.Queue()
+    final = {i: gt.poses[i] for i in range(7)}
+
+    images = {i: (synth.load(i).rgb, synth.load(i).depth) for i in final}
+
+    def add(*frames):  # queued at once, as keyframes queue up while the map is busy
+        with jobs.mutex:
+            jobs.queue.extend(("add", i, *images[i], final[i]) for i in frames)
+            jobs.not_empty.notify()
+
+    def when(done, then) -> bool:  # wait (at most a minute) until ``done()``, then ``then()``
+        for _ in range(6000):
+            if done():
+                then()
+                return True
+            threading.Event().wait(0.01)
+        jobs.put(None)  # never: stop the map's loop, the test fails below
+        return False
+
+    def feed():  # as tracking would: two keyframes, four at once (the map falls behind), one more
+        add(0, 1)
+        if when(lambda: 0 in nice_at, lambda: add(2, 3, 4, 5)) and when(lambda: 4 in nice_at, lambda: add(6)):
+            when(lambda: 5 in nice_at, lambda: jobs.put(("finish", final, None, "", False)))
+
+    helper = threading.Thread(target=feed, daemon=True)
+    helper.start()
+    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    out = _while_tracking(state, cfg, jobs)
+    helper.join()
+    assert out is not None and out[0] == "finish"
+    assert state.stats["catch_ups"] == 1
+    assert nice_at == {0: base + 3, 1: base, 2: base, 3: base, 4: base, 5: base + 3}
+    assert sorted(state.used) == [0, 1, 2, 3, 4, 5] and list(state.waiting) == [6]  # live_lag 1: 6 waits
+    state.refresh(final, flush=True)
+    _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)

@@ -470,6 +470,41 @@ def test_canonical_mesh_is_independent_of_vertex_order_and_copies():
     assert n_in == n_out
 
 
+def test_canonical_order_sorts_by_quantised_position_then_by_every_value():
+    """Hand-worked: the extent is 2 (x from 0 to 2), so a step is 2 / (2**21 - 1). Rows 1 and 3
+    share the last step of x (both within one step of 2) and are ordered by their exact x; rows
+    0 and 4 are equal in position and ordered by colour; row 2 is alone in the first step."""
+    from rgbdslam.mapping.fusion import canonical_order
+
+    step = 2 / (2**21 - 1)
+    rows = np.array([[1.0, 0.0, 0.0, 0.7],
+                     [2.0, 0.0, 0.0, 0.1],
+                     [0.0, 0.0, 0.0, 0.5],
+                     [2.0 - step / 4, 0.0, 0.0, 0.9],
+                     [1.0, 0.0, 0.0, 0.2]])
+    assert canonical_order(rows).tolist() == [2, 4, 0, 3, 1]
+    rng = np.random.default_rng(1)
+    for _ in range(3):  # the order follows the rows, not where they stand
+        perm = rng.permutation(5)
+        assert np.array_equal(rows[perm][canonical_order(rows[perm])], rows[[2, 4, 0, 3, 1]])
+    assert canonical_order(np.zeros((0, 4))).tolist() == []
+    assert canonical_order(np.ones((3, 3))).tolist() == [0, 1, 2]  # one point three times: extent 0
+
+
+def test_canonical_order_equals_a_full_lexsort_on_vertices_that_share_steps():
+    """Many rows in few quantisation steps (a coarse grid of positions, colours apart): the same
+    order as a lexsort by (quantised position, x, y, z, colour) over every row."""
+    from rgbdslam.mapping.fusion import KEY_BITS, canonical_order
+
+    rng = np.random.default_rng(2)
+    rows = np.concatenate([rng.integers(0, 4, (500, 3)) * 0.25, rng.uniform(size=(500, 3))], axis=1)
+    rows[::7, :3] += rng.uniform(0, 1e-9, (len(rows[::7]), 3))  # a few just off the grid
+    lo, steps = rows[:, :3].min(0), (1 << KEY_BITS) - 1
+    q = np.minimum(np.floor((rows[:, :3] - lo) * (steps / (rows[:, :3].max(0) - lo).max())), steps - 1)
+    want = np.lexsort((*rows.T[::-1], q[:, 2], q[:, 1], q[:, 0]))
+    assert np.array_equal(canonical_order(rows), want)
+
+
 @pytest.mark.data
 def test_two_fusions_of_one_run_are_byte_identical(desk9, tmp_path):
     """A real run's map fused again (twice): cloud, mesh and 2-D map are the same bytes."""
