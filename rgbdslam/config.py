@@ -314,6 +314,13 @@ class LandmarksConfig:
     # Hamming bonus of a landmark first seen old_age frames or more ago when features choose their landmark
     # (an old landmark beats a younger copy of itself made along the drift; the max_hamming gate is unchanged)
     match_old_bonus: int = 0
+    # frames: a landmark not seen for longer is "stale" (an earlier visit of the place; the map is not
+    # corrected between visits, so it carries other drift than the landmarks made since) and is left out
+    # of the frame's map pose (0 = never); with stale_check it joins when its own pose agrees with the
+    # current landmarks' within the chi-square gate stale_gate (6 dof) of their joint covariance
+    stale_after: int = 0
+    stale_check: bool = True  # stale landmarks join the map pose when they agree (see stale_after)
+    stale_gate: float = 12.59  # chi-square (6 dof, 95 %) of the stale-only against the current map pose
     # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed

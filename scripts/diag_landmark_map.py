@@ -137,7 +137,24 @@ def run(seq_dir: Path, sets: list[str], old_age: int) -> dict:
             if k in t:
                 row[k] = t[k]
         rows.append(row)
-    out = {"sequence": str(seq_dir), "sets": sets, "ate": a.rmse, "rows": rows,
+    out_edges = {}
+    if slam.graph is not None:  # the pose graph's edges against the truth: error and Mahalanobis²
+        import gtsam
+
+        Gw = {i: inv(G[0]) @ G[i] for i in range(n)}
+        for kind, edges in (("odometry", slam.graph.odometry),
+                            ("loop", [(e.i, e.j, e.T_ij, e.information) for e in slam.graph.loops])):
+            errs, chi = [], []
+            for i, j, T, H in edges:
+                E = inv(inv(Gw[i]) @ Gw[j]) @ T
+                eta = gtsam.Pose3.Logmap(gtsam.Pose3(E))
+                errs.append(float(np.linalg.norm(E[:3, 3])))
+                chi.append(float(eta @ H @ eta))
+            if errs:
+                out_edges[kind] = {"n": len(errs), "t_mm_rms": 1e3 * float(np.sqrt(np.mean(np.square(errs)))),
+                                   "chi2_median": float(np.median(chi))}
+    out = {"sequence": str(seq_dir), "sets": sets, "ate": a.rmse, "rows": rows, "edges": out_edges,
+           "ate_odometry": ate(gt, slam.odometry()).rmse,
            "loops": [list(map(int, x)) for x in slam.state.loops],
            "keyframes": [r.index for r in slam.state.records if r.index == r.keyframe]}
     if slam.landmarks is not None:
@@ -183,6 +200,12 @@ def main(argv=None) -> int:
             f"keyframes {len(r['keyframes'])}" for k, r in enumerate(runs)))
         print("   (mm: final / odo = error per frame, rms over the block; map1 / reg1 = 1-frame error of the map pose "
               "/ registration; px: median reprojection of the inliers under the true pose)")
+        for k, r in enumerate(runs):
+            sm = r.get("summary") or {}
+            print(f"   [{k}] ATE odometry {r['ate_odometry']:.4f}, edges vs truth: " + ", ".join(
+                f"{kind} {e['n']} rms {e['t_mm_rms']:.2f} mm chi2 med {e['chi2_median']:.1f}" for kind, e in r["edges"].items()))
+            print(f"   [{k}] map poses {sm.get('map_poses')}, old share {sm.get('old_share')}, stale left out "
+                  f"{sm.get('stale_left_out')}, stale joined {sm.get('stale_joined')}, consistency {sm.get('consistency_median')}")
         print(_block_table(runs, a.block), flush=True)
         out.append(runs)
     if a.json is not None:
