@@ -321,6 +321,13 @@ class LandmarksConfig:
     stale_after: int = 0
     stale_check: bool = True  # stale landmarks join the map pose when they agree (see stale_after)
     stale_gate: float = 12.59  # chi-square (6 dof, 95 %) of the stale-only against the current map pose
+    # the pose graph's edges get calibrated informations: an odometry edge the sum of its frames' output
+    # covariances (registration x fuse_scale, fused with the map pose's), a loop edge its registration's
+    # x fuse_scale; off: the registration's raw informations (over-confident: docs/slam.md)
+    graph_information: bool = False
+    # a loop edge i -> j is not added when frame j's map pose rests on at least this many landmarks that
+    # existed at frame i (first seen at or before it): the map already ties the two (0 = every loop edge)
+    map_loop_landmarks: int = 0
     # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed

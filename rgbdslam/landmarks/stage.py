@@ -43,6 +43,7 @@ class LandmarkStats:
     rejected: int = 0  # map poses too far from the registration's
     revisits: int = 0  # frames placed by the revisit search (old landmarks, wide radius)
     stale_left_out: int = 0  # matches to stale landmarks left out of the map pose (stale_after)
+    loops_held: int = 0  # loop edges not added: the map pose already rests on the older frame's landmarks
     stale_joined: int = 0  # frames whose stale matches agreed with the current ones and joined (stale_check)
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
@@ -99,6 +100,7 @@ class LandmarkTracker:
         self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
         self.last_ba_moved: list[int] = []
+        self.step_information: np.ndarray | None = None  # the last returned pose's (see track)
         self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
         self.ba = None
         self._worker = None  # ba_worker 'process': the BA process
@@ -145,6 +147,9 @@ class LandmarkTracker:
         self._last = None
         self._last_matches = None
         self._pending = None
+        # the information of the returned pose's step (graph_information): the calibrated registration's
+        # alone, or fused with the map pose's
+        self.step_information = None if information is None else information * c.fuse_scale
         if self.map.size == 0:
             return pose
         m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth,
@@ -176,6 +181,9 @@ class LandmarkTracker:
                 res.information = res.information / self._consistency(pose, H_pred, res.pose, res.information)
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
+            self.step_information = H_pred + res.information
+        else:  # seed: the map pose replaces the registration's
+            self.step_information = res.information
         return self._accept(index, feats, res)
 
     def _estimate(self, feats, m, pose: np.ndarray):
@@ -288,6 +296,19 @@ class LandmarkTracker:
             ok = np.linalg.norm(P - self.map.pos[l], axis=1) < c.ransac_threshold
             res.feat, res.lm = np.concatenate([res.feat, f[ok]]), np.concatenate([res.lm, l[ok]])
         return res
+
+    def holds(self, index: int, older: int) -> bool:
+        """Whether frame ``index``'s map pose rests on at least ``map_loop_landmarks`` landmarks that
+        already existed at frame ``older`` (first seen at or before it): the map itself ties the two
+        frames together — through landmarks Kalman-averaged over many frames, more precisely than a loop
+        edge's one registration — so a loop edge ``older`` -> ``index`` would only add that
+        registration's error (docs/slam.md "Loops the map has closed")."""
+        c = self.cfg
+        if c.map_loop_landmarks <= 0 or self._last is None or self._last[0] != index:
+            return False
+        held = int((self.map.first[self._last[2]] <= older).sum()) >= c.map_loop_landmarks
+        self.stats.loops_held += int(held)
+        return held
 
     def anchor_edges(self, index: int, feats, pose: np.ndarray, nodes) -> list:
         """Landmark-to-keyframe edges of keyframe ``index`` at ``pose`` (its final pose): for every
@@ -502,7 +523,7 @@ class LandmarkTracker:
         return {
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
             "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
-            "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined,
+            "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined, "loops_held": s.loops_held,
             "anchor_edges": s.anchor_edges,
             "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
