@@ -48,7 +48,7 @@ def test_stale_landmarks_with_other_drift_are_left_out_of_the_map_pose():
     truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
     shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
     feats = _frame(truth, X, desc)
-    mixed = LandmarkTracker.track(_tracker(X, desc, shift), 100, feats, truth)
+    mixed = LandmarkTracker.track(_tracker(X, desc, shift, stale_after=0), 100, feats, truth)
     assert np.linalg.norm(mixed[:3, 3] - truth[:3, 3]) > 2e-3  # pulled towards the stale copy
     tr = _tracker(X, desc, shift, stale_after=30, stale_check=True)
     P = tr.track(100, feats, truth)
@@ -79,3 +79,23 @@ def test_stale_landmarks_that_agree_join_the_map_pose():
     off = _tracker(X, desc, np.eye(4), stale_after=30, stale_check=False)
     off.track(100, feats, truth)
     assert off.summary()["stale_left_out"] >= 150 and off.summary()["stale_joined"] == 0
+
+
+def test_a_loop_the_map_already_closed_is_held_by_the_map():
+    """holds(j, i): frame j's map inliers include >= map_loop_landmarks landmarks first seen at or before
+    frame i (the loop's older end) — counted by hand: 40 landmarks first seen at 0, 40 at 60."""
+    tr = LandmarkTracker(LandmarksConfig(enabled=True, map_loop_landmarks=30), CAM)
+    X = _scene(80, 2)
+    cov = np.tile(np.eye(3) * 1e-6, (80, 1, 1))
+    desc = np.zeros((80, 32), np.uint8)
+    tr.map.add(X[:40], cov[:40], desc[:40], 0, 0)
+    tr.map.add(X[40:], cov[40:], desc[40:], 60, 60)
+    tr._last = (130, np.arange(80), np.arange(80))
+    assert tr.holds(130, 0)  # 40 >= 30 landmarks existed at frame 0
+    tr._last = (130, np.arange(60), np.arange(20, 80))  # 20 of them first seen at 0: fewer than 30
+    assert not tr.holds(130, 10)
+    assert tr.holds(130, 60)  # all 60 existed at frame 60
+    assert not tr.holds(131, 60)  # no map pose for frame 131
+    tr.cfg.map_loop_landmarks = 0
+    assert not tr.holds(130, 60)
+    assert tr.summary()["loops_held"] == 2
