@@ -200,9 +200,9 @@ class LandmarkTracker:
         map is not corrected (the pose graph moves the landmarks at the end of the run), so the first
         visit's landmarks and the ones made since carry different drift; one pose fitted to both is a
         compromise that jumps from frame to frame with their mix. With ``stale_check`` the pose from the
-        stale matches alone is compared with the pose from the current ones (or, with too few current
-        ones, the registration's ``pose``): when it is within the χ² gate ``stale_gate`` of their joint
-        covariance the stale landmarks join (the two agree: no drift between the visits to speak of).
+        stale matches alone is compared with the pose from the current ones: when it is within the χ²
+        gate ``stale_gate`` of their joint covariance the stale landmarks join (the two agree: no drift
+        between the visits to speak of); with too few current or stale matches to compare they stay out.
         Returns (matches, the pose from the current matches when it was computed, else None); the
         candidates of a left-out landmark no longer keep new landmarks from being made there."""
         c = self.cfg
@@ -302,7 +302,7 @@ class LandmarkTracker:
         already existed at frame ``older`` (first seen at or before it): the map itself ties the two
         frames together — through landmarks Kalman-averaged over many frames, more precisely than a loop
         edge's one registration — so a loop edge ``older`` -> ``index`` would only add that
-        registration's error (docs/slam.md "Loops the map has closed")."""
+        registration's error (docs/slam.md "Stale landmarks and loops the map has closed")."""
         c = self.cfg
         if c.map_loop_landmarks <= 0 or self._last is None or self._last[0] != index:
             return False
