@@ -18,6 +18,10 @@ records per frame:
 * ``map`` / ``reg``: the map pose's and the registration's 1-frame error against the truth, taken
   from the previous frame's output (what each would add on its own).
 
+* after the run: the odometry's ATE beside the final one, and every pose-graph edge (odometry, loop)
+  against the truth: translation rms and the median Mahalanobis² under the edge's information
+  (calibrated: 5.35), so it says whether the pose graph helps or hurts the map-tracked odometry.
+
 ``--compare`` runs the same sequence once more with those settings added and prints both side by
 side per block of ``--block`` frames. The synthetic generator's sequences only (TUM layout with the
 generator's ground truth, one pose per frame).
