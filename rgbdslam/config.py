@@ -321,6 +321,20 @@ class LandmarksConfig:
     # Hamming bonus of a landmark first seen old_age frames or more ago when features choose their landmark
     # (an old landmark beats a younger copy of itself made along the drift; the max_hamming gate is unchanged)
     match_old_bonus: int = 0
+    # frames: a landmark not seen for longer is "stale" (an earlier visit of the place; the map is not
+    # corrected between visits, so it carries other drift than the landmarks made since) and is left out
+    # of the frame's map pose (0 = never); with stale_check it joins when its own pose agrees with the
+    # current landmarks' within the chi-square gate stale_gate (6 dof) of their joint covariance
+    stale_after: int = 30
+    stale_check: bool = True  # stale landmarks join the map pose when they agree (see stale_after)
+    stale_gate: float = 12.59  # chi-square (6 dof, 95 %) of the stale-only against the current map pose
+    # the pose graph's edges get calibrated informations: an odometry edge the sum of its frames' output
+    # covariances (registration x fuse_scale, fused with the map pose's), a loop edge its registration's
+    # x fuse_scale; off: the registration's raw informations (over-confident: docs/slam.md)
+    graph_information: bool = False
+    # a loop edge i -> j is not added when frame j's map pose rests on at least this many landmarks that
+    # existed at frame i (first seen at or before it): the map already ties the two (0 = every loop edge)
+    map_loop_landmarks: int = 30
     # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
@@ -653,6 +667,7 @@ MAXIMA = {
     "landmarks.revisit_max_correction_deg": 360.0,
     "landmarks.drift_sigma": 10.0, "landmarks.anchor_age": 10**9, "landmarks.anchor_min_landmarks": 10**6,
     "landmarks.anchor_info_scale": 1e6, "landmarks.match_old_bonus": 256,
+    "landmarks.stale_after": 10**9, "landmarks.stale_gate": 1e6, "landmarks.map_loop_landmarks": 10**6,
     "landmarks.consistency_window": 10**6,
     "landmarks.seed": C_INT_MAX,
 }

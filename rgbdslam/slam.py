@@ -132,6 +132,8 @@ class SLAM:
                 self.loop.new_segment()
         # 4. loop closure on sharp (or due) frames
         loops, map_edges = self._detect_loops(frame, result, pose)
+        if loops and self.landmarks is not None and self.cfg.landmarks.map_loop_landmarks > 0:
+            loops = [e for e in loops if not self.landmarks.holds(frame.index, e.i)]  # the map closed them
         # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node);
         # map-tracking edges force one only every loop.map_track_keyframe_every-th anchored frame
         is_kf = self.keyframe_policy.is_keyframe(frame.index, pose)
@@ -173,6 +175,9 @@ class SLAM:
         if info is not None and result.n_fused > 1:  # the references share this frame's noise:
             info = info / result.n_fused  # their summed information counts it n_fused times
         mpose = self.landmarks.track(frame.index, result.features, pose, info)
+        if self.cfg.landmarks.graph_information and self.landmarks.step_information is not None and \
+                self._info_since_kf and result.information is not None:
+            self._info_since_kf[-1] = self.landmarks.step_information  # the odometry edge: what the pose is
         if mpose is not pose:
             pose = mpose
             result.pose = pose
@@ -271,6 +276,10 @@ class SLAM:
         if not loops or self.graph is None:
             return
         t0 = time.perf_counter()
+        if self.landmarks is not None and self.cfg.landmarks.graph_information:
+            # a loop edge is one registration: its information calibrated as the fusion calibrates the
+            # registration's (landmarks.fuse_scale), so it weighs against the odometry edges' as measured
+            loops = [replace(e, information=e.information * self.cfg.landmarks.fuse_scale) for e in loops]
         for e in loops:
             self.graph.add_loop(e)
             self.state.loops.append((int(e.i), int(e.j)))

@@ -43,6 +43,9 @@ class LandmarkStats:
     map_poses: int = 0  # frames placed by the map
     rejected: int = 0  # map poses too far from the registration's
     revisits: int = 0  # frames placed by the revisit search (old landmarks, wide radius)
+    stale_left_out: int = 0  # matches to stale landmarks left out of the map pose (stale_after)
+    loops_held: int = 0  # loop edges not added: the map pose already rests on the older frame's landmarks
+    stale_joined: int = 0  # frames whose stale matches agreed with the current ones and joined (stale_check)
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
@@ -59,6 +62,16 @@ CHI2_MEDIAN_6DOF = 5.348  # median of a chi-square distribution with 6 degrees o
 def _close(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
     d = inv(A) @ B
     return bool(np.linalg.norm(d[:3, 3]) <= metres and np.degrees(rotation_angle(d[:3, :3])) <= degrees)
+
+
+def pose_chi2(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -> float:
+    """Mahalanobis² of the disagreement η = Log(P1⁻¹ P2) of two pose estimates with informations H1,
+    H2 (right perturbations, (rotation, translation) order): ηᵀ (H1⁻¹ + H2⁻¹)⁻¹ η (χ², 6 dof)."""
+    import gtsam
+
+    eta = gtsam.Pose3.Logmap(gtsam.Pose3(inv(P1) @ P2))
+    C = np.linalg.inv(H1) + np.linalg.inv(H2)
+    return float(eta @ np.linalg.solve(C, eta))
 
 
 def fuse_poses(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -> np.ndarray:
@@ -88,6 +101,7 @@ class LandmarkTracker:
         self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
         self.last_ba_moved: list[int] = []
+        self.step_information: np.ndarray | None = None  # the last returned pose's (see track)
         self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
         self.ba = None
         self._worker = None  # ba_worker 'process': the BA process
@@ -134,17 +148,19 @@ class LandmarkTracker:
         self._last = None
         self._last_matches = None
         self._pending = None
+        # the information of the returned pose's step (graph_information): the calibrated registration's
+        # alone, or fused with the map pose's
+        self.step_information = None if information is None else information * c.fuse_scale
         if self.map.size == 0:
             return pose
         m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth,
                          old_before=index - c.old_age + 1, old_bonus=c.match_old_bonus)
-        self._last_matches = m
         res = None
-        if len(m.lm) >= c.min_inliers:
-            res = estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
-                                c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
-                                c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
-                                c.adaptive_noise)
+        if c.stale_after > 0:
+            m, res = self._without_stale(index, feats, m, pose)
+        self._last_matches = m
+        if res is None and len(m.lm) >= c.min_inliers:
+            res = self._estimate(feats, m, pose)
         if res is not None and not _close(pose, res.pose, c.max_correction, c.max_correction_deg):
             self.stats.rejected += 1  # a map pose far from the registration's is a wrong map match
             res = None
@@ -166,7 +182,49 @@ class LandmarkTracker:
                 res.information = res.information / self._consistency(pose, H_pred, res.pose, res.information)
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
+            self.step_information = H_pred + res.information
+        else:  # seed: the map pose replaces the registration's
+            self.step_information = res.information
         return self._accept(index, feats, res)
+
+    def _estimate(self, feats, m, pose: np.ndarray):
+        """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails."""
+        c = self.cfg
+        return estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
+                             c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
+                             c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
+                             c.adaptive_noise)
+
+    def _without_stale(self, index: int, feats, m, pose: np.ndarray):
+        """The matches with the *stale* landmarks (not seen for more than ``stale_after`` frames: an
+        earlier visit of the place) left out unless they agree with the rest. Between the visits the
+        map is not corrected (the pose graph moves the landmarks at the end of the run), so the first
+        visit's landmarks and the ones made since carry different drift; one pose fitted to both is a
+        compromise that jumps from frame to frame with their mix. With ``stale_check`` the pose from the
+        stale matches alone is compared with the pose from the current ones: when it is within the χ²
+        gate ``stale_gate`` of their joint covariance the stale landmarks join (the two agree: no drift
+        between the visits to speak of); with too few current or stale matches to compare they stay out.
+        Returns (matches, the pose from the current matches when it was computed, else None); the
+        candidates of a left-out landmark no longer keep new landmarks from being made there."""
+        c = self.cfg
+        stale = index - self.map.last[m.lm] > c.stale_after
+        if not stale.any():
+            return m, None
+        cand_ok = None if m.cand_ids is None else index - self.map.last[m.cand_ids] <= c.stale_after
+        cur = m.subset(~stale, cand_ok)
+        res_cur = self._estimate(feats, cur, pose) if len(cur.lm) >= c.min_inliers else None
+        if c.stale_check and stale.sum() >= c.min_inliers:
+            res_old = self._estimate(feats, m.subset(stale), pose if res_cur is None else res_cur.pose)
+            if res_old is not None and res_old.information is not None:
+                if res_cur is not None and res_cur.information is not None:
+                    chi2 = pose_chi2(res_cur.pose, res_cur.information, res_old.pose, res_old.information)
+                else:
+                    chi2 = np.inf
+                if chi2 <= c.stale_gate:
+                    self.stats.stale_joined += 1
+                    return m, None
+        self.stats.stale_left_out += int(stale.sum())
+        return cur, res_cur
 
     def _consistency(self, P_reg: np.ndarray, H_reg: np.ndarray, P_map: np.ndarray, H_map: np.ndarray) -> float:
         """The factor the map pose's information is divided by (≥ 1). The two poses' disagreement
@@ -239,6 +297,19 @@ class LandmarkTracker:
             ok = np.linalg.norm(P - self.map.pos[l], axis=1) < c.ransac_threshold
             res.feat, res.lm = np.concatenate([res.feat, f[ok]]), np.concatenate([res.lm, l[ok]])
         return res
+
+    def holds(self, index: int, older: int) -> bool:
+        """Whether frame ``index``'s map pose rests on at least ``map_loop_landmarks`` landmarks that
+        already existed at frame ``older`` (first seen at or before it): the map itself ties the two
+        frames together — through landmarks Kalman-averaged over many frames, more precisely than a loop
+        edge's one registration — so a loop edge ``older`` -> ``index`` would only add that
+        registration's error (docs/slam.md "Stale landmarks and loops the map has closed")."""
+        c = self.cfg
+        if c.map_loop_landmarks <= 0 or self._last is None or self._last[0] != index:
+            return False
+        held = int((self.map.first[self._last[2]] <= older).sum()) >= c.map_loop_landmarks
+        self.stats.loops_held += int(held)
+        return held
 
     def anchor_edges(self, index: int, feats, pose: np.ndarray, nodes) -> list:
         """Landmark-to-keyframe edges of keyframe ``index`` at ``pose`` (its final pose): for every
@@ -453,6 +524,7 @@ class LandmarkTracker:
         return {
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
             "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
+            "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined, "loops_held": s.loops_held,
             "anchor_edges": s.anchor_edges,
             "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,

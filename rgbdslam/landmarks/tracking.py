@@ -32,6 +32,14 @@ class MapMatch:
     lm: np.ndarray  # (M,) landmark ids
     n_candidates: int  # landmarks projected into the frame
     cand_uv: np.ndarray | None = None  # (K, 2) pixels of the projected candidates
+    cand_ids: np.ndarray | None = None  # (K,) their landmark ids
+
+    def subset(self, keep: np.ndarray, keep_cand: np.ndarray | None = None) -> "MapMatch":
+        """The matches ``keep`` (boolean (M,)), and the candidates ``keep_cand`` (boolean (K,); all if None)."""
+        uv, ids = self.cand_uv, self.cand_ids
+        if keep_cand is not None and uv is not None and ids is not None:
+            uv, ids = uv[keep_cand], ids[keep_cand]
+        return MapMatch(self.feat[keep], self.lm[keep], self.n_candidates, uv, ids)
 
 
 @dataclass
@@ -74,7 +82,7 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
         old = lmap.first[ids] < first_before
         ids, uv = ids[old], uv[old]
     fi = np.flatnonzero(map_valid(feats))
-    empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv)
+    empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv, ids)
     if len(ids) == 0 or len(fi) == 0:
         return empty
     kk = min(k, len(ids))
@@ -101,7 +109,7 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     order = np.lexsort((f_idx, hb))
     _, first = np.unique(l_idx[order], return_index=True)
     sel = order[first]
-    return MapMatch(f_idx[sel], ids[l_idx[sel]], len(ids), uv)
+    return MapMatch(f_idx[sel], ids[l_idx[sel]], len(ids), uv, ids)
 
 
 def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.ndarray, threshold: float,

@@ -54,7 +54,7 @@ def test_anchor_edge_is_the_pose_against_the_old_keyframes_landmarks():
     truth = _pose([0.01, -0.02, 0.0], [0.05, 0.02, 0.0])
     drifted = truth @ _pose([0.0, 0.002, 0.0], [0.015, 0.0, 0.0])
     cfg = LandmarksConfig(enabled=True, mode="seed", anchor_edges=True, anchor_age=100, anchor_min_landmarks=20,
-                          min_seen=1)
+                          min_seen=1, stale_after=0)  # only old landmarks in view: none left out as stale
     tr = LandmarkTracker(cfg, CAM)
     cov = np.tile(np.eye(3) * 1e-6, (len(X), 1, 1))
     half = len(X) // 2

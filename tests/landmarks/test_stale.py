@@ -1,0 +1,101 @@
+"""Stale landmarks (issue 17, the revisit): landmarks not seen for ``stale_after`` frames come from an
+earlier visit and carry that visit's drift; the map pose leaves them out unless they agree."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rgbdslam.config import LandmarksConfig
+from rgbdslam.geometry.se3 import inv
+from rgbdslam.landmarks.stage import LandmarkTracker, pose_chi2
+from tests.landmarks.scenes import CAM
+from tests.landmarks.scenes import pose as _pose
+from tests.landmarks.scenes import scene as _scene
+from tests.landmarks.test_anchor import _frame
+
+
+def test_pose_chi2_by_hand():
+    # η = (0, 0, 0, 0.01, 0, 0), C = H1⁻¹ + H2⁻¹ = 2e-4 I: η² / 2e-4 = 1e-4 / 2e-4 = 0.5
+    H = np.eye(6) * 1e4
+    assert np.isclose(pose_chi2(np.eye(4), H, _pose([0, 0, 0], [0.01, 0, 0]), H), 0.5)
+    # a rotation of 0.01 rad about z with H1 = 1e4, H2 = 3e4: C = (1 + 1/3) 1e-4, χ² = 1e-4 / C = 0.75
+    assert np.isclose(pose_chi2(np.eye(4), H, _pose([0, 0, 0.01], [0, 0, 0]), 3 * H), 0.75)
+
+
+def _tracker(X, desc, shift, **kw):
+    """A map of ``X``: the first half made at frame 0 and last seen then (stale at frame 100), moved by
+    the rigid ``shift`` (the drift between the two visits), the second half made and seen at frame 95."""
+    cfg = LandmarksConfig(enabled=True, mode="seed", min_seen=1, **kw)
+    tr = LandmarkTracker(cfg, CAM)
+    cov = np.tile(np.eye(3) * 1e-6, (len(X), 1, 1))
+    h = len(X) // 2
+    Xs = X[:h] @ shift[:3, :3].T + shift[:3, 3]
+    tr.map.add(Xs, cov[:h], desc[:h], 0, 0)
+    tr.map.end_step(0)
+    tr.map.add(X[h:], cov[h:], desc[h:], 95, 95)
+    tr.map.end_step(95)
+    return tr
+
+
+def test_stale_landmarks_with_other_drift_are_left_out_of_the_map_pose():
+    """The frame at ``truth`` sees both halves; the stale half sits 1.5 cm / 0.3° off (the first visit's
+    coordinates). Mixed, the pose is a compromise between the two; with stale_after the pose is the
+    current landmarks' (the truth), the stale matches are counted as left out, and their features
+    may make new landmarks (their candidates no longer block them)."""
+    rng = np.random.default_rng(5)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
+    shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
+    feats = _frame(truth, X, desc)
+    mixed = LandmarkTracker.track(_tracker(X, desc, shift, stale_after=0), 100, feats, truth)
+    assert np.linalg.norm(mixed[:3, 3] - truth[:3, 3]) > 2e-3  # pulled towards the stale copy
+    tr = _tracker(X, desc, shift, stale_after=30, stale_check=True)
+    P = tr.track(100, feats, truth)
+    assert np.linalg.norm(P[:3, 3] - truth[:3, 3]) < 1e-4
+    s = tr.summary()
+    assert s["stale_left_out"] >= 150 and s["stale_joined"] == 0
+    assert np.all(tr.map.first[tr._last[2]] == 95)  # the inliers: current landmarks only
+    assert np.all(tr.map.last[tr._last_matches.cand_ids] >= 70)  # stale candidates no longer block new ones
+    tr.map.end_step(100)  # seen at 95 and re-observed now; the stale half still last seen at 0
+    assert np.all(tr.map.last[: len(X) // 2] == 0)
+
+
+def test_stale_landmarks_that_agree_join_the_map_pose():
+    """The same map without drift between the visits: the stale half's own pose agrees with the current
+    one (χ² under the gate), so it joins and the pose uses every landmark; with stale_check off it
+    would be left out all the same."""
+    rng = np.random.default_rng(5)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
+    feats = _frame(truth, X, desc)
+    tr = _tracker(X, desc, np.eye(4), stale_after=30, stale_check=True)
+    P = tr.track(100, feats, truth @ _pose([0, 0, 0], [0.002, 0, 0]))
+    assert np.linalg.norm((inv(truth) @ P)[:3, 3]) < 1e-4
+    s = tr.summary()
+    assert s["stale_joined"] == 1 and s["stale_left_out"] == 0
+    assert np.any(tr.map.first[tr._last[2]] == 0)
+    off = _tracker(X, desc, np.eye(4), stale_after=30, stale_check=False)
+    off.track(100, feats, truth)
+    assert off.summary()["stale_left_out"] >= 150 and off.summary()["stale_joined"] == 0
+
+
+def test_a_loop_the_map_already_closed_is_held_by_the_map():
+    """holds(j, i): frame j's map inliers include >= map_loop_landmarks landmarks first seen at or before
+    frame i (the loop's older end) — counted by hand: 40 landmarks first seen at 0, 40 at 60."""
+    tr = LandmarkTracker(LandmarksConfig(enabled=True, map_loop_landmarks=30), CAM)
+    X = _scene(80, 2)
+    cov = np.tile(np.eye(3) * 1e-6, (80, 1, 1))
+    desc = np.zeros((80, 32), np.uint8)
+    tr.map.add(X[:40], cov[:40], desc[:40], 0, 0)
+    tr.map.add(X[40:], cov[40:], desc[40:], 60, 60)
+    tr._last = (130, np.arange(80), np.arange(80))
+    assert tr.holds(130, 0)  # 40 >= 30 landmarks existed at frame 0
+    tr._last = (130, np.arange(60), np.arange(20, 80))  # 20 of them first seen at 0: fewer than 30
+    assert not tr.holds(130, 10)
+    assert tr.holds(130, 60)  # all 60 existed at frame 60
+    assert not tr.holds(131, 60)  # no map pose for frame 131
+    tr.cfg.map_loop_landmarks = 0
+    assert not tr.holds(130, 60)
+    assert tr.summary()["loops_held"] == 2
