@@ -29,6 +29,7 @@ from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
+from rgbdslam.io.numbers import unit_quaternions
 from rgbdslam.geometry.se3 import inv, pose_from_tum
 from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io.text import read_lines, read_text
@@ -107,7 +108,7 @@ def read_camera_csv(path: Path) -> tuple[np.ndarray, list[str]]:
 
 def read_groundtruth_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Time stamps (s) and body poses T_WB (N, 4, 4) of ``state_groundtruth_estimate0/data.csv``."""
-    stamps, rows = [], []
+    stamps, rows, lines = [], [], []
     for lineno, line in enumerate(read_lines(path, "EuRoC ground truth"), 1):
         s = line.strip()
         if not s or s.startswith("#"):
@@ -120,10 +121,14 @@ def read_groundtruth_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise InputError(f"{path}:{lineno}: expected at least 8 numbers (timestamp, position, quaternion w x y z)")
         stamps.append(int(s.split(",")[0]) * 1e-9)
         rows.append(vals[1:8])
+        lines.append(lineno)
     if not rows:
         raise InputError(f"{path} holds no poses")
     a = np.array(rows)
-    return np.array(stamps), pose_from_tum(a[:, :3], a[:, [4, 5, 6, 3]])
+    if not np.isfinite(a).all():
+        raise InputError(f"{path}:{lines[int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])]}: a value is not a finite number")
+    q = unit_quaternions(a[:, [4, 5, 6, 3]], path, lines, order="qw qx qy qz")
+    return np.array(stamps), pose_from_tum(a[:, :3], q)
 
 
 @reader("euroc", _is_euroc)

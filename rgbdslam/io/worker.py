@@ -147,9 +147,10 @@ class Helper:
             raise value
         return value
 
-    def close(self) -> None:
-        """End the process (at once when its job is done; without a job when none was sent)."""
-        end(self._proc, self._jobs)
+    def close(self, wait: float = 5.0) -> None:
+        """End the process (at once when its job is done; without a job when none was sent): asked
+        to end, terminated after ``wait`` s."""
+        end(self._proc, self._jobs, timeout=wait)
 
 
 def _call(func: str, *args):

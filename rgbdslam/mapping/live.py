@@ -603,7 +603,7 @@ class LiveMap:
                     del points, colors, args
                     cloud_path, points, colors, map2d_path, grid, timings = self._cloud.result()
                 else:  # its niced imports are not done (a short run, a busy machine): here, as before
-                    self._close_cloud()
+                    self._close_cloud(wait=0.0)  # it reads its queue only after them: do not wait for it
                     cloud_path, points, colors, map2d_path, grid, timings = _cloud_end(*args)
                 timings["cloud_in_run"] = in_run
                 mesh = self._receive("ok")
@@ -641,16 +641,18 @@ class LiveMap:
             self._proc.terminate()
             self._proc.join()
         self._jobs.cancel_join_thread()
-        self._close_cloud()
+        self._close_cloud(wait=0.0)
 
-    def _close_cloud(self) -> None:
+    def _close_cloud(self, wait: float = 5.0) -> None:
+        """End the cloud process: it is asked to end and, after ``wait`` s, terminated (at once where
+        it may be busy: an error, a Ctrl-C, its imports not done)."""
         if self._cloud is not None:
-            self._cloud.close()
+            self._cloud.close(wait)
 
     def abort(self) -> None:
         """Stop the map process (and the cloud process) without a map (a failed or interrupted run)."""
         end(self._proc, self._jobs)
-        self._close_cloud()
+        self._close_cloud(wait=0.0)
 
 
 def _warm_cloud() -> None:

@@ -561,3 +561,25 @@ def test_subpixel_refinement_has_no_pull_toward_whole_pixels():
         worst[method] = np.max(np.abs(errors))
     assert worst["zsad_v"] < 0.02, worst
     assert worst["centre_parabola"] > 0.05, worst
+
+
+def test_euroc_ground_truth_with_a_zero_quaternion_names_its_line(tmp_path):
+    """A zero (or non-finite) quaternion in EuRoC's ground truth is one error naming the file and
+    line, not NaN poses and NaN accuracy numbers."""
+    from rgbdslam.datasets.euroc import read_groundtruth_csv
+    from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
+    from rgbdslam.errors import InputError
+
+    generate_stereo_sequence(tmp_path / "e", 0.12, "euroc", frames=3, motion="circle", seed=0, width=160, height=120)
+    csv = tmp_path / "e" / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    lines = csv.read_text().splitlines()
+    stamps, poses = read_groundtruth_csv(csv)
+    assert len(poses) == 3 and np.allclose(np.linalg.det(poses[:, :3, :3]), 1.0)
+    k = next(i for i, line in enumerate(lines) if line.strip() and not line.startswith("#")) + 1  # 2nd pose
+    for bad in ("0,0,0,0", "nan,0,0,1"):
+        f = lines[k].split(",")
+        lines2 = list(lines)
+        lines2[k] = ",".join(f[:4] + bad.split(",") + f[8:])
+        csv.write_text("\n".join(lines2) + "\n")
+        with pytest.raises(InputError, match=rf"{csv.name}:{k + 1}: "):
+            read_groundtruth_csv(csv)
