@@ -16,13 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-
-def _skew_batch(p: np.ndarray) -> np.ndarray:
-    S = np.zeros((len(p), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -p[:, 2], p[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = p[:, 2], -p[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -p[:, 1], p[:, 0]
-    return S
+from rgbdslam.geometry.se3 import skew_batch
 
 
 def refine_pose_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarray, W: np.ndarray, cov_w: np.ndarray,
@@ -47,7 +41,7 @@ def refine_pose_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarray, W: 
         m2 = np.einsum("ni,nij,nj->n", r, info, r)
         m = np.sqrt(np.maximum(m2, 0.0))
         w = np.where(m <= huber, 1.0, huber / np.maximum(m, 1e-12))
-        J = np.concatenate([-_skew_batch(y), np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2)  # (N,3,6)
+        J = np.concatenate([-skew_batch(y), np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2)  # (N,3,6)
         JtI = np.einsum("nki,nkl->nil", J, info) * w[:, None, None]  # (N,6,3)
         H = np.einsum("nil,nlj->ij", JtI, J)
         g = np.einsum("nil,nl->i", JtI, r)

@@ -9,6 +9,16 @@ from __future__ import annotations
 import numpy as np
 
 
+def skew_batch(p: np.ndarray) -> np.ndarray:
+    """(N, 3) vectors -> (N, 3, 3) cross-product matrices ([p]x q = p x q)."""
+    p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+    S = np.zeros((len(p), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -p[:, 2], p[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = p[:, 2], -p[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -p[:, 1], p[:, 0]
+    return S
+
+
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R

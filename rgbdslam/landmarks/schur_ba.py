@@ -31,21 +31,14 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
+from rgbdslam.geometry.se3 import skew_batch
+
 # GTSAM's LevenbergMarquardtParams defaults (the ones local_ba.solve keeps)
 LAMBDA_INITIAL = 1e-5
 LAMBDA_FACTOR = 10.0
 LAMBDA_UPPER = 1e5
 MIN_MODEL_FIDELITY = 1e-3
 ABSOLUTE_ERROR_TOL = 1e-5
-
-
-def _skew(p: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) cross-product matrices."""
-    S = np.zeros((len(p), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -p[:, 2], p[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = p[:, 2], -p[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -p[:, 1], p[:, 0]
-    return S
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
@@ -59,7 +52,7 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     A = np.where(small, 1.0 - th2 / 6.0, np.sin(ths) / ths)
     B = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(ths)) / (ths * ths))
     Cc = np.where(small, 1.0 / 6.0 - th2 / 120.0, (ths - np.sin(ths)) / (ths * ths * ths))
-    K = _skew(w)
+    K = skew_batch(w)
     KK = K @ K
     eye = np.eye(3)
     T = np.zeros((len(xi), 4, 4))

@@ -64,13 +64,17 @@ def _close(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
     return bool(np.linalg.norm(d[:3, 3]) <= metres and np.degrees(rotation_angle(d[:3, :3])) <= degrees)
 
 
-def pose_chi2(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -> float:
-    """Mahalanobis² of the disagreement η = Log(P1⁻¹ P2) of two pose estimates with informations H1,
-    H2 (right perturbations, (rotation, translation) order): ηᵀ (H1⁻¹ + H2⁻¹)⁻¹ η (χ², 6 dof)."""
+def _disagreement(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The disagreement η = Log(P1⁻¹ P2) of two pose estimates with informations H1, H2 (right
+    perturbations, (rotation, translation) order) and its covariance C = H1⁻¹ + H2⁻¹."""
     import gtsam
 
-    eta = gtsam.Pose3.Logmap(gtsam.Pose3(inv(P1) @ P2))
-    C = np.linalg.inv(H1) + np.linalg.inv(H2)
+    return gtsam.Pose3.Logmap(gtsam.Pose3(inv(P1) @ P2)), np.linalg.inv(H1) + np.linalg.inv(H2)
+
+
+def pose_chi2(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -> float:
+    """Mahalanobis² of the two pose estimates' disagreement: ηᵀ C⁻¹ η (χ², 6 dof; :func:`_disagreement`)."""
+    eta, C = _disagreement(P1, H1, P2, H2)
     return float(eta @ np.linalg.solve(C, eta))
 
 
@@ -236,11 +240,8 @@ class LandmarkTracker:
         ``fuse_scale``): with r = tr(C⁻¹ H_map⁻¹) / 6, the map's share of the whitened disagreement,
         Σ_reg + s Σ_map is k times C for 1 - r + s r = k, s = 1 + (k - 1) / r (medians of k and r;
         1 while k ≤ 1 or fewer than 5 frames are in; docs/slam.md "Consistency-scaled fusion")."""
-        import gtsam
-
-        eta = gtsam.Pose3.Logmap(gtsam.Pose3(inv(P_reg) @ P_map))
+        eta, C = _disagreement(P_reg, H_reg, P_map, H_map)
         S_map = np.linalg.inv(H_map)
-        C = np.linalg.inv(H_reg) + S_map
         share = float(np.trace(np.linalg.solve(C, S_map))) / 6.0  # the map's part of the whitened disagreement
         self._chi2.append((float(eta @ np.linalg.solve(C, eta)), share))
         del self._chi2[: max(0, len(self._chi2) - self.cfg.consistency_window)]

@@ -50,3 +50,12 @@ def test_tum_poses_round_trip_with_w_not_negative():
     unit = q / np.linalg.norm(q, axis=1, keepdims=True)
     np.testing.assert_allclose(np.abs(np.sum(q2 * unit, axis=1)), 1.0, atol=1e-14)
     np.testing.assert_allclose(pose_from_tum(t2, q2), T, atol=1e-14)
+
+
+def test_skew_batch_is_the_cross_product_worked_by_hand():
+    from rgbdslam.geometry.se3 import skew_batch
+
+    S = skew_batch(np.array([[1.0, 2.0, 3.0], [0.0, 0.0, 1.0]]))
+    assert np.array_equal(S[0], [[0, -3, 2], [3, 0, -1], [-2, 1, 0]])
+    assert np.array_equal(S[0] @ [4.0, 5.0, 6.0], [-3.0, 6.0, -3.0])  # (1,2,3) x (4,5,6)
+    assert np.array_equal(S[1] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])  # z x x = y
