@@ -272,7 +272,9 @@ class LandmarksConfig:
     sampling: Literal["old_first", "uniform"] = "old_first"  # RANSAC samples: oldest landmarks first (thesis) or uniform
     # after RANSAC + weighted 3-D refit: 'reprojection' = motion-only Gauss-Newton on pixel and
     # inverse-depth residuals (whitened; Huber), inliers re-gated at chi_gate sigmas; 'rigid' = stop there
-    refine: Literal["reprojection", "rigid"] = "reprojection"  # after RANSAC: reprojection Gauss-Newton or rigid refit
+    # (no information: the map pose replaces the registration's); 'points' = stop there too, with the
+    # information of a 3-D fit (the registration's formula: per-axis sigma from the RMS residual), fused
+    refine: Literal["reprojection", "rigid", "points"] = "reprojection"  # after RANSAC: reprojection GN, rigid refit, or 3-D fit fused
     chi_gate: float = 3.0  # sigmas: inliers re-gated after the reprojection refine
     # the landmark's covariance in the reprojection refine: 'full' = its 3x3 carried through the
     # projection (along the ray into the inverse depth); 'isotropic' = sqrt(trace/3) in every direction

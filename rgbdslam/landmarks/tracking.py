@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from rgbdslam.frontend.features import map_valid
+from rgbdslam.frontend.registration.base import fit_information
 from rgbdslam.geometry.ransac import ransac_rigid
 from rgbdslam.geometry.rigid import fit_rigid
 from rgbdslam.geometry.se3 import inv
@@ -172,7 +173,10 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
             spx, sig = spx * np.clip(k_px, 0.25, 4.0), sig * np.clip(k_z, 0.25, 4.0)
             T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask])
     r = np.linalg.norm(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]), axis=1)
-    return MapPose(T, feat[mask], lm[mask], m, match.n_candidates, float(np.sqrt(np.mean(r**2))), info)
+    rms = float(np.sqrt(np.mean(r**2)))
+    if refine == "points":  # the weighted 3-D refit kept, with the registration's information formula
+        info = fit_information(S[mask], rms)
+    return MapPose(T, feat[mask], lm[mask], m, match.n_candidates, rms, info)
 
 
 def _so3_exp(w: np.ndarray) -> np.ndarray:

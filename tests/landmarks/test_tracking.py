@@ -184,3 +184,30 @@ def test_whitened_residuals_match_the_dense_model_and_their_jacobian_the_finite_
         Pm = P - np.cross(xi[:3], P) - xi[3:]
         num = np.einsum("nij,nj->ni", Lt, (dense(Pp)[0] - dense(Pm)[0]) / (2 * h))
         assert np.allclose(J[:, :, k], -num, rtol=1e-5, atol=1e-6 * np.abs(J).max())
+
+
+def test_points_refine_follows_the_depth_where_the_pixels_disagree():
+    # the colour pixels shifted 3 px against exact 3-D points (a misregistered colour image): the
+    # reprojection refine follows the pixels (the pose turns by ~0.3 deg), refine 'points' keeps the
+    # 3-D fit (exact pose) and carries the registration's information formula (RMS 0 -> the 3 mm floor)
+    from types import SimpleNamespace
+
+    from rgbdslam.frontend.registration.base import SIGMA_FLOOR, point_information
+    from rgbdslam.geometry.se3 import rotation_angle
+    from rgbdslam.landmarks.tracking import MapMatch, estimate_pose
+
+    X = _scene(300, seed=6)
+    m = LandmarkMap("single")
+    ids = m.add(X, np.tile(np.eye(3) * 1e-8, (len(X), 1, 1)), np.zeros((len(X), 32), np.uint8), 0, 0)
+    P = _pose([0.01, -0.02, 0.03], [0.05, 0.02, -0.04])
+    Pc, uv, z = _seen(P, X)
+    feats = SimpleNamespace(uv=uv + [3.0, 0.0], pts=Pc)
+    match = MapMatch(np.arange(len(X)), ids, len(X))
+    sig = np.full(len(X), 0.01)
+    out = {r: estimate_pose(m, feats, match, P, sig, 0.03, 50, 10, "uniform", 1.0, np.random.default_rng(0), r, CAM,
+                            1.0, 10.0, True, False) for r in ("reprojection", "points")}
+    assert _err(out["points"].pose, P) < 1e-6
+    turn = np.degrees(rotation_angle((inv(P) @ out["reprojection"].pose)[:3, :3]))
+    # 3 px at f = 525 is 0.33 deg: taken as a turn (0.1 deg) and a sideways shift (7 mm)
+    assert turn > 0.05 and _err(out["reprojection"].pose, P) > 4e-3
+    assert np.allclose(out["points"].information, point_information(Pc, SIGMA_FLOOR))
