@@ -162,6 +162,11 @@ class SLAM:
             self._last_kf = rec
         # 6. loop edges into the pose graph (iSAM2 updates); the live map follows
         self._add_loops(loops)
+        if loops and is_kf and self.landmarks is not None and self.cfg.landmarks.loop_correct and \
+                self.graph is not None and self.map_tracker is None:
+            t0 = time.perf_counter()  # the map moves into the loop-corrected frame (docs/slam.md)
+            self.landmarks.correct(frame.index, self.graph.batch_estimate())
+            st.add_time("landmarks", time.perf_counter() - t0)
         if self._map_stale:
             self._feed_map()
         self.observer.log_frame(frame, result)

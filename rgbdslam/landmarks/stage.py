@@ -46,6 +46,8 @@ class LandmarkStats:
     stale_left_out: int = 0  # matches to stale landmarks left out of the map pose (stale_after)
     loops_held: int = 0  # loop edges not added: the map pose already rests on the older frame's landmarks
     stale_joined: int = 0  # frames whose stale matches agreed with the current ones and joined (stale_check)
+    loop_corrections: int = 0  # loop_correct: times the map was moved into the loop-corrected frame
+    loop_moved: list[float] = field(default_factory=list)  # per correction: the largest keyframe move (m)
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
@@ -100,6 +102,8 @@ class LandmarkTracker:
         self.all_keyframes: list[_KeyframeObs] = []  # every keyframe's (global_ba only)
         self.global_ba_stats: dict = {}
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
+        # loop_correct: keyframe k's map-frame pose = _to_map[k] · its tracking (record) pose (absent: identity)
+        self._to_map: dict[int, np.ndarray] = {}
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
         self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
@@ -249,11 +253,13 @@ class LandmarkTracker:
             return 1.0
         k = float(np.median([m for m, _ in self._chi2])) / CHI2_MEDIAN_6DOF
         self.stats.consistency.append(k)
-        if k <= 1.0:
+        floor = self.cfg.consistency_floor
+        if k <= 1.0 and floor >= 1.0:
             return 1.0
-        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share)
+        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share); below 1
+        # (consistency_floor < 1: the map pose under-confident) s is bounded by the floor
         r = max(float(np.median([x for _, x in self._chi2])), 1e-3)
-        return 1.0 + (k - 1.0) / r
+        return max(1.0 + (k - 1.0) / r, min(floor, 1.0))
 
     def _accept(self, index: int, feats, res) -> np.ndarray:
         """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
@@ -311,6 +317,36 @@ class LandmarkTracker:
         held = int((self.map.first[self._last[2]] <= older).sum()) >= c.map_loop_landmarks
         self.stats.loops_held += int(held)
         return held
+
+    def correct(self, index: int, estimate: dict[int, np.ndarray]) -> int:
+        """Move the map into the loop-corrected frame (``loop_correct``; ORB-SLAM's loop correction, as
+        a change of frame): ``estimate`` = the pose graph's keyframe poses with the new loop edge(s),
+        ``index`` = the current keyframe, which keeps its pose (T = kf_pose[index] · estimate[index]⁻¹;
+        tracking goes on from it unchanged). Every keyframe k gets the map-frame pose T · estimate[k] and
+        its landmarks move with it by D_k = T · estimate[k] · kf_pose[k]⁻¹ — the drift between k and the
+        current keyframe that the loop revealed — so a revisit's first-visit landmarks sit where the
+        current pose sees them. Returns the landmarks moved (0 when ``index`` is not in ``estimate``)."""
+        if index not in estimate or index not in self.kf_pose:
+            return 0
+        T = self.kf_pose[index] @ inv(estimate[index])
+        moves = {}
+        for k, M in self.kf_pose.items():
+            if k == index or k not in estimate:
+                continue
+            N = T @ estimate[k]
+            N[:3, :3] = project_to_so3(N[:3, :3])
+            D = N @ inv(M)
+            moves[k] = D
+            self.kf_pose[k] = N
+            self._to_map[k] = D @ self._to_map.get(k, np.eye(4))
+        moved = self.map.move_with_anchors(moves)
+        self.stats.loop_corrections += 1
+        self.stats.loop_moved.append(max((float(np.linalg.norm(D[:3, 3])) for D in moves.values()), default=0.0))
+        return moved
+
+    def _to_tracking(self, refined: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Map-frame keyframe poses (local BA) back in the tracking frame of the records (``loop_correct``)."""
+        return {k: (inv(self._to_map[k]) @ P if k in self._to_map else P) for k, P in refined.items()}
 
     def anchor_edges(self, index: int, feats, pose: np.ndarray, nodes) -> list:
         """Landmark-to-keyframe edges of keyframe ``index`` at ``pose`` (its final pose): for every
@@ -417,7 +453,7 @@ class LandmarkTracker:
         self.last_ba_moved = sorted(refined) if refined else []
         for k, P in refined.items():
             self.kf_pose[k] = P
-        return refined
+        return self._to_tracking(refined)
 
     def handover(self, index: int, pose: np.ndarray, due: bool = False) -> dict[int, np.ndarray]:
         """At frame ``index`` (pose ``pose``): the pending BA written back when it is due
@@ -471,7 +507,7 @@ class LandmarkTracker:
         self.last_ba_moved = sorted(refined)
         for k, P in refined.items():
             self.kf_pose[k] = P
-        return dict(refined)
+        return self._to_tracking(refined)
 
     def close(self) -> None:
         """End the BA process (if any); a pending BA is dropped."""
@@ -526,7 +562,8 @@ class LandmarkTracker:
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
             "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
             "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined, "loops_held": s.loops_held,
-            "anchor_edges": s.anchor_edges,
+            "anchor_edges": s.anchor_edges, "loop_corrections": s.loop_corrections,
+            "loop_correction_max_m": round(max(s.loop_moved), 4) if s.loop_moved else 0.0,
             "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,

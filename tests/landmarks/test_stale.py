@@ -99,3 +99,35 @@ def test_a_loop_the_map_already_closed_is_held_by_the_map():
     tr.cfg.map_loop_landmarks = 0
     assert not tr.holds(130, 60)
     assert tr.summary()["loops_held"] == 2
+
+
+def test_loop_correction_moves_the_first_visit_into_the_current_frame_and_it_joins():
+    """loop_correct: the first visit's half (anchored at keyframe 0, which the map saw at shift · A0)
+    sits 1.5 cm / 0.3° off; the pose graph's estimate after the loop puts keyframe 0 at A0 and the
+    current keyframe 95 where the map has it. correct() moves keyframe 0 by D = A0 (shift A0)⁻¹ =
+    shift⁻¹: its landmarks come back onto the current ones (exactly), keyframe 95's stay, keyframe 0's
+    map pose is A0 and its tracking pose comes back through _to_tracking; the next frame's stale matches
+    then agree and join the map pose, which sits on the truth."""
+    rng = np.random.default_rng(5)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
+    shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
+    A0, B = _pose([0.0, -0.2, 0.0], [-0.3, 0.0, 0.1]), _pose([0.0, 0.02, 0.0], [0.01, 0.0, 0.0])
+    feats = _frame(truth, X, desc)
+    before = _tracker(X, desc, shift, stale_after=30, stale_check=True)
+    before.track(100, feats, truth)
+    assert before.summary()["stale_joined"] == 0 and before.summary()["stale_left_out"] >= 150
+    tr = _tracker(X, desc, shift, stale_after=30, stale_check=True)
+    tr.kf_pose[0], tr.kf_pose[95] = shift @ A0, B.copy()
+    h = len(X) // 2
+    assert tr.correct(95, {0: A0, 95: B}) == h  # only keyframe 0's landmarks move (95's by identity: none)
+    assert np.abs(tr.map.pos[:h] - X[:h]).max() < 1e-9 and np.abs(tr.map.pos[h:len(X)] - X[h:]).max() < 1e-12
+    assert np.abs(tr.kf_pose[0] - A0).max() < 1e-12 and np.abs(tr.kf_pose[95] - B).max() < 1e-12
+    assert np.abs(tr._to_tracking({0: A0})[0] - shift @ A0).max() < 1e-12
+    assert tr.summary()["loop_corrections"] == 1 and np.isclose(tr.summary()["loop_correction_max_m"],
+                                                                np.linalg.norm(inv(shift)[:3, 3]), atol=1e-4)
+    P = tr.track(100, feats, truth @ _pose([0, 0, 0], [0.002, 0, 0]))
+    assert np.linalg.norm((inv(truth) @ P)[:3, 3]) < 1e-4
+    assert tr.summary()["stale_joined"] == 1 and tr.summary()["stale_left_out"] == 0
+    assert tr.correct(96, {0: A0, 95: B}) == 0  # not a keyframe the map knows: nothing moves
