@@ -343,6 +343,14 @@ class LandmarksConfig:
     # each keyframe's landmarks move with its correction relative to the current keyframe (which stays
     # put), so a revisit's stale landmarks agree with the ones made since and are matched again
     loop_correct: bool = False
+    # a loop edge i -> j re-measured against the landmarks first seen within loop_window frames of keyframe
+    # i: projected with the edge's pose (kf_pose[i] T_ij) and matched within loop_search_radius px, the pose
+    # of j against them (RANSAC + reprojection refine) gives T_ij = kf_pose[i]^-1 P_j and its information
+    # (pixels, not the registration's 3-D points: far sharper at Kinect depth noise); kept as it was when
+    # fewer than min_inliers agree or the pose is further than revisit_max_correction from the edge's
+    loop_refine: bool = False
+    loop_window: int = 30  # frames around the loop's older keyframe whose landmarks re-measure the edge
+    loop_search_radius: float = 20.0  # pixels around a landmark's projection with the loop edge's pose
     # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
@@ -588,7 +596,7 @@ POSITIVE = {
     "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
     "landmarks.ba_max_move", "landmarks.ba_max_move_deg", "landmarks.revisit_min_inliers",
     "landmarks.revisit_max_correction", "landmarks.revisit_max_correction_deg",
-    "landmarks.fuse_scale", "landmarks.sigma_px_scale", "landmarks.ba_noise_scale",
+    "landmarks.fuse_scale", "landmarks.sigma_px_scale", "landmarks.ba_noise_scale", "landmarks.loop_search_radius",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -681,6 +689,7 @@ MAXIMA = {
     "landmarks.anchor_info_scale": 1e6, "landmarks.match_old_bonus": 256,
     "landmarks.stale_after": 10**9, "landmarks.stale_gate": 1e6, "landmarks.map_loop_landmarks": 10**6,
     "landmarks.consistency_window": 10**6, "landmarks.consistency_floor": 1.0,
+    "landmarks.loop_window": 10**6, "landmarks.loop_search_radius": 1000.0,
     "landmarks.seed": C_INT_MAX,
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)

@@ -132,6 +132,8 @@ class SLAM:
                 self.loop.new_segment()
         # 4. loop closure on sharp (or due) frames
         loops, map_edges = self._detect_loops(frame, result, pose)
+        if loops and self.landmarks is not None and self.cfg.landmarks.loop_refine and not restart:
+            loops = [self.landmarks.refine_loop(frame.index, result.features, e) for e in loops]  # vs the map
         if loops and self.landmarks is not None and self.cfg.landmarks.map_loop_landmarks > 0:
             loops = [e for e in loops if not self.landmarks.holds(frame.index, e.i)]  # the map closed them
         # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node);

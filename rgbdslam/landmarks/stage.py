@@ -48,6 +48,9 @@ class LandmarkStats:
     stale_joined: int = 0  # frames whose stale matches agreed with the current ones and joined (stale_check)
     loop_corrections: int = 0  # loop_correct: times the map was moved into the loop-corrected frame
     loop_moved: list[float] = field(default_factory=list)  # per correction: the largest keyframe move (m)
+    loops_refined: int = 0  # loop_refine: loop edges re-measured against the older end's landmarks
+    loops_kept: int = 0  # loop_refine: loop edges left as the registration gave them (too few landmarks)
+    loop_refine_moves: list[float] = field(default_factory=list)  # how far each re-measured edge moved (m)
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
@@ -344,6 +347,32 @@ class LandmarkTracker:
         self.stats.loop_moved.append(max((float(np.linalg.norm(D[:3, 3])) for D in moves.values()), default=0.0))
         return moved
 
+    def refine_loop(self, index: int, feats, edge):
+        """Loop edge ``edge`` (keyframe i -> this frame ``index``) re-measured against the map
+        (``loop_refine``): the landmarks first seen within ``loop_window`` frames of i — made and averaged
+        from poses next to i, so in i's coordinates — are projected with the edge's pose kf_pose[i] · T_ij,
+        matched within ``loop_search_radius`` px, and the frame's pose against them (RANSAC + reprojection
+        refine, as a map pose) gives T_ij = kf_pose[i]⁻¹ · P and the refine's information. The edge as it
+        was when i is not a keyframe of the map, fewer than ``min_inliers`` agree, or the pose is further
+        than ``revisit_max_correction`` / ``_deg`` from the edge's."""
+        from dataclasses import replace
+
+        c = self.cfg
+        if int(edge.i) not in self.kf_pose or self.map.size == 0:
+            return edge
+        A = self.kf_pose[int(edge.i)]
+        P0 = A @ edge.T_ij
+        m = match_to_map(self.map, feats, P0, self.camera, c.loop_search_radius, c.max_hamming, c.max_depth,
+                         first_before=int(edge.i) + c.loop_window + 1, first_after=int(edge.i) - c.loop_window)
+        res = self._estimate(feats, m, P0) if len(m.lm) >= c.min_inliers else None
+        if res is None or res.information is None or \
+                not _close(P0, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
+            self.stats.loops_kept += 1
+            return edge
+        self.stats.loops_refined += 1
+        self.stats.loop_refine_moves.append(float(np.linalg.norm((inv(P0) @ res.pose)[:3, 3])))
+        return replace(edge, T_ij=inv(A) @ res.pose, information=res.information, n_inliers=int(len(res.lm)))
+
     def _to_tracking(self, refined: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """Map-frame keyframe poses (local BA) back in the tracking frame of the records (``loop_correct``)."""
         return {k: (inv(self._to_map[k]) @ P if k in self._to_map else P) for k, P in refined.items()}
@@ -564,6 +593,8 @@ class LandmarkTracker:
             "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined, "loops_held": s.loops_held,
             "anchor_edges": s.anchor_edges, "loop_corrections": s.loop_corrections,
             "loop_correction_max_m": round(max(s.loop_moved), 4) if s.loop_moved else 0.0,
+            "loops_refined": s.loops_refined, "loops_kept": s.loops_kept,
+            "loop_refine_median_m": round(float(np.median(s.loop_refine_moves)), 4) if s.loop_refine_moves else 0.0,
             "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,

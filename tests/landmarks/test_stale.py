@@ -131,3 +131,33 @@ def test_loop_correction_moves_the_first_visit_into_the_current_frame_and_it_joi
     assert np.linalg.norm((inv(truth) @ P)[:3, 3]) < 1e-4
     assert tr.summary()["stale_joined"] == 1 and tr.summary()["stale_left_out"] == 0
     assert tr.correct(96, {0: A0, 95: B}) == 0  # not a keyframe the map knows: nothing moves
+
+
+def test_loop_edge_is_re_measured_against_the_older_ends_landmarks():
+    """loop_refine: keyframe 0 (at A0) made the first half of the map at the true coordinates; the
+    second half, made at frame 95, sits 2 cm off (drift). A loop edge 0 -> 100 from a registration
+    1.5 cm / 0.3° off the truth comes back as A0⁻¹ · truth (< 0.1 mm): only the landmarks first seen
+    within loop_window of keyframe 0 are searched, with the edge's pose as the prediction. Without
+    landmarks near keyframe 0 (keyframe 0 unknown to the map) the edge stays as it was."""
+    from rgbdslam.loop.detector import LoopEdge
+
+    rng = np.random.default_rng(5)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
+    A0 = _pose([0.0, -0.2, 0.0], [-0.3, 0.0, 0.1])
+    err = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
+    drift = _pose([0.0, 0.0, 0.0], [0.02, 0.0, 0.0])
+    tr = _tracker(X, desc, np.eye(4), stale_after=30, loop_refine=True)  # first half at X, made at frame 0
+    h = len(X) // 2
+    tr.map.pos[h:len(X)] = X[h:] @ drift[:3, :3].T + drift[:3, 3]  # the half made at 95: drifted
+    tr.kf_pose[0] = A0
+    feats = _frame(truth, X, desc)
+    e = LoopEdge(0, 100, inv(A0) @ truth @ err, np.eye(6) * 1e4, 200, 0.01)
+    r = tr.refine_loop(100, feats, e)
+    assert np.linalg.norm((inv(inv(A0) @ truth) @ r.T_ij)[:3, 3]) < 1e-4
+    assert 100 <= r.n_inliers <= h and np.all(np.linalg.eigvalsh(r.information) > 0) and (r.i, r.j) == (0, 100)
+    assert tr.summary()["loops_refined"] == 1
+    assert np.isclose(tr.summary()["loop_refine_median_m"], np.linalg.norm(err[:3, 3]), atol=2e-3)
+    other = LoopEdge(7, 100, e.T_ij, e.information, 200, 0.01)  # keyframe 7: not one the map made
+    assert tr.refine_loop(100, feats, other) is other and tr.summary()["loops_refined"] == 1
