@@ -114,6 +114,7 @@ class LandmarkTracker:
         self.last_ba_moved: list[int] = []
         self.step_information: np.ndarray | None = None  # the last returned pose's (see track)
         self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
+        self._map_scale = 1.0  # the last consistency scale of the map pose's covariance (loop_refine uses it)
         self.ba = None
         self._worker = None  # ba_worker 'process': the BA process
         self._ba_old: dict[int, np.ndarray] = {}  # the keyframe poses the pending BA started from
@@ -190,7 +191,8 @@ class LandmarkTracker:
             return pose if res is None else self._accept(index, feats, res)
         if c.mode in ("fuse", "filter"):
             if c.consistency_window > 0:
-                res.information = res.information / self._consistency(pose, H_pred, res.pose, res.information)
+                self._map_scale = self._consistency(pose, H_pred, res.pose, res.information)
+                res.information = res.information / self._map_scale
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
             self.step_information = H_pred + res.information
@@ -353,8 +355,9 @@ class LandmarkTracker:
         from poses next to i, so in i's coordinates — are projected with the edge's pose kf_pose[i] · T_ij,
         matched within ``loop_search_radius`` px, and the frame's pose against them (RANSAC + reprojection
         refine, as a map pose) gives T_ij = kf_pose[i]⁻¹ · P and the refine's information. The edge as it
-        was when i is not a keyframe of the map, fewer than ``min_inliers`` agree, or the pose is further
-        than ``revisit_max_correction`` / ``_deg`` from the edge's."""
+        was when i is not a keyframe of the map, fewer than ``loop_min_inliers`` agree, or the pose is further
+        than ``revisit_max_correction`` / ``_deg`` from the edge's. ``loop_refine_scaled``: the information
+        divided by the consistency scale of the map poses at this frame."""
         from dataclasses import replace
 
         c = self.cfg
@@ -364,14 +367,17 @@ class LandmarkTracker:
         P0 = A @ edge.T_ij
         m = match_to_map(self.map, feats, P0, self.camera, c.loop_search_radius, c.max_hamming, c.max_depth,
                          first_before=int(edge.i) + c.loop_window + 1, first_after=int(edge.i) - c.loop_window)
-        res = self._estimate(feats, m, P0) if len(m.lm) >= c.min_inliers else None
-        if res is None or res.information is None or \
+        res = self._estimate(feats, m, P0) if len(m.lm) >= c.loop_min_inliers else None
+        if res is None or res.information is None or len(res.lm) < c.loop_min_inliers or \
                 not _close(P0, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
             self.stats.loops_kept += 1
             return edge
         self.stats.loops_refined += 1
         self.stats.loop_refine_moves.append(float(np.linalg.norm((inv(P0) @ res.pose)[:3, 3])))
-        return replace(edge, T_ij=inv(A) @ res.pose, information=res.information, n_inliers=int(len(res.lm)))
+        # the information as a map pose's: divided by the consistency scale the map poses get now (its
+        # over-confidence on real frames: docs/slam.md "Consistency-scaled fusion"; 1 without it)
+        H = res.information / (self._map_scale if c.loop_refine_scaled else 1.0)
+        return replace(edge, T_ij=inv(A) @ res.pose, information=H, n_inliers=int(len(res.lm)))
 
     def _to_tracking(self, refined: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """Map-frame keyframe poses (local BA) back in the tracking frame of the records (``loop_correct``)."""
