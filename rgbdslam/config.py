@@ -348,8 +348,8 @@ class LandmarksConfig:
     # of j against them (RANSAC + reprojection refine) gives T_ij = kf_pose[i]^-1 P_j and its information
     # (pixels, not the registration's 3-D points: far sharper at Kinect depth noise); kept as it was when
     # fewer than loop_min_inliers agree or the pose is further than revisit_max_correction from the edge's
-    loop_refine: bool = False
-    loop_refine_scaled: bool = False  # the re-measured edge's information divided by the map pose's consistency scale
+    loop_refine: bool = True
+    loop_refine_scaled: bool = True  # the re-measured edge's information divided by the map pose's consistency scale
     # fewer inliers: the edge stays the registration's (the older end's landmarks only at the image border:
     # measured 11-48 mm off the truth with 46-126 inliers, 1-3 mm with 140-840)
     loop_min_inliers: int = 100
