@@ -288,6 +288,10 @@ class LandmarksConfig:
     # / 5.35) is k > 1 times what their informations say, the map pose's covariance grows until it explains
     # the excess (0 = off): the map pose only gets the weight its agreement with the registration supports
     consistency_window: int = 30
+    # the smallest factor the consistency scaling may multiply the map pose's covariance by: 1 = it only
+    # grows (k > 1); below 1, a disagreement smaller than the informations say (k < 1: the map pose is
+    # under-confident) shrinks it too, s = max(1 + (k - 1) / r, this)
+    consistency_floor: float = 1.0
     old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
     # z sigma_px / f; process noise per step (m)
@@ -337,6 +341,22 @@ class LandmarksConfig:
     # a loop edge i -> j is not added when frame j's map pose rests on at least this many landmarks that
     # existed at frame i (first seen at or before it): the map already ties the two (0 = every loop edge)
     map_loop_landmarks: int = 30
+    # at every loop edge the pose graph is solved (batch) and the map is moved into the corrected frame:
+    # each keyframe's landmarks move with its correction relative to the current keyframe (which stays
+    # put), so a revisit's stale landmarks agree with the ones made since and are matched again
+    loop_correct: bool = False
+    # a loop edge i -> j re-measured against the landmarks first seen within loop_window frames of keyframe
+    # i: projected with the edge's pose (kf_pose[i] T_ij) and matched within loop_search_radius px, the pose
+    # of j against them (RANSAC + reprojection refine) gives T_ij = kf_pose[i]^-1 P_j and its information
+    # (pixels, not the registration's 3-D points: far sharper at Kinect depth noise); kept as it was when
+    # fewer than loop_min_inliers agree or the pose is further than revisit_max_correction from the edge's
+    loop_refine: bool = True
+    loop_refine_scaled: bool = True  # the re-measured edge's information divided by the map pose's consistency scale
+    # fewer inliers: the edge stays the registration's (the older end's landmarks only at the image border:
+    # measured 11-48 mm off the truth with 46-126 inliers, 1-3 mm with 140-840)
+    loop_min_inliers: int = 100
+    loop_window: int = 30  # frames around the loop's older keyframe whose landmarks re-measure the edge
+    loop_search_radius: float = 20.0  # pixels around a landmark's projection with the loop edge's pose
     # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
@@ -351,6 +371,10 @@ class LandmarksConfig:
     # metres added (in quadrature, every direction) to the prior's Kalman sigma: the filter counts every
     # frame's observation as independent, but they share the frames' pose errors
     ba_prior_floor: float = 0.004
+    # the BA's observation noise (sigma_px and the depth noise model) times this; the generator's key
+    # points scatter ~0.5 px and its depth noise is 0.6-0.8x the model's, so < 1 gives them their weight
+    # against the landmark priors
+    ba_noise_scale: float = 1.0
     ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
     ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
     ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
@@ -578,7 +602,7 @@ POSITIVE = {
     "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
     "landmarks.ba_max_move", "landmarks.ba_max_move_deg", "landmarks.revisit_min_inliers",
     "landmarks.revisit_max_correction", "landmarks.revisit_max_correction_deg",
-    "landmarks.fuse_scale", "landmarks.sigma_px_scale",
+    "landmarks.fuse_scale", "landmarks.sigma_px_scale", "landmarks.ba_noise_scale", "landmarks.loop_search_radius",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -664,13 +688,14 @@ MAXIMA = {
     "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,
     "landmarks.global_ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
-    "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
+    "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_noise_scale": 100.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
     "landmarks.ba_handover": 10**4, "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
     "landmarks.revisit_max_correction_deg": 360.0,
     "landmarks.drift_sigma": 10.0, "landmarks.anchor_age": 10**9, "landmarks.anchor_min_landmarks": 10**6,
     "landmarks.anchor_info_scale": 1e6, "landmarks.match_old_bonus": 256,
     "landmarks.stale_after": 10**9, "landmarks.stale_gate": 1e6, "landmarks.map_loop_landmarks": 10**6,
-    "landmarks.consistency_window": 10**6,
+    "landmarks.consistency_window": 10**6, "landmarks.consistency_floor": 1.0,
+    "landmarks.loop_window": 10**6, "landmarks.loop_min_inliers": 10**6, "landmarks.loop_search_radius": 1000.0,
     "landmarks.seed": C_INT_MAX,
 }
 DEFAULT_MAXIMA = {int: C_INT_MAX, float: 1e9}  # a key missing from BOUNDS/MAXIMA (a test fails on it)

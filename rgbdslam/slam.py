@@ -132,6 +132,8 @@ class SLAM:
                 self.loop.new_segment()
         # 4. loop closure on sharp (or due) frames
         loops, map_edges = self._detect_loops(frame, result, pose)
+        if loops and self.landmarks is not None and self.cfg.landmarks.loop_refine and not restart:
+            loops = [self.landmarks.refine_loop(frame.index, result.features, e) for e in loops]  # vs the map
         if loops and self.landmarks is not None and self.cfg.landmarks.map_loop_landmarks > 0:
             loops = [e for e in loops if not self.landmarks.holds(frame.index, e.i)]  # the map closed them
         # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node);
@@ -162,6 +164,11 @@ class SLAM:
             self._last_kf = rec
         # 6. loop edges into the pose graph (iSAM2 updates); the live map follows
         self._add_loops(loops)
+        if loops and is_kf and self.landmarks is not None and self.cfg.landmarks.loop_correct and \
+                self.graph is not None and self.map_tracker is None:
+            t0 = time.perf_counter()  # the map moves into the loop-corrected frame (docs/slam.md)
+            self.landmarks.correct(frame.index, self.graph.batch_estimate())
+            st.add_time("landmarks", time.perf_counter() - t0)
         if self._map_stale:
             self._feed_map()
         self.observer.log_frame(frame, result)

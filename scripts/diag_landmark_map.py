@@ -156,7 +156,9 @@ def run(seq_dir: Path, sets: list[str], old_age: int) -> dict:
                 chi.append(float(eta @ H @ eta))
             if errs:
                 out_edges[kind] = {"n": len(errs), "t_mm_rms": 1e3 * float(np.sqrt(np.mean(np.square(errs)))),
-                                   "chi2_median": float(np.median(chi))}
+                                   "chi2_median": float(np.median(chi)),
+                                   "each": [(int(e[0]), int(e[1]), round(1e3 * t, 2), round(x, 1))
+                                            for e, t, x in zip(edges, errs, chi)]}
     out = {"sequence": str(seq_dir), "sets": sets, "ate": a.rmse, "rows": rows, "edges": out_edges,
            "ate_odometry": ate(gt, slam.odometry()).rmse,
            "loops": [list(map(int, x)) for x in slam.state.loops],

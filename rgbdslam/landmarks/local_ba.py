@@ -49,13 +49,13 @@ class StereoFactors:
     def disparity_sigma(self, z: np.ndarray) -> np.ndarray:
         """Disparity noise (px) of depth ``z`` (m): f b σ_z / z², σ_z = a + b_z z² (unbinned)."""
         c = self.cfg
-        return self.fb * (c.depth_noise_a + c.depth_noise_b * z * z) / (z * z)
+        return self.fb * c.ba_noise_scale * (c.depth_noise_a + c.depth_noise_b * z * z) / (z * z)
 
     def _model(self, sd: float):
         b = int(np.round(np.log(max(sd, 1e-6)) / np.log(1.01)))
         m = self._models.get(b)
         if m is None:
-            s2, sd = self.cfg.sigma_px ** 2, 1.01 ** b
+            s2, sd = (self.cfg.sigma_px * self.cfg.ba_noise_scale) ** 2, 1.01 ** b
             # u_right = u_left - d: it carries u_left's pixel noise (correlated) plus the disparity's
             C = np.array([[s2, s2, 0.0], [s2, s2 + sd * sd, 0.0], [0.0, 0.0, s2]])
             m = self._models[b] = gtsam.noiseModel.Robust.Create(self.huber, gtsam.noiseModel.Gaussian.Covariance(C))
@@ -232,7 +232,7 @@ def schur_problem(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem):
     free = np.array([kf not in p.fixed for kf in kfs])
     cam = factors.camera
     ba = SchurBA(np.array([p.poses[kf] for kf in kfs]), free, op, ol, meas, sd, p.pos, prior,
-                 cam.fx, cam.fy, cam.cx, cam.cy, factors.fb, cfg.sigma_px, cfg.ba_huber)
+                 cam.fx, cam.fy, cam.cx, cam.cy, factors.fb, cfg.sigma_px * cfg.ba_noise_scale, cfg.ba_huber)
     return ba, kfs
 
 

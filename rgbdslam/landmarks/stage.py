@@ -46,6 +46,11 @@ class LandmarkStats:
     stale_left_out: int = 0  # matches to stale landmarks left out of the map pose (stale_after)
     loops_held: int = 0  # loop edges not added: the map pose already rests on the older frame's landmarks
     stale_joined: int = 0  # frames whose stale matches agreed with the current ones and joined (stale_check)
+    loop_corrections: int = 0  # loop_correct: times the map was moved into the loop-corrected frame
+    loop_moved: list[float] = field(default_factory=list)  # per correction: the largest keyframe move (m)
+    loops_refined: int = 0  # loop_refine: loop edges re-measured against the older end's landmarks
+    loops_kept: int = 0  # loop_refine: loop edges left as the registration gave them (too few landmarks)
+    loop_refine_moves: list[float] = field(default_factory=list)  # how far each re-measured edge moved (m)
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
@@ -100,6 +105,8 @@ class LandmarkTracker:
         self.all_keyframes: list[_KeyframeObs] = []  # every keyframe's (global_ba only)
         self.global_ba_stats: dict = {}
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
+        # loop_correct: keyframe k's map-frame pose = _to_map[k] · its tracking (record) pose (absent: identity)
+        self._to_map: dict[int, np.ndarray] = {}
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
         self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
@@ -107,6 +114,7 @@ class LandmarkTracker:
         self.last_ba_moved: list[int] = []
         self.step_information: np.ndarray | None = None  # the last returned pose's (see track)
         self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
+        self._map_scale = 1.0  # the last consistency scale of the map pose's covariance (loop_refine uses it)
         self.ba = None
         self._worker = None  # ba_worker 'process': the BA process
         self._ba_old: dict[int, np.ndarray] = {}  # the keyframe poses the pending BA started from
@@ -183,7 +191,8 @@ class LandmarkTracker:
             return pose if res is None else self._accept(index, feats, res)
         if c.mode in ("fuse", "filter"):
             if c.consistency_window > 0:
-                res.information = res.information / self._consistency(pose, H_pred, res.pose, res.information)
+                self._map_scale = self._consistency(pose, H_pred, res.pose, res.information)
+                res.information = res.information / self._map_scale
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
             self.step_information = H_pred + res.information
@@ -249,11 +258,13 @@ class LandmarkTracker:
             return 1.0
         k = float(np.median([m for m, _ in self._chi2])) / CHI2_MEDIAN_6DOF
         self.stats.consistency.append(k)
-        if k <= 1.0:
+        floor = self.cfg.consistency_floor
+        if k <= 1.0 and floor >= 1.0:
             return 1.0
-        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share)
+        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share); below 1
+        # (consistency_floor < 1: the map pose under-confident) s is bounded by the floor
         r = max(float(np.median([x for _, x in self._chi2])), 1e-3)
-        return 1.0 + (k - 1.0) / r
+        return max(1.0 + (k - 1.0) / r, min(floor, 1.0))
 
     def _accept(self, index: int, feats, res) -> np.ndarray:
         """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
@@ -311,6 +322,66 @@ class LandmarkTracker:
         held = int((self.map.first[self._last[2]] <= older).sum()) >= c.map_loop_landmarks
         self.stats.loops_held += int(held)
         return held
+
+    def correct(self, index: int, estimate: dict[int, np.ndarray]) -> int:
+        """Move the map into the loop-corrected frame (``loop_correct``; ORB-SLAM's loop correction, as
+        a change of frame): ``estimate`` = the pose graph's keyframe poses with the new loop edge(s),
+        ``index`` = the current keyframe, which keeps its pose (T = kf_pose[index] · estimate[index]⁻¹;
+        tracking goes on from it unchanged). Every keyframe k gets the map-frame pose T · estimate[k] and
+        its landmarks move with it by D_k = T · estimate[k] · kf_pose[k]⁻¹ — the drift between k and the
+        current keyframe that the loop revealed — so a revisit's first-visit landmarks sit where the
+        current pose sees them. Returns the landmarks moved (0 when ``index`` is not in ``estimate``)."""
+        if index not in estimate or index not in self.kf_pose:
+            return 0
+        T = self.kf_pose[index] @ inv(estimate[index])
+        moves = {}
+        for k, M in self.kf_pose.items():
+            if k == index or k not in estimate:
+                continue
+            N = T @ estimate[k]
+            N[:3, :3] = project_to_so3(N[:3, :3])
+            D = N @ inv(M)
+            moves[k] = D
+            self.kf_pose[k] = N
+            self._to_map[k] = D @ self._to_map.get(k, np.eye(4))
+        moved = self.map.move_with_anchors(moves)
+        self.stats.loop_corrections += 1
+        self.stats.loop_moved.append(max((float(np.linalg.norm(D[:3, 3])) for D in moves.values()), default=0.0))
+        return moved
+
+    def refine_loop(self, index: int, feats, edge):
+        """Loop edge ``edge`` (keyframe i -> this frame ``index``) re-measured against the map
+        (``loop_refine``): the landmarks first seen within ``loop_window`` frames of i — made and averaged
+        from poses next to i, so in i's coordinates — are projected with the edge's pose kf_pose[i] · T_ij,
+        matched within ``loop_search_radius`` px, and the frame's pose against them (RANSAC + reprojection
+        refine, as a map pose) gives T_ij = kf_pose[i]⁻¹ · P and the refine's information. The edge as it
+        was when i is not a keyframe of the map, fewer than ``loop_min_inliers`` agree, or the pose is further
+        than ``revisit_max_correction`` / ``_deg`` from the edge's. ``loop_refine_scaled``: the information
+        divided by the consistency scale of the map poses at this frame."""
+        from dataclasses import replace
+
+        c = self.cfg
+        if int(edge.i) not in self.kf_pose or self.map.size == 0:
+            return edge
+        A = self.kf_pose[int(edge.i)]
+        P0 = A @ edge.T_ij
+        m = match_to_map(self.map, feats, P0, self.camera, c.loop_search_radius, c.max_hamming, c.max_depth,
+                         first_before=int(edge.i) + c.loop_window + 1, first_after=int(edge.i) - c.loop_window)
+        res = self._estimate(feats, m, P0) if len(m.lm) >= c.loop_min_inliers else None
+        if res is None or res.information is None or len(res.lm) < c.loop_min_inliers or \
+                not _close(P0, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
+            self.stats.loops_kept += 1
+            return edge
+        self.stats.loops_refined += 1
+        self.stats.loop_refine_moves.append(float(np.linalg.norm((inv(P0) @ res.pose)[:3, 3])))
+        # the information as a map pose's: divided by the consistency scale the map poses get now (its
+        # over-confidence on real frames: docs/slam.md "Consistency-scaled fusion"; 1 without it)
+        H = res.information / (self._map_scale if c.loop_refine_scaled else 1.0)
+        return replace(edge, T_ij=inv(A) @ res.pose, information=H, n_inliers=int(len(res.lm)))
+
+    def _to_tracking(self, refined: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Map-frame keyframe poses (local BA) back in the tracking frame of the records (``loop_correct``)."""
+        return {k: (inv(self._to_map[k]) @ P if k in self._to_map else P) for k, P in refined.items()}
 
     def anchor_edges(self, index: int, feats, pose: np.ndarray, nodes) -> list:
         """Landmark-to-keyframe edges of keyframe ``index`` at ``pose`` (its final pose): for every
@@ -417,7 +488,7 @@ class LandmarkTracker:
         self.last_ba_moved = sorted(refined) if refined else []
         for k, P in refined.items():
             self.kf_pose[k] = P
-        return refined
+        return self._to_tracking(refined)
 
     def handover(self, index: int, pose: np.ndarray, due: bool = False) -> dict[int, np.ndarray]:
         """At frame ``index`` (pose ``pose``): the pending BA written back when it is due
@@ -471,7 +542,7 @@ class LandmarkTracker:
         self.last_ba_moved = sorted(refined)
         for k, P in refined.items():
             self.kf_pose[k] = P
-        return dict(refined)
+        return self._to_tracking(refined)
 
     def close(self) -> None:
         """End the BA process (if any); a pending BA is dropped."""
@@ -526,7 +597,10 @@ class LandmarkTracker:
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
             "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
             "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined, "loops_held": s.loops_held,
-            "anchor_edges": s.anchor_edges,
+            "anchor_edges": s.anchor_edges, "loop_corrections": s.loop_corrections,
+            "loop_correction_max_m": round(max(s.loop_moved), 4) if s.loop_moved else 0.0,
+            "loops_refined": s.loops_refined, "loops_kept": s.loops_kept,
+            "loop_refine_median_m": round(float(np.median(s.loop_refine_moves)), 4) if s.loop_refine_moves else 0.0,
             "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,

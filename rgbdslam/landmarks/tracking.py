@@ -73,14 +73,17 @@ def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin:
 
 def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, max_hamming: int,
                  max_depth: float, k: int = 6, first_before: int | None = None, old_before: int | None = None,
-                 old_bonus: int = 0) -> MapMatch:
+                 old_bonus: int = 0, first_after: int | None = None) -> MapMatch:
     """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px
     (``first_before``: only landmarks first seen before that frame — the revisit search;
+    ``first_after``: only those first seen at or after that frame — a loop's older end;
     ``old_bonus``: landmarks first seen before frame ``old_before`` compete for a feature with their
     Hamming distance lowered by this much — an old landmark wins over a younger copy of itself)."""
     ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
-    if first_before is not None:
-        old = lmap.first[ids] < first_before
+    if first_before is not None or first_after is not None:
+        f = lmap.first[ids]
+        old = (f < (first_before if first_before is not None else np.inf)) & \
+            (f >= (first_after if first_after is not None else -np.inf))
         ids, uv = ids[old], uv[old]
     fi = np.flatnonzero(map_valid(feats))
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv, ids)

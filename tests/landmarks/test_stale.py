@@ -99,3 +99,65 @@ def test_a_loop_the_map_already_closed_is_held_by_the_map():
     tr.cfg.map_loop_landmarks = 0
     assert not tr.holds(130, 60)
     assert tr.summary()["loops_held"] == 2
+
+
+def test_loop_correction_moves_the_first_visit_into_the_current_frame_and_it_joins():
+    """loop_correct: the first visit's half (anchored at keyframe 0, which the map saw at shift · A0)
+    sits 1.5 cm / 0.3° off; the pose graph's estimate after the loop puts keyframe 0 at A0 and the
+    current keyframe 95 where the map has it. correct() moves keyframe 0 by D = A0 (shift A0)⁻¹ =
+    shift⁻¹: its landmarks come back onto the current ones (exactly), keyframe 95's stay, keyframe 0's
+    map pose is A0 and its tracking pose comes back through _to_tracking; the next frame's stale matches
+    then agree and join the map pose, which sits on the truth."""
+    rng = np.random.default_rng(5)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
+    shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
+    A0, B = _pose([0.0, -0.2, 0.0], [-0.3, 0.0, 0.1]), _pose([0.0, 0.02, 0.0], [0.01, 0.0, 0.0])
+    feats = _frame(truth, X, desc)
+    before = _tracker(X, desc, shift, stale_after=30, stale_check=True)
+    before.track(100, feats, truth)
+    assert before.summary()["stale_joined"] == 0 and before.summary()["stale_left_out"] >= 150
+    tr = _tracker(X, desc, shift, stale_after=30, stale_check=True)
+    tr.kf_pose[0], tr.kf_pose[95] = shift @ A0, B.copy()
+    h = len(X) // 2
+    assert tr.correct(95, {0: A0, 95: B}) == h  # only keyframe 0's landmarks move (95's by identity: none)
+    assert np.abs(tr.map.pos[:h] - X[:h]).max() < 1e-9 and np.abs(tr.map.pos[h:len(X)] - X[h:]).max() < 1e-12
+    assert np.abs(tr.kf_pose[0] - A0).max() < 1e-12 and np.abs(tr.kf_pose[95] - B).max() < 1e-12
+    assert np.abs(tr._to_tracking({0: A0})[0] - shift @ A0).max() < 1e-12
+    assert tr.summary()["loop_corrections"] == 1 and np.isclose(tr.summary()["loop_correction_max_m"],
+                                                                np.linalg.norm(inv(shift)[:3, 3]), atol=1e-4)
+    P = tr.track(100, feats, truth @ _pose([0, 0, 0], [0.002, 0, 0]))
+    assert np.linalg.norm((inv(truth) @ P)[:3, 3]) < 1e-4
+    assert tr.summary()["stale_joined"] == 1 and tr.summary()["stale_left_out"] == 0
+    assert tr.correct(96, {0: A0, 95: B}) == 0  # not a keyframe the map knows: nothing moves
+
+
+def test_loop_edge_is_re_measured_against_the_older_ends_landmarks():
+    """loop_refine: keyframe 0 (at A0) made the first half of the map at the true coordinates; the
+    second half, made at frame 95, sits 2 cm off (drift). A loop edge 0 -> 100 from a registration
+    1.5 cm / 0.3° off the truth comes back as A0⁻¹ · truth (< 0.1 mm): only the landmarks first seen
+    within loop_window of keyframe 0 are searched, with the edge's pose as the prediction. Without
+    landmarks near keyframe 0 (keyframe 0 unknown to the map) the edge stays as it was."""
+    from rgbdslam.loop.detector import LoopEdge
+
+    rng = np.random.default_rng(5)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
+    A0 = _pose([0.0, -0.2, 0.0], [-0.3, 0.0, 0.1])
+    err = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
+    drift = _pose([0.0, 0.0, 0.0], [0.02, 0.0, 0.0])
+    tr = _tracker(X, desc, np.eye(4), stale_after=30, loop_refine=True)  # first half at X, made at frame 0
+    h = len(X) // 2
+    tr.map.pos[h:len(X)] = X[h:] @ drift[:3, :3].T + drift[:3, 3]  # the half made at 95: drifted
+    tr.kf_pose[0] = A0
+    feats = _frame(truth, X, desc)
+    e = LoopEdge(0, 100, inv(A0) @ truth @ err, np.eye(6) * 1e4, 200, 0.01)
+    r = tr.refine_loop(100, feats, e)
+    assert np.linalg.norm((inv(inv(A0) @ truth) @ r.T_ij)[:3, 3]) < 1e-4
+    assert 100 <= r.n_inliers <= h and np.all(np.linalg.eigvalsh(r.information) > 0) and (r.i, r.j) == (0, 100)
+    assert tr.summary()["loops_refined"] == 1
+    assert np.isclose(tr.summary()["loop_refine_median_m"], np.linalg.norm(err[:3, 3]), atol=2e-3)
+    other = LoopEdge(7, 100, e.T_ij, e.information, 200, 0.01)  # keyframe 7: not one the map made
+    assert tr.refine_loop(100, feats, other) is other and tr.summary()["loops_refined"] == 1
