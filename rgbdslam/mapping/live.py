@@ -423,59 +423,93 @@ def _while_tracking(state: MapState, cfg: MappingConfig, jobs, applied=None, fir
     niced thread that takes 50 queued keyframes first spends its little CPU on preparing them).
     ``first``: a job already taken from ``jobs``. Returns the ``finish`` job or None (stopped)."""
     bound = cfg.live_backlog
+    taken = [first] if first is not None else []  # jobs taken from ``jobs`` and not done yet (oldest first)
     while True:
         out = in_niced_thread(cfg.live_nice, lambda: _track(
-            state, jobs, applied, first,
-            stop=(lambda: BEHIND if state.backlog() + _queued(jobs) > bound else None) if cfg.live_nice else None))
-        first = None
+            state, jobs, applied, taken,
+            stop=(lambda: BEHIND if _behind(state, jobs, taken) > bound else None) if cfg.live_nice else None))
         if out != BEHIND:
             return out
         state.stats["catch_ups"] += 1
         t0, c0 = time.perf_counter(), time.process_time()
-        out = _track(state, jobs, applied, stop=lambda: CAUGHT_UP if not state.backlog() and not _queued(jobs) else None)
+        out = _track(state, jobs, applied, taken, stop=lambda: CAUGHT_UP if not _behind(state, jobs, taken) else None)
         state.stats["catch_up_s"] += time.perf_counter() - t0
         state.stats["catch_up_cpu_s"] += time.process_time() - c0
         if out != CAUGHT_UP:
             return out
 
 
-def _track(state: MapState, jobs, applied=None, first=None, stop: Callable[[], str | None] | None = None):
-    """The map while tracking: keyframes and pose updates from ``jobs`` (``first``: one already
-    taken from it) until ``finish`` (returned) or None (returns None). Every job queued is taken
-    before a keyframe is integrated: a pose update is applied first and the keyframes waiting go in
-    at their newest poses. ``stop()``, asked before every step, ends it early with what it returns
-    (:data:`BEHIND`, :data:`CAUGHT_UP`)."""
+def _behind(state: MapState, jobs, taken: list) -> int:
+    """Keyframes the map is behind by: waiting beyond ``mapping.live_lag``, taken and not added yet,
+    or still queued (every job counted as one)."""
+    return state.backlog() + sum(j is not None and j[0] == "add" for j in taken) + _queued(jobs)
+
+
+def _track(state: MapState, jobs, applied=None, taken: list | None = None,
+           stop: Callable[[], str | None] | None = None):
+    """The map while tracking: keyframes and pose updates from ``jobs`` until ``finish`` (returned)
+    or None (returns None). Every job queued is taken before a keyframe is integrated: a pose update
+    is applied first and the keyframes waiting go in at their newest poses. ``taken`` (oldest first)
+    holds the jobs taken from ``jobs`` and not done yet; they come before the queue's.
+
+    ``stop()`` ends it early with what it returns (:data:`BEHIND`, :data:`CAUGHT_UP`). It is asked
+    before every step: before a job is taken, after every keyframe added (each is prepared:
+    undistorted, its box found) and before a pose update is applied — so a niced thread that
+    took many queued jobs at once hands them back (in ``taken``, in order) as soon as the map is
+    behind, instead of working through all of them at its low priority first."""
+    taken = [] if taken is None else taken
+
+    def take(block: bool):
+        if taken:
+            return taken.pop(0)
+        return jobs.get() if block else jobs.get_nowait()
+
     while True:
-        if first is None and stop is not None and (why := stop()) is not None:
+        if stop is not None and (why := stop()) is not None:
             return why
         try:  # a keyframe to integrate: only when no job waits
-            job = first if first is not None else jobs.get_nowait() if state.unsettled() else jobs.get()
+            job = take(block=not state.unsettled())
         except queue.Empty:
             job = ("settle",)
-        first = None
         if job is None:
             return None
         t0, c0 = time.perf_counter(), time.process_time()
         batch = [job]
         while job[0] not in ("finish", "settle"):  # everything queued: the keyframes, the newest poses
             try:
-                job = jobs.get_nowait()
+                job = take(block=False)
             except queue.Empty:
                 break
             if job is None:
                 return None
             batch.append(job)
-        n_poses = sum(j[0] == "poses" for j in batch)
+        why = None
+        for k, j in enumerate(batch):
+            if j[0] != "add":
+                continue
+            state.add(*j[1:], settle=False)
+            if stop is None:
+                continue
+            rest = batch[k + 1:]
+            taken[:0] = rest  # counted as behind while stop() is asked; the other thread's if it stops
+            if (why := stop()) is not None:
+                batch = batch[:k + 1]
+                break
+            del taken[:len(rest)]
         finish = batch[-1] if batch[-1][0] == "finish" else None
-        for j in batch:
-            if j[0] == "add":
-                state.add(*j[1:], settle=False)
-        if job[0] == "settle":
+        poses = [j for j in batch if j[0] == "poses"]
+        if why is None and poses and finish is None and stop is not None:
+            why = stop()
+        if why is not None:  # the pose update is the other thread's (before the jobs handed back)
+            taken[:0] = poses
+            poses = []
+        n_poses = len(poses)
+        if why is None and job[0] == "settle":
             state.settle()
         elif n_poses:
             state.stats["pose_updates_skipped"] += n_poses - (finish is None)
             if finish is None:
-                state.refresh(next(j for j in reversed(batch) if j[0] == "poses")[1])
+                state.refresh(poses[-1][1])
         state.stats["busy_s"] += time.perf_counter() - t0
         state.stats["busy_cpu_s"] += time.process_time() - c0  # all its threads (Open3D's too)
         if n_poses and applied is not None:
@@ -483,6 +517,8 @@ def _track(state: MapState, jobs, applied=None, first=None, stop: Callable[[], s
                 applied.value += n_poses
         if finish is not None:
             return finish
+        if why is not None:
+            return why
 
 
 def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: bool) -> dict:
@@ -497,6 +533,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     from rgbdslam.ui import console
 
     t0, c0 = time.perf_counter(), time.process_time()
+    state.stats["at_map_finish"] = time.time()
     shift = state.shift_mm(poses)
     state.stats["final_shift_mm"] = {int(i): round(float(s), 2) for i, s in zip((i for i in state.used if i in poses), shift)
                                      if s > 1e3 * state.tol_m}
@@ -516,9 +553,11 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
         state.cloud = None
         results.put(("cloud", (points, colors, fused)))
         state.stats["cloud_points"] = time.perf_counter() - t1
+        state.stats["at_cloud_sent"] = time.time()
 
     state.stats["final_moved"] = state.refresh(poses, keep, between=send_cloud, flush=True)
     state.stats["final_s"] = time.perf_counter() - t0 - state.stats["cloud_points"]
+    state.stats["at_tsdf_done"] = time.time()
     tsdf, _, fused, _ = state.result()
     state.stats.update(state.sizes())
     state.cache.clear()  # the images are not needed any more
@@ -528,6 +567,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
         path, out["n_vertices"], out["n_triangles"] = write_mesh(Path(stage), tsdf, len(fused), state.cfg, console)
         out["mesh_path"] = str(path) if path is not None else None
         state.stats["mesh"] = time.perf_counter() - t0
+        state.stats["at_mesh_done"] = time.time()
     state.stats["final_cpu_s"] = time.process_time() - c0  # CPU of every thread of the map process after the last frame
     out["timings"] = {k: round(v, 3) if isinstance(v, float) else v for k, v in state.stats.items()}
     out["peak_rss_mb"] = _peak_rss_mb()
@@ -591,10 +631,12 @@ class LiveMap:
         from rgbdslam.mapping.staging import FuseResult, staged
 
         def work(stage: Path):
+            at = {"at_finish_sent": time.time()}
             self._jobs.put(("finish", {int(k): np.array(v) for k, v in poses.items()}, keep, str(stage),
                             filtered_depth))
             try:
                 points, colors, fused = self._receive("cloud")
+                at["at_cloud_received"] = time.time()
                 acc = Path(root) / "accelerometer.txt"
                 args = (stage, points, colors, self.cfg, trajectory, acc if acc.is_file() else None)
                 in_run = self._cloud is None or not self._cloud.ready()
@@ -606,7 +648,9 @@ class LiveMap:
                     self._close_cloud(wait=0.0)  # it reads its queue only after them: do not wait for it
                     cloud_path, points, colors, map2d_path, grid, timings = _cloud_end(*args)
                 timings["cloud_in_run"] = in_run
+                at["at_cloud_done"] = time.time()
                 mesh = self._receive("ok")
+                at["at_mesh_received"] = time.time()
             except BaseException:
                 self._stop()  # they may still be writing into the folder that is about to be removed
                 raise
@@ -615,7 +659,12 @@ class LiveMap:
             # the map process has ended: a job still in the pipe (a keyframe sent while an interrupted run
             # was winding down) has no reader, and the interpreter's exit must not wait to flush it
             self._jobs.cancel_join_thread()
+            at["at_map_joined"] = time.time()
             timings.update(mesh["timings"])
+            timings.update(at)
+            t_end = at["at_finish_sent"]  # the end's timeline: seconds since the finish job was sent
+            timings["end_timeline"] = {k[3:]: round(timings.pop(k) - t_end, 3) for k in list(timings)
+                                       if k.startswith("at_")}
             return FuseResult(out_dir=stage, cloud_path=Path(cloud_path),
                               mesh_path=Path(mesh["mesh_path"]) if mesh["mesh_path"] else None,
                               map2d_path=map2d_path, frames=fused, n_points=len(points),
@@ -667,10 +716,13 @@ def _cloud_end(stage, points: np.ndarray, colors: np.ndarray, cfg: MappingConfig
     from rgbdslam.mapping.fusion import write_2d, write_cloud
 
     t0 = time.perf_counter()
+    timings: dict = {"at_cloud_start": time.time()}
     cloud_path, points, colors = write_cloud(stage, points, colors, cfg)
     points = points.astype(np.float32)
-    timings: dict = {"cloud": time.perf_counter() - t0}
+    timings["cloud"] = time.perf_counter() - t0
+    timings["at_cloud_written"] = time.time()
     map2d_path, grid = write_2d(stage, points, trajectory, cfg, accelerometer, timings)
+    timings["at_map2d_done"] = time.time()
     return cloud_path, points, colors, map2d_path, grid, timings
 
 

@@ -332,6 +332,16 @@ def test_the_map_process_applies_queued_poses_before_it_integrates(synth, tmp_pa
     assert out["n_vertices"] > 0 and (tmp_path / "mesh.ply").is_file()
 
 
+def _niced_map(synth):
+    """A map state for the tests of the niced thread: live_lag 1, live_backlog 2, live_nice 3."""
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("threads have a niceness of their own on Linux only")
+    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False)
+    return cfg, synth.groundtruth(), MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+
+
 def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_again(synth):
     """``mapping.live_backlog``: the map's work while tracking runs in a niced thread; when more
     keyframes wait or are queued than ``live_lag`` + ``live_backlog`` (the niced thread got too little CPU), the
@@ -340,16 +350,11 @@ def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_ag
     read from the kernel (Linux: per thread)."""
     import os
     import queue
-    import sys
     import threading
 
     from rgbdslam.mapping.live import _while_tracking
 
-    if not sys.platform.startswith("linux"):
-        pytest.skip("threads have a niceness of their own on Linux only")
-    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False)
-    gt = synth.groundtruth()
-    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+    cfg, gt, state = _niced_map(synth)
     nice_at: dict[int, int] = {}
     settle = state.settle
 
@@ -392,5 +397,56 @@ def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_ag
     assert state.stats["catch_ups"] == 1
     assert nice_at == {0: base + 3, 1: base, 2: base, 3: base, 4: base, 5: base + 3}
     assert sorted(state.used) == [0, 1, 2, 3, 4, 5] and list(state.waiting) == [6]  # live_lag 1: 6 waits
+    state.refresh(final, flush=True)
+    _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+
+
+def test_a_niced_thread_that_took_many_queued_keyframes_hands_them_back_when_behind(synth):
+    """The niced thread takes every queued job at once (pose updates coalesced) but asks whether the
+    map is behind after every keyframe it prepares: with more queued than ``live_lag`` +
+    ``live_backlog`` it hands the rest back, in order, and the map process's own thread (the run's
+    priority) prepares them — before, the niced thread prepared all of them first, so on a busy
+    machine the backlog grew past its bound. The map is still the one of the final poses."""
+    import os
+    import queue
+    import threading
+
+    from rgbdslam.mapping.live import _while_tracking
+
+    cfg, gt, state = _niced_map(synth)
+    prepared_at: dict[int, int] = {}
+    add = state.add
+
+    def recording(index, *rest, **kw):
+        prepared_at[index] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        add(index, *rest, **kw)
+
+    state.add = recording
+    final = {i: gt.poses[i] for i in range(6)}
+    moved = {i: p.copy() for i, p in final.items()}
+    for p in moved.values():
+        p[0, 3] += 0.05  # the keyframes are queued at poses that a later pose update corrects
+    burst = [("add", i, synth.load(i).rgb, synth.load(i).depth, moved[i]) for i in range(1, 6)]
+    burst += [("poses", dict(final)), ("finish", final, None, "", False)]
+
+    class Burst(queue.Queue):
+        """Keyframe 0 alone when the niced thread asked whether it was behind; the rest queued
+        (all at once, as tracking does while a starved niced thread waits for the CPU) by the time
+        it takes keyframe 0 and drains the queue."""
+
+        def get(self, *a, **kw):
+            job = super().get(*a, **kw)
+            while burst:
+                self.put(burst.pop(0))
+            return job
+
+    jobs = Burst()
+    jobs.put(("add", 0, synth.load(0).rgb, synth.load(0).depth, moved[0]))
+    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    out = _while_tracking(state, cfg, jobs)
+    assert out is not None and out[0] == "finish"
+    assert prepared_at == {0: base + 3, 1: base, 2: base, 3: base, 4: base, 5: base}
+    assert state.stats["catch_ups"] == 1
+    # the pose update handed back with them was applied (coalesced with the finish: the end applies it)
     state.refresh(final, flush=True)
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
