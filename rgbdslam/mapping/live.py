@@ -99,6 +99,9 @@ class MapState:
         self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
         self.lag = cfg.live_lag
         self.waiting: dict[int, np.ndarray] = {}  # the newest keyframes, not in the map yet -> their latest pose
+        # keyframes among the newest live_lag put into the map early (:meth:`speculate`): one that moves
+        # beyond the tolerance is taken out again and waits (:meth:`refresh`), not re-integrated
+        self.early: set[int] = set()
         # keyframes' prepared images for re-integration, up to cache_mb (then read again with load)
         self.cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.cache_bytes = 0
@@ -106,7 +109,7 @@ class MapState:
         self.n_depth: dict[int, int] = {}
         self.box: dict[int, np.ndarray | None] = {}  # keyframe -> its points' camera-frame box (shift_m)
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
-                      "pose_updates_skipped": 0, "reloaded": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
+                      "pose_updates_skipped": 0, "reloaded": 0, "early": 0, "early_undone": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
                       "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0,
                       "busy_cpu_s": 0.0, "catch_ups": 0, "catch_up_s": 0.0, "catch_up_cpu_s": 0.0}
 
@@ -187,21 +190,37 @@ class MapState:
         waits: the map process integrates (:meth:`settle`) when no pose update is queued."""
         prepared = self._prepared(index, rgb, depth)
         self.waiting[index] = pose
+        newest = set(sorted(self.early | set(self.waiting))[-self.lag:]) if self.lag else set()
+        self.early &= newest  # older than the newest live_lag: in the map like any other keyframe now
         while settle and self.unsettled():
-            self.settle(prepared if next(iter(self.waiting)) == index else None)
+            self.settle(prepared if min(self.waiting) == index else None)
 
     def unsettled(self) -> bool:
-        """True when more keyframes wait than ``mapping.live_lag``."""
-        return len(self.waiting) > self.lag
+        """True when more keyframes wait than ``mapping.live_lag`` (less those put in early)."""
+        return self.backlog() > 0
 
     def backlog(self) -> int:
         """How many keyframes wait beyond ``mapping.live_lag``: the ones the map is behind by."""
-        return max(0, len(self.waiting) - self.lag)
+        return max(0, len(self.waiting) + len(self.early) - self.lag)
 
     def settle(self, prepared=None) -> None:
         """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images)."""
-        first = next(iter(self.waiting))
+        first = min(self.waiting)
         self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"), prepared)
+
+    def can_speculate(self) -> bool:
+        """True when ``mapping.live_early`` and a keyframe waits within the lag."""
+        return bool(self.cfg.live_early and self.waiting)
+
+    def speculate(self) -> None:
+        """The oldest waiting keyframe into the map early, at its newest pose, while the map has
+        nothing else to do: when its pose moves beyond the tolerance before it leaves the newest
+        ``mapping.live_lag`` keyframes it is taken out again and waits (:meth:`refresh`); else the
+        end has one keyframe less to integrate."""
+        first = min(self.waiting)
+        self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"))
+        self.early.add(first)
+        self.stats["early"] += 1
 
     def _put(self, poses: dict[int, np.ndarray], parts: tuple[str, ...], prepared=None) -> None:
         """Integrate the keyframes ``poses`` (not in the map yet) at those poses into the ``parts``
@@ -245,14 +264,16 @@ class MapState:
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
         move = [i for i in want if self._shift(i, want[i]) > self.tol_m]
-        put = dict(self.waiting) if flush else {}
+        back = {i: want.pop(i) for i in move if i in self.early}  # put in early and moved: taken out, wait again
+        self.stats["early_undone"] += len(back)
+        put = dict(sorted({**self.waiting, **back}.items())) if flush else {}
         n = len(drop) + len(move)
         rebuild = n > REBUILD_FRACTION * len(self.used)
         if n:
             self.stats["refreshes"] += 1
             self.stats["rebuilds"] += rebuild
             self.stats["deintegrated"] += 0 if rebuild else n
-            self.stats["reintegrated"] += len(want) if rebuild else len(move)
+            self.stats["reintegrated"] += len(want) if rebuild else len(move) - len(back)
         for parts in ((("cloud", "tsdf"),) if between is None else (("cloud",), None, ("tsdf",))):
             if parts is None:
                 between(sorted(set(want) | set(put)))
@@ -265,10 +286,17 @@ class MapState:
             del self.used[i]
             self.box.pop(i, None)
             self._uncache(i)
-        self.used.update(want if rebuild else {i: want[i] for i in move})  # a rebuild put every keyframe at its pose
+        for i in back:
+            del self.used[i]
+        self.early -= set(drop) | set(back)
+        # a rebuild put every keyframe at its pose; ``back`` keyframes are out (in ``put`` at the end)
+        self.used.update(want if rebuild else {i: want[i] for i in move if i in want})
         if flush:
             self.stats["final_waiting"] = len(put)
             self.waiting.clear()
+            self.early.clear()
+        elif back:
+            self.waiting = dict(sorted({**self.waiting, **back}.items()))
         return n
 
     def _redo(self, parts: tuple[str, ...], want: dict[int, np.ndarray], redo: list[int], rebuild: bool) -> None:
@@ -469,14 +497,15 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
         if stop is not None and (why := stop()) is not None:
             return why
         try:  # a keyframe to integrate: only when no job waits
-            job = take(block=not state.unsettled())
+            idle = "speculate" if not state.unsettled() and state.can_speculate() else None
+            job = take(block=not state.unsettled() and idle is None)
         except queue.Empty:
-            job = ("settle",)
+            job = ("settle",) if idle is None else (idle,)
         if job is None:
             return None
         t0, c0 = time.perf_counter(), time.process_time()
         batch = [job]
-        while job[0] not in ("finish", "settle"):  # everything queued: the keyframes, the newest poses
+        while job[0] not in ("finish", "settle", "speculate"):  # everything queued: the keyframes, the newest poses
             try:
                 job = take(block=False)
             except queue.Empty:
@@ -507,6 +536,8 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
         n_poses = len(poses)
         if why is None and job[0] == "settle":
             state.settle()
+        elif why is None and job[0] == "speculate":
+            state.speculate()
         elif n_poses:
             state.stats["pose_updates_skipped"] += n_poses - (finish is None)
             if finish is None:

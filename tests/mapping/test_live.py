@@ -336,12 +336,13 @@ def test_the_map_process_applies_queued_poses_before_it_integrates(synth, tmp_pa
 
 
 def _niced_map(synth):
-    """A map state for the tests of the niced thread: live_lag 1, live_backlog 2, live_nice 3."""
+    """A map state for the tests of the niced thread: live_lag 1, live_backlog 2, live_nice 3 (and
+    nothing put in early: which keyframe each thread integrates is asserted)."""
     import sys
 
     if not sys.platform.startswith("linux"):
         pytest.skip("threads have a niceness of their own on Linux only")
-    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False)
+    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False, live_early=False)
     return cfg, synth.groundtruth(), MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
 
 
@@ -453,3 +454,80 @@ def test_a_niced_thread_that_took_many_queued_keyframes_hands_them_back_when_beh
     # the pose update handed back with them was applied (coalesced with the finish: the end applies it)
     state.refresh(final, flush=True)
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+
+
+@pytest.mark.parametrize("tolerance", [0.25, 0.0])
+def test_keyframes_put_in_early_are_taken_out_when_they_move_and_the_end_is_the_final_map(synth, tolerance):
+    """``mapping.live_early``: a keyframe waiting within ``live_lag`` goes into the map while the map
+    is idle (:meth:`MapState.speculate`). One a loop closure then moves beyond the tolerance is
+    taken out again (de-integrated, not re-integrated) and waits at its new pose; one that stays
+    is left for nothing at the end. One that leaves the newest ``live_lag`` keyframes is an
+    ordinary keyframe again (re-integrated when it moves). With ``live_tolerance=0`` the end's
+    map is exactly the fusion of the final poses; with the default it is within the tolerance."""
+    cfg = MappingConfig(live_lag=3, live_tolerance=tolerance)
+    kfs = (0, 3, 6, 9)
+    live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 was placed 4 cm off
+    assert sorted(live.used) == [0] and list(live.waiting) == [3, 6, 9]
+    live.speculate()
+    live.speculate()  # 3 and 6 early: the map idles
+    assert sorted(live.used) == [0, 3, 6] and live.early == {3, 6} and list(live.waiting) == [9]
+    assert live.backlog() == 0 and not live.unsettled()
+    poses = {i: gt.poses[i] for i in kfs}
+    moved = live.refresh(poses)  # a loop closure puts 6 where it belongs: out again, waits
+    assert 6 not in live.used and 6 not in live.early and 6 in live.waiting and 9 in live.waiting
+    # early keyframes that moved are out again, not re-integrated (tolerance 0: rounding moves 3 too)
+    assert live.stats["early_undone"] == len({3, 6} - set(live.used)) and 0 in live.used
+    if tolerance:
+        assert moved == 1 and sorted(live.used) == [0, 3] and live.early == {3} and list(live.waiting) == [6, 9]
+        assert live.stats["deintegrated"] == 1 and live.stats["reintegrated"] == 0
+    _same_map(_fresh(synth, cfg, {i: poses[i] for i in live.used}), live.result()[:2], synth, cfg)
+    f = synth.load(11)
+    live.add(11, f.rgb, f.depth, gt.poses[11])  # 3 leaves the newest three: an ordinary keyframe now
+    assert live.early == set() and 11 in live.waiting and not live.unsettled()
+    final = {**poses, 11: gt.poses[11]}
+    final[3] = final[3].copy()
+    final[3][1, 3] += 0.0004 if tolerance else 0.03  # the final optimisation moves 3 a little / a lot
+    live.refresh(final, flush=True)
+    tsdf, cloud, fused, _ = live.result()
+    assert fused == [0, 3, 6, 9, 11]
+    if tolerance:  # 3 stays where it went in (0.4 mm < a quarter voxel); 6, 9 and 11 go in once
+        assert live.stats["reintegrated"] == 0 and live.stats["final_waiting"] == 3
+        _same_map(_fresh(synth, cfg, {**final, 3: poses[3]}), (tsdf, cloud), synth, cfg)
+    else:  # whatever moved at all is redone: the map is the final poses' exactly
+        _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
+
+
+def test_an_idle_map_process_puts_the_waiting_keyframes_in_early(synth):
+    """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, it
+    puts the waiting keyframes in early, one at a time, before it waits for the next job; with
+    ``live_early=false`` they wait for the end."""
+    import queue
+
+    from rgbdslam.mapping.live import _while_tracking
+
+    gt = synth.groundtruth()
+    final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
+    for early in (True, False):
+        cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_early=early)
+        state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+
+        class Idle(queue.Queue):
+            """The end comes when the map process waits for a job (has nothing else to do)."""
+
+            def get(self, block=True, timeout=None):
+                if block and self.empty():
+                    self.put(("finish", final, None, "", False))
+                return super().get(block, timeout)
+
+        jobs = Idle()
+        for i in final:
+            jobs.put(("add", i, synth.load(i).rgb, synth.load(i).depth, final[i]))
+        assert _while_tracking(state, cfg, jobs)[0] == "finish"
+        if early:
+            assert sorted(state.used) == [0, 3, 6, 9] and state.early == {6, 9} and not state.waiting
+            assert state.stats["early"] == 2
+        else:
+            assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9] and state.stats["early"] == 0
+        state.refresh(final, flush=True)
+        assert state.stats["final_waiting"] == (0 if early else 2)
+        _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
