@@ -217,6 +217,16 @@ def test_points_box_holds_every_point_of_a_real_keyframe(desk9):
     pts, _ = backproject_image(depth, seq.camera)
     box = points_box(depth, seq.camera)
     np.testing.assert_allclose(box, [pts.min(axis=0), pts.max(axis=0)], atol=1e-5)
+    # the same numbers as every pixel's point in float64 (the box takes each column's nearest and
+    # farthest depth only)
+    cam = seq.camera
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u].astype(np.float64)
+    x, y = (u - cam.cx) * z / cam.fx, (v - cam.cy) * z / cam.fy
+    np.testing.assert_array_equal(box, [[x.min(), y.min(), z.min()], [x.max(), y.max(), z.max()]])
+    one = np.zeros_like(depth)
+    one[7, 11] = 1.5
+    np.testing.assert_array_equal(points_box(one, cam), [[(11 - cam.cx) * 1.5 / cam.fx, (7 - cam.cy) * 1.5 / cam.fy, 1.5]] * 2)
     assert points_box(np.zeros_like(depth), seq.camera) is None
 
 
