@@ -101,8 +101,8 @@ RUN_VARIANTS = {  # --variants: key -> (row name, extra arguments of `rgbdslam r
               ["--set", "mapping.live_nice=0"]),
     "nobacklog": ("map fused while tracking, never at tracking's priority (mapping.live_backlog=10000: before 2026-12-02 06:00)",
                   ["--set", "mapping.live_backlog=10000"]),
-    "noearly": ("map fused while tracking, waiting keyframes never put in early (mapping.live_early=false: before 2026-12-02 10:00)",
-                ["--set", "mapping.live_early=false"]),
+    "early": ("map fused while tracking, waiting keyframes put in early while idle (mapping.live_early=true)",
+              ["--set", "mapping.live_early=true"]),
     "lag0": ("map fused while tracking, every keyframe into the map at once (mapping.live_lag=0)",
              ["--set", "mapping.live_lag=0"]),
     "tol1": ("map fused while tracking, mapping.live_tolerance=1 (1 voxel)", ["--set", "mapping.live_tolerance=1"]),
@@ -142,7 +142,7 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
               f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} | {t.get('final_waiting', '-')} | "
               f"{a.get('cpu', float('nan')):.2f} | {t.get('final_cpu_s', float('nan')):.2f} |")
     cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in keys
-            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "noearly")]
+            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "early")]
     live_lines = []
     for name, out in runs.items():  # what the map process did, in the runs with a live map
         info = json.loads((out / "run.json").read_text())

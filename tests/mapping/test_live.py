@@ -346,13 +346,12 @@ def test_the_map_process_applies_queued_poses_before_it_integrates(synth, tmp_pa
 
 
 def _niced_map(synth):
-    """A map state for the tests of the niced thread: live_lag 1, live_backlog 2, live_nice 3 (and
-    nothing put in early: which keyframe each thread integrates is asserted)."""
+    """A map state for the tests of the niced thread: live_lag 1, live_backlog 2, live_nice 3."""
     import sys
 
     if not sys.platform.startswith("linux"):
         pytest.skip("threads have a niceness of their own on Linux only")
-    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False, live_early=False)
+    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False)
     return cfg, synth.groundtruth(), MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
 
 
@@ -474,7 +473,7 @@ def test_keyframes_put_in_early_are_taken_out_when_they_move_and_the_end_is_the_
     is left for nothing at the end. One that leaves the newest ``live_lag`` keyframes is an
     ordinary keyframe again (re-integrated when it moves). With ``live_tolerance=0`` the end's
     map is exactly the fusion of the final poses; with the default it is within the tolerance."""
-    cfg = MappingConfig(live_lag=3, live_tolerance=tolerance)
+    cfg = MappingConfig(live_lag=3, live_tolerance=tolerance, live_early=True)
     kfs = (0, 3, 6, 9)
     live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 was placed 4 cm off
     assert sorted(live.used) == [0] and list(live.waiting) == [3, 6, 9]
