@@ -45,7 +45,8 @@ REBUILD_FRACTION = 0.5  # more keyframes than this share moved: rebuild the map 
 SCRATCH_BLOCKS_PER_KEYFRAME = 1500  # TSDF blocks one 640x480 keyframe touches (~1150 on fr1/rpy), preallocated
 SCRATCH_MAX_BLOCKS = 16000  # at most (94 MB) for a scratch volume; beyond, its hash map grows
 REDO_CHUNK = 32  # keyframes taken out and put in again together (their images held meanwhile)
-CLOUD_POINTS, CLOUD_COLORS = ".cloud-points.npy", ".cloud-colors.npy"  # the cloud handed to the cloud process
+# the cloud handed to the cloud process, and the indices of the points its outlier removal keeps
+CLOUD_POINTS, CLOUD_COLORS, CLOUD_KEEP = ".cloud-points.npy", ".cloud-colors.npy", ".cloud-keep.npy"
 SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)
 
 
@@ -686,8 +687,16 @@ class LiveMap:
                 args = (stage, self.cfg, trajectory, acc if acc.is_file() else None, want_points)
                 in_run = self._cloud is None or not self._cloud.ready()
                 if not in_run:
-                    self._cloud.submit("rgbdslam.mapping.live:_cloud_end", *args)
-                    cloud_path, n_points, points, colors, map2d_path, grid, timings = self._cloud.result()
+                    # the cloud process removes the outliers, then makes the 2-D map; meanwhile this
+                    # process writes cloud.ply (NumPy only) from the indices of the points it kept
+                    self._cloud.submit("rgbdslam.mapping.live:_cloud_outliers", stage, self.cfg)
+                    self._cloud.submit("rgbdslam.mapping.live:_cloud_2d", *args)
+                    n_points, timings = self._cloud.result()
+                    at["at_outliers_received"] = time.time()
+                    cloud_path = _write_kept_cloud(stage)
+                    at["at_cloud_ply_written"] = time.time()
+                    (points, colors), map2d_path, grid, more = self._cloud.result()
+                    timings.update(more)
                 else:  # its niced imports are not done (a short run, a busy machine): here, as before
                     self._close_cloud(wait=0.0)  # it reads its queue only after them: do not wait for it
                     cloud_path, n_points, points, colors, map2d_path, grid, timings = _cloud_end(*args)
@@ -754,29 +763,70 @@ def _warm_cloud() -> None:
     import rgbdslam.mapping.map2d  # noqa: F401
 
 
-def _cloud_end(stage, cfg: MappingConfig, trajectory, accelerometer, want_points: bool = True):
-    """The cloud's part of the end, in the cloud process: the cloud the map process left in ``stage``
-    (:data:`CLOUD_POINTS`, :data:`CLOUD_COLORS`), its outliers removed, ``stage``/cloud.ply, the
-    2-D map; ``(cloud path, points kept, their points (float32) and colours or Nones without
-    ``want_points``, 2-D map path, Map2D, timings)``."""
+def _load_cloud(stage) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud the map process left in ``stage`` (:data:`CLOUD_POINTS`, :data:`CLOUD_COLORS`)."""
     from pathlib import Path
 
-    from rgbdslam.mapping.fusion import write_2d, write_cloud
+    return np.load(Path(stage) / CLOUD_POINTS), np.load(Path(stage) / CLOUD_COLORS)
+
+
+_KEPT: dict = {}  # the cloud process's outlier-free cloud, from its first job to its second
+
+
+def _cloud_outliers(stage, cfg: MappingConfig):
+    """The cloud process's first job at the end: the outliers of the cloud in ``stage`` removed, the
+    kept points' indices saved beside it (:data:`CLOUD_KEEP`, None: all); ``(points kept, timings)``."""
+    from pathlib import Path
+
+    from rgbdslam.mapping.fusion import outlier_keep
 
     t0 = time.perf_counter()
     timings: dict = {"at_cloud_start": time.time()}
-    points, colors = np.load(Path(stage) / CLOUD_POINTS), np.load(Path(stage) / CLOUD_COLORS)
-    for name in (CLOUD_POINTS, CLOUD_COLORS):
+    points, colors = _load_cloud(stage)
+    keep = outlier_keep(points, cfg)
+    np.save(Path(stage) / CLOUD_KEEP, keep if keep is not None else np.arange(len(points)))
+    _KEPT.update(points=points if keep is None else points[keep], colors=colors if keep is None else colors[keep])
+    timings["cloud"] = time.perf_counter() - t0  # outlier removal (cloud.ply is written by the run meanwhile)
+    timings["at_outliers_done"] = time.time()
+    return len(_KEPT["points"]), timings
+
+
+def _write_kept_cloud(stage):
+    """In the run, while the cloud process makes the 2-D map: ``stage``/cloud.ply of the points its
+    outlier removal kept; the cloud's files in ``stage`` removed."""
+    from pathlib import Path
+
+    from rgbdslam.mapping.fusion import write_cloud_ply
+
+    points, colors = _load_cloud(stage)
+    keep = np.load(Path(stage) / CLOUD_KEEP)
+    path = Path(stage) / "cloud.ply"
+    write_cloud_ply(path, points[keep], colors[keep])
+    for name in (CLOUD_POINTS, CLOUD_COLORS, CLOUD_KEEP):
         (Path(stage) / name).unlink()
-    cloud_path, points, colors = write_cloud(stage, points, colors, cfg)
-    points = points.astype(np.float32)
-    timings["cloud"] = time.perf_counter() - t0
-    timings["at_cloud_written"] = time.time()
+    return path
+
+
+def _cloud_2d(stage, cfg: MappingConfig, trajectory, accelerometer, want_points: bool = True):
+    """The cloud process's second job: the 2-D map of its outlier-free cloud (:func:`_cloud_outliers`);
+    ``(points (float32) and colours or Nones without want_points, 2-D map path, Map2D, timings)``."""
+    from rgbdslam.mapping.fusion import write_2d
+
+    points, colors = _KEPT.pop("points").astype(np.float32), _KEPT.pop("colors")
+    timings: dict = {}
     map2d_path, grid = write_2d(stage, points, trajectory, cfg, accelerometer, timings)
     timings["at_map2d_done"] = time.time()
-    if not want_points:  # the run logs no map (no Rerun): ~5 MB less to send back
-        return cloud_path, len(points), None, None, map2d_path, grid, timings
-    return cloud_path, len(points), points, colors, map2d_path, grid, timings
+    return (points, colors) if want_points else (None, None), map2d_path, grid, timings
+
+
+def _cloud_end(stage, cfg: MappingConfig, trajectory, accelerometer, want_points: bool = True):
+    """The cloud's part of the end in one process (the run's, when the cloud process's imports are
+    not done): outlier removal, ``stage``/cloud.ply, the 2-D map; ``(cloud path, points kept, their
+    points (float32) and colours or Nones without ``want_points``, 2-D map path, Map2D, timings)``."""
+    n_points, timings = _cloud_outliers(stage, cfg)
+    cloud_path = _write_kept_cloud(stage)
+    (points, colors), map2d_path, grid, more = _cloud_2d(stage, cfg, trajectory, accelerometer, want_points)
+    return cloud_path, n_points, points, colors, map2d_path, grid, {**timings, **more}
 
 
 def add_cloud(dst, src, sign: int) -> None:
