@@ -505,14 +505,6 @@ def outlier_keep(points: np.ndarray, cfg: MappingConfig) -> np.ndarray | None:
     return keep
 
 
-def write_cloud_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
-    """cloud.ply of ``points`` and their uint8 ``colors`` (NumPy only: the run process of a live map
-    writes it without Open3D; the bytes Open3D's cloud of them gave before)."""
-    from rgbdslam.io.ply import write_ply
-
-    write_ply(path, np.asarray(points, dtype=np.float64), colors.astype(np.float64) * (1 / 255.0))
-
-
 def write_cloud(stage: Path, points: np.ndarray, colors: np.ndarray, cfg: MappingConfig
                 ) -> tuple[Path, np.ndarray, np.ndarray]:
     """Statistical outlier removal (:func:`outlier_keep`), then ``stage``/cloud.ply; the points and
@@ -520,6 +512,8 @@ def write_cloud(stage: Path, points: np.ndarray, colors: np.ndarray, cfg: Mappin
     keep = outlier_keep(points, cfg)
     if keep is not None:
         points, colors = points[keep], colors[keep]
+    from rgbdslam.io.ply import write_cloud_ply
+
     cloud_path = stage / "cloud.ply"
     write_cloud_ply(cloud_path, points, colors)
     return cloud_path, points, colors

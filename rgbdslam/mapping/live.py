@@ -23,7 +23,8 @@ thread, at the run's priority, whenever it is more than ``mapping.live_backlog``
 keyframe: pose updates are coalesced (when several are waiting, only the newest is applied) and
 come before the integration of keyframes queued with them. A keyframe's prepared images are cached for re-integration (up to
 :data:`CACHE_MB`; beyond, ``load`` reads them again). At the end the cloud is brought to the final
-poses first and sent to the run, then the TSDF and the mesh (:func:`_finish`). An error in the
+poses first and left for the cloud process (files in the map's temporary folder), then the TSDF and
+the mesh (:func:`_finish`). An error in the
 process is raised by :meth:`LiveMap.finish`.
 """
 
@@ -565,9 +566,10 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
 
 def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: bool) -> dict:
     """The end, in the map process: the map brought to the final poses, the cloud first: its points
-    go to the run (``("cloud", ...)`` on ``results``: it removes the outliers, writes cloud.ply and
-    makes the 2-D map) while this process brings the TSDF to the poses and extracts and writes
-    mesh.ply into the run's temporary map folder ``stage``."""
+    are saved into the run's temporary map folder ``stage`` (:data:`CLOUD_POINTS`, :data:`CLOUD_COLORS`)
+    and ``("cloud", fused keyframes)`` put on ``results`` (the cloud process removes the outliers and
+    makes the 2-D map, the run writes cloud.ply) while this process brings the TSDF to the poses and
+    extracts and writes mesh.ply into ``stage``."""
     from pathlib import Path
 
     from rgbdslam.errors import InputError
@@ -796,7 +798,7 @@ def _write_kept_cloud(stage):
     outlier removal kept; the cloud's files in ``stage`` removed."""
     from pathlib import Path
 
-    from rgbdslam.mapping.fusion import write_cloud_ply
+    from rgbdslam.io.ply import write_cloud_ply  # not from fusion: that imports Open3D
 
     points, colors = _load_cloud(stage)
     keep = np.load(Path(stage) / CLOUD_KEEP)

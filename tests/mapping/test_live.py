@@ -540,3 +540,28 @@ def test_an_idle_map_process_puts_the_waiting_keyframes_in_early(synth):
         state.refresh(final, flush=True)
         assert state.stats["final_waiting"] == (0 if early else 2)
         _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+
+
+def test_the_run_writes_cloud_ply_from_the_kept_indices_without_importing_open3d(tmp_path):
+    """The run's share of the end (:func:`rgbdslam.mapping.live._write_kept_cloud`): cloud.ply of
+    the points whose indices the cloud process saved, the hand-over files removed — in a fresh
+    interpreter, which must not import Open3D for it (~1 s of CPU after the last frame)."""
+    import subprocess
+    import sys
+
+    from rgbdslam.io.ply import write_cloud_ply
+    from rgbdslam.mapping.live import CLOUD_COLORS, CLOUD_KEEP, CLOUD_POINTS
+
+    rng = np.random.default_rng(2)
+    points, colors = rng.normal(size=(500, 3)), rng.integers(0, 256, (500, 3), dtype=np.uint8)
+    keep = np.flatnonzero(rng.random(500) < 0.9)
+    np.save(tmp_path / CLOUD_POINTS, points)
+    np.save(tmp_path / CLOUD_COLORS, colors)
+    np.save(tmp_path / CLOUD_KEEP, keep)
+    code = ("import sys; from rgbdslam.mapping.live import _write_kept_cloud; "
+            f"print(_write_kept_cloud({str(tmp_path)!r}).name, 'open3d' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["cloud.ply", "False"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cloud.ply"]
+    write_cloud_ply(tmp_path / "want.ply", points[keep], colors[keep])
+    assert (tmp_path / "cloud.ply").read_bytes() == (tmp_path / "want.ply").read_bytes()
