@@ -414,6 +414,10 @@ class MappingConfig:
     # a map process more than this many keyframes behind (beyond live_lag) works at tracking's priority
     # until it has caught up: what is left for after the last frame stays bounded on a busy machine
     live_backlog: int = 4
+    # while the map has nothing else to do, the keyframes waiting within live_lag go into the map early
+    # (one that then moves beyond live_tolerance is taken out again and waits): less is left for the end,
+    # but the final poses often move the newest keyframes, which are then redone; off: not measured better
+    live_early: bool = False
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0  # degrees: see select_translation
     undistort: bool = True  # remap colour and depth to the ideal pinhole before fusing

@@ -430,7 +430,8 @@ def finish_live_map(slam: SLAM, summary: dict[str, Any], final: Trajectory, out_
     poses = {r.index: final.poses[k] for k, r in enumerate(st.records) if r.index == r.keyframe}
     off = [g for g in summary.get("segments") or [] if not g.get("map", True)]
     keep = {i for i in poses if not any(g["first"] <= i <= g["last"] for g in off)}
-    res = slam.mapper.finish(poses, keep, out_dir / "map", final, summary["sequence"], slam.depth_filter is not None)
+    res = slam.mapper.finish(poses, keep, out_dir / "map", final, summary["sequence"], slam.depth_filter is not None,
+                             want_points=getattr(slam.observer, "logs_map", True))
     res.seconds = time.perf_counter() - t0
     return res
 

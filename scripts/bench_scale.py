@@ -101,6 +101,8 @@ RUN_VARIANTS = {  # --variants: key -> (row name, extra arguments of `rgbdslam r
               ["--set", "mapping.live_nice=0"]),
     "nobacklog": ("map fused while tracking, never at tracking's priority (mapping.live_backlog=10000: before 2026-12-02 06:00)",
                   ["--set", "mapping.live_backlog=10000"]),
+    "early": ("map fused while tracking, waiting keyframes put in early while idle (mapping.live_early=true)",
+              ["--set", "mapping.live_early=true"]),
     "lag0": ("map fused while tracking, every keyframe into the map at once (mapping.live_lag=0)",
              ["--set", "mapping.live_lag=0"]),
     "tol1": ("map fused while tracking, mapping.live_tolerance=1 (1 voxel)", ["--set", "mapping.live_tolerance=1"]),
@@ -140,7 +142,7 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
               f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} | {t.get('final_waiting', '-')} | "
               f"{a.get('cpu', float('nan')):.2f} | {t.get('final_cpu_s', float('nan')):.2f} |")
     cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in keys
-            if k in ("default", "nice0", "lag0", "tol1", "nobacklog")]
+            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "early")]
     live_lines = []
     for name, out in runs.items():  # what the map process did, in the runs with a live map
         info = json.loads((out / "run.json").read_text())
@@ -154,9 +156,11 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
                 f"{t.get('busy_s', 0):.1f} s ({t.get('busy_cpu_s', float('nan')):.1f} s of CPU) during "
                 f"{info['wall_time_s']:.1f} s of tracking, of which {t.get('catch_up_s', 0):.1f} s "
                 f"({t.get('catch_up_cpu_s', 0):.1f} s of CPU) at tracking's priority in {t.get('catch_ups', 0)} "
-                f"catch-ups (mapping.live_backlog) while tracking; "
+                f"catch-ups (mapping.live_backlog) while tracking; {t.get('early', 0)} keyframes put in early "
+                f"(mapping.live_early), {t.get('early_undone', 0)} of them taken out again; "
                 f"keyframes moved more than the tolerance at the end (mm): "
-                f"{t.get('final_shift_mm', '-')}.")
+                f"{t.get('final_shift_mm', '-')}; the end's timeline (s after the run sent the final poses): "
+                f"{t.get('end_timeline', '-')}.")
     lines = [
         *[f"**Whole-command rate / tracking rate: {r:.2f}** (target >= 0.8; wall {w:.1f} s) - {name}"
           for name, r, w in ratios],

@@ -120,9 +120,10 @@ def in_niced_thread(nice: int, work):
 class Helper:
     """A helper process for one job after the last frame: started with the run, it runs ``warm``
     (``"module:function"``: its imports, e.g. Open3D) in a thread niced by ``nice`` while the frames
-    are tracked; then one :meth:`submit` ted job, ``"module:function"`` called with its arguments in
-    its main thread at the run's priority; :meth:`result` gives the function's value (its error raised
-    here). Functions are named, not imported here: this module stays free of the package's stages."""
+    are tracked; then the :meth:`submit` ted jobs, one after another, each ``"module:function"``
+    called with its arguments in its main thread at the run's priority; :meth:`result` gives the next
+    job's value (its error raised here; the process ends after an error). Functions are named, not
+    imported here: this module stays free of the package's stages."""
 
     def __init__(self, name: str, warm: str, nice: int):
         ctx = spawn_context()
@@ -168,8 +169,7 @@ def _helper(jobs, results, warm: str, nice: int, warmed) -> None:
     try:
         in_niced_thread(nice, lambda: _call(warm))
         warmed.set()
-        job = jobs.get()
-        if job is not None:
+        while (job := jobs.get()) is not None:  # until close()
             results.put(("ok", _call(job[0], *job[1])))
     except BaseException as e:  # noqa: BLE001 - the run reports it (OSError as itself: a full disk names its file)
         from rgbdslam.errors import RgbdslamError

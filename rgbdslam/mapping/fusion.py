@@ -485,25 +485,37 @@ def cloud_points(acc: VoxelCloud, cfg: MappingConfig) -> tuple[np.ndarray, np.nd
     return points, colors
 
 
-def write_cloud(stage: Path, points: np.ndarray, colors: np.ndarray, cfg: MappingConfig
-                ) -> tuple[Path, np.ndarray, np.ndarray]:
-    """Statistical outlier removal, then ``stage``/cloud.ply; the points and colours kept."""
+def outlier_keep(points: np.ndarray, cfg: MappingConfig) -> np.ndarray | None:
+    """The indices (int64) of the points statistical outlier removal keeps (Open3D's: the mean
+    distance to the ``outlier_neighbors`` nearest points at most ``outlier_std`` standard deviations
+    above the cloud's mean); None when it is off or the cloud is too small. An InputError when it
+    would keep none."""
     import open3d as o3d
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cloud.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) * (1 / 255.0))
-    if cfg.outlier_neighbors > 0 and len(points) > cfg.outlier_neighbors:
-        _, keep = cloud.remove_statistical_outlier(cfg.outlier_neighbors, cfg.outlier_std)
-        keep = np.asarray(keep, dtype=np.int64)
-        if len(keep) == 0:
-            raise InputError(
-                f"statistical outlier removal left no point of the {len(points)} in the cloud; raise "
-                f"mapping.outlier_std (now {cfg.outlier_std:g}) or set mapping.outlier_neighbors=0"
-            )
-        cloud = cloud.select_by_index(keep)
+    if not (cfg.outlier_neighbors > 0 and len(points) > cfg.outlier_neighbors):
+        return None
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    _, keep = cloud.remove_statistical_outlier(cfg.outlier_neighbors, cfg.outlier_std)
+    keep = np.asarray(keep, dtype=np.int64)
+    if len(keep) == 0:
+        raise InputError(
+            f"statistical outlier removal left no point of the {len(points)} in the cloud; raise "
+            f"mapping.outlier_std (now {cfg.outlier_std:g}) or set mapping.outlier_neighbors=0"
+        )
+    return keep
+
+
+def write_cloud(stage: Path, points: np.ndarray, colors: np.ndarray, cfg: MappingConfig
+                ) -> tuple[Path, np.ndarray, np.ndarray]:
+    """Statistical outlier removal (:func:`outlier_keep`), then ``stage``/cloud.ply; the points and
+    colours kept."""
+    keep = outlier_keep(points, cfg)
+    if keep is not None:
         points, colors = points[keep], colors[keep]
+    from rgbdslam.io.ply import write_cloud_ply
+
     cloud_path = stage / "cloud.ply"
-    _write_ply(cloud_path, cloud, mesh=False)
+    write_cloud_ply(cloud_path, points, colors)
     return cloud_path, points, colors
 
 

@@ -12,6 +12,8 @@ import numpy as np
 class NullObserver:
     """Accepts every observer call and does nothing."""
 
+    logs_map = False  # the map's points need not be sent to it
+
     def log_frame(self, frame, result) -> None:
         pass
 

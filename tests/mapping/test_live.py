@@ -217,6 +217,16 @@ def test_points_box_holds_every_point_of_a_real_keyframe(desk9):
     pts, _ = backproject_image(depth, seq.camera)
     box = points_box(depth, seq.camera)
     np.testing.assert_allclose(box, [pts.min(axis=0), pts.max(axis=0)], atol=1e-5)
+    # the same numbers as every pixel's point in float64 (the box takes each column's nearest and
+    # farthest depth only)
+    cam = seq.camera
+    v, u = np.nonzero(depth > 0)
+    z = depth[v, u].astype(np.float64)
+    x, y = (u - cam.cx) * z / cam.fx, (v - cam.cy) * z / cam.fy
+    np.testing.assert_array_equal(box, [[x.min(), y.min(), z.min()], [x.max(), y.max(), z.max()]])
+    one = np.zeros_like(depth)
+    one[7, 11] = 1.5
+    np.testing.assert_array_equal(points_box(one, cam), [[(11 - cam.cx) * 1.5 / cam.fx, (7 - cam.cy) * 1.5 / cam.fy, 1.5]] * 2)
     assert points_box(np.zeros_like(depth), seq.camera) is None
 
 
@@ -322,14 +332,27 @@ def test_the_map_process_applies_queued_poses_before_it_integrates(synth, tmp_pa
         import open3d as o3d
 
         o3d.utility.set_max_threads(0)
-    status, (points, _, fused) = results.get_nowait()
+    status, fused = results.get_nowait()
     status_end, out = results.get_nowait()
     assert (status, status_end) == ("cloud", "ok") and fused == list(kfs)
+    from rgbdslam.mapping.live import CLOUD_POINTS
+
+    points = np.load(tmp_path / CLOUD_POINTS)  # the cloud is handed to the cloud process in a file
     t = out["timings"]
     assert t["integrated"] == 4 and t["deintegrated"] == 0 and t["reintegrated"] == 0 and t["final_moved"] == 0
     _, cloud = _fresh(synth, cfg, final)
     np.testing.assert_allclose(np.sort(points, axis=0), np.sort(cloud.result()[0], axis=0), atol=1e-9)
     assert out["n_vertices"] > 0 and (tmp_path / "mesh.ply").is_file()
+
+
+def _niced_map(synth):
+    """A map state for the tests of the niced thread: live_lag 1, live_backlog 2, live_nice 3."""
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("threads have a niceness of their own on Linux only")
+    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False)
+    return cfg, synth.groundtruth(), MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
 
 
 def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_again(synth):
@@ -340,16 +363,11 @@ def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_ag
     read from the kernel (Linux: per thread)."""
     import os
     import queue
-    import sys
     import threading
 
     from rgbdslam.mapping.live import _while_tracking
 
-    if not sys.platform.startswith("linux"):
-        pytest.skip("threads have a niceness of their own on Linux only")
-    cfg = MappingConfig(live_lag=1, live_backlog=2, live_nice=3, map2d=False)
-    gt = synth.groundtruth()
-    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+    cfg, gt, state = _niced_map(synth)
     nice_at: dict[int, int] = {}
     settle = state.settle
 
@@ -394,3 +412,156 @@ def test_a_map_that_falls_behind_catches_up_at_the_run_priority_then_is_niced_ag
     assert sorted(state.used) == [0, 1, 2, 3, 4, 5] and list(state.waiting) == [6]  # live_lag 1: 6 waits
     state.refresh(final, flush=True)
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+
+
+def test_a_niced_thread_that_took_many_queued_keyframes_hands_them_back_when_behind(synth):
+    """The niced thread takes every queued job at once (pose updates coalesced) but asks whether the
+    map is behind after every keyframe it prepares: with more queued than ``live_lag`` +
+    ``live_backlog`` it hands the rest back, in order, and the map process's own thread (the run's
+    priority) prepares them — before, the niced thread prepared all of them first, so on a busy
+    machine the backlog grew past its bound. The map is still the one of the final poses."""
+    import os
+    import queue
+    import threading
+
+    from rgbdslam.mapping.live import _while_tracking
+
+    cfg, gt, state = _niced_map(synth)
+    prepared_at: dict[int, int] = {}
+    add = state.add
+
+    def recording(index, *rest, **kw):
+        prepared_at[index] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        add(index, *rest, **kw)
+
+    state.add = recording
+    final = {i: gt.poses[i] for i in range(6)}
+    moved = {i: p.copy() for i, p in final.items()}
+    for p in moved.values():
+        p[0, 3] += 0.05  # the keyframes are queued at poses that a later pose update corrects
+    burst = [("add", i, synth.load(i).rgb, synth.load(i).depth, moved[i]) for i in range(1, 6)]
+    burst += [("poses", dict(final)), ("finish", final, None, "", False)]
+
+    class Burst(queue.Queue):
+        """Keyframe 0 alone when the niced thread asked whether it was behind; the rest queued
+        (all at once, as tracking does while a starved niced thread waits for the CPU) by the time
+        it takes keyframe 0 and drains the queue."""
+
+        def get(self, *a, **kw):
+            job = super().get(*a, **kw)
+            while burst:
+                self.put(burst.pop(0))
+            return job
+
+    jobs = Burst()
+    jobs.put(("add", 0, synth.load(0).rgb, synth.load(0).depth, moved[0]))
+    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    out = _while_tracking(state, cfg, jobs)
+    assert out is not None and out[0] == "finish"
+    assert prepared_at == {0: base + 3, 1: base, 2: base, 3: base, 4: base, 5: base}
+    assert state.stats["catch_ups"] == 1
+    # the pose update handed back with them was applied (coalesced with the finish: the end applies it)
+    state.refresh(final, flush=True)
+    _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+
+
+@pytest.mark.parametrize("tolerance", [0.25, 0.0])
+def test_keyframes_put_in_early_are_taken_out_when_they_move_and_the_end_is_the_final_map(synth, tolerance):
+    """``mapping.live_early``: a keyframe waiting within ``live_lag`` goes into the map while the map
+    is idle (:meth:`MapState.speculate`). One a loop closure then moves beyond the tolerance is
+    taken out again (de-integrated, not re-integrated) and waits at its new pose; one that stays
+    is left for nothing at the end. One that leaves the newest ``live_lag`` keyframes is an
+    ordinary keyframe again (re-integrated when it moves). With ``live_tolerance=0`` the end's
+    map is exactly the fusion of the final poses; with the default it is within the tolerance."""
+    cfg = MappingConfig(live_lag=3, live_tolerance=tolerance, live_early=True)
+    kfs = (0, 3, 6, 9)
+    live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 was placed 4 cm off
+    assert sorted(live.used) == [0] and list(live.waiting) == [3, 6, 9]
+    live.speculate()
+    live.speculate()  # 3 and 6 early: the map idles
+    assert sorted(live.used) == [0, 3, 6] and live.early == {3, 6} and list(live.waiting) == [9]
+    assert live.backlog() == 0 and not live.unsettled()
+    poses = {i: gt.poses[i] for i in kfs}
+    moved = live.refresh(poses)  # a loop closure puts 6 where it belongs: out again, waits
+    assert 6 not in live.used and 6 not in live.early and 6 in live.waiting and 9 in live.waiting
+    # early keyframes that moved are out again, not re-integrated (tolerance 0: rounding moves 3 too)
+    assert live.stats["early_undone"] == len({3, 6} - set(live.used)) and 0 in live.used
+    if tolerance:
+        assert moved == 1 and sorted(live.used) == [0, 3] and live.early == {3} and list(live.waiting) == [6, 9]
+        assert live.stats["deintegrated"] == 1 and live.stats["reintegrated"] == 0
+    _same_map(_fresh(synth, cfg, {i: poses[i] for i in live.used}), live.result()[:2], synth, cfg)
+    f = synth.load(11)
+    live.add(11, f.rgb, f.depth, gt.poses[11])  # 3 leaves the newest three: an ordinary keyframe now
+    assert live.early == set() and 11 in live.waiting and not live.unsettled()
+    final = {**poses, 11: gt.poses[11]}
+    final[3] = final[3].copy()
+    final[3][1, 3] += 0.0004 if tolerance else 0.03  # the final optimisation moves 3 a little / a lot
+    live.refresh(final, flush=True)
+    tsdf, cloud, fused, _ = live.result()
+    assert fused == [0, 3, 6, 9, 11]
+    if tolerance:  # 3 stays where it went in (0.4 mm < a quarter voxel); 6, 9 and 11 go in once
+        assert live.stats["reintegrated"] == 0 and live.stats["final_waiting"] == 3
+        _same_map(_fresh(synth, cfg, {**final, 3: poses[3]}), (tsdf, cloud), synth, cfg)
+    else:  # whatever moved at all is redone: the map is the final poses' exactly
+        _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
+
+
+def test_an_idle_map_process_puts_the_waiting_keyframes_in_early(synth):
+    """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, it
+    puts the waiting keyframes in early, one at a time, before it waits for the next job; with
+    ``live_early=false`` they wait for the end."""
+    import queue
+
+    from rgbdslam.mapping.live import _while_tracking
+
+    gt = synth.groundtruth()
+    final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
+    for early in (True, False):
+        cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_early=early)
+        state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+
+        class Idle(queue.Queue):
+            """The end comes when the map process waits for a job (has nothing else to do)."""
+
+            def get(self, block=True, timeout=None):
+                if block and self.empty():
+                    self.put(("finish", final, None, "", False))
+                return super().get(block, timeout)
+
+        jobs = Idle()
+        for i in final:
+            jobs.put(("add", i, synth.load(i).rgb, synth.load(i).depth, final[i]))
+        assert _while_tracking(state, cfg, jobs)[0] == "finish"
+        if early:
+            assert sorted(state.used) == [0, 3, 6, 9] and state.early == {6, 9} and not state.waiting
+            assert state.stats["early"] == 2
+        else:
+            assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9] and state.stats["early"] == 0
+        state.refresh(final, flush=True)
+        assert state.stats["final_waiting"] == (0 if early else 2)
+        _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+
+
+def test_the_run_writes_cloud_ply_from_the_kept_indices_without_importing_open3d(tmp_path):
+    """The run's share of the end (:func:`rgbdslam.mapping.live._write_kept_cloud`): cloud.ply of
+    the points whose indices the cloud process saved, the hand-over files removed — in a fresh
+    interpreter, which must not import Open3D for it (~1 s of CPU after the last frame)."""
+    import subprocess
+    import sys
+
+    from rgbdslam.io.ply import write_cloud_ply
+    from rgbdslam.mapping.live import CLOUD_COLORS, CLOUD_KEEP, CLOUD_POINTS
+
+    rng = np.random.default_rng(2)
+    points, colors = rng.normal(size=(500, 3)), rng.integers(0, 256, (500, 3), dtype=np.uint8)
+    keep = np.flatnonzero(rng.random(500) < 0.9)
+    np.save(tmp_path / CLOUD_POINTS, points)
+    np.save(tmp_path / CLOUD_COLORS, colors)
+    np.save(tmp_path / CLOUD_KEEP, keep)
+    code = ("import sys; from rgbdslam.mapping.live import _write_kept_cloud; "
+            f"print(_write_kept_cloud({str(tmp_path)!r}).name, 'open3d' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["cloud.ply", "False"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cloud.ply"]
+    write_cloud_ply(tmp_path / "want.ply", points[keep], colors[keep])
+    assert (tmp_path / "cloud.ply").read_bytes() == (tmp_path / "want.ply").read_bytes()

@@ -523,3 +523,28 @@ def test_two_fusions_of_one_run_are_byte_identical(desk9, tmp_path):
         again = {p.name: p.read_bytes() for p in (run / "map").iterdir()}
         assert again.keys() == first.keys()
         assert [n for n in first if first[n] != again[n]] == []
+
+
+def test_cloud_ply_is_the_bytes_open3d_wrote_of_the_points_outlier_removal_keeps(tmp_path):
+    """``write_cloud`` (outlier removal by Open3D, then cloud.ply by NumPy, as the run process of a
+    live map writes it while its cloud process makes the 2-D map) gives the file Open3D's own
+    cloud of the kept points gave before, byte for byte; the outliers are the points far from the rest."""
+    import open3d as o3d
+
+    from rgbdslam.mapping.fusion import _write_ply, outlier_keep, write_cloud
+
+    rng = np.random.default_rng(5)
+    wall = np.c_[rng.uniform(0, 1, (4000, 2)), rng.normal(0, 0.002, 4000)]  # a plane, 1 m x 1 m
+    stray = rng.uniform(2, 3, (12, 3))  # far away, alone
+    points = np.vstack([wall, stray])
+    colors = rng.integers(0, 256, (len(points), 3), dtype=np.uint8)
+    cfg = MappingConfig()
+    keep = outlier_keep(points, cfg)
+    assert set(range(4000, 4012)).isdisjoint(keep) and len(keep) > 3800
+    path, kept, kept_colors = write_cloud(tmp_path, points, colors, cfg)
+    np.testing.assert_array_equal(kept, points[keep])
+    old = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    old.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) * (1 / 255.0))
+    _write_ply(tmp_path / "old.ply", old.select_by_index(keep), mesh=False)
+    assert path.read_bytes() == (tmp_path / "old.ply").read_bytes()
+    assert outlier_keep(points, MappingConfig(outlier_neighbors=0)) is None
