@@ -597,8 +597,8 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
         state.cloud = None
         # through a file in the map's temporary folder, not the queue: a queue pipes its ~10 MB
         # in 64 KB pieces to the run and again to the cloud process (0.4 + 0.8 s at load 12)
-        np.save(Path(stage) / CLOUD_POINTS, points)
-        np.save(Path(stage) / CLOUD_COLORS, colors)
+        _save_handover(stage, CLOUD_POINTS, points)
+        _save_handover(stage, CLOUD_COLORS, colors)
         results.put(("cloud", fused))
         state.stats["cloud_points"] = time.perf_counter() - t1
         state.stats["at_cloud_sent"] = time.time()
@@ -772,6 +772,21 @@ def _load_cloud(stage) -> tuple[np.ndarray, np.ndarray]:
     return np.load(Path(stage) / CLOUD_POINTS), np.load(Path(stage) / CLOUD_COLORS)
 
 
+def _save_handover(stage, name: str, arr: np.ndarray) -> None:
+    """``arr`` as ``stage``/``name`` (.npy) for the other process. A write that fails (a full disk)
+    is an OSError naming the map file it was for, ``stage``/cloud.ply (which the map's staging turns
+    into the map folder's cloud.ply): NumPy's own writer says only "problem writing element N"."""
+    import io
+    from pathlib import Path
+
+    buf = io.BytesIO()
+    np.save(buf, arr)
+    try:
+        (Path(stage) / name).write_bytes(buf.getbuffer())
+    except OSError as e:
+        raise OSError(e.errno, e.strerror, str(Path(stage) / "cloud.ply")) from None
+
+
 _KEPT: dict = {}  # the cloud process's outlier-free cloud, from its first job to its second
 
 
@@ -786,7 +801,7 @@ def _cloud_outliers(stage, cfg: MappingConfig):
     timings: dict = {"at_cloud_start": time.time()}
     points, colors = _load_cloud(stage)
     keep = outlier_keep(points, cfg)
-    np.save(Path(stage) / CLOUD_KEEP, keep if keep is not None else np.arange(len(points)))
+    _save_handover(stage, CLOUD_KEEP, keep if keep is not None else np.arange(len(points)))
     _KEPT.update(points=points if keep is None else points[keep], colors=colors if keep is None else colors[keep])
     timings["cloud"] = time.perf_counter() - t0  # outlier removal (cloud.ply is written by the run meanwhile)
     timings["at_outliers_done"] = time.time()
