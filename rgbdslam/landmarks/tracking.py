@@ -93,9 +93,8 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     nn_safe = np.where(has, nn, 0)
     fw = feats.words[fi]  # (F, 4)
     lw = lmap.words(ids)  # (K, 4)
-    ham = np.zeros(nn.shape, np.int32)
-    for w in range(4):
-        ham += np.bitwise_count(fw[:, None, w] ^ lw[nn_safe, w]).astype(np.int32)
+    # Hamming distances of every feature to its k candidates: one gather, XOR and popcount (F, k, 4)
+    ham = np.bitwise_count(fw[:, None, :] ^ lw[nn_safe]).sum(axis=2, dtype=np.int32)
     ham = np.where(has, ham, 1 << 20)
     if old_bonus and old_before is not None:  # among the candidates within the gate, old landmarks preferred
         pref = np.where(ham <= max_hamming, ham - old_bonus * (lmap.first[ids] < old_before)[nn_safe], 1 << 20)
@@ -161,7 +160,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
             sel = lambda v: v if np.ndim(v) == 0 else v[mask]  # noqa: E731
             T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask])
             Tcw = inv(T)
-            r, _ = reprojection_residuals(Tcw[:3, :3], Tcw[:3, 3], D, uv, z, camera, spx, sig, cov)
+            r, _ = reprojection_residuals(Tcw[:3, :3], Tcw[:3, 3], D, uv, z, camera, spx, sig, cov, jacobian=False)
             new = np.linalg.norm(r, axis=1) < chi2_gate
             if new.sum() < max(3, min_inliers):
                 break
@@ -211,7 +210,7 @@ def whitening(S: np.ndarray) -> np.ndarray:
 
 
 def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera,
-                           sigma_px, sigma_z: np.ndarray, cov_lm: np.ndarray):
+                           sigma_px, sigma_z: np.ndarray, cov_lm: np.ndarray, jacobian: bool = True):
     """Whitened residuals (N, 3) of the measured (u, v, 1/z) against landmarks X (N, 3) seen by the
     world-to-camera (R, t), and their whitened Jacobians (N, 3, 6) w.r.t. ξ = (ω, v), the left
     perturbation of world-to-camera (p ← p + ω×p + v).
@@ -223,6 +222,7 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
     isotropic sigma ``cov_lm`` (N,) instead (the earlier model): f·σ/z added to each pixel's sigma,
     nothing to the inverse depth's. Whitening: Lᵀ with S⁻¹ = L Lᵀ (:func:`_whitening`). Every
     step is written out per entry (the Jacobians are sparse): no per-point small-matrix products.
+    ``jacobian`` False: the residuals alone (the same numbers), the Jacobians None (the inlier gates).
     """
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     n = len(X)
@@ -253,14 +253,16 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
     s_px2 = np.asarray(sigma_px, float) ** 2
     l00, l10, l20, l11, l21, l22 = _whitening(S00 + s_px2, S01, S02, S11 + s_px2, S12,
                                               S22 + (sigma_z / (z * z)) ** 2)
-    # d(u, v, 1/z)/dξ = Jp · [-[P]x | I], rows J0, J1, J2 (J0[4] = J1[3] = J2[2:5] = 0)
-    J0 = (-xa * ya * fx, (1 + xa * xa) * fx, -ya * fx, p, -xa * p)
-    J1 = (-(1 + ya * ya) * fy, xa * ya * fy, xa * fy, p2, -ya * p2)
-    J2 = (-ya * a, xa * a, s)
     r = np.empty((n, 3))
     r[:, 0] = l00 * r0 + l10 * r1 + l20 * r2
     r[:, 1] = l11 * r1 + l21 * r2
     r[:, 2] = l22 * r2
+    if not jacobian:
+        return r, None
+    # d(u, v, 1/z)/dξ = Jp · [-[P]x | I], rows J0, J1, J2 (J0[4] = J1[3] = J2[2:5] = 0)
+    J0 = (-xa * ya * fx, (1 + xa * xa) * fx, -ya * fx, p, -xa * p)
+    J1 = (-(1 + ya * ya) * fy, xa * ya * fy, xa * fy, p2, -ya * p2)
+    J2 = (-ya * a, xa * a, s)
     J = np.empty((n, 3, 6))
     J[:, 0, 0] = l00 * J0[0] + l10 * J1[0] + l20 * J2[0]
     J[:, 0, 1] = l00 * J0[1] + l10 * J1[1] + l20 * J2[1]
