@@ -101,6 +101,15 @@ def test_a_loop_the_map_already_closed_is_held_by_the_map():
     assert tr.summary()["loops_held"] == 2
 
 
+def _seen_scene(seed):
+    """(rng, scene points, descriptors, true pose, the frame's features there)."""
+    rng = np.random.default_rng(seed)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
+    return rng, X, desc, truth, _frame(truth, X, desc)
+
+
 def test_a_failed_pose_from_the_current_matches_is_not_tried_again():
     """The current landmarks (the second half) are matched but 3-D inconsistent (each moved along its
     viewing ray by 0.2-1.5 m: the pixels agree, the points do not), so no pose comes from them; the
@@ -108,11 +117,7 @@ def test_a_failed_pose_from_the_current_matches_is_not_tried_again():
     keeps the registration's pose, and the map pose is estimated twice — once from the current
     matches, once from the stale ones (the stale check) — not a third time from the same current
     matches (the stale check's failed try is the answer)."""
-    rng = np.random.default_rng(6)
-    X = _scene(600, 7)
-    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
-    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
-    feats = _frame(truth, X, desc)
+    rng, X, desc, truth, feats = _seen_scene(6)
     tr = _tracker(X, desc, np.eye(4), stale_after=30, stale_check=True)
     h = len(X) // 2
     Tcw = inv(truth)
