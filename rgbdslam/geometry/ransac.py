@@ -110,10 +110,14 @@ def ransac_rigid(
     counts = inl.sum(axis=1)
     score = np.where(inl, err2, th2).sum(axis=1)  # MSAC-style tie break
     best = int(np.lexsort((score, -counts))[0])
-    mask = inl[best]
+    return _refit(S, D, inl[best], th2, min_inliers)
+
+
+def _refit(S: np.ndarray, D: np.ndarray, mask: np.ndarray, th2: float, min_inliers: int):
+    """The winning hypothesis' inliers ``mask`` refitted twice (refit, re-gate at ``th2``, refit) and
+    once more: (T, mask), or None with fewer than ``min_inliers``."""
     if mask.sum() < max(3, min_inliers):
         return None
-    T = Ts[best]
     for _ in range(2):
         T = fit_rigid(S[mask], D[mask])
         e = np.sum((S @ T[:3, :3].T + T[:3, 3] - D) ** 2, axis=1)
@@ -123,3 +127,13 @@ def ransac_rigid(
         mask = new
     T = fit_rigid(S[mask], D[mask])
     return T, mask
+
+
+def seeded_rigid(S: np.ndarray, D: np.ndarray, threshold: float, T0: np.ndarray, min_inliers: int = 3):
+    """As :func:`ransac_rigid` with the prediction ``T0`` as the only hypothesis (no samples, no
+    random numbers): its inliers within ``threshold`` refitted the same way; None with fewer than
+    ``min_inliers``. For a pose known to be close (e.g. another estimate of the same frame)."""
+    if len(S) < max(3, min_inliers):
+        return None
+    e = np.sum((S @ T0[:3, :3].T + T0[:3, 3] - D) ** 2, axis=1)
+    return _refit(S, D, e < threshold * threshold, threshold * threshold, min_inliers)

@@ -191,11 +191,12 @@ class LandmarkTracker:
             self.step_information = res.information
         return self._accept(index, feats, res)
 
-    def _estimate(self, feats, m, pose: np.ndarray):
-        """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails."""
+    def _estimate(self, feats, m, pose: np.ndarray, seeded: bool = False):
+        """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails.
+        ``seeded``: no RANSAC, the refine starts from ``pose``'s inliers (``pose`` another estimate)."""
         c = self.cfg
         return estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
-                             c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
+                             0 if seeded else c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
                              c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
                              c.adaptive_noise, c.ransac_confidence)
 
@@ -218,13 +219,15 @@ class LandmarkTracker:
         cand_ok = None if m.cand_ids is None else index - self.map.last[m.cand_ids] <= c.stale_after
         cur = m.subset(~stale, cand_ok)
         res_cur = self._estimate(feats, cur, pose) if len(cur.lm) >= c.min_inliers else None
-        if c.stale_check and stale.sum() >= c.min_inliers:
-            res_old = self._estimate(feats, m.subset(stale), pose if res_cur is None else res_cur.pose)
+        # the stale matches' own pose, for the comparison only: without a current pose (or its
+        # information) there is nothing to compare it with, so it is not estimated; else it starts from
+        # the current pose's inliers among them, no RANSAC (when the two agree — the only case that joins —
+        # the current pose's 3-D gate holds the stale inliers; when they are further apart than the
+        # gate it finds too few and the stale matches stay out, as the χ² gate would have it)
+        if c.stale_check and stale.sum() >= c.min_inliers and res_cur is not None and res_cur.information is not None:
+            res_old = self._estimate(feats, m.subset(stale), res_cur.pose, seeded=True)
             if res_old is not None and res_old.information is not None:
-                if res_cur is not None and res_cur.information is not None:
-                    chi2 = pose_chi2(res_cur.pose, res_cur.information, res_old.pose, res_old.information)
-                else:
-                    chi2 = np.inf
+                chi2 = pose_chi2(res_cur.pose, res_cur.information, res_old.pose, res_old.information)
                 if chi2 <= c.stale_gate:
                     self.stats.stale_joined += 1
                     return m, None, False

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from rgbdslam.frontend.features import map_valid
-from rgbdslam.geometry.ransac import ransac_rigid
+from rgbdslam.geometry.ransac import ransac_rigid, seeded_rigid
 from rgbdslam.geometry.rigid import fit_rigid
 from rgbdslam.geometry.se3 import inv
 
@@ -127,6 +127,8 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     (1.4826 · median |r|, clipped to [0.25, 4]) of the inliers' whitened residuals and the refine is
     run once more: the frame's own noise level sets the weights and the information. ``confidence``:
     the RANSAC's early stop (:func:`rgbdslam.geometry.ransac.ransac_rigid`; 0 = every sample).
+    ``iterations`` 0: no RANSAC — the prediction's inliers start the refits
+    (:func:`rgbdslam.geometry.ransac.seeded_rigid`; for a prediction that is another estimate of the pose).
     """
     m = len(match.lm)
     if m < max(3, min_inliers):
@@ -140,8 +142,11 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     else:
         feat, lm, sig = match.feat, match.lm, sigma_obs
         n_sample = m
-    out = ransac_rigid(S, D, threshold, iterations, rng, min_inliers, T0=pred, sample_from=n_sample,
-                       confidence=confidence)
+    if iterations > 0:
+        out = ransac_rigid(S, D, threshold, iterations, rng, min_inliers, T0=pred, sample_from=n_sample,
+                           confidence=confidence)
+    else:
+        out = seeded_rigid(S, D, threshold, pred, min_inliers)
     if out is None:
         return None
     T, mask = out
