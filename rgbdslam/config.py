@@ -599,7 +599,8 @@ BOUNDS = {
     "dataset.offset": (-2e9, 2e9),  # seconds: Unix time stamps are ~1.8e9 (2026)
     "registration.beta": (-100.0, 100.0),
     "mapping.obstacle_min_height": (-1e3, 1e3), "mapping.obstacle_max_height": (-1e3, 1e3),
-    "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
+    "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0),
+    "landmarks.ransac_confidence": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
     "landmarks.max_hamming": (0, 256),
     "stereo.row_scale": (1, 16),
 }
