@@ -265,7 +265,10 @@ class LandmarksConfig:
     max_hamming: int = 50  # largest Hamming distance of a landmark-to-feature descriptor match
     max_depth: float = 5.0  # metres: landmarks further from the camera are not searched, features not mapped
     ransac_threshold: float = 0.03  # metres: inlier distance of the map pose RANSAC
-    ransac_iterations: int = 100  # minimal samples drawn by the map pose RANSAC (stops early)
+    ransac_iterations: int = 100  # minimal samples drawn by the map pose RANSAC (at most: see ransac_confidence)
+    # the map pose RANSAC stops fitting samples (20 at a time) once an all-inlier sample was drawn with
+    # this probability at the best inlier share seen so far (0 = fit all ransac_iterations)
+    ransac_confidence: float = 0.0
     min_inliers: int = 30  # fewer: the map pose is not used for this frame
     max_correction: float = 0.03  # metres / degrees: a map pose further from the registration's is rejected
     max_correction_deg: float = 2.0  # degrees: see max_correction
@@ -626,7 +629,8 @@ BOUNDS = {
     "dataset.offset": (-2e9, 2e9),  # seconds: Unix time stamps are ~1.8e9 (2026)
     "registration.beta": (-100.0, 100.0),
     "mapping.obstacle_min_height": (-1e3, 1e3), "mapping.obstacle_max_height": (-1e3, 1e3),
-    "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
+    "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0),
+    "landmarks.ransac_confidence": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
     "landmarks.max_hamming": (0, 256),
     "stereo.row_scale": (1, 16),
 }

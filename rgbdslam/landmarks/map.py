@@ -111,7 +111,9 @@ class LandmarkMap:
         ids = self.store.query_ball(np.asarray(center, dtype=np.float64), radius)
         if not len(ids):
             return ids
-        ids = np.unique(ids)
+        ids = np.sort(ids)  # ids are in one tree each: sorted is np.unique's answer without its pass
+        if (ids[1:] == ids[:-1]).any():
+            ids = np.unique(ids)
         return ids[self.alive[ids]]
 
     def move_with_anchors(self, corrections: dict[int, np.ndarray]) -> int:

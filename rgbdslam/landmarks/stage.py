@@ -167,11 +167,11 @@ class LandmarkTracker:
             return pose
         m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth,
                          old_before=index - c.old_age + 1, old_bonus=c.match_old_bonus)
-        res = None
+        res, tried = None, False
         if c.stale_after > 0:
-            m, res = self._without_stale(index, feats, m, pose)
+            m, res, tried = self._without_stale(index, feats, m, pose)
         self._last_matches = m
-        if res is None and len(m.lm) >= c.min_inliers:
+        if not tried and len(m.lm) >= c.min_inliers:  # not when the stale check's try on these matches failed
             res = self._estimate(feats, m, pose)
         if res is not None and not _close(pose, res.pose, c.max_correction, c.max_correction_deg):
             self.stats.rejected += 1  # a map pose far from the registration's is a wrong map match
@@ -200,13 +200,14 @@ class LandmarkTracker:
             self.step_information = res.information
         return self._accept(index, feats, res)
 
-    def _estimate(self, feats, m, pose: np.ndarray):
-        """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails."""
+    def _estimate(self, feats, m, pose: np.ndarray, seeded: bool = False):
+        """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails.
+        ``seeded``: no RANSAC, the refine starts from ``pose``'s inliers (``pose`` another estimate)."""
         c = self.cfg
         return estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
-                             c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
+                             0 if seeded else c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
                              c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
-                             c.adaptive_noise)
+                             c.adaptive_noise, c.ransac_confidence)
 
     def _without_stale(self, index: int, feats, m, pose: np.ndarray):
         """The matches with the *stale* landmarks (not seen for more than ``stale_after`` frames: an
@@ -217,27 +218,30 @@ class LandmarkTracker:
         stale matches alone is compared with the pose from the current ones: when it is within the χ²
         gate ``stale_gate`` of their joint covariance the stale landmarks join (the two agree: no drift
         between the visits to speak of); with too few current or stale matches to compare they stay out.
-        Returns (matches, the pose from the current matches when it was computed, else None); the
-        candidates of a left-out landmark no longer keep new landmarks from being made there."""
+        Returns (matches, the pose from the current matches or None, whether that pose was tried: a
+        failed try is not repeated); the candidates of a left-out landmark no longer keep new landmarks
+        from being made there."""
         c = self.cfg
         stale = index - self.map.last[m.lm] > c.stale_after
         if not stale.any():
-            return m, None
+            return m, None, False
         cand_ok = None if m.cand_ids is None else index - self.map.last[m.cand_ids] <= c.stale_after
         cur = m.subset(~stale, cand_ok)
         res_cur = self._estimate(feats, cur, pose) if len(cur.lm) >= c.min_inliers else None
-        if c.stale_check and stale.sum() >= c.min_inliers:
-            res_old = self._estimate(feats, m.subset(stale), pose if res_cur is None else res_cur.pose)
+        # the stale matches' own pose, for the comparison only: without a current pose (or its
+        # information) there is nothing to compare it with, so it is not estimated; else it starts from
+        # the current pose's inliers among them, no RANSAC (when the two agree — the only case that joins —
+        # the current pose's 3-D gate holds the stale inliers; when they are further apart than the
+        # gate it finds too few and the stale matches stay out, as the χ² gate would have it)
+        if c.stale_check and stale.sum() >= c.min_inliers and res_cur is not None and res_cur.information is not None:
+            res_old = self._estimate(feats, m.subset(stale), res_cur.pose, seeded=True)
             if res_old is not None and res_old.information is not None:
-                if res_cur is not None and res_cur.information is not None:
-                    chi2 = pose_chi2(res_cur.pose, res_cur.information, res_old.pose, res_old.information)
-                else:
-                    chi2 = np.inf
+                chi2 = pose_chi2(res_cur.pose, res_cur.information, res_old.pose, res_old.information)
                 if chi2 <= c.stale_gate:
                     self.stats.stale_joined += 1
-                    return m, None
+                    return m, None, False
         self.stats.stale_left_out += int(stale.sum())
-        return cur, res_cur
+        return cur, res_cur, len(cur.lm) >= c.min_inliers
 
     def _consistency(self, P_reg: np.ndarray, H_reg: np.ndarray, P_map: np.ndarray, H_map: np.ndarray) -> float:
         """The factor the map pose's information is divided by (≥ 1). The two poses' disagreement

@@ -40,7 +40,7 @@ class _Tree:
     def query(self, center: np.ndarray, radius: float) -> np.ndarray:
         if self.tree is None:
             return np.zeros(0, np.int64)
-        return self.ids[self.tree.query_ball_point(center, radius)]
+        return self.ids[self.tree.query_ball_point(center, radius, return_sorted=False)]  # in no order
 
     def nearest(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(distance, id) of the nearest stored point to each of ``pts`` (inf, -1 when empty)."""

@@ -161,3 +161,44 @@ def test_loop_edge_is_re_measured_against_the_older_ends_landmarks():
     assert np.isclose(tr.summary()["loop_refine_median_m"], np.linalg.norm(err[:3, 3]), atol=2e-3)
     other = LoopEdge(7, 100, e.T_ij, e.information, 200, 0.01)  # keyframe 7: not one the map made
     assert tr.refine_loop(100, feats, other) is other and tr.summary()["loops_refined"] == 1
+
+
+def _seen_scene(seed):
+    """(rng, scene points, descriptors, true pose, the frame's features there)."""
+    rng = np.random.default_rng(seed)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
+    return rng, X, desc, truth, _frame(truth, X, desc)
+
+
+def test_a_failed_pose_from_the_current_matches_is_not_tried_again():
+    """The current landmarks (the second half) are matched but 3-D inconsistent (each moved along its
+    viewing ray by 0.2-1.5 m: the pixels agree, the points do not), so no pose comes from them; the
+    stale half agrees with the truth but has nothing to be compared with, so it stays out. The frame
+    keeps the registration's pose, and the map pose is estimated once, from the current matches: not
+    from the stale ones (nothing to compare their pose with) and not a second time from the same
+    current matches (the stale check's failed try is the answer). Before: three estimates."""
+    rng, X, desc, truth, feats = _seen_scene(6)
+    tr = _tracker(X, desc, np.eye(4), stale_after=30, stale_check=True)
+    h = len(X) // 2
+    Tcw = inv(truth)
+    Xc = tr.map.pos[h:len(X)] @ Tcw[:3, :3].T + Tcw[:3, 3]
+    dz = rng.uniform(0.2, 1.5, len(Xc)) * rng.choice([-1.0, 1.0], len(Xc))
+    Xc *= np.maximum(Xc[:, 2] + dz, 0.5)[:, None] / Xc[:, 2:3]  # along the ray: the same pixel
+    tr.map.pos[h:len(X)] = Xc @ truth[:3, :3].T + truth[:3, 3]
+    calls = []
+    estimate = tr._estimate
+
+    def counted(feats, m, pose):
+        out = estimate(feats, m, pose)
+        calls.append((len(m.lm), out is not None))
+        return out
+
+    tr._estimate = counted
+    given = truth @ _pose([0, 0, 0], [0.002, 0, 0])
+    P = tr.track(100, feats, given)
+    assert P is given  # no map pose
+    assert len(calls) == 1 and calls[0][0] >= 150 and not calls[0][1]  # the current matches: tried, failed
+    s = tr.summary()
+    assert s["map_poses"] == 0 and s["stale_joined"] == 0 and s["stale_left_out"] >= 150

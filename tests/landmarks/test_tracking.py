@@ -211,3 +211,34 @@ def test_points_refine_follows_the_depth_where_the_pixels_disagree():
     # 3 px at f = 525 is 0.33 deg: taken as a turn (0.1 deg) and a sideways shift (7 mm)
     assert turn > 0.05 and _err(out["reprojection"].pose, P) > 4e-3
     assert np.allclose(out["points"].information, point_information(Pc, SIGMA_FLOOR))
+
+
+def test_residuals_without_jacobians_and_the_rotated_covariance():
+    """``jacobian=False`` gives the same residuals bit for bit; the landmark covariance rotated into
+    the camera (the (N, 9) @ (9, 6) product) is R Σ Rᵀ: with Σ along the camera's z after the rotation
+    (a landmark straight ahead) no pixel variance reaches the residuals, as hand-worked in
+    test_landmark_uncertainty_along_the_ray_does_not_reach_the_pixels."""
+    rng = np.random.default_rng(2)
+    X = _scene(200, 3)
+    R = _pose([0.05, -0.1, 0.2], [0, 0, 0])[:3, :3]
+    t = np.array([0.1, -0.05, 0.2])
+    P = X @ R.T + t
+    uv = np.stack([CAM.fx * P[:, 0] / P[:, 2] + CAM.cx, CAM.fy * P[:, 1] / P[:, 2] + CAM.cy], axis=1)
+    uv += rng.normal(0, 1, uv.shape)
+    z = P[:, 2] + rng.normal(0, 0.01, len(P))
+    A = rng.normal(0, 0.01, (len(X), 3, 3))
+    cov = A @ A.transpose(0, 2, 1)
+    r, J = reprojection_residuals(R, t, X, uv, z, CAM, 1.0, np.full(len(X), 0.01), cov)
+    r2, J2 = reprojection_residuals(R, t, X, uv, z, CAM, 1.0, np.full(len(X), 0.01), cov, jacobian=False)
+    assert J2 is None and np.array_equal(r, r2)
+    # the same residuals from the covariance rotated by hand and handed over as the camera's (R = I)
+    Cc = np.einsum("ij,njk,lk->nil", R, cov, R)
+    r3, _ = reprojection_residuals(np.eye(3), np.zeros(3), P, uv, z, CAM, 1.0, np.full(len(X), 0.01), Cc)
+    assert np.allclose(r, r3, rtol=1e-10, atol=1e-12)
+    # a landmark straight ahead of the rotated camera with world covariance along its ray: pixels untouched
+    ahead = R.T @ (np.array([0.0, 0.0, 2.0]) - t)
+    ray = R.T @ np.array([0.0, 0.0, 1.0])
+    c1 = (0.05**2 * np.outer(ray, ray))[None]
+    r4, _ = reprojection_residuals(R, t, ahead[None], np.array([[CAM.cx + 1.5, CAM.cy - 3.0]]), np.array([2.0]),
+                                   CAM, 1.5, np.array([0.01]), c1)
+    assert np.allclose(r4[0, :2], [1.0, -2.0])
