@@ -619,6 +619,7 @@ BOUNDS = {
     # LSH bucket keys hold the table id above lsh_bits key bits in an int64
     "loop.lsh_bits": (1, 40),
     "mapping.floor_max_tilt_deg": (0.0, 90.0), "mapping.live_tolerance": (0.0, 10.0),
+    "landmarks.consistency_floor": (0.01, 1.0), "landmarks.ba_noise_scale": (1e-3, 100.0),
     "mapping.live_nice": (0, 19), "mapping.live_lag": (0, 10000), "mapping.live_backlog": (0, 10000),
     "stereo.ratio": (0.0, 1.0), "stereo.max_hamming": (0, 256), "stereo.sgbm_scale": (0.1, 1.0),
     "stereo.max_disparity": (1, 1024), "stereo.sgbm_block_size": (1, 31),
@@ -696,13 +697,13 @@ MAXIMA = {
     "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,
     "landmarks.global_ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
-    "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_noise_scale": 100.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
+    "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
     "landmarks.ba_handover": 10**4, "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
     "landmarks.revisit_max_correction_deg": 360.0,
     "landmarks.drift_sigma": 10.0, "landmarks.anchor_age": 10**9, "landmarks.anchor_min_landmarks": 10**6,
     "landmarks.anchor_info_scale": 1e6, "landmarks.match_old_bonus": 256,
     "landmarks.stale_after": 10**9, "landmarks.stale_gate": 1e6, "landmarks.map_loop_landmarks": 10**6,
-    "landmarks.consistency_window": 10**6, "landmarks.consistency_floor": 1.0,
+    "landmarks.consistency_window": 10**6, 
     "landmarks.loop_window": 10**6, "landmarks.loop_min_inliers": 10**6, "landmarks.loop_search_radius": 1000.0,
     "landmarks.seed": C_INT_MAX,
 }

@@ -337,11 +337,13 @@ class LandmarkTracker:
         current pose sees them. Returns the landmarks moved (0 when ``index`` is not in ``estimate``)."""
         if index not in estimate or index not in self.kf_pose:
             return 0
+        self._drop_pending_ba()  # made from the poses before the correction: writing it back would undo it
         T = self.kf_pose[index] @ inv(estimate[index])
-        moves = {}
+        moves, before = {}, {}
         for k, M in self.kf_pose.items():
             if k == index or k not in estimate:
                 continue
+            before[k] = M
             N = T @ estimate[k]
             N[:3, :3] = project_to_so3(N[:3, :3])
             D = N @ inv(M)
@@ -350,7 +352,8 @@ class LandmarkTracker:
             self._to_map[k] = D @ self._to_map.get(k, np.eye(4))
         moved = self.map.move_with_anchors(moves)
         self.stats.loop_corrections += 1
-        self.stats.loop_moved.append(max((float(np.linalg.norm(D[:3, 3])) for D in moves.values()), default=0.0))
+        self.stats.loop_moved.append(max((float(np.linalg.norm(self.kf_pose[k][:3, 3] - M[:3, 3]))
+                                          for k, M in before.items()), default=0.0))
         return moved
 
     def refine_loop(self, index: int, feats, edge):
@@ -547,6 +550,13 @@ class LandmarkTracker:
         for k, P in refined.items():
             self.kf_pose[k] = P
         return self._to_tracking(refined)
+
+    def _drop_pending_ba(self) -> None:
+        """Forget the local BA made at the last keyframe and not yet written back (waits for the BA
+        process's answer, so the next one is not mixed up with it)."""
+        if self._ba_pending == "submitted":
+            self._worker.result()
+        self._ba_pending = None
 
     def close(self) -> None:
         """End the BA process (if any); a pending BA is dropped."""

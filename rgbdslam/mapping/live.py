@@ -298,7 +298,8 @@ class MapState:
             self.box.pop(i, None)
             self._uncache(i)
         for i in back:
-            del self.used[i]
+            if i not in put:  # at the end (flush) ``back`` keyframes were just put in again: they stay
+                del self.used[i]
         self.early -= set(drop) | set(back)
         # a rebuild put every keyframe at its pose; ``back`` keyframes are out (in ``put`` at the end)
         self.used.update(want if rebuild else {i: want[i] for i in move if i in want})
@@ -840,9 +841,12 @@ def _cloud_end(stage, cfg: MappingConfig, trajectory, accelerometer, want_points
     """The cloud's part of the end in one process (the run's, when the cloud process's imports are
     not done): outlier removal, ``stage``/cloud.ply, the 2-D map; ``(cloud path, points kept, their
     points (float32) and colours or Nones without ``want_points``, 2-D map path, Map2D, timings)``."""
-    n_points, timings = _cloud_outliers(stage, cfg)
-    cloud_path = _write_kept_cloud(stage)
-    (points, colors), map2d_path, grid, more = _cloud_2d(stage, cfg, trajectory, accelerometer, want_points)
+    try:
+        n_points, timings = _cloud_outliers(stage, cfg)
+        cloud_path = _write_kept_cloud(stage)
+        (points, colors), map2d_path, grid, more = _cloud_2d(stage, cfg, trajectory, accelerometer, want_points)
+    finally:
+        _KEPT.clear()  # the kept cloud (~10 MB) is not held after an error
     return cloud_path, n_points, points, colors, map2d_path, grid, {**timings, **more}
 
 

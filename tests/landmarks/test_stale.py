@@ -202,3 +202,20 @@ def test_a_failed_pose_from_the_current_matches_is_not_tried_again():
     assert len(calls) == 1 and calls[0][0] >= 150 and not calls[0][1]  # the current matches: tried, failed
     s = tr.summary()
     assert s["map_poses"] == 0 and s["stale_joined"] == 0 and s["stale_left_out"] >= 150
+
+
+def test_loop_correction_drops_the_local_ba_made_before_it():
+    """A local BA made at the last keyframe (``ba_worker`` 'deferred') from the poses before a loop
+    correction is not written back after it: that would put the BA window's keyframes back at their
+    uncorrected poses. After correct() nothing is pending and the corrected poses stay."""
+    rng = np.random.default_rng(5)
+    X = _scene(600, 7)
+    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
+    shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
+    A0, B = _pose([0.0, -0.2, 0.0], [-0.3, 0.0, 0.1]), _pose([0.0, 0.02, 0.0], [0.01, 0.0, 0.0])
+    tr = _tracker(X, desc, shift, stale_after=30, stale_check=True, local_ba=True, ba_worker="deferred")
+    tr.kf_pose[0], tr.kf_pose[95] = shift @ A0, B.copy()
+    tr._ba_pending = object()  # the BA made at keyframe 95 from the uncorrected poses
+    assert tr.correct(95, {0: A0, 95: B}) == len(X) // 2
+    assert tr._ba_pending is None and tr.flush() == {}
+    assert np.abs(tr.kf_pose[0] - A0).max() < 1e-12 and np.abs(tr.kf_pose[95] - B).max() < 1e-12

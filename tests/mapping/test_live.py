@@ -506,6 +506,23 @@ def test_keyframes_put_in_early_are_taken_out_when_they_move_and_the_end_is_the_
         _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
 
 
+def test_an_early_keyframe_the_final_poses_move_is_in_the_map_and_its_list(synth):
+    """At the end (flush) a keyframe put in early that the final poses move beyond the tolerance is
+    taken out and put in again at its final pose: it is in the map and in the list of fused
+    keyframes (it used to drop out of the list while its points stayed in the map)."""
+    cfg = MappingConfig(live_lag=3, live_tolerance=0.25, live_early=True)
+    kfs = (0, 3, 6, 9)
+    live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 was placed 4 cm off
+    live.speculate()
+    live.speculate()
+    assert live.early == {3, 6} and list(live.waiting) == [9]
+    final = {i: gt.poses[i] for i in kfs}
+    live.refresh(final, flush=True)
+    tsdf, cloud, fused, _ = live.result()
+    assert fused == [0, 3, 6, 9] and sorted(live.used) == [0, 3, 6, 9] and live.stats["final_waiting"] == 2
+    _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
+
+
 def test_an_idle_map_process_puts_the_waiting_keyframes_in_early(synth):
     """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, it
     puts the waiting keyframes in early, one at a time, before it waits for the next job; with
