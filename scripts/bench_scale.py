@@ -103,6 +103,8 @@ RUN_VARIANTS = {  # --variants: key -> (row name, extra arguments of `rgbdslam r
                   ["--set", "mapping.live_backlog=10000"]),
     "early": ("map fused while tracking, waiting keyframes put in early while idle (mapping.live_early=true)",
               ["--set", "mapping.live_early=true"]),
+    "ahead": ("map fused while tracking, waiting keyframes' cloud parts made ahead (mapping.live_cloud_ahead=true)",
+              ["--set", "mapping.live_cloud_ahead=true"]),
     "lag0": ("map fused while tracking, every keyframe into the map at once (mapping.live_lag=0)",
              ["--set", "mapping.live_lag=0"]),
     "tol1": ("map fused while tracking, mapping.live_tolerance=1 (1 voxel)", ["--set", "mapping.live_tolerance=1"]),
@@ -142,7 +144,7 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
               f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} | {t.get('final_waiting', '-')} | "
               f"{a.get('cpu', float('nan')):.2f} | {t.get('final_cpu_s', float('nan')):.2f} |")
     cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in keys
-            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "early")]
+            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "early", "ahead")]
     live_lines = []
     for name, out in runs.items():  # what the map process did, in the runs with a live map
         info = json.loads((out / "run.json").read_text())
@@ -158,6 +160,8 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
                 f"({t.get('catch_up_cpu_s', 0):.1f} s of CPU) at tracking's priority in {t.get('catch_ups', 0)} "
                 f"catch-ups (mapping.live_backlog) while tracking; {t.get('early', 0)} keyframes put in early "
                 f"(mapping.live_early), {t.get('early_undone', 0)} of them taken out again; "
+                f"{t.get('ahead_made', 0)} cloud parts made ahead, {t.get('ahead_used', 0)} of them used "
+                f"(mapping.live_cloud_ahead); "
                 f"keyframes moved more than the tolerance at the end (mm): "
                 f"{t.get('final_shift_mm', '-')}; the end's timeline (s after the run sent the final poses): "
                 f"{t.get('end_timeline', '-')}.")

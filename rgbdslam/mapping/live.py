@@ -113,6 +113,9 @@ class MapState:
         # keyframes among the newest live_lag put into the map early (:meth:`speculate`): one that moves
         # beyond the tolerance is taken out again and waits (:meth:`refresh`), not re-integrated
         self.early: set[int] = set()
+        # mapping.live_cloud_ahead: waiting keyframe -> (pose, its cloud part at that pose: keys, sums,
+        # counts, or None when it has no point), made when it comes and when a pose update moves it further
+        self.ahead: dict[int, tuple[np.ndarray, tuple | None]] = {}
         # keyframes' prepared images for re-integration, up to cache_mb (then read again with load)
         self.cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.cache_bytes = 0
@@ -120,7 +123,7 @@ class MapState:
         self.n_depth: dict[int, int] = {}
         self.box: dict[int, np.ndarray | None] = {}  # keyframe -> its points' camera-frame box (shift_m)
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
-                      "pose_updates_skipped": 0, "reloaded": 0, "early": 0, "early_undone": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
+                      "pose_updates_skipped": 0, "reloaded": 0, "early": 0, "early_undone": 0, "ahead_made": 0, "ahead_used": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
                       "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0,
                       "busy_cpu_s": 0.0, "catch_ups": 0, "catch_up_s": 0.0, "catch_up_cpu_s": 0.0}
 
@@ -201,6 +204,8 @@ class MapState:
         waits: the map process integrates (:meth:`settle`) when no pose update is queued."""
         prepared = self._prepared(index, rgb, depth)
         self.waiting[index] = pose
+        if self.cfg.live_cloud_ahead:
+            self._make_ahead(index, pose, prepared)
         newest = set(sorted(self.early | set(self.waiting))[-self.lag:]) if self.lag else set()
         self.early &= newest  # older than the newest live_lag: in the map like any other keyframe now
         while settle and self.unsettled():
@@ -215,9 +220,32 @@ class MapState:
         return max(0, len(self.waiting) + len(self.early) - self.lag)
 
     def settle(self, prepared=None) -> None:
-        """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images)."""
+        """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images);
+        with a cloud part made ahead within the tolerance of it, at that part's pose."""
         first = min(self.waiting)
-        self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"), prepared)
+        self._put({first: self._ahead_pose(first, self.waiting.pop(first))}, ("cloud", "tsdf"), prepared)
+
+    def _make_ahead(self, index: int, pose: np.ndarray, prepared=None) -> None:
+        """``mapping.live_cloud_ahead``: the waiting keyframe's cloud part at ``pose``, kept in
+        :attr:`ahead` (the same numbers :class:`VoxelCloud` ``.add`` would reduce its points to)."""
+        from rgbdslam.mapping.fusion import VoxelCloud
+
+        part = VoxelCloud(self.cfg.voxel_size)
+        self._integrate(None, part, pose, prepared if prepared is not None else self._prepared(index))
+        self.ahead[index] = (np.array(pose, dtype=np.float64), part.pending[0] if part.pending else None)
+        self.stats["ahead_made"] += 1
+
+    def _ahead_near(self, index: int, pose: np.ndarray) -> bool:
+        """True when the keyframe has a cloud part made ahead at a pose within the tolerance of ``pose``."""
+        hit = self.ahead.get(index)
+        return hit is not None and (np.array_equal(hit[0], pose) or shift_m(
+            hit[0], pose, max(self.cfg.depth_max, 1e-3), self.box.get(index)) <= self.tol_m)
+
+    def _ahead_pose(self, index: int, pose: np.ndarray) -> np.ndarray:
+        """The pose a waiting keyframe goes into the map at: that of its cloud part made ahead when
+        ``pose`` is within the tolerance of it (the map keeps a keyframe within the tolerance where
+        it is, :meth:`refresh`), else ``pose``."""
+        return self.ahead[index][0] if self._ahead_near(index, pose) else pose
 
     def can_speculate(self) -> bool:
         """True when ``mapping.live_early`` and a keyframe waits within the lag."""
@@ -229,7 +257,7 @@ class MapState:
         ``mapping.live_lag`` keyframes it is taken out again and waits (:meth:`refresh`); else the
         end has one keyframe less to integrate."""
         first = min(self.waiting)
-        self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"))
+        self._put({first: self._ahead_pose(first, self.waiting.pop(first))}, ("cloud", "tsdf"))
         self.early.add(first)
         self.stats["early"] += 1
 
@@ -243,7 +271,18 @@ class MapState:
         if tsdf is None and cloud is None:  # the TSDF part without a mesh: the cloud part did it all
             return
         for i, pose in poses.items():
-            self._integrate(tsdf, cloud, pose, prepared if prepared is not None else self._prepared(i))
+            ahead = self.ahead.get(i) if cloud is not None else None
+            if ahead is not None and np.array_equal(ahead[0], pose):  # its cloud part is made: only the TSDF
+                del self.ahead[i]
+                self.stats["ahead_used"] += 1
+                if tsdf is not None:
+                    self._integrate(tsdf, None, pose, prepared if prepared is not None else self._prepared(i))
+                if ahead[1] is not None:
+                    cloud.add_part(ahead[1])
+            else:
+                if cloud is not None:
+                    self.ahead.pop(i, None)  # made at another pose: of no use any more
+                self._integrate(tsdf, cloud, pose, prepared if prepared is not None else self._prepared(i))
             if "tsdf" not in parts and self.tsdf is not None:
                 continue  # the TSDF part follows (the end: the cloud goes first)
             self.used[i] = pose
@@ -268,10 +307,15 @@ class MapState:
         for i in list(self.waiting):
             if keep is not None and i not in keep:
                 del self.waiting[i]
+                self.ahead.pop(i, None)
                 self.box.pop(i, None)
                 self._uncache(i)
             elif i in poses:
                 self.waiting[i] = poses[i]
+                if not flush and i in self.ahead and not self._ahead_near(i, poses[i]):
+                    self._make_ahead(i, poses[i])  # moved beyond the tolerance: made again (the end needs it)
+        if flush:  # at the end a waiting keyframe goes in where its cloud part was made, when within the tolerance
+            self.waiting = {i: self._ahead_pose(i, p) for i, p in self.waiting.items()}
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
         move = [i for i in want if self._shift(i, want[i]) > self.tol_m]

@@ -582,3 +582,62 @@ def test_the_run_writes_cloud_ply_from_the_kept_indices_without_importing_open3d
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cloud.ply"]
     write_cloud_ply(tmp_path / "want.ply", points[keep], colors[keep])
     assert (tmp_path / "cloud.ply").read_bytes() == (tmp_path / "want.ply").read_bytes()
+
+
+def test_a_cloud_part_added_reduced_is_the_cloud_adding_its_points_gives(synth):
+    """``VoxelCloud.add_part`` of the part another cloud reduced a frame's points to: the same keys,
+    sums and counts, bit for bit, as adding the points themselves."""
+    cfg = MappingConfig()
+    gt = synth.groundtruth()
+    und = _Undistorter(synth.camera, cfg.undistort)
+    direct, via = VoxelCloud(cfg.voxel_size), VoxelCloud(cfg.voxel_size)
+    for i in (0, 4, 8):
+        f = synth.load(i)
+        rgb, depth = prepare_frame(f.rgb, f.depth, und, cfg)
+        integrate_frame(None, direct, rgb, depth, gt.poses[i], synth.camera, cfg)
+        one = VoxelCloud(cfg.voxel_size)
+        integrate_frame(None, one, rgb, depth, gt.poses[i], synth.camera, cfg)
+        via.add_part(one.pending[0])
+    assert len(direct) == len(via) > 1000
+    np.testing.assert_array_equal(direct.keys, via.keys)
+    np.testing.assert_array_equal(direct.sums, via.sums)
+    np.testing.assert_array_equal(direct.counts, via.counts)
+
+
+@pytest.mark.parametrize("tolerance", [0.25, 0.0])
+def test_waiting_keyframes_cloud_parts_made_ahead_go_into_the_map_at_the_end(synth, tolerance):
+    """``mapping.live_cloud_ahead``: a waiting keyframe's cloud part is made when it comes; a pose
+    update that moves it beyond the tolerance makes it again; at the end a waiting keyframe whose
+    final pose is within the tolerance of its part's pose goes into the cloud and the TSDF at that
+    pose (no cloud work), one the final poses move further at its final pose. With
+    ``live_tolerance=0`` the end's map is exactly the fusion of the final poses."""
+    cfg = MappingConfig(live_lag=3, live_tolerance=tolerance, live_cloud_ahead=True)
+    kfs = (0, 3, 6, 9)
+    live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 came 4 cm off
+    assert sorted(live.used) == [0] and list(live.waiting) == [3, 6, 9]
+    assert sorted(live.ahead) == [3, 6, 9] and live.stats["ahead_made"] == 4  # 0's part went in with it
+    assert live.stats["ahead_used"] == 1
+    poses = {i: gt.poses[i] for i in kfs}
+    poses[9] = poses[9].copy()
+    poses[9][0, 3] += 0.0003  # a loop closure moves 9 by 0.3 mm and puts 6 where it belongs
+    live.refresh(poses)
+    made = 5 if tolerance else 6  # 6 made again (tolerance 0: 9 too, it moved at all)
+    assert live.stats["ahead_made"] == made
+    np.testing.assert_array_equal(live.ahead[6][0], poses[6])
+    final = dict(poses)
+    final[3] = final[3].copy()
+    final[3][1, 3] += 0.03  # the final optimisation moves 3 by 3 cm: its part is made at its final pose
+    final[9] = final[9].copy()
+    final[9][1, 3] += 0.0002  # and 9 by 0.2 mm more
+    live.refresh(final, flush=True)
+    tsdf, cloud, fused, _ = live.result()
+    assert fused == [0, 3, 6, 9] and not live.ahead and live.stats["final_waiting"] == 3
+    if tolerance:  # 6 and 9 (0.5 mm from their parts' poses) go in where their parts were made
+        assert live.stats["ahead_used"] == 3
+        np.testing.assert_array_equal(live.used[9], gt.poses[9])
+        _same_map(_fresh(synth, cfg, {**final, 9: gt.poses[9]}), (tsdf, cloud), synth, cfg)
+    else:  # whatever moved at all is made again: the map is the final poses' exactly
+        assert live.stats["ahead_used"] == 2
+        _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
+    for i in fused:
+        np.testing.assert_array_equal(live.used[i], final[i] if not tolerance or i != 9 else gt.poses[i])
