@@ -421,10 +421,10 @@ class MappingConfig:
     # (one that then moves beyond live_tolerance is taken out again and waits): less is left for the end,
     # but the final poses often move the newest keyframes, which are then redone; off: not measured better
     live_early: bool = False
-    # each keyframe's cloud part (its points voxel-reduced at its pose) made when it comes, while the
-    # keyframe waits within live_lag: at the end a waiting keyframe whose final pose is within
-    # live_tolerance of it goes into the cloud (and the TSDF) at that pose with no cloud work, so the
-    # cloud's outlier removal starts sooner; a pose update that moves it further makes it again
+    # while the map has nothing else to do, a waiting keyframe's cloud part (its points reduced to the
+    # voxel grid at its newest pose) is made and kept: at the end a waiting keyframe whose final pose is
+    # within live_tolerance of it goes into the cloud (and the TSDF) at that pose with no cloud work, so
+    # the cloud's outlier removal starts sooner; one that moves further is made again when idle
     live_cloud_ahead: bool = False
     select_translation: float = 0.05  # motion-based choice when run.json has no keyframes (m)
     select_rotation_deg: float = 5.0  # degrees: see select_translation

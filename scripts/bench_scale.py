@@ -120,8 +120,8 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
     runs = {}
     after_rows = []
     ratios = []
-    for name, extra in variants:
-        out = work / f"rpy_{len(runs)}"
+    for k, (name, extra) in enumerate(variants):
+        out = work / f"rpy_{k}"
         shutil.rmtree(out, ignore_errors=True)
         load = os.getloadavg()[0]
         wall = sh([BIN, "run", RPY, "-c", "tum_fr1", "--out", out, "-q", *extra])
@@ -143,7 +143,7 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
             + f" | {rest:.2f} | {t.get('final_s', float('nan')):.2f} | {t.get('cloud', float('nan')):.2f} | "
               f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} | {t.get('final_waiting', '-')} | "
               f"{a.get('cpu', float('nan')):.2f} | {t.get('final_cpu_s', float('nan')):.2f} |")
-    cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in keys
+    cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in dict.fromkeys(keys)
             if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "early", "ahead")]
     live_lines = []
     for name, out in runs.items():  # what the map process did, in the runs with a live map

@@ -204,8 +204,6 @@ class MapState:
         waits: the map process integrates (:meth:`settle`) when no pose update is queued."""
         prepared = self._prepared(index, rgb, depth)
         self.waiting[index] = pose
-        if self.cfg.live_cloud_ahead:
-            self._make_ahead(index, pose, prepared)
         newest = set(sorted(self.early | set(self.waiting))[-self.lag:]) if self.lag else set()
         self.early &= newest  # older than the newest live_lag: in the map like any other keyframe now
         while settle and self.unsettled():
@@ -225,13 +223,26 @@ class MapState:
         first = min(self.waiting)
         self._put({first: self._ahead_pose(first, self.waiting.pop(first))}, ("cloud", "tsdf"), prepared)
 
-    def _make_ahead(self, index: int, pose: np.ndarray, prepared=None) -> None:
-        """``mapping.live_cloud_ahead``: the waiting keyframe's cloud part at ``pose``, kept in
-        :attr:`ahead` (the same numbers :class:`VoxelCloud` ``.add`` would reduce its points to)."""
+    def can_make_ahead(self) -> bool:
+        """True when ``mapping.live_cloud_ahead`` and a waiting keyframe has no cloud part made
+        within the tolerance of its newest pose."""
+        return bool(self.cfg.live_cloud_ahead and self._stale_ahead())
+
+    def _stale_ahead(self) -> list[int]:
+        return [i for i, p in self.waiting.items() if not self._ahead_near(i, p)]
+
+    def make_ahead(self) -> None:
+        """``mapping.live_cloud_ahead``, while the map has nothing else to do: the oldest waiting
+        keyframe without a cloud part near its newest pose gets one, kept in :attr:`ahead` (the
+        numbers :class:`VoxelCloud` ``.add`` would reduce its points to): it goes into the map at
+        that part's pose with no cloud work while its pose stays within the tolerance of it
+        (:meth:`settle`; the end, :meth:`refresh`)."""
         from rgbdslam.mapping.fusion import VoxelCloud
 
+        index = min(self._stale_ahead())
+        pose = self.waiting[index]
         part = VoxelCloud(self.cfg.voxel_size)
-        self._integrate(None, part, pose, prepared if prepared is not None else self._prepared(index))
+        self._integrate(None, part, pose, self._prepared(index))
         self.ahead[index] = (np.array(pose, dtype=np.float64), part.pending[0] if part.pending else None)
         self.stats["ahead_made"] += 1
 
@@ -312,8 +323,6 @@ class MapState:
                 self._uncache(i)
             elif i in poses:
                 self.waiting[i] = poses[i]
-                if not flush and i in self.ahead and not self._ahead_near(i, poses[i]):
-                    self._make_ahead(i, poses[i])  # moved beyond the tolerance: made again (the end needs it)
         if flush:  # at the end a waiting keyframe goes in where its cloud part was made, when within the tolerance
             self.waiting = {i: self._ahead_pose(i, p) for i, p in self.waiting.items()}
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
@@ -553,7 +562,9 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
         if stop is not None and (why := stop()) is not None:
             return why
         try:  # a keyframe to integrate: only when no job waits
-            idle = "speculate" if not state.unsettled() and state.can_speculate() else None
+            idle = None
+            if not state.unsettled():  # idle work: a waiting keyframe into the map early, or its cloud part made
+                idle = "speculate" if state.can_speculate() else "ahead" if state.can_make_ahead() else None
             job = take(block=not state.unsettled() and idle is None)
         except queue.Empty:
             job = ("settle",) if idle is None else (idle,)
@@ -561,7 +572,7 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
             return None
         t0, c0 = time.perf_counter(), time.process_time()
         batch = [job]
-        while job[0] not in ("finish", "settle", "speculate"):  # everything queued: the keyframes, the newest poses
+        while job[0] not in ("finish", "settle", "speculate", "ahead"):  # everything queued: the keyframes, the newest poses
             try:
                 job = take(block=False)
             except queue.Empty:
@@ -594,6 +605,8 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
             state.settle()
         elif why is None and job[0] == "speculate":
             state.speculate()
+        elif why is None and job[0] == "ahead":
+            state.make_ahead()
         elif n_poses:
             state.stats["pose_updates_skipped"] += n_poses - (finish is None)
             if finish is None:

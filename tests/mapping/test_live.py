@@ -606,38 +606,79 @@ def test_a_cloud_part_added_reduced_is_the_cloud_adding_its_points_gives(synth):
 
 @pytest.mark.parametrize("tolerance", [0.25, 0.0])
 def test_waiting_keyframes_cloud_parts_made_ahead_go_into_the_map_at_the_end(synth, tolerance):
-    """``mapping.live_cloud_ahead``: a waiting keyframe's cloud part is made when it comes; a pose
-    update that moves it beyond the tolerance makes it again; at the end a waiting keyframe whose
-    final pose is within the tolerance of its part's pose goes into the cloud and the TSDF at that
-    pose (no cloud work), one the final poses move further at its final pose. With
+    """``mapping.live_cloud_ahead``: while idle the map makes the waiting keyframes' cloud parts
+    (:meth:`MapState.make_ahead`, oldest first); one a pose update moves beyond the tolerance is
+    made again; a keyframe that settles goes in at its part's pose with no cloud work; at the end
+    a waiting keyframe whose final pose is within the tolerance of its part's pose goes into the
+    cloud and the TSDF at that pose, one the final poses move further at its final pose. With
     ``live_tolerance=0`` the end's map is exactly the fusion of the final poses."""
     cfg = MappingConfig(live_lag=3, live_tolerance=tolerance, live_cloud_ahead=True)
     kfs = (0, 3, 6, 9)
     live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 came 4 cm off
-    assert sorted(live.used) == [0] and list(live.waiting) == [3, 6, 9]
-    assert sorted(live.ahead) == [3, 6, 9] and live.stats["ahead_made"] == 4  # 0's part went in with it
-    assert live.stats["ahead_used"] == 1
+    assert sorted(live.used) == [0] and list(live.waiting) == [3, 6, 9] and not live.ahead
+    assert live.can_make_ahead()
+    live.make_ahead()
+    assert sorted(live.ahead) == [3]  # the oldest first
+    live.make_ahead()
+    live.make_ahead()
+    assert sorted(live.ahead) == [3, 6, 9] and not live.can_make_ahead() and live.stats["ahead_made"] == 3
     poses = {i: gt.poses[i] for i in kfs}
     poses[9] = poses[9].copy()
     poses[9][0, 3] += 0.0003  # a loop closure moves 9 by 0.3 mm and puts 6 where it belongs
     live.refresh(poses)
-    made = 5 if tolerance else 6  # 6 made again (tolerance 0: 9 too, it moved at all)
-    assert live.stats["ahead_made"] == made
+    while live.can_make_ahead():
+        live.make_ahead()
+    assert live.stats["ahead_made"] == (4 if tolerance else 5)  # 6 made again (tolerance 0: 9 too)
     np.testing.assert_array_equal(live.ahead[6][0], poses[6])
-    final = dict(poses)
-    final[3] = final[3].copy()
-    final[3][1, 3] += 0.03  # the final optimisation moves 3 by 3 cm: its part is made at its final pose
+    f = synth.load(11)
+    live.add(11, f.rgb, f.depth, gt.poses[11])  # 3 settles: its part is at its pose
+    assert sorted(live.used) == [0, 3] and live.stats["ahead_used"] == 1 and 3 not in live.ahead
+    final = {**poses, 11: gt.poses[11]}
+    final[6] = final[6].copy()
+    final[6][1, 3] += 0.03  # the final optimisation moves 6 by 3 cm: its points go in at its final pose
     final[9] = final[9].copy()
-    final[9][1, 3] += 0.0002  # and 9 by 0.2 mm more
+    final[9][1, 3] += 0.0002  # and 9 by 0.2 mm more (11 has no part: made at the end, as without)
     live.refresh(final, flush=True)
     tsdf, cloud, fused, _ = live.result()
-    assert fused == [0, 3, 6, 9] and not live.ahead and live.stats["final_waiting"] == 3
-    if tolerance:  # 6 and 9 (0.5 mm from their parts' poses) go in where their parts were made
-        assert live.stats["ahead_used"] == 3
+    assert fused == [0, 3, 6, 9, 11] and not live.ahead and live.stats["final_waiting"] == 3
+    if tolerance:  # 9 (0.5 mm from its part's pose, made before the 0.3 mm move) goes in where its part was made
+        assert live.stats["ahead_used"] == 2
         np.testing.assert_array_equal(live.used[9], gt.poses[9])
         _same_map(_fresh(synth, cfg, {**final, 9: gt.poses[9]}), (tsdf, cloud), synth, cfg)
     else:  # whatever moved at all is made again: the map is the final poses' exactly
-        assert live.stats["ahead_used"] == 2
+        assert live.stats["ahead_used"] == 1
+        np.testing.assert_array_equal(live.used[9], final[9])
         _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
-    for i in fused:
-        np.testing.assert_array_equal(live.used[i], final[i] if not tolerance or i != 9 else gt.poses[i])
+
+
+def test_an_idle_map_process_makes_the_waiting_keyframes_cloud_parts(synth):
+    """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, it
+    makes the waiting keyframes' cloud parts (``mapping.live_cloud_ahead``), one at a time, before
+    it waits for the next job; at the end they go in with no cloud work and the map is the
+    fusion of the final poses."""
+    import queue
+
+    from rgbdslam.mapping.live import _while_tracking
+
+    gt = synth.groundtruth()
+    final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
+    cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_cloud_ahead=True)
+    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+
+    class Idle(queue.Queue):
+        """The end comes when the map process waits for a job (has nothing else to do)."""
+
+        def get(self, block=True, timeout=None):
+            if block and self.empty():
+                self.put(("finish", final, None, "", False))
+            return super().get(block, timeout)
+
+    jobs = Idle()
+    for i in final:
+        jobs.put(("add", i, synth.load(i).rgb, synth.load(i).depth, final[i]))
+    assert _while_tracking(state, cfg, jobs)[0] == "finish"
+    assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9] and sorted(state.ahead) == [6, 9]
+    assert state.stats["ahead_made"] == 2 and state.stats["ahead_used"] == 0
+    state.refresh(final, flush=True)
+    assert state.stats["final_waiting"] == 2 and state.stats["ahead_used"] == 2
+    _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
