@@ -237,14 +237,28 @@ class MapState:
         numbers :class:`VoxelCloud` ``.add`` would reduce its points to): it goes into the map at
         that part's pose with no cloud work while its pose stays within the tolerance of it
         (:meth:`settle`; the end, :meth:`refresh`)."""
+        index, pose, prepared = self.ahead_work()
+        self.keep_ahead(index, pose, self.cloud_part(pose, prepared))
+
+    def ahead_work(self) -> tuple[int, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """The next cloud part to make (:meth:`make_ahead`): the keyframe, its pose, its images."""
+        index = min(self._stale_ahead())
+        return index, np.array(self.waiting[index], dtype=np.float64), self._prepared(index)
+
+    def cloud_part(self, pose: np.ndarray, prepared: tuple[np.ndarray, np.ndarray]):
+        """A keyframe's points reduced to the voxel grid at ``pose`` (``keys, sums, counts``; None
+        without a point). Touches no state: it may run in another thread (:class:`_PartMaker`)."""
         from rgbdslam.mapping.fusion import VoxelCloud
 
-        index = min(self._stale_ahead())
-        pose = self.waiting[index]
         part = VoxelCloud(self.cfg.voxel_size)
-        self._integrate(None, part, pose, self._prepared(index))
-        self.ahead[index] = (np.array(pose, dtype=np.float64), part.pending[0] if part.pending else None)
-        self.stats["ahead_made"] += 1
+        self._integrate(None, part, pose, prepared)
+        return part.pending[0] if part.pending else None
+
+    def keep_ahead(self, index: int, pose: np.ndarray, part) -> None:
+        """Keep a cloud part made at ``pose`` for a keyframe that still waits."""
+        if index in self.waiting:  # not settled or dropped while its part was made
+            self.ahead[index] = (pose, part)
+            self.stats["ahead_made"] += 1
 
     def _ahead_near(self, index: int, pose: np.ndarray) -> bool:
         """True when the keyframe has a cloud part made ahead at a pose within the tolerance of ``pose``."""
@@ -496,6 +510,48 @@ def _start(cfg: MappingConfig, camera: Camera, load) -> MapState:
 
 
 BEHIND, CAUGHT_UP = "behind", "caught up"  # what _track returns when its ``stop`` says so
+PART_MADE = ("part made",)  # _PartMaker.job_or_made: the part was made before a job came
+POLL_S = 0.005  # how often the queue is looked at while a cloud part is made in the background
+
+
+class _PartMaker:
+    """``mapping.live_cloud_ahead``'s idle work in a thread of its own (at the niceness of the thread
+    that starts it): the thread that takes the jobs keeps looking at the queue meanwhile, so a job —
+    the finish above all — is taken at once instead of after a part that a niced thread on a busy
+    machine may take seconds to make (10 ms of CPU at niceness 10 took 2.3-2.6 s of wall time at
+    load 20). A part not made when the finish comes is dropped (its keyframe's points go in at the
+    end, as without the key)."""
+
+    def __init__(self, state: MapState):
+        import threading
+
+        self.index, self.pose, prepared = state.ahead_work()
+        self.out: dict = {}
+        self.thread = threading.Thread(target=self._run, args=(state, prepared), name="cloud part", daemon=True)
+        self.thread.start()
+
+    def _run(self, state: MapState, prepared) -> None:
+        try:
+            self.out["part"] = state.cloud_part(self.pose, prepared)
+        except BaseException as e:  # noqa: BLE001 - raised in the thread that keeps it
+            self.out["error"] = e
+
+    def done(self) -> bool:
+        return not self.thread.is_alive()
+
+    def keep(self, state: MapState) -> None:
+        if "error" in self.out:
+            raise self.out["error"]
+        state.keep_ahead(self.index, self.pose, self.out["part"])
+
+    def job_or_made(self, jobs):
+        """The next job as soon as one comes, or :data:`PART_MADE` when the part is made first."""
+        while True:
+            try:
+                return jobs.get(timeout=POLL_S)
+            except queue.Empty:
+                if self.done():
+                    return PART_MADE
 
 
 def _queued(jobs) -> int:
@@ -558,21 +614,32 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
             return taken.pop(0)
         return jobs.get() if block else jobs.get_nowait()
 
+    maker = None  # a cloud part made in the background (mapping.live_cloud_ahead), kept when done
     while True:
         if stop is not None and (why := stop()) is not None:
             return why
+        if maker is not None and maker.done():
+            maker.keep(state)
+            maker = None
         try:  # a keyframe to integrate: only when no job waits
             idle = None
             if not state.unsettled():  # idle work: a waiting keyframe into the map early, or its cloud part made
-                idle = "speculate" if state.can_speculate() else "ahead" if state.can_make_ahead() else None
-            job = take(block=not state.unsettled() and idle is None)
+                idle = "speculate" if state.can_speculate() else None
+                if idle is None and maker is None and not taken and state.can_make_ahead():
+                    maker = _PartMaker(state)
+            if maker is not None and idle is None and not taken and not state.unsettled():
+                job = maker.job_or_made(jobs)
+                if job is PART_MADE:
+                    continue
+            else:
+                job = take(block=not state.unsettled() and idle is None)
         except queue.Empty:
             job = ("settle",) if idle is None else (idle,)
         if job is None:
             return None
         t0, c0 = time.perf_counter(), time.process_time()
         batch = [job]
-        while job[0] not in ("finish", "settle", "speculate", "ahead"):  # everything queued: the keyframes, the newest poses
+        while job[0] not in ("finish", "settle", "speculate"):  # everything queued: the keyframes, the newest poses
             try:
                 job = take(block=False)
             except queue.Empty:
@@ -605,8 +672,6 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
             state.settle()
         elif why is None and job[0] == "speculate":
             state.speculate()
-        elif why is None and job[0] == "ahead":
-            state.make_ahead()
         elif n_poses:
             state.stats["pose_updates_skipped"] += n_poses - (finish is None)
             if finish is None:

@@ -666,10 +666,10 @@ def test_an_idle_map_process_makes_the_waiting_keyframes_cloud_parts(synth):
     state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
 
     class Idle(queue.Queue):
-        """The end comes when the map process waits for a job (has nothing else to do)."""
+        """The end comes when the map process waits for a job with no part left to make."""
 
         def get(self, block=True, timeout=None):
-            if block and self.empty():
+            if block and self.empty() and not state.can_make_ahead():
                 self.put(("finish", final, None, "", False))
             return super().get(block, timeout)
 
@@ -681,4 +681,51 @@ def test_an_idle_map_process_makes_the_waiting_keyframes_cloud_parts(synth):
     assert state.stats["ahead_made"] == 2 and state.stats["ahead_used"] == 0
     state.refresh(final, flush=True)
     assert state.stats["final_waiting"] == 2 and state.stats["ahead_used"] == 2
+    _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+
+
+def test_the_finish_is_taken_while_a_cloud_part_is_being_made(synth):
+    """The idle work of ``mapping.live_cloud_ahead`` runs beside the thread that takes the jobs: a
+    finish that comes while a part is being made is taken at once (a niced thread on a busy machine
+    took seconds for one part before the finish was read); the unfinished part is dropped and its
+    keyframe's points go in at the end, the map the fusion of the final poses."""
+    import queue
+    import threading
+
+    from rgbdslam.mapping.live import _while_tracking
+
+    gt = synth.groundtruth()
+    final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
+    cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_cloud_ahead=True)
+    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+    release, started = threading.Event(), threading.Event()
+    make = state.cloud_part
+
+    def slow_part(pose, prepared):  # a part that is not made until the test says so
+        started.set()
+        release.wait()
+        return make(pose, prepared)
+
+    state.cloud_part = slow_part
+
+    class FinishWhileMaking(queue.Queue):
+        def get(self, block=True, timeout=None):
+            if block and self.empty() and started.is_set():
+                self.put(("finish", final, None, "", False))
+            return super().get(block, timeout)
+
+    jobs = FinishWhileMaking()
+    for i in final:
+        jobs.put(("add", i, synth.load(i).rgb, synth.load(i).depth, final[i]))
+    out: dict = {}
+    runner = threading.Thread(target=lambda: out.update(job=_while_tracking(state, cfg, jobs)), daemon=True)
+    runner.start()
+    runner.join(timeout=120)  # a map process that waited for the part would wait for ever
+    try:
+        assert not runner.is_alive() and out["job"][0] == "finish"  # returned with the part still being made
+        assert not release.is_set() and not state.ahead and state.stats["ahead_made"] == 0
+    finally:
+        release.set()
+    state.refresh(final, flush=True)
+    assert state.stats["final_waiting"] == 2 and state.stats["ahead_used"] == 0 and not state.ahead
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
