@@ -162,8 +162,8 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
                 f"({t.get('catch_up_cpu_s', 0):.1f} s of CPU) at tracking's priority in {t.get('catch_ups', 0)} "
                 f"catch-ups (mapping.live_backlog) while tracking; {t.get('early', 0)} keyframes put in early "
                 f"(mapping.live_early), {t.get('early_undone', 0)} of them taken out again; "
-                f"{t.get('ahead_made', 0)} cloud parts made ahead, {t.get('ahead_used', 0)} of them used "
-                f"(mapping.live_cloud_ahead); "
+                f"{t.get('ahead_made', 0)} cloud parts made ahead, {t.get('ahead_used', 0)} of them used, "
+                f"{t.get('final_ahead', 0)} at the end (mapping.live_cloud_ahead); "
                 f"keyframes moved more than the tolerance at the end (mm): "
                 f"{t.get('final_shift_mm', '-')}; the end's timeline (s after the run sent the final poses): "
                 f"{t.get('end_timeline', '-')}.")

@@ -339,6 +339,7 @@ class MapState:
                 self.waiting[i] = poses[i]
         if flush:  # at the end a waiting keyframe goes in where its cloud part was made, when within the tolerance
             self.waiting = {i: self._ahead_pose(i, p) for i, p in self.waiting.items()}
+            self.stats["final_ahead"] = sum(i in self.ahead and self.ahead[i][0] is p for i, p in self.waiting.items())
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
         move = [i for i in want if self._shift(i, want[i]) > self.tol_m]

@@ -642,11 +642,11 @@ def test_waiting_keyframes_cloud_parts_made_ahead_go_into_the_map_at_the_end(syn
     tsdf, cloud, fused, _ = live.result()
     assert fused == [0, 3, 6, 9, 11] and not live.ahead and live.stats["final_waiting"] == 3
     if tolerance:  # 9 (0.5 mm from its part's pose, made before the 0.3 mm move) goes in where its part was made
-        assert live.stats["ahead_used"] == 2
+        assert live.stats["ahead_used"] == 2 and live.stats["final_ahead"] == 1
         np.testing.assert_array_equal(live.used[9], gt.poses[9])
         _same_map(_fresh(synth, cfg, {**final, 9: gt.poses[9]}), (tsdf, cloud), synth, cfg)
     else:  # whatever moved at all is made again: the map is the final poses' exactly
-        assert live.stats["ahead_used"] == 1
+        assert live.stats["ahead_used"] == 1 and live.stats["final_ahead"] == 0
         np.testing.assert_array_equal(live.used[9], final[9])
         _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
 
@@ -680,7 +680,7 @@ def test_an_idle_map_process_makes_the_waiting_keyframes_cloud_parts(synth):
     assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9] and sorted(state.ahead) == [6, 9]
     assert state.stats["ahead_made"] == 2 and state.stats["ahead_used"] == 0
     state.refresh(final, flush=True)
-    assert state.stats["final_waiting"] == 2 and state.stats["ahead_used"] == 2
+    assert state.stats["final_waiting"] == 2 and state.stats["ahead_used"] == 2 and state.stats["final_ahead"] == 2
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
 
 
