@@ -519,8 +519,7 @@ class _PartMaker:
     """``mapping.live_cloud_ahead``'s idle work in a thread of its own (at the niceness of the thread
     that starts it): the thread that takes the jobs keeps looking at the queue meanwhile, so a job —
     the finish above all — is taken at once instead of after a part that a niced thread on a busy
-    machine may take seconds to make (10 ms of CPU at niceness 10 took 2.3-2.6 s of wall time at
-    load 20). A part not made when the finish comes is dropped (its keyframe's points go in at the
+    machine may take seconds to make (10 ms of CPU at niceness 10, at load 20). A part not made when the finish comes is dropped (its keyframe's points go in at the
     end, as without the key)."""
 
     def __init__(self, state: MapState):
