@@ -114,7 +114,7 @@ class MapState:
         # beyond the tolerance is taken out again and waits (:meth:`refresh`), not re-integrated
         self.early: set[int] = set()
         # mapping.live_cloud_ahead: waiting keyframe -> (pose, its cloud part at that pose: keys, sums,
-        # counts, or None when it has no point), made when it comes and when a pose update moves it further
+        # counts, or None when it has no point), made while the map is idle (:meth:`make_ahead`)
         self.ahead: dict[int, tuple[np.ndarray, tuple | None]] = {}
         # keyframes' prepared images for re-integration, up to cache_mb (then read again with load)
         self.cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -519,8 +519,8 @@ class _PartMaker:
     """``mapping.live_cloud_ahead``'s idle work in a thread of its own (at the niceness of the thread
     that starts it): the thread that takes the jobs keeps looking at the queue meanwhile, so a job —
     the finish above all — is taken at once instead of after a part that a niced thread on a busy
-    machine may take seconds to make (10 ms of CPU at niceness 10, at load 20). A part not made when the finish comes is dropped (its keyframe's points go in at the
-    end, as without the key)."""
+    machine may take seconds to make (10 ms of CPU at niceness 10, at load 20). A part not made
+    when the finish comes is dropped (its keyframe's points go in at the end, as without the key)."""
 
     def __init__(self, state: MapState):
         import threading
