@@ -279,6 +279,9 @@ class LandmarksConfig:
     # information of a 3-D fit (the registration's formula: per-axis sigma from the RMS residual), fused
     refine: Literal["reprojection", "rigid", "points"] = "reprojection"  # after RANSAC: reprojection GN, rigid refit, or 3-D fit fused
     chi_gate: float = 3.0  # sigmas: inliers re-gated after the reprojection refine
+    # Gauss-Newton iterations of each reprojection refine pass (a map pose runs two passes, three with
+    # adaptive_noise, each from the last one's pose); fewer is cheaper (docs/benchmarks.md "Landmark map speed: fewer refine steps")
+    refine_iterations: int = 5
     # the landmark's covariance in the reprojection refine: 'full' = its 3x3 carried through the
     # projection (along the ray into the inverse depth); 'isotropic' = sqrt(trace/3) in every direction
     landmark_cov: Literal["full", "isotropic"] = "full"
@@ -606,7 +609,7 @@ POSITIVE = {
     "landmarks.search_radius", "landmarks.max_depth", "landmarks.ransac_threshold", "landmarks.ransac_iterations",
     "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
     "landmarks.ba_iterations", "landmarks.global_ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
-    "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
+    "landmarks.chi_gate", "landmarks.refine_iterations", "landmarks.max_correction", "landmarks.max_correction_deg",
     "landmarks.ba_max_move", "landmarks.ba_max_move_deg", "landmarks.revisit_min_inliers",
     "landmarks.revisit_max_correction", "landmarks.revisit_max_correction_deg",
     "landmarks.fuse_scale", "landmarks.sigma_px_scale", "landmarks.ba_noise_scale", "landmarks.loop_search_radius",
@@ -690,7 +693,7 @@ MAXIMA = {
     # landmark map: pixels, metres and counts of one frame's search; BA sizes bound its GTSAM problem
     "landmarks.search_radius": 1000.0, "landmarks.max_depth": 1e3, "landmarks.ransac_threshold": 10.0,
     "landmarks.ransac_iterations": 20_000, "landmarks.max_correction": 100.0, "landmarks.max_correction_deg": 360.0,
-    "landmarks.chi_gate": 100.0, "landmarks.fuse_scale": 1e6, "landmarks.sigma_px_scale": 10.0,
+    "landmarks.chi_gate": 100.0, "landmarks.refine_iterations": 100, "landmarks.fuse_scale": 1e6, "landmarks.sigma_px_scale": 10.0,
     "landmarks.depth_noise_a": 10.0, "landmarks.depth_noise_b": 10.0,
     "landmarks.sigma_px": 100.0, "landmarks.process_noise": 10.0, "landmarks.min_seen": 10**6,
     "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,

@@ -207,7 +207,7 @@ class LandmarkTracker:
         return estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                              0 if seeded else c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
                              c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
-                             c.adaptive_noise, c.ransac_confidence)
+                             c.adaptive_noise, c.ransac_confidence, c.refine_iterations)
 
     def _without_stale(self, index: int, feats, m, pose: np.ndarray):
         """The matches with the *stale* landmarks (not seen for more than ``stale_after`` frames: an
@@ -301,7 +301,8 @@ class LandmarkTracker:
             return None
         res = estimate_pose(self.map, feats, m, start, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                             c.ransac_iterations, c.revisit_min_inliers, "uniform", 1.0, self.rng,
-                            c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full")
+                            c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
+                            refine_iterations=c.refine_iterations)
         if res is None or not _close(pose, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
             return None
         self.stats.revisits += 1
