@@ -121,6 +121,7 @@ class LandmarkTracker:
         self._ba_pending = None  # ba_worker 'deferred' / 'process': the BA made at the last keyframe (result or in flight)
         self._ba_index = -1  # the keyframe the pending BA was made at
         self._flush_ms = 0.0  # the last write-back's time on the tracking thread (counted with the next launch)
+        self._n_keyframes = 0  # keyframes added (ba_every: the local BA runs on every ba_every-th)
         if cfg.local_ba:
             from rgbdslam.landmarks.local_ba import BAWorker, LocalBA
 
@@ -449,7 +450,9 @@ class LandmarkTracker:
         ``ba_worker`` 'process' / 'deferred': the BA made at the previous keyframe is written back
         first (waiting for the process), and this keyframe, which hangs from that one, moves with it
         (its refined pose is in the answer under ``index``); then this keyframe's BA is made and
-        handed to the process (or solved), to be written back at the next keyframe or at :meth:`flush`."""
+        handed to the process (or solved), to be written back at the next keyframe or at :meth:`flush`.
+        ``ba_every`` k > 1: the BA runs on every k-th keyframe only (the window still reaches back over
+        the keyframes in between)."""
         c = self.cfg
         deferred = self.ba is not None and c.ba_worker != "sync"
         refined_prev: dict[int, np.ndarray] = {}
@@ -484,8 +487,11 @@ class LandmarkTracker:
         if len(self.keyframes) > keep:
             del self.keyframes[: len(self.keyframes) - keep]
         self._last_matches = None
-        if self.ba is None:
-            return {}
+        self._n_keyframes += 1
+        if self.ba is None or self._n_keyframes % c.ba_every:  # ba_every: not this keyframe's turn
+            if self.ba is not None and not deferred:
+                self.last_ba_moved = []
+            return refined_prev
         if deferred:
             self._launch_ba()
             return refined_prev
