@@ -280,7 +280,7 @@ class LandmarksConfig:
     refine: Literal["reprojection", "rigid", "points"] = "reprojection"  # after RANSAC: reprojection GN, rigid refit, or 3-D fit fused
     chi_gate: float = 3.0  # sigmas: inliers re-gated after the reprojection refine
     # Gauss-Newton iterations of each reprojection refine pass (a map pose runs two passes, three with
-    # adaptive_noise, each from the last one's pose); fewer is cheaper (docs/benchmarks.md "Landmark map speed: fewer refine steps")
+    # adaptive_noise, each from the last one's pose); 3 is ~7 % cheaper (docs/benchmarks.md "Landmark map speed: the top view ...")
     refine_iterations: int = 5
     # the landmark's covariance in the reprojection refine: 'full' = its 3x3 carried through the
     # projection (along the ray into the inverse depth); 'isotropic' = sqrt(trace/3) in every direction

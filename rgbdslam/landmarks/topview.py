@@ -1,9 +1,9 @@
 """The 2-D top view of the landmark map (the thesis' own map): landmarks seen from above.
 
 Drawn with OpenCV into a NumPy image (no matplotlib: importing it and drawing one figure cost the
-run ~0.8 s of CPU after the last frame, docs/benchmarks.md "Landmark map speed (issue 17, branch
-lmfast)"): each landmark one 2x2 px dot coloured by log2(times seen) (viridis), the keyframe
-path in red, axes with metre ticks, a colour bar, the title with the landmark count.
+run ~0.8 s of CPU after the last frame, docs/benchmarks.md "Landmark map speed: the top view without
+matplotlib, refine and BA options"): each landmark one 2x2 px dot coloured by log2(times seen)
+(viridis), the keyframe path in red, axes with metre ticks, a colour bar, the title with the count.
 """
 
 from __future__ import annotations
