@@ -279,6 +279,9 @@ class LandmarksConfig:
     # information of a 3-D fit (the registration's formula: per-axis sigma from the RMS residual), fused
     refine: Literal["reprojection", "rigid", "points"] = "reprojection"  # after RANSAC: reprojection GN, rigid refit, or 3-D fit fused
     chi_gate: float = 3.0  # sigmas: inliers re-gated after the reprojection refine
+    # Gauss-Newton iterations of each reprojection refine pass (a map pose runs two passes, three with
+    # adaptive_noise, each from the last one's pose); 3 is ~7 % cheaper (docs/benchmarks.md "Landmark map speed: the top view ...")
+    refine_iterations: int = 5
     # the landmark's covariance in the reprojection refine: 'full' = its 3x3 carried through the
     # projection (along the ray into the inverse depth); 'isotropic' = sqrt(trace/3) in every direction
     landmark_cov: Literal["full", "isotropic"] = "full"
@@ -364,6 +367,9 @@ class LandmarksConfig:
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
     ba_iterations: int = 5  # Levenberg-Marquardt iterations of one local BA
+    # local BA on every ba_every-th keyframe only (1 = every keyframe); the window still covers the
+    # keyframes in between (ba_window > ba_every), so each is optimised, less often: the BA's cost / ba_every
+    ba_every: int = 1
     # the local BA's solver: 'schur' = NumPy Levenberg-Marquardt with the landmarks eliminated in closed
     # form (the Schur complement; GTSAM's LM step for step, ~10x faster at this size); 'gtsam' = GTSAM's graph
     ba_solver: Literal["schur", "gtsam"] = "schur"
@@ -610,8 +616,8 @@ POSITIVE = {
     "stereo.sgbm_block_size",
     "landmarks.search_radius", "landmarks.max_depth", "landmarks.ransac_threshold", "landmarks.ransac_iterations",
     "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
-    "landmarks.ba_iterations", "landmarks.global_ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
-    "landmarks.chi_gate", "landmarks.max_correction", "landmarks.max_correction_deg",
+    "landmarks.ba_iterations", "landmarks.ba_every", "landmarks.global_ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
+    "landmarks.chi_gate", "landmarks.refine_iterations", "landmarks.max_correction", "landmarks.max_correction_deg",
     "landmarks.ba_max_move", "landmarks.ba_max_move_deg", "landmarks.revisit_min_inliers",
     "landmarks.revisit_max_correction", "landmarks.revisit_max_correction_deg",
     "landmarks.fuse_scale", "landmarks.sigma_px_scale", "landmarks.ba_noise_scale", "landmarks.loop_search_radius",
@@ -695,11 +701,11 @@ MAXIMA = {
     # landmark map: pixels, metres and counts of one frame's search; BA sizes bound its GTSAM problem
     "landmarks.search_radius": 1000.0, "landmarks.max_depth": 1e3, "landmarks.ransac_threshold": 10.0,
     "landmarks.ransac_iterations": 20_000, "landmarks.max_correction": 100.0, "landmarks.max_correction_deg": 360.0,
-    "landmarks.chi_gate": 100.0, "landmarks.fuse_scale": 1e6, "landmarks.sigma_px_scale": 10.0,
+    "landmarks.chi_gate": 100.0, "landmarks.refine_iterations": 100, "landmarks.fuse_scale": 1e6, "landmarks.sigma_px_scale": 10.0,
     "landmarks.depth_noise_a": 10.0, "landmarks.depth_noise_b": 10.0,
     "landmarks.sigma_px": 100.0, "landmarks.process_noise": 10.0, "landmarks.min_seen": 10**6,
     "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,
-    "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000,
+    "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000, "landmarks.ba_every": 1000,
     "landmarks.global_ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
     "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,

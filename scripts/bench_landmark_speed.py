@@ -15,7 +15,9 @@ every variant, then repeat 2, ..., so a change of the machine's load hits all of
 unpacked ``git archive`` of main: the code before a change), interleaved too. Per variant: the
 median (and range) of frames/s over the repeats (whole tracking loop, images included), its ratio
 to the default's median, the CPU time per frame of the run's process (all its threads, start-up
-and the end of the run included: less sensitive to the machine's load than frames/s) and of its
+and the end of the run included: less sensitive to the machine's load than frames/s), the same for
+the tracking loop alone (``pipeline.track_all``: what frames/s measures, without the start-up's imports
+and the end's outputs — e.g. the landmark top view drawn with matplotlib) and that of its
 child processes (the local BA process), the ATE, the per-stage medians (ms) from run.json, the local BA's median
 ms per keyframe; ``uptime``'s load before and after. ``--profile VARIANT`` runs that variant once
 more under cProfile and prints the 30 most expensive functions (own time); ``--profile-cpu`` times
@@ -45,8 +47,18 @@ _CHILD = r"""
 import json, sys
 sys.path.insert(0, sys.argv[1])
 from rgbdslam.config import load_config
+import time
+import rgbdslam.pipeline as pipeline
 from rgbdslam.pipeline import run_sequence
 sets = json.loads(sys.argv[4])
+_track_all, loop_cpu = pipeline.track_all, []
+def _timed(*a, **k):  # the tracking loop's own CPU time (no start-up, no end of the run)
+    t0 = time.process_time()
+    try:
+        return _track_all(*a, **k)
+    finally:
+        loop_cpu.append(time.process_time() - t0)
+pipeline.track_all = _timed
 cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *sets])
 if sys.argv[5]:
     import cProfile, pstats, time
@@ -62,7 +74,7 @@ print("RESULT " + json.dumps({"fps": s["fps"], "processing_fps": s["processing_f
       "ate": (ev.get("ate") or {}).get("rmse"), "timings": s.get("timings", {}),
       "ba_ms": lm.get("local_ba_median_ms"), "ba_runs": lm.get("local_ba_runs"),
       "keyframes": len(s.get("keyframes", [])), "frames": s["frames"],
-      "cpu_s": me.ru_utime + me.ru_stime, "child_cpu_s": kids.ru_utime + kids.ru_stime}))
+      "cpu_s": me.ru_utime + me.ru_stime, "loop_cpu_s": sum(loop_cpu), "child_cpu_s": kids.ru_utime + kids.ru_stime}))
 """
 
 
@@ -102,7 +114,9 @@ def summarise(runs: dict[str, list[dict]]) -> list[dict]:
         ba = [r["ba_ms"] for r in rs if r.get("ba_ms")]
         cpu = [1e3 * r["cpu_s"] / r["frames"] for r in rs]
         kid = [1e3 * r["child_cpu_s"] / r["frames"] for r in rs]
+        loop = [1e3 * r.get("loop_cpu_s", float("nan")) / r["frames"] for r in rs]
         rows.append({"variant": name, "cpu_ms": float(np.median(cpu)), "child_cpu_ms": float(np.median(kid)),
+                     "loop_cpu_ms": float(np.median(loop)), "loop_cpu_range": [min(loop), max(loop)],
                      "fps": float(np.median(fps)), "fps_min": min(fps), "fps_max": max(fps),
                      "ratio": float(np.median(fps)) / base, "ate": sorted({round(r["ate"], 5) for r in rs if r["ate"]}),
                      "stages_ms": stages, "ba_ms": float(np.median(ba)) if ba else None,
@@ -113,13 +127,16 @@ def summarise(runs: dict[str, list[dict]]) -> list[dict]:
 def markdown(rows: list[dict], command: str, machine: str) -> str:
     stages = sorted({k for r in rows for k in r["stages_ms"]})
     head = ("| variant | frames/s median (range) | × default | CPU ms/frame: run process (× default) | "
-            "+ BA process | ATE (m) | local BA ms/keyframe | "
+            "CPU ms/frame: tracking loop (× default) | + BA process | ATE (m) | local BA ms/keyframe | "
             + " | ".join(f"{s} ms" for s in stages) + " |")
-    out = [f"Command: `{command}`  ", f"Machine: {machine}", "", head, "|" + "---|" * (7 + len(stages))]
+    out = [f"Command: `{command}`  ", f"Machine: {machine}", "", head, "|" + "---|" * (8 + len(stages))]
     cpu0 = next((r["cpu_ms"] for r in rows if r["variant"] == "default"), float("nan"))
+    loop0 = next((r.get("loop_cpu_ms", float("nan")) for r in rows if r["variant"] == "default"), float("nan"))
     for r in rows:
         out.append(f"| {r['variant']} | {r['fps']:.1f} ({r['fps_min']:.1f}–{r['fps_max']:.1f}) | {r['ratio']:.2f} | "
-                   f"{r['cpu_ms']:.1f} ({r['cpu_ms'] / cpu0:.2f}) | {r['child_cpu_ms']:.1f} | "
+                   f"{r['cpu_ms']:.1f} ({r['cpu_ms'] / cpu0:.2f}) | "
+                   f"{r.get('loop_cpu_ms', float('nan')):.1f} ({r.get('loop_cpu_ms', float('nan')) / loop0:.2f}) | "
+                   f"{r['child_cpu_ms']:.1f} | "
                    + ", ".join(f"{a:.4f}" for a in r["ate"]) + " | "
                    + (f"{r['ba_ms']:.0f}" if r["ba_ms"] else "") + " | "
                    + " | ".join(f"{r['stages_ms'][s]:.1f}" if s in r["stages_ms"] else "" for s in stages) + " |")

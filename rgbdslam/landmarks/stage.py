@@ -121,6 +121,7 @@ class LandmarkTracker:
         self._ba_pending = None  # ba_worker 'deferred' / 'process': the BA made at the last keyframe (result or in flight)
         self._ba_index = -1  # the keyframe the pending BA was made at
         self._flush_ms = 0.0  # the last write-back's time on the tracking thread (counted with the next launch)
+        self._n_keyframes = 0  # keyframes added (ba_every: the local BA runs on every ba_every-th)
         if cfg.local_ba:
             from rgbdslam.landmarks.local_ba import BAWorker, LocalBA
 
@@ -207,7 +208,7 @@ class LandmarkTracker:
         return estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                              0 if seeded else c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
                              c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
-                             c.adaptive_noise, c.ransac_confidence)
+                             c.adaptive_noise, c.ransac_confidence, c.refine_iterations)
 
     def _without_stale(self, index: int, feats, m, pose: np.ndarray):
         """The matches with the *stale* landmarks (not seen for more than ``stale_after`` frames: an
@@ -301,7 +302,8 @@ class LandmarkTracker:
             return None
         res = estimate_pose(self.map, feats, m, start, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                             c.ransac_iterations, c.revisit_min_inliers, "uniform", 1.0, self.rng,
-                            c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full")
+                            c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
+                            refine_iterations=c.refine_iterations)
         if res is None or not _close(pose, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
             return None
         self.stats.revisits += 1
@@ -448,7 +450,9 @@ class LandmarkTracker:
         ``ba_worker`` 'process' / 'deferred': the BA made at the previous keyframe is written back
         first (waiting for the process), and this keyframe, which hangs from that one, moves with it
         (its refined pose is in the answer under ``index``); then this keyframe's BA is made and
-        handed to the process (or solved), to be written back at the next keyframe or at :meth:`flush`."""
+        handed to the process (or solved), to be written back at the next keyframe or at :meth:`flush`.
+        ``ba_every`` k > 1: the BA runs on every k-th keyframe only (the window still reaches back over
+        the keyframes in between)."""
         c = self.cfg
         deferred = self.ba is not None and c.ba_worker != "sync"
         refined_prev: dict[int, np.ndarray] = {}
@@ -483,8 +487,11 @@ class LandmarkTracker:
         if len(self.keyframes) > keep:
             del self.keyframes[: len(self.keyframes) - keep]
         self._last_matches = None
-        if self.ba is None:
-            return {}
+        self._n_keyframes += 1
+        if self.ba is None or self._n_keyframes % c.ba_every:  # ba_every: not this keyframe's turn
+            if self.ba is not None and not deferred:
+                self.last_ba_moved = []
+            return refined_prev
         if deferred:
             self._launch_ba()
             return refined_prev

@@ -121,7 +121,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
                   iterations: int, min_inliers: int, sampling: str, old_fraction: float,
                   rng: np.random.Generator, refine: str = "rigid", camera=None, sigma_px=1.0,
                   chi2_gate: float = 3.0, full_cov: bool = True, adaptive: bool = False,
-                  confidence: float = 0.0) -> MapPose | None:
+                  confidence: float = 0.0, refine_iterations: int = 5) -> MapPose | None:
     """Pose from the matches: RANSAC (old landmarks first) + weighted refit on the inliers.
 
     ``sigma_obs`` (M,) is each frame point's depth noise (m); the landmark's own is sqrt(trace(P)/3)
@@ -131,6 +131,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     (1.4826 · median |r|, clipped to [0.25, 4]) of the inliers' whitened residuals and the refine is
     run once more: the frame's own noise level sets the weights and the information. ``confidence``:
     the RANSAC's early stop (:func:`rgbdslam.geometry.ransac.ransac_rigid`; 0 = every sample).
+    ``refine_iterations``: Gauss–Newton iterations of each reprojection refine pass.
     ``iterations`` 0: no RANSAC — the prediction's inliers start the refits
     (:func:`rgbdslam.geometry.ransac.seeded_rigid`; for a prediction that is another estimate of the pose).
     """
@@ -172,7 +173,8 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
         spx = sigma_px if np.ndim(sigma_px) == 0 else np.asarray(sigma_px, float)[feat]  # per frame feature
         for _ in range(2):
             sel = lambda v: v if np.ndim(v) == 0 else v[mask]  # noqa: E731
-            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask])
+            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask],
+                                             refine_iterations)
             Tcw = inv(T)
             r, _ = reprojection_residuals(Tcw[:3, :3], Tcw[:3, 3], D, uv, z, camera, spx, sig, cov, jacobian=False)
             new = np.linalg.norm(r, axis=1) < chi2_gate
@@ -183,7 +185,8 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
             k_px = 1.4826 * np.median(np.abs(r[mask, :2]))
             k_z = 1.4826 * np.median(np.abs(r[mask, 2]))
             spx, sig = spx * np.clip(k_px, 0.25, 4.0), sig * np.clip(k_z, 0.25, 4.0)
-            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask])
+            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask],
+                                             refine_iterations)
     r = np.linalg.norm(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]), axis=1)
     rms = float(np.sqrt(np.mean(r**2)))
     if refine == "points":  # the weighted 3-D refit kept, with the registration's information formula

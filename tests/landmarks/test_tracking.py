@@ -242,3 +242,31 @@ def test_residuals_without_jacobians_and_the_rotated_covariance():
     r4, _ = reprojection_residuals(R, t, ahead[None], np.array([[CAM.cx + 1.5, CAM.cy - 3.0]]), np.array([2.0]),
                                    CAM, 1.5, np.array([0.01]), c1)
     assert np.allclose(r4[0, :2], [1.0, -2.0])
+
+
+def test_refine_iterations_sets_the_gauss_newton_steps_of_each_pass():
+    """``refine_iterations`` (landmarks.refine_iterations): 5, the default, gives the pose of the call
+    without it bit for bit; one step per pass stops short of the converged pose, many steps reach it."""
+    from types import SimpleNamespace
+
+    from rgbdslam.landmarks.tracking import MapMatch, estimate_pose
+
+    rng = np.random.default_rng(8)
+    X = _scene(300, seed=9)
+    m = LandmarkMap("single")
+    ids = m.add(X, np.tile(np.eye(3) * 1e-6, (len(X), 1, 1)), np.zeros((len(X), 32), np.uint8), 0, 0)
+    P = _pose([0.02, -0.01, 0.03], [0.1, 0.02, -0.05])
+    Pc, uv, z = _seen(P, X)
+    dz = rng.normal(scale=0.01, size=len(X))
+    feats = SimpleNamespace(uv=uv + rng.normal(scale=1.0, size=uv.shape), pts=Pc * (1 + dz / Pc[:, 2])[:, None])
+    match = MapMatch(np.arange(len(X)), ids, len(X))
+    sig = np.full(len(X), 0.01)
+
+    def run(**kw):
+        return estimate_pose(m, feats, match, P, sig, 0.03, 50, 10, "uniform", 1.0, np.random.default_rng(0),
+                             "reprojection", CAM, 1.0, 3.0, True, True, **kw).pose
+
+    default, five, one, many = run(), run(refine_iterations=5), run(refine_iterations=1), run(refine_iterations=30)
+    assert np.array_equal(default, five)
+    assert _err(five, many) < 1e-6  # five steps per pass: converged to a micrometre
+    assert _err(one, many) > 10 * _err(five, many)  # one step per pass: not
