@@ -133,7 +133,7 @@ class SLAM:
         # 4. loop closure on sharp (or due) frames
         loops, map_edges = self._detect_loops(frame, result, pose)
         if loops and self.landmarks is not None and self.cfg.landmarks.loop_refine and not restart:
-            loops = [self.landmarks.refine_loop(frame.index, result.features, e) for e in loops]  # vs the map
+            loops = [self.landmarks.refine_loop(frame.index, _map_feats(result), e) for e in loops]  # vs the map
         if loops and self.landmarks is not None and self.cfg.landmarks.map_loop_landmarks > 0:
             loops = [e for e in loops if not self.landmarks.holds(frame.index, e.i)]  # the map closed them
         # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node);
@@ -156,7 +156,7 @@ class SLAM:
         if is_kf:
             self._add_keyframe(frame, result, pose, depth)
             if self.landmarks is not None and self.graph is not None:  # old landmarks -> their keyframes
-                for e in self.landmarks.anchor_edges(frame.index, result.features, pose, self.graph.guess):
+                for e in self.landmarks.anchor_edges(frame.index, _map_feats(result), pose, self.graph.guess):
                     self.graph.add_loop(e)
         rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
         st.records.append(rec)
@@ -181,7 +181,7 @@ class SLAM:
         info = result.information
         if info is not None and result.n_fused > 1:  # the references share this frame's noise:
             info = info / result.n_fused  # their summed information counts it n_fused times
-        mpose = self.landmarks.track(frame.index, result.features, pose, info)
+        mpose = self.landmarks.track(frame.index, _map_feats(result), pose, info)
         if self.cfg.landmarks.graph_information and self.landmarks.step_information is not None and \
                 self._info_since_kf and result.information is not None:
             self._info_since_kf[-1] = self.landmarks.step_information  # the odometry edge: what the pose is
@@ -196,7 +196,7 @@ class SLAM:
         """New landmarks and local BA on a keyframe; the end of the map's step; Rerun."""
         if is_kf:
             t0 = time.perf_counter()
-            refined = self.landmarks.add_keyframe(frame.index, result.features, pose)
+            refined = self.landmarks.add_keyframe(frame.index, _map_feats(result), pose)
             if frame.index in refined:  # local BA moved this keyframe: tracking continues from there
                 pose = refined.pop(frame.index)
                 result.pose = pose
@@ -213,10 +213,10 @@ class SLAM:
                 self.frontend.correct_last(pose)
                 self._move_keyframes(refined, pose)
                 self.state.add_time("local_ba", time.perf_counter() - t0)
-            self.landmarks.record_frame(frame.index, result.features, pose)
+            self.landmarks.record_frame(frame.index, _map_feats(result), pose)
         self.landmarks.end_frame(frame.index)
         if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
-            self.landmarks.log(self.observer, frame.index, result.features, is_kf)
+            self.landmarks.log(self.observer, frame.index, _map_feats(result), is_kf)
         return pose
 
     def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray | None = None) -> None:
@@ -384,6 +384,11 @@ class SLAM:
             else:
                 poses.append(r.pose)
         return Trajectory(odo.timestamps, np.array(poses).reshape(-1, 4, 4))
+
+
+def _map_feats(result: TrackResult):
+    """The key points the landmark map works with: every one detected (``landmarks.n_features``) or the frame's."""
+    return result.features if result.map_features is None else result.map_features
 
 
 def _png_depth(depth: np.ndarray, scale: float = 5000.0) -> np.ndarray:
