@@ -388,6 +388,11 @@ class LandmarksConfig:
     ba_worker: Literal["sync", "process", "deferred"] = "sync"
     # process / deferred: frames after its keyframe the BA is written back; 0 = at the next keyframe
     ba_handover: int = 0
+    # how the frames between two keyframes follow a local BA's corrections: 'rigid' = with their own
+    # (older) keyframe's; 'interpolate' = along the geodesic from their keyframe's correction to the
+    # next keyframe's, by frame index (a keyframe the BA did not move: no correction), so the
+    # trajectory does not jump where one keyframe's frames end and the next keyframe begins
+    ba_frames: Literal["rigid", "interpolate"] = "rigid"
     # one bundle adjustment over every keyframe and its landmarks after the final pose graph
     # (stereo-style factors as local BA, the pose graph's loop edges as relative-pose factors)
     global_ba: bool = False  # bundle adjustment over all keyframes after the pose graph (run end)
