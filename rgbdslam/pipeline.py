@@ -246,7 +246,7 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     first_frame_s = None
     t_start = time.perf_counter()
     # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
-    fc = detection_features(cfg.features, cfg.landmarks.n_features if cfg.landmarks.enabled else 0)
+    fc = detection_features(cfg.features, cfg.landmarks.n_features if cfg.landmarks.enabled and not seq.own_key_points else 0)
     frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, fc),
                             workers=cfg.dataset.reader_threads)
     try:

@@ -28,7 +28,7 @@ import numpy as np
 
 from rgbdslam.config import Config, FeaturesConfig, MatchingConfig, RegistrationConfig
 from rgbdslam.datasets.base import Frame
-from rgbdslam.frontend.features import FrameFeatures, extract_features, lift, reshutter, strongest, subset
+from rgbdslam.frontend.features import Detections, FrameFeatures, extract_features, lift, reshutter, strongest, subset
 from rgbdslam.frontend.pairwise import PairRegistration, RegistrationResult, build_pair_registration
 from rgbdslam.frontend.pose_fusion import fuse_candidates
 from rgbdslam.geometry.camera import Camera
@@ -144,9 +144,13 @@ class Frontend:
     def track(self, frame: Frame) -> TrackResult:
         rc = self.rc
         t0 = time.perf_counter()
-        feats = extract_features(frame, self.fc_detect, self.mc, self._depth_motion(frame), self._time_velocity())
+        fc = self.fc_detect
+        det = frame.detections
+        if fc is not self.fc and isinstance(det, Detections) and det.image is frame.rgb and det.config == self.fc:
+            fc = self.fc  # the reader's own key points (sparse stereo: its depth holds only theirs): kept
+        feats = extract_features(frame, fc, self.mc, self._depth_motion(frame), self._time_velocity())
         full = self._full = None
-        if self.fc_detect is not self.fc:  # the landmark map's key points; the strongest for the rest
+        if fc is not self.fc:  # the landmark map's key points; the strongest for the rest
             full, feats = feats, subset(feats, strongest(feats, self.fc))
             self._full = full
         timings = {"features": time.perf_counter() - t0, "matching": 0.0, "registration": 0.0, "fusion": 0.0}

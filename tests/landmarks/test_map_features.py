@@ -128,3 +128,31 @@ def test_ba_frames_interpolate_between_keyframe_corrections_by_hand():
     got = _interpolated(_records([0, 0, 2]), {2: Rz})
     assert np.isclose(np.degrees(rotation_angle(got[1][:3, :3])), 45.0) and np.allclose(got[0], np.eye(4))
 
+
+
+@pytest.mark.data
+def test_key_points_a_reader_made_itself_are_kept(desk9):
+    """Sparse stereo finds the key points in the reader and has depth at theirs only: a frame that
+    carries detections made with the registration's budget is not re-detected for the map."""
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.frontend.features import with_detections
+    from rgbdslam.frontend.odometry import build_frontend
+
+    cfg = load_config(None, ["landmarks.enabled=true", "landmarks.n_features=2000"])
+    seq = open_sequence(desk9, cfg)
+    fe = build_frontend(cfg, seq.camera)
+    own = with_detections(seq[0], cfg.features)  # as a sparse-stereo reader attaches them
+    r = fe.track(own)
+    assert r.map_features is None and len(r.features.uv) == len(own.detections.uv_raw) == 1000
+    r = fe.track(seq[1])  # no detections of its own: the map gets more
+    assert r.map_features is not None and len(r.map_features.uv) > 1800 and len(r.features.uv) == 1000
+    assert not seq.own_key_points
+
+
+def test_sparse_stereo_reader_owns_its_key_points(tmp_path):
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
+
+    generate_stereo_sequence(tmp_path / "e", 0.12, "euroc", frames=2, motion="loop", noise=False, seed=1)
+    assert open_sequence(tmp_path / "e", load_config(None, ["stereo.depth=sparse"])).own_key_points
+    assert not open_sequence(tmp_path / "e", load_config(None, ["stereo.depth=sgbm"])).own_key_points
