@@ -394,6 +394,11 @@ class LandmarksConfig:
     ba_worker: Literal["sync", "process", "deferred"] = "sync"
     # process / deferred: frames after its keyframe the BA is written back; 0 = at the next keyframe
     ba_handover: int = 0
+    # how the frames between two keyframes follow a local BA's corrections: 'rigid' = with their own
+    # (older) keyframe's; 'interpolate' = along the geodesic from their keyframe's correction to the
+    # next keyframe's, by frame index (a keyframe the BA did not move: no correction), so the
+    # trajectory does not jump where one keyframe's frames end and the next keyframe begins
+    ba_frames: Literal["rigid", "interpolate"] = "rigid"
     # one bundle adjustment over every keyframe and its landmarks after the final pose graph
     # (stereo-style factors as local BA, the pose graph's loop edges as relative-pose factors)
     global_ba: bool = False  # bundle adjustment over all keyframes after the pose graph (run end)
@@ -402,6 +407,10 @@ class LandmarksConfig:
     # the map inliers of the frames between keyframes join the global BA as observations of their
     # keyframe's pose (their pose relative to it held)
     global_ba_frames: bool = False
+    # ORB key points per frame for the landmark map (0 = features.n_features): frames are detected with
+    # this many; the registration, loop closure and the rest keep the strongest features.n_features of
+    # them (per pyramid level, ORB's budget), the map matches and makes landmarks from all
+    n_features: int = 0
     seed: int = 0  # RANSAC seed of the map pose
 
 
@@ -705,7 +714,7 @@ MAXIMA = {
     "landmarks.depth_noise_a": 10.0, "landmarks.depth_noise_b": 10.0,
     "landmarks.sigma_px": 100.0, "landmarks.process_noise": 10.0, "landmarks.min_seen": 10**6,
     "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,
-    "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.ba_iterations": 1000, "landmarks.ba_every": 1000,
+    "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.n_features": 10_000, "landmarks.ba_iterations": 1000, "landmarks.ba_every": 1000,
     "landmarks.global_ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
     "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,

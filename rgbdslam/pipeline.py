@@ -237,6 +237,7 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     """Every frame through ``slam.track``; unreadable frames are skipped with a warning, the
     trajectories are flushed every ``FLUSH_EVERY`` frames, Ctrl-C stops after the current frame."""
     from rgbdslam.frontend.features import with_detections
+    from rgbdslam.frontend.odometry import detection_features
     from rgbdslam.ui import frame_progress
 
     st = slam.state
@@ -245,7 +246,8 @@ def track_all(seq: Sequence, slam: SLAM, cfg: Config, out_dir: Path, progress: b
     first_frame_s = None
     t_start = time.perf_counter()
     # the reader thread also finds the key points (colour only), overlapping the tracking of the last frame
-    frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, cfg.features),
+    fc = detection_features(cfg.features, cfg.landmarks.n_features if cfg.landmarks.enabled and not seq.own_key_points else 0)
+    frames = seq.prefetched(cfg.dataset.prefetch, then=lambda f: with_detections(f, fc),
                             workers=cfg.dataset.reader_threads)
     try:
         with frame_progress(None if seq.streaming else len(seq), f"SLAM {seq.name}", enabled=progress) as advance:

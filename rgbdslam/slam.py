@@ -133,7 +133,7 @@ class SLAM:
         # 4. loop closure on sharp (or due) frames
         loops, map_edges = self._detect_loops(frame, result, pose)
         if loops and self.landmarks is not None and self.cfg.landmarks.loop_refine and not restart:
-            loops = [self.landmarks.refine_loop(frame.index, result.features, e) for e in loops]  # vs the map
+            loops = [self.landmarks.refine_loop(frame.index, _map_feats(result), e) for e in loops]  # vs the map
         if loops and self.landmarks is not None and self.cfg.landmarks.map_loop_landmarks > 0:
             loops = [e for e in loops if not self.landmarks.holds(frame.index, e.i)]  # the map closed them
         # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node);
@@ -156,7 +156,7 @@ class SLAM:
         if is_kf:
             self._add_keyframe(frame, result, pose, depth)
             if self.landmarks is not None and self.graph is not None:  # old landmarks -> their keyframes
-                for e in self.landmarks.anchor_edges(frame.index, result.features, pose, self.graph.guess):
+                for e in self.landmarks.anchor_edges(frame.index, _map_feats(result), pose, self.graph.guess):
                     self.graph.add_loop(e)
         rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
         st.records.append(rec)
@@ -181,7 +181,7 @@ class SLAM:
         info = result.information
         if info is not None and result.n_fused > 1:  # the references share this frame's noise:
             info = info / result.n_fused  # their summed information counts it n_fused times
-        mpose = self.landmarks.track(frame.index, result.features, pose, info)
+        mpose = self.landmarks.track(frame.index, _map_feats(result), pose, info)
         if self.cfg.landmarks.graph_information and self.landmarks.step_information is not None and \
                 self._info_since_kf and result.information is not None:
             self._info_since_kf[-1] = self.landmarks.step_information  # the odometry edge: what the pose is
@@ -196,13 +196,15 @@ class SLAM:
         """New landmarks and local BA on a keyframe; the end of the map's step; Rerun."""
         if is_kf:
             t0 = time.perf_counter()
-            refined = self.landmarks.add_keyframe(frame.index, result.features, pose)
+            refined = self.landmarks.add_keyframe(frame.index, _map_feats(result), pose)
+            current = None
             if frame.index in refined:  # local BA moved this keyframe: tracking continues from there
+                current = (frame.index, refined[frame.index] @ inv(pose))
                 pose = refined.pop(frame.index)
                 result.pose = pose
                 self.frontend.correct_last(pose)
             if refined:  # the window's older keyframes, their frames, references and graph edges
-                self._move_keyframes(refined, pose)
+                self._move_keyframes(refined, pose, current)
             self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
         else:
             refined = self.landmarks.handover(frame.index, pose)  # landmarks.ba_handover: the BA due now
@@ -213,24 +215,26 @@ class SLAM:
                 self.frontend.correct_last(pose)
                 self._move_keyframes(refined, pose)
                 self.state.add_time("local_ba", time.perf_counter() - t0)
-            self.landmarks.record_frame(frame.index, result.features, pose)
+            self.landmarks.record_frame(frame.index, _map_feats(result), pose)
         self.landmarks.end_frame(frame.index)
         if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
-            self.landmarks.log(self.observer, frame.index, result.features, is_kf)
+            self.landmarks.log(self.observer, frame.index, _map_feats(result), is_kf)
         return pose
 
-    def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray | None = None) -> None:
+    def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray | None = None,
+                        current: tuple[int, np.ndarray] | None = None) -> None:
         """Write local-BA keyframe poses back: each keyframe's frames follow it rigidly (their pose
         relative to it kept), so do the front end's reference frames; the pose graph's odometry edges
         are re-measured between the refined keyframes (the current keyframe, not yet a node, gets its
-        edge from ``pose``)."""
+        edge from ``pose``). ``current``: (this keyframe, its correction), which the frames since the
+        last keyframe approach with ``landmarks.ba_frames: interpolate``."""
         old = {r.index: r.pose for r in self.state.records if r.index in refined and r.keyframe == r.index}
         corr = {k: refined[k] @ inv(P) for k, P in old.items()}
         if not corr:
             return
         moved = {}
-        for r in self.state.records:
-            C = corr.get(r.keyframe)
+        follow = _interpolated if self.cfg.landmarks.ba_frames == "interpolate" else _rigid
+        for r, C in zip(self.state.records, follow(self.state.records, corr, current)):
             if C is not None:
                 r.pose = C @ r.pose
                 moved[r.index] = r.pose
@@ -384,6 +388,45 @@ class SLAM:
             else:
                 poses.append(r.pose)
         return Trajectory(odo.timestamps, np.array(poses).reshape(-1, 4, 4))
+
+
+def _rigid(records: list, corr: dict[int, np.ndarray], current=None) -> list:
+    """Each record's correction: its keyframe's (None: not moved)."""
+    return [corr.get(r.keyframe) for r in records]
+
+
+def _interpolated(records: list, corr: dict[int, np.ndarray], current: tuple[int, np.ndarray] | None = None) -> list:
+    """Each record's correction along the geodesic between its keyframe a's and the next keyframe b's,
+    C = C_a · Exp(s · Log(C_a⁻¹ C_b)) with s = (frame − a) / (b − a); a keyframe without a correction
+    has the identity; ``current`` = (b, C_b): the keyframe being added (not a record yet), the next
+    one of the newest record keyframe; without it, after the newest keyframe its own (rigid). None
+    where neither moved."""
+    import gtsam
+
+    kfs = [r.index for r in records if r.index == r.keyframe]
+    nxt = dict(zip(kfs, kfs[1:]))
+    if current is not None and kfs:
+        nxt[kfs[-1]] = current[0]
+        corr = {**corr, current[0]: current[1]}
+    out = []
+    for r in records:
+        a, b = r.keyframe, nxt.get(r.keyframe)
+        if a not in corr and (b is None or b not in corr):
+            out.append(None)
+            continue
+        Ca = corr.get(a, np.eye(4))
+        if r.index == a or b is None:
+            out.append(Ca)
+            continue
+        Cb = corr.get(b, np.eye(4))
+        s = (r.index - a) / (b - a)
+        out.append(Ca @ gtsam.Pose3.Expmap(s * gtsam.Pose3.Logmap(gtsam.Pose3(inv(Ca) @ Cb))).matrix())
+    return out
+
+
+def _map_feats(result: TrackResult):
+    """The key points the landmark map works with: every one detected (``landmarks.n_features``) or the frame's."""
+    return result.features if result.map_features is None else result.map_features
 
 
 def _png_depth(depth: np.ndarray, scale: float = 5000.0) -> np.ndarray:

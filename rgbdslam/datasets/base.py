@@ -91,6 +91,9 @@ class Sequence(ABC):
     # load() may run in several threads at once (no shared mutable state; OpenCV objects per thread):
     # prefetched() then prepares frames in up to ``workers`` threads, in order
     parallel_load: bool = False
+    # the reader finds the key points itself (features.n_features of them) and its depth holds only
+    # theirs (sparse stereo): the landmark map cannot be given more (landmarks.n_features is ignored)
+    own_key_points: bool = False
 
     @property
     @abstractmethod

@@ -107,6 +107,7 @@ class StereoSequence(Sequence):
         if purpose == "map" and cfg.stereo.map_depth != "same":
             method = cfg.stereo.map_depth
         self.method = method
+        self.own_key_points = method == "sparse"
         from rgbdslam.stereo.depth import check_row_search, depth_noise
 
         if method == "sparse" and cfg.stereo.sparse_search == "row":

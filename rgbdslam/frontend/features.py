@@ -9,7 +9,7 @@ the distorted colour image.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -211,6 +211,45 @@ def orb_features(gray: np.ndarray, fc: FeaturesConfig) -> tuple[np.ndarray, np.n
     response = np.array([k.response for k in kps], dtype=np.float32)
     octave = np.array([k.octave for k in kps], dtype=np.int8)
     return uv_raw, np.ascontiguousarray(desc), response, octave
+
+
+def orb_level_budget(n_features: int, scale_factor: float, n_levels: int) -> np.ndarray:
+    """Key points per pyramid level ORB keeps for ``n_features`` in all (OpenCV's allocation: a
+    geometric series by 1 / ``scale_factor``, rounded; the top level gets the rest)."""
+    factor = 1.0 / scale_factor
+    per = n_features * (1 - factor) / (1 - factor ** n_levels)
+    out = np.zeros(n_levels, np.int64)
+    for level in range(n_levels - 1):
+        out[level] = int(np.floor(per + 0.5))
+        per *= factor
+    out[-1] = max(n_features - int(out[:-1].sum()), 0)
+    return out
+
+
+def strongest(features: FrameFeatures, fc: FeaturesConfig) -> np.ndarray:
+    """Indices (ascending) of the key points of ``features`` ORB would have kept with
+    ``fc.n_features`` (detected with more): per pyramid level the strongest by response, as many as
+    :func:`orb_level_budget` gives the level. ORB's own choice differs a little (it pre-selects by
+    FAST score before the Harris response), so this is the same budget, not the same set."""
+    budget = orb_level_budget(fc.n_features, fc.scale_factor, fc.n_levels)
+    keep = []
+    for level, n in enumerate(budget):
+        idx = np.flatnonzero(features.octave == level)
+        if len(idx) > n:
+            idx = idx[np.argsort(-features.response[idx], kind="stable")[:n]]
+        keep.append(idx)
+    return np.sort(np.concatenate(keep)) if keep else np.zeros(0, np.int64)
+
+
+def subset(features: FrameFeatures, idx: np.ndarray) -> FrameFeatures:
+    """The key points ``idx`` of ``features`` as a frame's features of their own (arrays copied)."""
+    def take(a):
+        return a if a is None or len(a) != len(features.uv) else a[idx]
+
+    return replace(features, uv=features.uv[idx], desc=features.desc[idx], pts=features.pts[idx],
+                   valid=features.valid[idx], uv_raw=take(features.uv_raw), response=take(features.response),
+                   octave=take(features.octave), row_R=take(features.row_R), row_t=take(features.row_t),
+                   uv_observed=take(features.uv_observed), edge=take(features.edge), _tree=None, _tree_index=None)
 
 
 def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:

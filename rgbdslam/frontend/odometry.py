@@ -22,13 +22,13 @@ from __future__ import annotations
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from rgbdslam.config import Config, FeaturesConfig, MatchingConfig, RegistrationConfig
 from rgbdslam.datasets.base import Frame
-from rgbdslam.frontend.features import FrameFeatures, extract_features, lift, reshutter
+from rgbdslam.frontend.features import Detections, FrameFeatures, extract_features, lift, reshutter, strongest, subset
 from rgbdslam.frontend.pairwise import PairRegistration, RegistrationResult, build_pair_registration
 from rgbdslam.frontend.pose_fusion import fuse_candidates
 from rgbdslam.geometry.camera import Camera
@@ -53,6 +53,8 @@ class TrackResult:
     n_fused: int = 0  # candidates kept by the fusion
     reset: bool = False  # tracking restarted here after too many lost frames (relative is a guess)
     matches: np.ndarray | None = None  # (K, 4) inlier matches to the newest kept reference: u_ref v_ref u_cur v_cur
+    # landmarks.n_features: every key point detected (``features`` holds the strongest features.n_features)
+    map_features: FrameFeatures | None = None
 
 
 def _match_segments(ref, res: RegistrationResult, feats: FrameFeatures) -> np.ndarray:
@@ -76,9 +78,12 @@ class Frontend:
     """Tracks frames one by one; keeps the features of the last MP tracked frames as references."""
 
     def __init__(self, rc: RegistrationConfig, fc: FeaturesConfig, mc: MatchingConfig, camera: Camera,
-                 register: PairRegistration):
+                 register: PairRegistration, map_features: int = 0):
         self.rc = rc
         self.fc = fc
+        # landmarks.n_features: detect this many (the landmark map's), register with fc.n_features of them
+        self.fc_detect = detection_features(fc, map_features)
+        self._full: FrameFeatures | None = None  # the last frame's every key point (fc_detect), or None
         self.mc = mc
         self.camera = camera
         self.register = register
@@ -129,6 +134,8 @@ class Frontend:
 
     def set_depth(self, index: int, depth: np.ndarray) -> None:
         """Replace a kept reference frame's depth (e.g. DIF output) and re-lift its 3-D points."""
+        if self._full is not None and self._full.index == index:  # the landmark map's key points too
+            lift(self._full, depth, self.camera, self.mc)
         for r in self.refs:
             if r.features.index == index:
                 lift(r.features, depth, self.camera, self.mc)
@@ -137,7 +144,15 @@ class Frontend:
     def track(self, frame: Frame) -> TrackResult:
         rc = self.rc
         t0 = time.perf_counter()
-        feats = extract_features(frame, self.fc, self.mc, self._depth_motion(frame), self._time_velocity())
+        fc = self.fc_detect
+        det = frame.detections
+        if fc is not self.fc and isinstance(det, Detections) and det.image is frame.rgb and det.config == self.fc:
+            fc = self.fc  # the reader's own key points (sparse stereo: its depth holds only theirs): kept
+        feats = extract_features(frame, fc, self.mc, self._depth_motion(frame), self._time_velocity())
+        full = self._full = None
+        if fc is not self.fc:  # the landmark map's key points; the strongest for the rest
+            full, feats = feats, subset(feats, strongest(feats, self.fc))
+            self._full = full
         timings = {"features": time.perf_counter() - t0, "matching": 0.0, "registration": 0.0, "fusion": 0.0}
         need = max(3, rc.min_points)
         if not self.refs:
@@ -145,7 +160,8 @@ class Frontend:
                 return self._lost(frame, feats, timings, 0)
             pose = np.eye(4)
             self.refs.append(_Ref(feats, pose))
-            return TrackResult(frame.index, frame.timestamp, pose, False, feats, None, None, 0, 0, 0.0, timings)
+            return TrackResult(frame.index, frame.timestamp, pose, False, feats, None, None, 0, 0, 0.0, timings,
+                               map_features=full)
         pred = self._predict(frame.index)
         refs = list(reversed(self.refs))  # most recent first
         results = self._register_all(refs, feats, pred)
@@ -188,6 +204,8 @@ class Frontend:
             # the rolling shutter undone again with this frame's own motion (centred half a frame
             # back, the prediction's 1.5): what the later frames, the map and loop closure see
             reshutter(feats, frame.depth, self.camera, self.mc, *self._velocity[::2])
+            if full is not None and full.row_R is not None:
+                reshutter(full, frame.depth, self.camera, self.mc, *self._velocity[::2])
         self._n_lost = 0
         self.refs.append(_Ref(feats, pose))
         timings["fusion"] = time.perf_counter() - t1
@@ -206,6 +224,7 @@ class Frontend:
             n_candidates=len(ok),
             n_fused=len(kept),
             matches=_match_segments(*kept_pairs[0], feats),
+            map_features=full,
         )
 
     def _register_all(self, refs: list[_Ref], feats: FrameFeatures, pred: np.ndarray) -> list:
@@ -357,4 +376,11 @@ def build_frontend(cfg: Config, camera: Camera, register: PairRegistration | Non
     """The front end from the ``registration``, ``features`` and ``matching`` sections; the pairwise
     registration (strategy ``registration.method``) from :func:`build_pair_registration` unless given."""
     register = register or build_pair_registration(cfg)
-    return Frontend(cfg.registration, cfg.features, cfg.matching, camera, register)
+    return Frontend(cfg.registration, cfg.features, cfg.matching, camera, register,
+                    cfg.landmarks.n_features if cfg.landmarks.enabled else 0)
+
+
+def detection_features(fc: FeaturesConfig, map_features: int) -> FeaturesConfig:
+    """The features config frames are detected with: ``fc`` itself, or with ``map_features`` key
+    points when the landmark map asks for more (``landmarks.n_features``)."""
+    return replace(fc, n_features=map_features) if map_features > fc.n_features else fc
