@@ -336,7 +336,8 @@ def _remove_file(path: Path) -> None:
 
 def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) -> Path:
     """Build a recording of a finished run folder: trajectories (final, odometry, ground truth),
-    loop edges, the fused map cloud, and the keyframes' images and poses."""
+    loop edges, the fused map cloud, the landmark map (when map.npz has one), and the keyframes'
+    images and poses."""
     import open3d as o3d
 
     from rgbdslam.datasets import open_sequence
@@ -391,11 +392,34 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
         if cloud.is_file():
             pc = o3d.io.read_point_cloud(str(cloud))
             log.log_map(np.asarray(pc.points), (np.asarray(pc.colors) * 255 + 0.5).astype(np.uint8))
+        _log_saved_landmarks(log, run_dir, len(seq) - 1 if seq is not None else int(info.get("frames", 1)) - 1)
     except BaseException:
         log.abort()
         raise
     log.close()
     return out_rrd
+
+
+def _log_saved_landmarks(log: RerunLogger, run_dir: Path, last: int) -> None:
+    """The landmark map saved in RUN_DIR/map.npz (runs with ``landmarks.enabled``; positions after the
+    pose graph) as ``world/landmarks`` at frame ``last``, coloured by age as in the live recording;
+    landmarks of earlier sessions of a joined map count as old."""
+    from rgbdslam.session.mapfile import MapFileError, load_map, map_path
+
+    if not map_path(run_dir).is_file():
+        return
+    try:
+        lm = load_map(map_path(run_dir)).landmarks
+    except MapFileError as e:
+        from rgbdslam.ui import console
+
+        console.print(f"[yellow]warning:[/] no landmarks in the recording: {e}")
+        return
+    if lm is None or not len(lm["lm_pos"]):
+        return
+    current = lm["lm_session"] == lm["lm_session"].max()
+    age = np.where(current, np.maximum(last - lm["lm_first"], 0), 300)
+    log.log_landmarks(last, lm["lm_pos"], age, None)
 
 
 def view(path: str | Path, save: str | Path | None = None, progress: bool = True, web: bool = False,

@@ -109,3 +109,23 @@ def test_recording_has_landmarks_by_age_map_matches_and_the_local_ba_moves(landm
         assert np.allclose(c, odo[k, 1:4], atol=1e-5)  # the last BA's poses are the ones written back
     labels6 = [int(t.split()[1]) for t in moved[6]["Points3D:labels"]]
     assert ent["/log"][6]["TextLog:text"] == [f"local BA moved keyframes {labels6}"]  # and as a text line
+
+
+@pytest.mark.data
+def test_view_of_the_finished_run_shows_its_landmark_map(landmark_run, tmp_path, monkeypatch):
+    """`rgbdslam view RUN --save X.rrd` (no display: it only records) puts the landmark map saved in
+    map.npz into the recording: every live landmark, at its position after the pose graph."""
+    from rgbdslam.session.mapfile import load_map
+    from rgbdslam.viz import rerun_log
+
+    monkeypatch.setattr(rerun_log, "has_display", lambda: False)
+    out, _ = landmark_run
+    rrd = tmp_path / "view.rrd"
+    res = cli(["view", out, "--save", rrd])
+    assert res.exit_code == 0, res.output
+    lm = _entities(rrd, {"/world/landmarks"})["/world/landmarks"]
+    saved = load_map(out / "map.npz").landmarks
+    assert list(lm) == [8] and len(saved["lm_pos"]) == json.loads((out / "run.json").read_text())["landmarks"]["size"]
+    assert np.allclose(np.asarray(lm[8]["Points3D:positions"]), saved["lm_pos"], atol=1e-6)
+    ages = {tuple(c) for c in _rgb(lm[8]["Points3D:colors"])}
+    assert len(ages) == 3  # made at keyframes 0, 3 and 6
