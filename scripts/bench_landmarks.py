@@ -181,6 +181,30 @@ def markdown(rows: list[dict], section: str, commands: list[str], machine: str) 
         for r in rv:
             L.append(f"| {r['sequence']} | {r['variant']} | {r['first_visit']:.4f} | {r['revisit']:.4f} | "
                      f"{_f(r.get('old_share'), '{:.3f}')} |")
+    o3d = [q for q in seqs if (q, "Open3D hybrid odometry") in by]
+    if o3d:  # issue 17: at or below Open3D's hybrid RGB-D odometry on each loop-type sequence, same run
+        others = [v for v in variants if v != "Open3D hybrid odometry"]
+        L += ["", "Against Open3D's hybrid RGB-D odometry (frame to frame, no loop closure) measured in the same run "
+                  "on each loop-type sequence: ATE / 1-frame RPE of each variant, `<=` where it is at or below "
+                  "Open3D's.", "",
+              "| sequence | Open3D ATE / RPE | " + " | ".join(others) + " |", "|---|---|" + "---|" * len(others)]
+        count = {v: [0, 0, 0] for v in others}  # ATE <=, RPE <=, sequences
+        for q in o3d:
+            ref = by[(q, "Open3D hybrid odometry")]
+            cells = []
+            for v in others:
+                r = by.get((q, v))
+                if r is None:
+                    cells.append("-")
+                    continue
+                a, p = r["ate"] <= ref["ate"], r["rpe"] <= ref["rpe"]
+                count[v][0] += a
+                count[v][1] += p
+                count[v][2] += 1
+                cells.append(f"{_f(r['ate'])}{' <=' if a else ''} / {_f(r['rpe'])}{' <=' if p else ''}")
+            L.append(f"| {q} | {_f(ref['ate'])} / {_f(ref['rpe'])} | " + " | ".join(cells) + " |")
+        L.append("| at or below Open3D (ATE / RPE) | | " + " | ".join(
+            f"{count[v][0]} / {count[v][1]} of {count[v][2]}" for v in others) + " |")
     syn = [q for q in seqs if " seed " in q]
     if syn:
         L += ["", "Synthetic sequences (every motion x seed): medians and the median of the per-sequence ratio to "

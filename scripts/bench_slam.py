@@ -4,6 +4,8 @@ Usage::
 
     .venv/bin/python scripts/bench_slam.py [--data DIR] [--out DIR] [--write-docs] [--skip-synthetic]
                                            [--skip-index] [--frames N] [--repeat N]
+                                           [--landmark-ablation [--ablation-motions M,..] [--ablation-seeds S,..]
+                                            [--landmark-section HEADING] [--json FILE]]
 
 For each available TUM sequence (``$RGBDSLAM_DATA/tum/*``, default ``../shared/data``) it runs
 ``rgbdslam.pipeline.run_sequence`` with the configurations
@@ -25,7 +27,15 @@ disagrees with the ground truth by more than 0.10 m or 5 degrees) as markdown. T
 * the descriptor index: query time against the number of keyframes for the LSH index and
   the exhaustive baseline (real ORB descriptors from fr1/rpy with bit noise).
 
-``--write-docs`` replaces the "## Full SLAM" section of docs/benchmarks.md with the tables.
+``--landmark-ablation`` (issue 17) runs ``LANDMARK_ABLATION`` — today's default; landmark tracking
+without BA; with local BA; Kalman off; uniform instead of old-first RANSAC sampling; one k-d tree
+instead of the multi-tree; the map pose alone (seed mode) — on fr1/rpy head200, 7-Scenes redkitchen
+0-299 and the synthetic motions x seeds (``--synthetic-frames``), with scripts/bench_landmarks.py's
+tables plus the landmark stage's cost per variant, as its own section (``--landmark-section``).
+With ``--skip-table --skip-ablation --skip-synthetic --skip-index`` it runs alone.
+
+``--write-docs`` replaces the "## Full SLAM" section of docs/benchmarks.md with the tables (and the
+landmark ablation's section, appended when new).
 """
 
 from __future__ import annotations
@@ -43,6 +53,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
 
 from rgbdslam.config import Config  # noqa: E402
 from rgbdslam.geometry.se3 import inv, rotation_angle  # noqa: E402
@@ -304,6 +315,95 @@ def run_ablation(data: Path, out: Path, max_frames: int | None, repeat: int = 1)
     return rows
 
 
+# the landmark map's ablation (issue 17): today's default; landmark tracking without BA; with local BA;
+# Kalman on/off; old-first vs uniform RANSAC sampling; multi vs single k-d tree; the map pose alone (seed mode)
+LANDMARK_ABLATION = {
+    "default": [],
+    "landmarks": ["landmarks.enabled=true"],
+    "landmarks + local BA": ["landmarks.enabled=true", "landmarks.local_ba=true"],
+    "landmarks, Kalman off": ["landmarks.enabled=true", "landmarks.kalman=false"],
+    "landmarks, uniform sampling": ["landmarks.enabled=true", "landmarks.sampling=uniform"],
+    "landmarks, single k-d tree": ["landmarks.enabled=true", "landmarks.store=single"],
+    "landmarks, seed mode": ["landmarks.enabled=true", "landmarks.mode=seed"],
+}
+
+
+def landmark_sequences(data: Path, out: Path, motions: list[str], seeds: list[int], frames: int) -> list[tuple]:
+    """(name, folder, extra config) of fr1/rpy head200, 7-Scenes redkitchen 0-299 (the 7-Scenes reader with
+    configs/7scenes_camera.yaml) and the synthetic generator's motions x seeds (Kinect noise, rendered once
+    into ``out``), as scripts/bench_landmarks.py names them."""
+    from rgbdslam.datasets.synthetic import generate_sequence
+
+    seqs = []
+    rpy = data / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
+    if rpy.is_dir():
+        seqs.append(("fr1/rpy head200", rpy, []))
+    ss = data / "7scenes" / "frames_0000_0299"
+    if ss.is_dir():
+        seqs.append(("7-Scenes redkitchen 0-299", ss, [f"dataset.camera_file={ROOT / 'configs' / '7scenes_camera.yaml'}"]))
+    for motion in motions:
+        for seed in seeds:
+            d = out / "synthetic" / f"{motion}_s{seed}_{frames}"
+            if not (d / "groundtruth.txt").exists():
+                generate_sequence(d, frames=frames, motion=motion, noise=True, seed=seed)
+            seqs.append((f"{motion} seed {seed}", d, []))
+    return seqs
+
+
+def run_landmark_ablation(data: Path, out: Path, motions: list[str], seeds: list[int], frames: int,
+                          repeat: int = 1, variants: dict | None = None) -> list[dict]:
+    """Every :data:`LANDMARK_ABLATION` variant on every sequence of :func:`landmark_sequences` (map
+    fusion off): ATE, 1-frame RPE, frames/s, the landmark stage's and the local BA's median ms, the
+    share of old landmarks matched, and first visit / revisit ATE on the loop-type motions."""
+    from bench_landmarks import LOOP_TYPE, _metrics, revisit_errors, run_dir_name
+
+    from rgbdslam.config import load_config
+
+    rows = []
+    for name, d, extra in landmark_sequences(data, out, motions, seeds, frames):
+        for vname, sets in (variants or LANDMARK_ABLATION).items():
+            cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *extra, *sets])
+            run = out / "landmark_ablation" / run_dir_name(name, vname.replace(",", "").replace("+", "plus"))
+            s = timed_runs(d, run, cfg, repeat)
+            lm = s.get("landmarks") or {}
+            row = {"sequence": name, "variant": vname, "dir": str(d), **_metrics(s),
+                   "landmarks_ms": (s["timings"].get("landmarks") or {}).get("median_ms"),
+                   "local_ba_ms": lm.get("local_ba_median_ms") if lm.get("local_ba_runs") else None,
+                   "store_trees": lm.get("store_trees")}
+            if " seed " in name and name.split(" ")[0] in LOOP_TYPE:
+                rv = revisit_errors(d, run)
+                if rv:
+                    row["first_visit"], row["revisit"] = rv
+            rows.append(row)
+            print(f"  {name:28s} {vname:30s} ATE {row['ate']:.4f}  RPE {row['rpe']:.4f}  {row['fps']:5.1f} fps  "
+                  f"landmarks {row['landmarks_ms'] or 0:.1f} ms", flush=True)
+    return rows
+
+
+def landmark_markdown(rows: list[dict], section: str, command: str, machine: str) -> str:
+    """bench_landmarks.py's tables (per sequence x variant, revisit, synthetic medians and ratios) and the
+    landmark stage's cost per variant (median over the sequences of each run's median ms per frame)."""
+    from bench_landmarks import markdown as lm_markdown
+
+    text = lm_markdown(rows, section, [command], machine)
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    L = ["", "Cost of the landmark stage per variant (median over the sequences of each run's median; the local BA "
+         "per keyframe; wall time of the stage in the run, on this shared machine):", "",
+         "| variant | landmark stage ms/frame | local BA ms/keyframe | frames/s, median ratio to the default |",
+         "|---|---|---|---|"]
+    by = {(r["sequence"], r["variant"]): r for r in rows}
+    for v in variants:
+        if v == "default":
+            continue
+        rs = [r for r in rows if r["variant"] == v]
+        ms = [r["landmarks_ms"] for r in rs if r.get("landmarks_ms") is not None]
+        ba = [r["local_ba_ms"] for r in rs if r.get("local_ba_ms") is not None]
+        ratio = [r["fps"] / by[(r["sequence"], "default")]["fps"] for r in rs if (r["sequence"], "default") in by]
+        L.append(f"| {v} | {np.median(ms):.1f} | {f'{np.median(ba):.1f}' if ba else '-'} | "
+                 f"{f'{np.median(ratio):.2f}' if ratio else '-'} |")
+    return text + "\n".join(L) + "\n"
+
+
 def _flip(rng, desc, n_flips):
     bits = np.unpackbits(desc, axis=1)
     idx = rng.integers(0, 256, (len(desc), n_flips))
@@ -387,12 +487,36 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-ablation", action="store_true")
     ap.add_argument("--repeat", type=int, default=3, help="runs per configuration; frames/s is their median")
     ap.add_argument("--write-docs", action="store_true")
+    ap.add_argument("--landmark-ablation", action="store_true",
+                    help="also run the landmark map's ablation (LANDMARK_ABLATION) on fr1/rpy head200, 7-Scenes 0-299 "
+                         "and the synthetic --ablation-motions x --ablation-seeds; its own section")
+    ap.add_argument("--ablation-motions", default="loop,circle,xyz,rpy,figure8,revisit")
+    ap.add_argument("--ablation-seeds", default="0")
+    ap.add_argument("--landmark-section", default="## Landmark map ablation (scripts/bench_slam.py)",
+                    help="heading of the landmark ablation's section (--write-docs replaces it or appends it)")
+    ap.add_argument("--json", default=None, help="write the landmark ablation's rows here")
     a = ap.parse_args(argv)
     command = "python scripts/bench_slam.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     data = data_root(a.data)
     out = Path(a.out) if a.out else Path(tempfile.mkdtemp(prefix="bench_slam_"))
-    from _docs import reference_timing
+    from _docs import publish, reference_timing
 
+    if a.landmark_ablation:
+        load0 = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        lrows = run_landmark_ablation(data, out, a.ablation_motions.split(","),
+                                      [int(x) for x in a.ablation_seeds.split(",")], a.synthetic_frames, a.repeat)
+        machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+                   f"{time.strftime('%Y-%m-%d %H:%M')}, load average at the start {load0} and at the end "
+                   f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}")
+        if a.json:
+            import json
+
+            from rgbdslam.io.atomic import atomic_write_text
+
+            atomic_write_text(Path(a.json), json.dumps({"command": command, "machine": machine, "rows": lrows}, indent=1))
+        publish(landmark_markdown(lrows, a.landmark_section, command, machine), a.write_docs)
+        if a.skip_table and a.skip_ablation and a.skip_synthetic and a.skip_index:
+            return 0
     reference = [("before the runs", reference_timing())]
     rec = _Recorder()
     rows = [] if a.skip_table else run_table(data, out, rec, a.frames, a.repeat)
@@ -401,8 +525,6 @@ def main(argv=None) -> int:
     index_rows = [] if a.skip_index else run_index_scaling(data)
     reference.append(("after them", reference_timing()))
     md = markdown(rows, synth, index_rows, command, ablation, a.repeat, reference)
-    from _docs import publish
-
     return publish(md, a.write_docs)
 
 

@@ -576,8 +576,9 @@ class LandmarkTracker:
         """Send the map to a Rerun observer (landmarks by age, this frame's map matches, BA moves)."""
         ids = self.map.live_ids()
         uv = feats.uv_raw[self._last[1]] if self._last is not None and len(feats.uv_raw) else None
-        observer.log_landmarks(index, self.map.pos[ids], index - self.map.first[ids], uv,
-                               self.last_ba_moved if is_kf else None)
+        moved = self.last_ba_moved if is_kf and self.ba is not None else None
+        centres = None if moved is None else np.array([self.kf_pose[k][:3, 3] for k in moved], float).reshape(-1, 3)
+        observer.log_landmarks(index, self.map.pos[ids], index - self.map.first[ids], uv, moved, centres)
 
     def top_view(self, path, title: str = "landmarks (top view)") -> None:
         """The thesis' 2-D map: landmarks seen from above (x-y of the world), coloured by times seen."""

@@ -33,7 +33,7 @@ class NullObserver:
         pass
 
     def log_landmarks(self, index: int, pos: np.ndarray, age: np.ndarray, uv_matched: np.ndarray | None,
-                      ba_moved: list[int] | None = None) -> None:
+                      ba_moved: list[int] | None = None, ba_moved_centres: np.ndarray | None = None) -> None:
         pass
 
     def log_map(self, points: np.ndarray, colors: np.ndarray) -> None:

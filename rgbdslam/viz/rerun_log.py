@@ -12,6 +12,9 @@ Entity layout (time lines ``frame`` = sequence position, ``time`` = the frame's 
 - ``world/trajectory/<name>``       whole trajectories (``estimate``, ``odometry``, ``groundtruth``)
 - ``world/loops``                   loop edges as segments between the two camera centres
 - ``world/map``                     the fused coloured cloud
+- ``world/landmarks``               the landmark map (``landmarks.enabled``), coloured by age
+- ``world/camera/image/map_matches`` this frame's key points matched to the landmark map
+- ``world/local_ba/moved``          camera centres of the keyframes the last local BA moved
 - ``timings/<stage>``               per-stage time in ms (Scalars); ``stats/*`` matches, inliers, lost
 
 The ground truth is drawn in the estimate's world frame: it is moved by the rigid transform that
@@ -248,9 +251,11 @@ class RerunLogger:
         self.rec.log("world/camera/image/matches", self.rr.LineStrips2D(seg, colors=[(255, 220, 0)], radii=0.5))
 
     def log_landmarks(self, index: int, pos: np.ndarray, age: np.ndarray, uv_matched: np.ndarray | None,
-                      ba_moved: list[int] | None = None) -> None:
-        """The landmark map (coloured by age: young red -> old blue), this frame's pixels matched to
-        the map, and the keyframes the last local BA moved (a text line)."""
+                      ba_moved: list[int] | None = None, ba_moved_centres: np.ndarray | None = None) -> None:
+        """The landmark map (coloured by age in frames: young red -> old (>= 300) blue), this frame's
+        pixels matched to the map, and at a keyframe the keyframes the last local BA moved: a text
+        line and ``world/local_ba/moved``, their camera centres labelled with their frame numbers
+        (``ba_moved`` ids, ``ba_moved_centres`` (K, 3); an empty list clears the entity)."""
         self.rec.set_time("frame", sequence=int(index))
         if len(pos):
             a = np.clip(np.asarray(age, np.float64) / 300.0, 0.0, 1.0)[:, None]
@@ -262,6 +267,13 @@ class RerunLogger:
                                           radii=2.0))
         if ba_moved:
             self.rec.log("log", self.rr.TextLog(f"local BA moved keyframes {ba_moved}", level="DEBUG"))
+        if ba_moved_centres is not None:
+            if len(ba_moved_centres):
+                self.rec.log("world/local_ba/moved", self.rr.Points3D(
+                    np.asarray(ba_moved_centres, np.float32), colors=[(255, 140, 0)], radii=0.02,
+                    labels=[f"kf {k}" for k in (ba_moved or [])] or None))
+            else:
+                self.rec.log("world/local_ba/moved", self.rr.Clear(recursive=False))
 
     def log_loop(self, i: int, j: int, pose_i: np.ndarray, pose_j: np.ndarray) -> None:
         """A loop edge between frames i and j (drawn between their camera centres; all loops so far)."""
@@ -324,7 +336,8 @@ def _remove_file(path: Path) -> None:
 
 def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) -> Path:
     """Build a recording of a finished run folder: trajectories (final, odometry, ground truth),
-    loop edges, the fused map cloud, and the keyframes' images and poses."""
+    loop edges, the fused map cloud, the landmark map (when map.npz has one), and the keyframes'
+    images and poses."""
     import open3d as o3d
 
     from rgbdslam.datasets import open_sequence
@@ -379,11 +392,34 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
         if cloud.is_file():
             pc = o3d.io.read_point_cloud(str(cloud))
             log.log_map(np.asarray(pc.points), (np.asarray(pc.colors) * 255 + 0.5).astype(np.uint8))
+        _log_saved_landmarks(log, run_dir, len(seq) - 1 if seq is not None else int(info.get("frames", 1)) - 1)
     except BaseException:
         log.abort()
         raise
     log.close()
     return out_rrd
+
+
+def _log_saved_landmarks(log: RerunLogger, run_dir: Path, last: int) -> None:
+    """The landmark map saved in RUN_DIR/map.npz (runs with ``landmarks.enabled``; positions after the
+    pose graph) as ``world/landmarks`` at frame ``last``, coloured by age as in the live recording;
+    landmarks of earlier sessions of a joined map count as old."""
+    from rgbdslam.session.mapfile import MapFileError, load_map, map_path
+
+    if not map_path(run_dir).is_file():
+        return
+    try:
+        lm = load_map(map_path(run_dir)).landmarks
+    except MapFileError as e:
+        from rgbdslam.ui import console
+
+        console.print(f"[yellow]warning:[/] no landmarks in the recording: {e}")
+        return
+    if lm is None or not len(lm["lm_pos"]):
+        return
+    current = lm["lm_session"] == lm["lm_session"].max()
+    age = np.where(current, np.maximum(last - lm["lm_first"], 0), 300)
+    log.log_landmarks(last, lm["lm_pos"], age, None)
 
 
 def view(path: str | Path, save: str | Path | None = None, progress: bool = True, web: bool = False,

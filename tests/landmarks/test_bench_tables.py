@@ -1,0 +1,58 @@
+"""The issue-17 benchmark tables built from rows by hand: scripts/bench_landmarks.py's comparison
+with Open3D's odometry on the loop-type sequences, scripts/bench_slam.py's landmark ablation."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
+
+
+def _script(name: str):
+    sys.path.insert(0, str(SCRIPTS))  # bench_slam imports bench_landmarks and _docs from there
+    try:
+        spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    finally:
+        sys.path.remove(str(SCRIPTS))
+
+
+def _row(seq, variant, ate, rpe, fps=10.0, **kw):
+    return {"sequence": seq, "variant": variant, "ate": ate, "rpe": rpe, "fps": fps, "loops": 0, "old_share": None, **kw}
+
+
+def test_open3d_comparison_marks_and_counts_each_variant():
+    md = _script("bench_landmarks").markdown([
+        _row("loop seed 0", "default", 0.0030, 0.0020), _row("loop seed 0", "landmarks", 0.0020, 0.0009),
+        _row("loop seed 0", "Open3D hybrid odometry", 0.2000, 0.0010, 0.5),
+        _row("circle seed 0", "default", 0.0060, 0.0030), _row("circle seed 0", "landmarks", 0.0100, 0.0012),
+        _row("circle seed 0", "Open3D hybrid odometry", 0.0100, 0.0010, 0.5),
+        _row("xyz seed 0", "default", 0.0050, 0.0030), _row("xyz seed 0", "landmarks", 0.0020, 0.0020),
+    ], "## T", ["cmd"], "machine")
+    lines = md.splitlines()
+    head = lines.index("| sequence | Open3D ATE / RPE | default | landmarks |")
+    assert lines[head + 2] == "| loop seed 0 | 0.2000 / 0.0010 | 0.0030 <= / 0.0020 | 0.0020 <= / 0.0009 <= |"
+    assert lines[head + 3] == "| circle seed 0 | 0.0100 / 0.0010 | 0.0060 <= / 0.0030 | 0.0100 <= / 0.0012 |"
+    assert lines[head + 4] == "| at or below Open3D (ATE / RPE) | | 2 / 0 of 2 | 2 / 1 of 2 |"
+    # Open3D (loop-type sequences only) stays out of the synthetic medians
+    assert not [ln for ln in lines if ln.startswith("| Open3D hybrid odometry | 0.")]
+
+
+def test_landmark_ablation_cost_table():
+    rows = [_row("xyz seed 0", "default", 0.005, 0.003, 20.0, landmarks_ms=None, local_ba_ms=None),
+            _row("xyz seed 0", "landmarks", 0.002, 0.002, 15.0, landmarks_ms=8.0, local_ba_ms=None),
+            _row("xyz seed 0", "landmarks + local BA", 0.002, 0.002, 10.0, landmarks_ms=9.0, local_ba_ms=12.0),
+            _row("rpy seed 0", "default", 0.005, 0.003, 40.0, landmarks_ms=None, local_ba_ms=None),
+            _row("rpy seed 0", "landmarks", 0.004, 0.003, 20.0, landmarks_ms=6.0, local_ba_ms=None),
+            _row("rpy seed 0", "landmarks + local BA", 0.004, 0.003, 20.0, landmarks_ms=7.0, local_ba_ms=20.0)]
+    md = _script("bench_slam").landmark_markdown(rows, "## A", "cmd", "machine")
+    assert "| landmarks | 7.0 | - | 0.62 |" in md  # medians of (8, 6) ms and of the ratios (0.75, 0.5)
+    assert "| landmarks + local BA | 8.0 | 16.0 | 0.50 |" in md
+    assert "| landmarks | 0.0030 | 0.0025 | 0.60 | 0.83 | 2 / 0 |" in md  # synthetic medians and ratios
+    assert set(_script("bench_slam").LANDMARK_ABLATION) >= {
+        "default", "landmarks", "landmarks + local BA", "landmarks, Kalman off", "landmarks, uniform sampling",
+        "landmarks, single k-d tree"}
