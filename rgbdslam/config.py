@@ -783,6 +783,20 @@ def validate(cfg: Config) -> Config:
     """Check every section (:func:`validate_section`)."""
     for section in dataclasses.fields(cfg):
         validate_section(section.name, getattr(cfg, section.name))
+    lm = cfg.landmarks
+    if lm.local_ba and lm.ba_every > lm.ba_window:
+        raise ConfigError(
+            f"config key 'landmarks.ba_every' ({lm.ba_every}) must be at most 'landmarks.ba_window' ({lm.ba_window}): "
+            f"otherwise keyframes between two local BAs are never in a window")
+    if 0 < lm.n_features < cfg.features.n_features:
+        raise ConfigError(
+            f"config key 'landmarks.n_features' ({lm.n_features}) must be 0 (off) or at least "
+            f"'features.n_features' ({cfg.features.n_features})")
+    if lm.n_features > cfg.features.n_features and cfg.features.grid_rows * cfg.features.grid_cols > 1:
+        raise ConfigError(
+            f"config key 'landmarks.n_features' ({lm.n_features}) cannot be used with a key-point grid "
+            f"(features.grid_rows x grid_cols = {cfg.features.grid_rows} x {cfg.features.grid_cols}): the "
+            f"registration's strongest subset would not follow the grid; set one of them off")
     return cfg
 
 

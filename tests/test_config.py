@@ -305,3 +305,20 @@ def test_config_explain_command_prints_every_key(tmp_path):
             assert f"\n{section}.{name}: " in "\n" + out, f"{section}.{name}"
     assert "registration.mp: int, 1 to 64; default 4 (here 6)\n" in out
     assert max(len(ln) for ln in out.splitlines() if ln.startswith("    ")) <= 80
+
+
+def test_landmark_keys_checked_against_each_other():
+    """``landmarks.ba_every`` beyond ``ba_window`` (with local BA) would leave keyframes out of every
+    window, and ``landmarks.n_features`` between 1 and ``features.n_features`` would be ignored:
+    both are refused with one line naming the keys."""
+    from rgbdslam.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError, match="landmarks.ba_every.*ba_window"):
+        load_config(None, ["landmarks.local_ba=true", "landmarks.ba_window=3", "landmarks.ba_every=4"])
+    load_config(None, ["landmarks.local_ba=true", "landmarks.ba_window=4", "landmarks.ba_every=4"])
+    load_config(None, ["landmarks.ba_window=3", "landmarks.ba_every=4"])  # no local BA: nothing to leave out
+    with pytest.raises(ConfigError, match="landmarks.n_features.*features.n_features"):
+        load_config(None, ["landmarks.n_features=500"])
+    load_config(None, ["landmarks.n_features=1500"])
+    with pytest.raises(ConfigError, match="landmarks.n_features.*grid"):
+        load_config(None, ["landmarks.n_features=1500", "features.grid_rows=2"])

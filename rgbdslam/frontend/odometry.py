@@ -337,7 +337,8 @@ class Frontend:
             self._velocity = None
             self._n_lost = 0
             return TrackResult(frame.index, frame.timestamp, last.copy(), False, feats, np.eye(4), RESTART_INFORMATION,
-                               n_matches, 0, 0.0, timings, n_candidates=n_cand, reset=True)
+                               n_matches, 0, 0.0, timings, n_candidates=n_cand, reset=True,
+                               map_features=self._full)
         return TrackResult(frame.index, frame.timestamp, None, True, feats, None, None, n_matches, 0, 0.0,
                            timings, n_candidates=n_cand)
 

@@ -81,7 +81,10 @@ def render_top_view(pos: np.ndarray, seen: np.ndarray, kf_poses: list[np.ndarray
     up = up_axis(kf_poses)
     ax_i = [k for k in range(3) if k != up]
     pos = np.asarray(pos, float).reshape(-1, 3)
+    ok = np.isfinite(pos).all(axis=1)  # a non-finite landmark is not drawn (it would break the axes)
+    pos, seen = pos[ok], np.asarray(seen).reshape(-1)[ok]
     C = np.array([P[:3, 3] for P in kf_poses]).reshape(-1, 3)
+    C = C[np.isfinite(C).all(axis=1)]
     ab, kab = pos[:, ax_i], C[:, ax_i]
     fr = _Frame(np.concatenate([ab, kab]))
     img = np.full((SIZE, SIZE, 3), 255, np.uint8)

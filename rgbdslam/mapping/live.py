@@ -116,6 +116,9 @@ class MapState:
         # mapping.live_cloud_ahead: waiting keyframe -> (pose, its cloud part at that pose: keys, sums,
         # counts, or None when it has no point), made while the map is idle (:meth:`make_ahead`)
         self.ahead: dict[int, tuple[np.ndarray, tuple | None]] = {}
+        # the _PartMaker making a part now: kept here so that it outlives a _track call (a catch-up, a
+        # niced thread handing over) and no second one starts for the same keyframe meanwhile
+        self.part_maker: _PartMaker | None = None
         # keyframes' prepared images for re-integration, up to cache_mb (then read again with load)
         self.cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.cache_bytes = 0
@@ -252,7 +255,10 @@ class MapState:
 
         part = VoxelCloud(self.cfg.voxel_size)
         self._integrate(None, part, pose, prepared)
-        return part.pending[0] if part.pending else None
+        if len(part.pending) == 1 and not len(part.keys):
+            return part.pending[0]
+        part._merge()  # a large keyframe (>= 200,000 voxels) was merged into the part's own map already
+        return (part.keys, part.sums, part.counts) if len(part.keys) else None
 
     def keep_ahead(self, index: int, pose: np.ndarray, part) -> None:
         """Keep a cloud part made at ``pose`` for a keyframe that still waits."""
@@ -614,21 +620,20 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
             return taken.pop(0)
         return jobs.get() if block else jobs.get_nowait()
 
-    maker = None  # a cloud part made in the background (mapping.live_cloud_ahead), kept when done
     while True:
         if stop is not None and (why := stop()) is not None:
             return why
-        if maker is not None and maker.done():
-            maker.keep(state)
-            maker = None
+        if state.part_maker is not None and state.part_maker.done():
+            state.part_maker.keep(state)
+            state.part_maker = None
         try:  # a keyframe to integrate: only when no job waits
             idle = None
             if not state.unsettled():  # idle work: a waiting keyframe into the map early, or its cloud part made
                 idle = "speculate" if state.can_speculate() else None
-                if idle is None and maker is None and not taken and state.can_make_ahead():
-                    maker = _PartMaker(state)
-            if maker is not None and idle is None and not taken and not state.unsettled():
-                job = maker.job_or_made(jobs)
+                if idle is None and state.part_maker is None and not taken and state.can_make_ahead():
+                    state.part_maker = _PartMaker(state)
+            if state.part_maker is not None and idle is None and not taken and not state.unsettled():
+                job = state.part_maker.job_or_made(jobs)
                 if job is PART_MADE:
                     continue
             else:

@@ -729,3 +729,34 @@ def test_the_finish_is_taken_while_a_cloud_part_is_being_made(synth):
     state.refresh(final, flush=True)
     assert state.stats["final_waiting"] == 2 and state.stats["ahead_used"] == 0 and not state.ahead
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+
+
+def test_a_cloud_part_made_ahead_keeps_a_keyframe_of_more_than_200k_voxels(tmp_path):
+    """A keyframe that reduces to >= 200,000 voxels is merged inside its own part (VoxelCloud's
+    merge rule): its part made ahead must still hold every voxel, not come back as "no point"."""
+    from rgbdslam.datasets.synthetic import generate_sequence
+    from rgbdslam.mapping.fusion import VoxelCloud
+
+    generate_sequence(tmp_path / "big", frames=2, motion="loop", width=640, height=480, noise=True, seed=1)
+    seq = open_sequence(tmp_path / "big")
+    cfg = MappingConfig(live_lag=3, live_tolerance=0.0, live_cloud_ahead=True, voxel_size=0.001,
+                        cloud_pixel_stride=1, mesh=False, map2d=False)
+    gt = seq.groundtruth()
+    live = MapState(cfg, seq.camera, lambda i: (seq.load(i).rgb, seq.load(i).depth))
+    for i in (0, 1):
+        f = seq.load(i)
+        live.add(i, f.rgb, f.depth, gt.poses[i])
+    live.make_ahead()
+    part = live.ahead[0][1]
+    assert part is not None and len(part[0]) >= 200_000
+    alone = VoxelCloud(cfg.voxel_size)
+    live._integrate(None, alone, np.asarray(gt.poses[0], np.float64), live._prepared(0))
+    alone._merge()
+    np.testing.assert_array_equal(np.sort(part[0]), np.sort(alone.keys))
+    live.refresh({i: gt.poses[i] for i in (0, 1)}, flush=True)
+    _, cloud, fused, _ = live.result()
+    assert fused == [0, 1] and live.stats["final_ahead"] == 1
+    fresh = VoxelCloud(cfg.voxel_size)
+    for i in (0, 1):
+        live._integrate(None, fresh, np.asarray(gt.poses[i], np.float64), live._prepared(i))
+    assert len(cloud) == len(fresh)
