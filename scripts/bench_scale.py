@@ -166,6 +166,8 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
                 f"(mapping.live_early), {t.get('early_undone', 0)} of them taken out again; "
                 f"{t.get('ahead_made', 0)} cloud parts made ahead, {t.get('ahead_used', 0)} of them used, "
                 f"{t.get('final_ahead', 0)} at the end (mapping.live_cloud_ahead); "
+                f"the cloud process's CPU after the last frame: outlier removal {t.get('cloud_cpu_s', float('nan')):.2f} s, "
+                f"2-D map {t.get('map2d_cpu_s', float('nan')):.2f} s; "
                 f"keyframes moved more than the tolerance at the end (mm): "
                 f"{t.get('final_shift_mm', '-')}; the end's timeline (s after the run sent the final poses): "
                 f"{t.get('end_timeline', '-')}.")
