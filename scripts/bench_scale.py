@@ -107,6 +107,8 @@ RUN_VARIANTS = {  # --variants: key -> (row name, extra arguments of `rgbdslam r
               ["--set", "mapping.live_cloud_ahead=true"]),
     "earlyahead": ("map fused while tracking, idle time: waiting keyframes put in early, else their cloud parts made (mapping.live_early=true, mapping.live_cloud_ahead=true)",
                    ["--set", "mapping.live_early=true", "--set", "mapping.live_cloud_ahead=true"]),
+    "voxel": ("map fused while tracking, voxel outlier removal of the cloud (mapping.outlier_method=voxel)",
+              ["--set", "mapping.outlier_method=voxel"]),
     "lag0": ("map fused while tracking, every keyframe into the map at once (mapping.live_lag=0)",
              ["--set", "mapping.live_lag=0"]),
     "tol1": ("map fused while tracking, mapping.live_tolerance=1 (1 voxel)", ["--set", "mapping.live_tolerance=1"]),
@@ -146,7 +148,7 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
               f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} | {t.get('final_waiting', '-')} | "
               f"{a.get('cpu', float('nan')):.2f} | {t.get('final_cpu_s', float('nan')):.2f} |")
     cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in dict.fromkeys(keys)
-            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "early", "ahead", "earlyahead")]
+            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "early", "ahead", "earlyahead", "voxel")]
     live_lines = []
     for name, out in runs.items():  # what the map process did, in the runs with a live map
         info = json.loads((out / "run.json").read_text())
@@ -164,6 +166,8 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
                 f"(mapping.live_early), {t.get('early_undone', 0)} of them taken out again; "
                 f"{t.get('ahead_made', 0)} cloud parts made ahead, {t.get('ahead_used', 0)} of them used, "
                 f"{t.get('final_ahead', 0)} at the end (mapping.live_cloud_ahead); "
+                f"the cloud process's CPU after the last frame: outlier removal {t.get('cloud_cpu_s', float('nan')):.2f} s, "
+                f"2-D map {t.get('map2d_cpu_s', float('nan')):.2f} s; "
                 f"keyframes moved more than the tolerance at the end (mm): "
                 f"{t.get('final_shift_mm', '-')}; the end's timeline (s after the run sent the final poses): "
                 f"{t.get('end_timeline', '-')}.")

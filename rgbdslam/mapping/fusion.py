@@ -490,9 +490,27 @@ def cloud_points(acc: VoxelCloud, cfg: MappingConfig) -> tuple[np.ndarray, np.nd
 
 
 def outlier_keep(points: np.ndarray, cfg: MappingConfig) -> np.ndarray | None:
-    """The indices (int64) of the points statistical outlier removal keeps (Open3D's: the mean
-    distance to the ``outlier_neighbors`` nearest points at most ``outlier_std`` standard deviations
-    above the cloud's mean); None when it is off or the cloud is too small. An InputError when it
+    """The indices (int64, ascending) of the points the cloud's outlier removal keeps
+    (``cfg.outlier_method``: :func:`statistical_keep` or :func:`voxel_keep`); None when it is off or
+    the cloud is too small. An InputError when it would keep none."""
+    if cfg.outlier_method == "voxel":
+        if cfg.outlier_min_neighbors <= 0 or len(points) == 0:
+            return None
+        keep = voxel_keep(points, cfg.voxel_size, cfg.outlier_min_neighbors, cfg.outlier_radius)
+        if len(keep) == 0:
+            raise InputError(
+                f"voxel outlier removal left no point of the {len(points)} in the cloud (none has "
+                f"mapping.outlier_min_neighbors={cfg.outlier_min_neighbors} occupied voxels among its "
+                f"neighbours); lower it or set mapping.outlier_min_neighbors=0"
+            )
+        return keep
+    return statistical_keep(points, cfg)
+
+
+def statistical_keep(points: np.ndarray, cfg: MappingConfig) -> np.ndarray | None:
+    """Open3D's statistical outlier removal: the indices (int64) of the points whose mean distance
+    to the ``outlier_neighbors`` nearest points is at most ``outlier_std`` standard deviations
+    above the cloud's mean; None when it is off or the cloud is too small. An InputError when it
     would keep none."""
     import open3d as o3d
 
@@ -507,6 +525,83 @@ def outlier_keep(points: np.ndarray, cfg: MappingConfig) -> np.ndarray | None:
             f"mapping.outlier_std (now {cfg.outlier_std:g}) or set mapping.outlier_neighbors=0"
         )
     return keep
+
+
+VOXEL_DENSE_CELLS = 4 * 2**20  # voxel_neighbours' occupancy buffer (1 byte a cell) holds at most this many cells
+
+
+def voxel_neighbours(points: np.ndarray, voxel: float, radius: int = 1,
+                     max_cells: int = VOXEL_DENSE_CELLS) -> np.ndarray:
+    """For every point, the number of occupied voxels (of side ``voxel``, the grid of
+    :func:`voxel_keys`) among the (2 radius + 1)^3 - 1 around its own voxel (its own not counted,
+    however many points share it); uint16. The points go through a dense uint8 occupancy buffer of
+    at most ``max_cells`` cells in slabs along x (one gather per neighbour offset, the buffer
+    reused: its pages are touched once); when one x plane of the points' y-z box does not fit, a
+    search in the sorted voxel keys gives the same counts, slower."""
+    n = len(points)
+    counts = np.zeros(n, np.uint16)
+    if n == 0:
+        return counts
+    # the voxel coordinates of voxel_keys (21 bits per axis, clipped the same way)
+    q = np.clip(np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64) + (1 << 20),
+                0, (1 << 21) - 1)
+    r = int(radius)
+    offsets = [(dx, dy, dz) for dx in range(-r, r + 1) for dy in range(-r, r + 1) for dz in range(-r, r + 1)
+               if (dx, dy, dz) != (0, 0, 0)]
+    lo = q.min(axis=0) - r
+    nz = int(q[:, 2].max()) + r + 1 - int(lo[2])
+    sy = (int(q[:, 1].max()) + r + 1 - int(lo[1])) * nz  # cells of one x plane
+    slab = max_cells // sy - 2 * r  # x planes whose points one buffer fill counts
+    if slab < 1:
+        return _voxel_neighbours_sorted(q, offsets, counts)
+    x = q[:, 0]
+    order = None if np.all(x[1:] >= x[:-1]) else np.argsort(x, kind="stable")
+    xs = x if order is None else x[order]
+    # within a buffer starting at x plane x0 - r, the cell of (x, y, z) is (x - x0 + r) sy + (y - lo_y) nz + (z - lo_z)
+    yz = (q[:, 1] - lo[1]) * nz + (q[:, 2] - lo[2])
+    if order is not None:
+        yz = yz[order]
+    grid = np.zeros((slab + 2 * r) * sy, np.uint8)
+    far = r * sy + r * nz + r
+    shifts = [dx * sy + dy * nz + dz + far for dx, dy, dz in offsets]
+    out = np.zeros(n, np.uint16)
+    i = 0
+    while i < n:
+        x0 = int(xs[i])
+        a, b, c = np.searchsorted(xs, [x0 - r, x0 + slab, x0 + slab + r])  # filled [a, c), counted [i, b)
+        cell = (xs[a:c] - (x0 - r)) * sy + yz[a:c]
+        grid[cell] = 1
+        base = cell[i - a:b - a] - far
+        part = out[i:b]
+        for shift in shifts:
+            part += np.take(grid[shift:], base)
+        grid[cell] = 0
+        i = b
+    if order is None:
+        return out
+    counts[order] = out
+    return counts
+
+
+def _voxel_neighbours_sorted(q: np.ndarray, offsets, counts: np.ndarray) -> np.ndarray:
+    """:func:`voxel_neighbours` by binary search in the sorted voxel keys (any box)."""
+    keys = np.unique((q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2])
+    top = (1 << 21) - 1
+    for dx, dy, dz in offsets:
+        nb = q + np.array([dx, dy, dz], np.int64)
+        inside = ((nb >= 0) & (nb <= top)).all(axis=1)
+        nk = (nb[:, 0] << 42) | (nb[:, 1] << 21) | nb[:, 2]
+        at = np.minimum(np.searchsorted(keys, nk), len(keys) - 1)
+        counts += (inside & (keys[at] == nk)).astype(np.uint16)
+    return counts
+
+
+def voxel_keep(points: np.ndarray, voxel: float, min_neighbors: int, radius: int = 1,
+               max_cells: int = VOXEL_DENSE_CELLS) -> np.ndarray:
+    """The indices (int64, ascending) of the points with at least ``min_neighbors`` occupied
+    voxels around their own (:func:`voxel_neighbours`): isolated speckles and thin streaks of
+    flying pixels go, points of a surface (8 or more neighbours in a plane at radius 1) stay."""
+    return np.flatnonzero(voxel_neighbours(points, voxel, radius, max_cells) >= min_neighbors).astype(np.int64)
 
 
 def write_cloud(stage: Path, points: np.ndarray, colors: np.ndarray, cfg: MappingConfig

@@ -925,13 +925,14 @@ def _cloud_outliers(stage, cfg: MappingConfig):
 
     from rgbdslam.mapping.fusion import outlier_keep
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     timings: dict = {"at_cloud_start": time.time()}
     points, colors = _load_cloud(stage)
     keep = outlier_keep(points, cfg)
     _save_handover(stage, CLOUD_KEEP, keep if keep is not None else np.arange(len(points)))
     _KEPT.update(points=points if keep is None else points[keep], colors=colors if keep is None else colors[keep])
     timings["cloud"] = time.perf_counter() - t0  # outlier removal (cloud.ply is written by the run meanwhile)
+    timings["cloud_cpu_s"] = time.process_time() - c0
     timings["at_outliers_done"] = time.time()
     return len(_KEPT["points"]), timings
 
@@ -959,7 +960,9 @@ def _cloud_2d(stage, cfg: MappingConfig, trajectory, accelerometer, want_points:
 
     points, colors = _KEPT.pop("points").astype(np.float32), _KEPT.pop("colors")
     timings: dict = {}
+    c0 = time.process_time()
     map2d_path, grid = write_2d(stage, points, trajectory, cfg, accelerometer, timings)
+    timings["map2d_cpu_s"] = time.process_time() - c0
     timings["at_map2d_done"] = time.time()
     return (points, colors) if want_points else (None, None), map2d_path, grid, timings
 

@@ -125,9 +125,11 @@ def test_most_keyframes_moved_rebuilds_and_still_matches(synth):
 
 
 @pytest.mark.data
-def test_run_writes_the_live_map_and_it_matches_fusing_afterwards(tmp_path, desk9):
+@pytest.mark.parametrize("method", ["statistical", "voxel"])
+def test_run_writes_the_live_map_and_it_matches_fusing_afterwards(tmp_path, desk9, method):
     out = tmp_path / "run"
-    res = cli(["run", desk9, "-c", "tum_fr1", "--out", out, "-q", "--set", "keyframes.min_translation=0.02"])
+    res = cli(["run", desk9, "-c", "tum_fr1", "--out", out, "-q", "--set", "keyframes.min_translation=0.02",
+               "--set", f"mapping.outlier_method={method}"])
     assert res.exit_code == 0, res.output
     info = json.loads((out / "run.json").read_text())
     assert info["map"]["live"] is True and info["map"]["frames_fused"] == len(info["keyframes"]) >= 2
@@ -143,6 +145,14 @@ def test_run_writes_the_live_map_and_it_matches_fusing_afterwards(tmp_path, desk
     assert res.exit_code == 0, res.output
     after = np.asarray(o3d.io.read_point_cloud(str(out / "map" / "cloud.ply")).points)
     assert len(live) == len(after)
+    if method == "voxel":  # fuse filtered with the run's method: its cloud is the voxel filter's of the unfiltered one
+        from rgbdslam.mapping.fusion import voxel_keep
+
+        assert cli(["fuse", out, "-q", "--set", "mapping.outlier_min_neighbors=0"]).exit_code == 0
+        unfiltered = np.asarray(o3d.io.read_point_cloud(str(out / "map" / "cloud.ply")).points)
+        keep = voxel_keep(unfiltered, 0.01, MappingConfig().outlier_min_neighbors)
+        assert 0 < len(unfiltered) - len(keep) < 0.2 * len(unfiltered)
+        np.testing.assert_allclose(unfiltered[keep], after, atol=1e-6)  # PLY float32 round trip
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(after).query(live)

@@ -324,6 +324,12 @@ def test_fuse_empty_depth_range_names_the_settings_and_keeps_the_map(plane_run):
     ("mesh_min_frames", 1.5, "config key 'mapping.mesh_min_frames' expects int; got 1.5"),
     ("depth_min", 3.0, "config key 'mapping.depth_min' (3.0) must be smaller than 'mapping.depth_max' (3.0)"),
     ("gravity", "down", "config key 'mapping.gravity' must be one of auto, accelerometer, camera; got 'down'"),
+    ("outlier_method", "radius", "config key 'mapping.outlier_method' must be one of statistical, voxel; got 'radius'"),
+    ("outlier_radius", 0, "config key 'mapping.outlier_radius' must be between 1 and 3; got 0"),
+    ("outlier_radius", 4, "config key 'mapping.outlier_radius' must be between 1 and 3; got 4"),
+    ("outlier_min_neighbors", -1, "config key 'mapping.outlier_min_neighbors' must be between 0 and 342; got -1"),
+    ("outlier_min_neighbors", 27, "config key 'mapping.outlier_min_neighbors' (27) must be at most the 26 voxels "
+                                  "around a point at mapping.outlier_radius=1"),
 ])
 def test_bad_mapping_settings_are_rejected_before_anything_is_written(plane_run, key, value, message):
     """fuse/fuse_run check the settings first (a MappingConfig made in Python skips load_config's
@@ -548,3 +554,68 @@ def test_cloud_ply_is_the_bytes_open3d_wrote_of_the_points_outlier_removal_keeps
     _write_ply(tmp_path / "old.ply", old.select_by_index(keep), mesh=False)
     assert path.read_bytes() == (tmp_path / "old.ply").read_bytes()
     assert outlier_keep(points, MappingConfig(outlier_neighbors=0)) is None
+
+
+def _voxel_centres(cells, voxel=0.01):
+    return (np.asarray(cells, np.float64) + 0.5) * voxel
+
+
+def test_voxel_filter_drops_an_isolated_point_and_the_corners_of_a_plane():
+    """A 10 x 10 plane of voxels: inside points have 8 occupied neighbours, edge points 5, corners 3;
+    a point 5 voxels away has none. At 4 neighbours (the default) exactly the corners and the stray go."""
+    from rgbdslam.mapping.fusion import outlier_keep, voxel_neighbours
+
+    plane = [(i, j, 7) for i in range(10) for j in range(10)]
+    points = _voxel_centres(plane + [(4, 4, 12)])
+    counts = voxel_neighbours(points, 0.01)
+    grid = counts[:100].reshape(10, 10)
+    assert grid[1:-1, 1:-1].min() == grid[1:-1, 1:-1].max() == 8 and counts[100] == 0
+    assert grid[0, 1:-1].tolist() == [5] * 8 and [grid[0, 0], grid[0, 9], grid[9, 0], grid[9, 9]] == [3] * 4
+    keep = outlier_keep(points, MappingConfig(outlier_method="voxel"))
+    assert keep.dtype == np.int64
+    assert keep.tolist() == [k for k in range(100) if k not in (0, 9, 90, 99)]
+    assert outlier_keep(points, MappingConfig(outlier_method="voxel", outlier_min_neighbors=0)) is None
+
+
+def test_voxel_filter_keeps_a_point_with_exactly_the_threshold_of_neighbours():
+    """A line of voxels: its ends have 1 neighbour, the rest 2; a point with k of its 26 neighbour
+    voxels occupied (a diagonal one among them) is kept at min_neighbors = k and dropped at k + 1."""
+    from rgbdslam.mapping.fusion import InputError, outlier_keep, voxel_keep, voxel_neighbours
+
+    line = _voxel_centres([(i, 0, 0) for i in range(6)])
+    assert voxel_keep(line, 0.01, 2).tolist() == [1, 2, 3, 4]
+    assert voxel_keep(line, 0.01, 1).tolist() == list(range(6))
+    assert voxel_keep(line, 0.01, 3).tolist() == []
+    with pytest.raises(InputError, match="voxel outlier removal left no point of the 6 in the cloud"):
+        outlier_keep(line, MappingConfig(outlier_method="voxel", outlier_min_neighbors=3))
+    around = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1) if (dx, dy, dz) != (0, 0, 0)]
+    for k in (1, 5, 13, 26):
+        centre_first = _voxel_centres([(20, 20, 20)] + [(20 + dx, 20 + dy, 20 + dz) for dx, dy, dz in around[-k:]])
+        assert 0 in voxel_keep(centre_first, 0.01, k) and 0 not in voxel_keep(centre_first, 0.01, k + 1)
+    # radius 2: the 124 voxels of the 5^3 block; a voxel two steps away counts, three steps does not
+    trio = _voxel_centres([(0, 0, 0), (2, -2, 2), (3, 0, 0)])
+    # (2,-2,2) is within 2 steps of both others in every axis; (0,0,0) and (3,0,0) are 3 apart in x
+    assert voxel_neighbours(trio, 0.01, 2).tolist() == [1, 2, 1] and voxel_neighbours(trio, 0.01, 1).tolist() == [0, 0, 0]
+    assert voxel_keep(trio, 0.01, 2, radius=2).tolist() == [1]
+
+
+def test_voxel_filter_slabs_and_the_sorted_fallback_give_the_dense_counts():
+    """Clusters and strays over a box of ~10^9 voxels at 1 cm (a long outdoor run): the sorted-key
+    search (no buffer fits), many thin slabs and one buffer over all give the same counts, in any
+    point order and at any radius; negative coordinates and points on voxel faces included."""
+    from rgbdslam.mapping.fusion import voxel_neighbours
+
+    rng = np.random.default_rng(11)
+    centres = rng.uniform(-5, 5, (40, 3))
+    points = np.vstack([c + rng.normal(0, 0.02, (300, 3)) for c in centres] + [rng.uniform(-5, 5, (200, 3))]
+                       + [np.round(rng.uniform(-0.1, 0.1, (50, 3)), 2)])  # exactly on faces
+    small = points[:6000] * 0.05  # a box that fits one buffer
+    for r in (1, 2):
+        ref = voxel_neighbours(points, 0.01, r, max_cells=0)  # sorted keys
+        assert ref.max() >= 8 and (ref == 0).sum() >= 150
+        assert np.array_equal(voxel_neighbours(points, 0.01, r, max_cells=1001 ** 2 * 8), ref)  # slabs
+        perm = rng.permutation(len(points))
+        assert np.array_equal(voxel_neighbours(points[perm], 0.01, r, max_cells=1001 ** 2 * 8), ref[perm])
+        ref_small = voxel_neighbours(small, 0.01, r, max_cells=0)
+        for cells in (10**9, 25**2 * 50, 10**6):  # one buffer, slabs, slabs
+            assert np.array_equal(voxel_neighbours(small, 0.01, r, max_cells=cells), ref_small)
