@@ -257,8 +257,8 @@ class MapState:
         self._integrate(None, part, pose, prepared)
         if len(part.pending) == 1 and not len(part.keys):
             return part.pending[0]
-        part._merge()  # a large keyframe (>= 200,000 voxels) was merged into the part's own map already
-        return (part.keys, part.sums, part.counts) if len(part.keys) else None
+        # none, or a large keyframe (>= 200,000 voxels) that VoxelCloud merged already: len() merges
+        return (part.keys, part.sums, part.counts) if len(part) else None
 
     def keep_ahead(self, index: int, pose: np.ndarray, part) -> None:
         """Keep a cloud part made at ``pose`` for a keyframe that still waits."""

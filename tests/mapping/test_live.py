@@ -113,6 +113,23 @@ def _shifted_map(synth, cfg, frames, shifted, axis: int, metres: float):
     return live, gt
 
 
+def _idle_jobs(synth, final: dict, done=lambda: True):
+    """A job queue with the keyframes ``final`` added at those poses; the finish comes when the map
+    process waits for a job (has nothing else to do) and ``done()``."""
+    import queue
+
+    class Idle(queue.Queue):
+        def get(self, block=True, timeout=None):
+            if block and self.empty() and done():
+                self.put(("finish", final, None, "", False))
+            return super().get(block, timeout)
+
+    jobs = Idle()
+    for i in final:
+        jobs.put(("add", i, synth.load(i).rgb, synth.load(i).depth, final[i]))
+    return jobs
+
+
 def test_most_keyframes_moved_rebuilds_and_still_matches(synth):
     cfg = MappingConfig(live_lag=0)
     live, gt = _shifted_map(synth, cfg, (0, 3, 6), (0, 3, 6), 0, 0.05)
@@ -537,8 +554,6 @@ def test_an_idle_map_process_puts_the_waiting_keyframes_in_early(synth):
     """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, it
     puts the waiting keyframes in early, one at a time, before it waits for the next job; with
     ``live_early=false`` they wait for the end."""
-    import queue
-
     from rgbdslam.mapping.live import _while_tracking
 
     gt = synth.groundtruth()
@@ -547,17 +562,7 @@ def test_an_idle_map_process_puts_the_waiting_keyframes_in_early(synth):
         cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_early=early)
         state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
 
-        class Idle(queue.Queue):
-            """The end comes when the map process waits for a job (has nothing else to do)."""
-
-            def get(self, block=True, timeout=None):
-                if block and self.empty():
-                    self.put(("finish", final, None, "", False))
-                return super().get(block, timeout)
-
-        jobs = Idle()
-        for i in final:
-            jobs.put(("add", i, synth.load(i).rgb, synth.load(i).depth, final[i]))
+        jobs = _idle_jobs(synth, final)
         assert _while_tracking(state, cfg, jobs)[0] == "finish"
         if early:
             assert sorted(state.used) == [0, 3, 6, 9] and state.early == {6, 9} and not state.waiting
@@ -666,8 +671,6 @@ def test_an_idle_map_process_makes_the_waiting_keyframes_cloud_parts(synth):
     makes the waiting keyframes' cloud parts (``mapping.live_cloud_ahead``), one at a time, before
     it waits for the next job; at the end they go in with no cloud work and the map is the
     fusion of the final poses."""
-    import queue
-
     from rgbdslam.mapping.live import _while_tracking
 
     gt = synth.groundtruth()
@@ -675,17 +678,7 @@ def test_an_idle_map_process_makes_the_waiting_keyframes_cloud_parts(synth):
     cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_cloud_ahead=True)
     state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
 
-    class Idle(queue.Queue):
-        """The end comes when the map process waits for a job with no part left to make."""
-
-        def get(self, block=True, timeout=None):
-            if block and self.empty() and not state.can_make_ahead():
-                self.put(("finish", final, None, "", False))
-            return super().get(block, timeout)
-
-    jobs = Idle()
-    for i in final:
-        jobs.put(("add", i, synth.load(i).rgb, synth.load(i).depth, final[i]))
+    jobs = _idle_jobs(synth, final, done=lambda: not state.can_make_ahead())  # no part left to make
     assert _while_tracking(state, cfg, jobs)[0] == "finish"
     assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9] and sorted(state.ahead) == [6, 9]
     assert state.stats["ahead_made"] == 2 and state.stats["ahead_used"] == 0
