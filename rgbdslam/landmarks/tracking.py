@@ -21,9 +21,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from rgbdslam.frontend.features import map_valid
+from rgbdslam.frontend.matching import pair_hamming
 from rgbdslam.frontend.registration.base import fit_information
 from rgbdslam.geometry.ransac import ransac_rigid, seeded_rigid
-from rgbdslam.geometry.rigid import fit_rigid
+from rgbdslam.geometry.rigid import fit_rigid, row_norms
 from rgbdslam.geometry.se3 import inv
 
 
@@ -97,10 +98,8 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
         d, nn = d[:, None], nn[:, None]
     has = np.isfinite(d)
     nn_safe = np.where(has, nn, 0)
-    fw = feats.words[fi]  # (F, 4)
-    lw = lmap.words(ids)  # (K, 4)
-    # Hamming distances of every feature to its k candidates: one gather, XOR and popcount (F, k, 4)
-    ham = np.bitwise_count(fw[:, None, :] ^ lw[nn_safe]).sum(axis=2, dtype=np.int32)
+    # Hamming distances of every feature to its k candidates (F, k): word by word, gathered with 1-D takes
+    ham = pair_hamming(feats.words, lmap.words(ids), fi[:, None], nn_safe).astype(np.int32)
     ham = np.where(has, ham, 1 << 20)
     if old_bonus and old_before is not None:  # among the candidates within the gate, old landmarks preferred
         pref = np.where(ham <= max_hamming, ham - old_bonus * (lmap.first[ids] < old_before)[nn_safe], 1 << 20)
@@ -161,7 +160,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
         if mask.sum() < max(3, min_inliers):
             return None
         T = fit_rigid(S[mask], D[mask], w[mask])
-        r = np.linalg.norm(D - (S @ T[:3, :3].T + T[:3, 3]), axis=1)
+        r = row_norms(D - (S @ T[:3, :3].T + T[:3, 3]))
         mask = r < threshold
     if mask.sum() < max(3, min_inliers):
         return None
@@ -177,7 +176,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
                                              refine_iterations)
             Tcw = inv(T)
             r, _ = reprojection_residuals(Tcw[:3, :3], Tcw[:3, 3], D, uv, z, camera, spx, sig, cov, jacobian=False)
-            new = np.linalg.norm(r, axis=1) < chi2_gate
+            new = row_norms(r) < chi2_gate
             if new.sum() < max(3, min_inliers):
                 break
             mask = new
@@ -187,7 +186,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
             spx, sig = spx * np.clip(k_px, 0.25, 4.0), sig * np.clip(k_z, 0.25, 4.0)
             T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask],
                                              refine_iterations)
-    r = np.linalg.norm(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]), axis=1)
+    r = row_norms(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]))
     rms = float(np.sqrt(np.mean(r**2)))
     if refine == "points":  # the weighted 3-D refit kept, with the registration's information formula
         info = fit_information(S[mask], rms)
@@ -327,7 +326,7 @@ def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.n
     H = np.zeros((6, 6))
     for _ in range(iterations):
         r, J = reprojection_residuals(R, t, X, uv, z, camera, sigma_px, sigma_z, cov_lm)
-        e = np.linalg.norm(r, axis=1)
+        e = row_norms(r)
         w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
         Jw = (J * w[:, None, None]).reshape(-1, 6)
         H = Jw.T @ J.reshape(-1, 6)

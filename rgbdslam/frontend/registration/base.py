@@ -25,7 +25,7 @@ from typing import ClassVar
 import numpy as np
 
 from rgbdslam.config import RegistrationConfig
-from rgbdslam.geometry.rigid import fit_with_stats, residuals
+from rgbdslam.geometry.rigid import fit_with_stats, residuals, row_norms
 
 # Lower bound (metres) of the per-axis point noise behind the information of a rigid fit: a fit
 # with a tiny residual (few, perfectly consistent points) must not become overconfident.
@@ -78,7 +78,7 @@ def pregate(S: np.ndarray, D: np.ndarray, T0: np.ndarray | None, radius: float |
     radius, or when fewer than ``need`` would be left."""
     keep = np.ones(len(D), bool)
     if radius is not None and T0 is not None:
-        gated = np.linalg.norm(residuals(T0, S, D), axis=1) <= radius
+        gated = row_norms(residuals(T0, S, D)) <= radius
         if gated.sum() >= need:
             keep = gated
     return keep

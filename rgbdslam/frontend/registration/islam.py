@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from rgbdslam.frontend.registration.base import Registration
-from rgbdslam.geometry.rigid import fit_rigid, residuals
+from rgbdslam.geometry.rigid import fit_rigid, residuals, row_norms
 
 
 def gate_threshold(alpha: float, beta: float, j: int) -> float:
@@ -42,7 +42,7 @@ def islam_pair(S: np.ndarray, D: np.ndarray, keep: np.ndarray, max_it: int, alph
         th = gate_threshold(alpha, beta, j)
         r = residuals(T, S, D)
         W = inverse_mean_l1(r[keep])
-        keep = keep & (np.linalg.norm(r, axis=1) <= th)
+        keep = keep & (row_norms(r) <= th)
         if th < min_error or keep.sum() < need:
             break
     if keep.sum() < need:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from rgbdslam.frontend.registration.base import Registration
-from rgbdslam.geometry.rigid import fit_rigid, residuals
+from rgbdslam.geometry.rigid import fit_rigid, residuals, row_norms
 
 
 def isvd(S: np.ndarray, D: np.ndarray, keep: np.ndarray, max_it: int, e_start: float, e_min: float,
@@ -35,7 +35,7 @@ def isvd(S: np.ndarray, D: np.ndarray, keep: np.ndarray, max_it: int, e_start: f
     for j in range(max_it + 1):
         it = j + 1
         T = fit_rigid(S[keep], D[keep])
-        err = np.linalg.norm(residuals(T, S, D), axis=1)
+        err = row_norms(residuals(T, S, D))
         new = keep & (err <= e)
         if new.sum() < need:
             return None
