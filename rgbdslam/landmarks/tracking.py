@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,7 +199,7 @@ _UPPER = np.array([0, 1, 2, 4, 5, 8])  # the entries (0,0) (0,1) (0,2) (1,1) (1,
 
 def _so3_exp(w: np.ndarray) -> np.ndarray:
     """Rodrigues: the rotation matrix of the rotation vector ``w``."""
-    th = float(np.linalg.norm(w))
+    th = math.sqrt(float(w.dot(w)))  # np.linalg.norm's own sqrt(w·w), without its dispatch
     K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
     if th < 1e-12:
         return np.eye(3) + K
@@ -337,7 +338,7 @@ def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.n
             break
         dR = _so3_exp(xi[:3])
         R, t = dR @ R, dR @ t + xi[3:]
-        if np.linalg.norm(xi) < 1e-8:
+        if math.sqrt(float(xi.dot(xi))) < 1e-8:
             break
     out = np.eye(4)
     out[:3, :3], out[:3, 3] = R, t

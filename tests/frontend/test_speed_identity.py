@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from rgbdslam.frontend.features import descriptor_words
-from rgbdslam.frontend.matching import hamming_matrix, pair_hamming
+from rgbdslam.frontend.matching import column_argmin, hamming_matrix, pair_hamming
 from rgbdslam.geometry.rigid import fit_rigid, row_norms
 from tests.conftest import TUM_RPY200, need
 
@@ -80,6 +80,13 @@ def test_hamming_kernels_give_the_same_integers_as_the_broadcast_popcount():
             # 2-D index arrays broadcast (the landmark matcher's (features, k candidates) table)
             nn = rng.integers(0, nb, (na, 6))
             assert np.array_equal(pair_hamming(wa, wb, np.arange(na)[:, None], nn), ref[np.arange(na)[:, None], nn])
+
+
+def test_column_argmin_is_numpys_argmin_with_its_ties():
+    rng = np.random.default_rng(6)
+    for shape, hi in [((1, 1), 3), ((2, 7), 2), ((300, 200), 4), ((50, 900), 300), ((900, 880), 257)]:
+        d = rng.integers(0, hi, shape).astype(np.uint16)  # few values: many equal minima per column
+        assert np.array_equal(column_argmin(d), d.argmin(axis=0))
 
 
 def test_row_norms_are_numpys_norms():

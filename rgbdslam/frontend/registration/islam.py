@@ -36,16 +36,16 @@ def islam_pair(S: np.ndarray, D: np.ndarray, keep: np.ndarray, max_it: int, alph
     need = max(3, min_points)
     W = 0.0
     it = 0
-    for j in range(1, max_it + 1):
+    for j in range(1, max_it + 1):  # compress / count_nonzero: boolean indexing's and sum's numbers, faster
         it = j
-        T = fit_rigid(S[keep], D[keep])
+        T = fit_rigid(S.compress(keep, axis=0), D.compress(keep, axis=0))
         th = gate_threshold(alpha, beta, j)
         r = residuals(T, S, D)
-        W = inverse_mean_l1(r[keep])
+        W = inverse_mean_l1(r.compress(keep, axis=0))
         keep = keep & (row_norms(r) <= th)
-        if th < min_error or keep.sum() < need:
+        if th < min_error or np.count_nonzero(keep) < need:
             break
-    if keep.sum() < need:
+    if np.count_nonzero(keep) < need:
         return None
     return keep, W, it
 
