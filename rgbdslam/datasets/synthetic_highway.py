@@ -3,7 +3,8 @@
 A car drives at 25-30 m/s along a gently curving road, filmed at 10 Hz by a KITTI-like pair
 (fx = 718 px at 1241 px width, camera 1.65 m above the road): 2.5-3 m between frames. The
 scene is what makes such sequences hard for a stereo chain: the near texture is the road
-surface and two guard rails (2-20 m), everything else is far — buildings 20-80 m to the
+surface and two guard rails (2-20 m) — absent over :data:`BARE` (metres 60-100 of the drive,
+frames ~22-36), where only far points are seen — everything else is far — buildings 20-80 m to the
 sides and a skyline of large facades 120-200 m away — where a disparity of a few pixels gives
 depth errors of metres. Every surface is a textured rectangle of
 :class:`rgbdslam.datasets.synthetic.Scene` with its own texel size, about one texel per pixel
@@ -38,6 +39,7 @@ RAIL_HEIGHT = 0.8
 SEGMENT = 20.0  # m: the road and rails are rectangles of this length along the curve
 AHEAD = 220.0  # m of scene beyond the last frame's position
 KITTI_FX, KITTI_WIDTH = 718.856, 1241
+BARE = (60.0, 100.0)  # m of road without road texture or rails: only far points are seen there
 
 
 def highway_camera(width: int, height: int) -> Camera:
@@ -136,6 +138,8 @@ def highway_surfaces(length: float, seed: int, path: RoadPath) -> list[Surface]:
     out: list[Surface] = []
     edges = np.arange(-10.0, length + SEGMENT, SEGMENT)
     for i, (s0, s1) in enumerate(zip(edges[:-1], edges[1:])):
+        if BARE[0] <= s0 < BARE[1]:
+            continue
         out.append(_strip(f"road_{i}", path, s0, s1, -ROAD_HALF_WIDTH, 0.0, ROAD_HALF_WIDTH, 0.03, False))
         out.append(_strip(f"rail_r{i}", path, s0, s1, -RAIL_OFFSET, 0.0, RAIL_HEIGHT, 0.02, True))
         out.append(_strip(f"rail_l{i}", path, s0, s1, RAIL_OFFSET, 0.0, RAIL_HEIGHT, 0.02, True))

@@ -94,6 +94,7 @@ class Frontend:
         self._n_lost = 0  # consecutive lost frames
         self._prediction_error = np.inf  # how far the last tracked frame was from its prediction (m)
         self.n_newest_guided = 0  # frames whose newest reference was matched around the prediction
+        self.n_fallback = 0  # stereo frames tracked by the fallback (registration.stereo_fallback)
         self._executor = ThreadPoolExecutor(max_workers=rc.threads) if rc.threads > 1 and self.mp > 1 else None
 
     def close(self) -> None:
@@ -181,13 +182,14 @@ class Frontend:
                   if np.linalg.norm(d[:3, 3]) <= rc.max_jump_translation * gap
                   and np.degrees(rotation_angle(d[:3, :3])) <= rc.max_jump_rotation_deg * gap]
         if not ok:
-            return self._lost(frame, feats, timings, n_matches)
+            return self._fallback(frame, feats, timings, pred, n_matches) or self._lost(frame, feats, timings, n_matches)
         cands = np.stack([r.pose @ inv(res.T) for r, res in ok])
         weights = np.array([res.weight for _, res in ok])
         pose, keep, frac = fuse_candidates(cands, weights, rc.fusion, rc.reject_translation, rc.reject_rotation)
         if frac < rc.min_agreement:
             timings["fusion"] = time.perf_counter() - t1
-            return self._lost(frame, feats, timings, n_matches, len(ok))
+            return self._fallback(frame, feats, timings, pred, n_matches, len(ok)) \
+                or self._lost(frame, feats, timings, n_matches, len(ok))
         kept = [res for (_, res), k in zip(ok, keep) if k]
         kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
         if rc.joint_refit and len(kept) > 1:
@@ -290,10 +292,10 @@ class Frontend:
         points' covariances from the depth noise model (stereo: long along the viewing ray,
         ``DepthNoise.covariance``), robust (Huber). The fused pose is kept when the refit moves
         it further than the candidate gates (docs/stereo.md)."""
-        from rgbdslam.geometry.mahalanobis import refine_pose_mahalanobis
+        from rgbdslam.geometry.mahalanobis import refine_pose_mahalanobis, refine_pose_near_far, split_near_far
 
         rc = self.rc
-        W, C, SW, SC = [], [], [], []
+        W, C, SW, SC, UV = [], [], [], [], []
         for r, res in pairs:
             m = res.matches if rc.noise_refit_all and res.matches is not None else res.pairs
             P = r.features.pts[m[:, 0]]
@@ -303,14 +305,73 @@ class Frontend:
             c = feats.pts[m[:, 1]]
             C.append(c)
             SC.append(feats.depth_noise.covariance(c))
-        W, C, SW, SC = (np.concatenate(x) for x in (W, C, SW, SC))
+            UV.append(feats.uv[m[:, 1]])
+        W, C, SW, SC, UV = (np.concatenate(x) for x in (W, C, SW, SC, UV))
         if len(W) < max(3, rc.min_points):
             return pose
-        refined, _, _ = refine_pose_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
+        dn = feats.depth_noise
+        if rc.far_baselines > 0:
+            far = split_near_far(C[:, 2], dn.baseline, rc.far_baselines)
+            refined, _, _ = refine_pose_near_far(pose, C, SC, W, SW, far, UV, (dn.fx, dn.fy or dn.fx, dn.cx, dn.cy),
+                                                 dn.sigma_pixel, huber=rc.noise_refit_huber)
+        else:
+            refined, _, _ = refine_pose_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
         d = inv(pose) @ refined
         if np.linalg.norm(d[:3, 3]) > rc.reject_translation or rotation_angle(d[:3, :3]) > rc.reject_rotation:
             return pose
         return refined
+
+    def _fallback(self, frame: Frame, feats: FrameFeatures, timings: dict, pred: np.ndarray, n_matches: int,
+                  n_cand: int = 0) -> TrackResult | None:
+        """``registration.stereo_fallback``: a stereo frame whose registration failed gets the
+        constant-velocity pose ``pred`` with its rotation refit on the bearings of every descriptor
+        match to the newest reference (a rotation needs no depth: far points fix it), then, when at
+        least ``min_points`` near pairs agree, one refit with near points in 3-D and far points as
+        bearings (:func:`refine_pose_near_far`). Kept only within the motion limits of ``pred``.
+        Its ``information`` is weak on translation (σ: a tenth of the predicted step + 0.1 m; rotation
+        σ 0.01 rad). None = not applicable (no velocity yet, RGB-D, too few matches)."""
+        from rgbdslam.frontend.matching import match_pairs
+        from rgbdslam.geometry.mahalanobis import refine_pose_near_far, split_near_far
+
+        rc = self.rc
+        dn = feats.depth_noise
+        if not rc.stereo_fallback or dn is None or self._velocity is None or not self.refs:
+            return None
+        ref = self.refs[-1]
+        ia, ib = match_pairs(ref.features, feats, self.mc)
+        need = max(3, rc.min_points)
+        if len(ia) < need:
+            return None
+        R = ref.pose[:3, :3]
+        P = ref.features.pts[ia]
+        W, SW = transform_points(ref.pose, P), R @ ref.features.depth_noise.covariance(P) @ R.T
+        C, UV = feats.pts[ib], feats.uv[ib]
+        SC = dn.covariance(C)
+        intr = (dn.fx, dn.fy or dn.fx, dn.cx, dn.cy)
+        every = np.ones(len(C), bool)
+        pose, _, inl = refine_pose_near_far(pred, C, SC, W, SW, every, UV, intr, dn.sigma_pixel,
+                                            huber=rc.noise_refit_huber, rotation_only=True)
+        far = split_near_far(C[:, 2], dn.baseline, rc.far_baselines)
+        if inl.sum() >= need and (inl & ~far).sum() >= need:
+            full, _, inl2 = refine_pose_near_far(pose, C[inl], SC[inl], W[inl], SW[inl], far[inl], UV[inl], intr,
+                                                 dn.sigma_pixel, huber=rc.noise_refit_huber)
+            if inl2.sum() >= need:
+                pose = full
+        d = inv(pred) @ pose
+        if np.linalg.norm(d[:3, 3]) > rc.max_jump_translation or \
+                np.degrees(rotation_angle(d[:3, :3])) > rc.max_jump_rotation_deg or inl.sum() < need:
+            return None
+        last = self.refs[-1]
+        relative = inv(last.pose) @ pose
+        s_t = 0.1 * float(np.linalg.norm(relative[:3, 3])) + 0.1
+        info = np.diag([1.0 / 0.01 ** 2] * 3 + [1.0 / s_t ** 2] * 3)
+        self._prediction_error = np.inf
+        self._velocity = (relative, frame.index - last.features.index, frame.timestamp - last.features.timestamp)
+        self._n_lost = 0
+        self.n_fallback += 1
+        self.refs.append(_Ref(feats, pose))
+        return TrackResult(frame.index, frame.timestamp, pose, False, feats, relative, info, n_matches,
+                           int(inl.sum()), 0.0, timings, n_candidates=n_cand, map_features=self._full)
 
     def _map(self, jobs: list[tuple]) -> list:
         if self._executor is not None and len(jobs) > 1:
