@@ -52,6 +52,9 @@ class FrameFeatures:
     readout: float = 0.0  # the readout (s) the rolling shutter was undone with
     # (N,) bool: the key point sits at a depth discontinuity (matching.depth_edge_radius; all False when off)
     edge: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    # (N,) the depth read at each key point before the [min_depth, max_depth] limits (0 = none): a stereo
+    # frame's far points, used as bearings (registration.stereo_fallback, docs/stereo.md)
+    depth_raw: np.ndarray = field(default_factory=lambda: np.zeros(0))
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
 
@@ -321,6 +324,7 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     if features.depth_motion is not None and n:
         z = _depth_at_colour_time(features, depth, camera, z)
     valid = np.isfinite(z) & (z >= mc.min_depth) & (z <= mc.max_depth)
+    features.depth_raw = np.where(np.isfinite(z) & (z > 0), z, 0.0)
     features.edge = np.zeros(n, bool)
     if mc.depth_edge_radius > 0 and n:
         features.edge = depth_edges(depth, u, v, mc.depth_edge_radius, mc.depth_edge_jump) & valid
