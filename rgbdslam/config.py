@@ -143,8 +143,8 @@ class RegistrationConfig:
     noise_refit: bool = False
     noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
     noise_refit_huber: float = 3.0  # Huber threshold of the refit (Mahalanobis distance, sigmas)
-    # noise refit of a stereo frame: matched points deeper than this many baselines (ORB-SLAM's ThDepth,
-    # 40) are far: bearing-only (reprojection) residuals, their depth unused (docs/stereo.md); 0 = all 3-D
+    # stereo fallback (below): matched points deeper than this many baselines (ORB-SLAM's ThDepth, 40) are
+    # far: bearing-only (reprojection) residuals, their depth unused (docs/stereo.md); 0 = every depth-valid one 3-D
     far_baselines: float = 0.0
     # a stereo frame whose registration fails is not lost: constant-velocity pose, its rotation refit on the
     # bearings of the newest reference's descriptor matches, then a near + far refit if enough pairs agree

@@ -292,10 +292,10 @@ class Frontend:
         points' covariances from the depth noise model (stereo: long along the viewing ray,
         ``DepthNoise.covariance``), robust (Huber). The fused pose is kept when the refit moves
         it further than the candidate gates (docs/stereo.md)."""
-        from rgbdslam.geometry.mahalanobis import refine_pose_mahalanobis, refine_pose_near_far, split_near_far
+        from rgbdslam.geometry.mahalanobis import refine_pose_mahalanobis
 
         rc = self.rc
-        W, C, SW, SC, UV = [], [], [], [], []
+        W, C, SW, SC = [], [], [], []
         for r, res in pairs:
             m = res.matches if rc.noise_refit_all and res.matches is not None else res.pairs
             P = r.features.pts[m[:, 0]]
@@ -305,17 +305,10 @@ class Frontend:
             c = feats.pts[m[:, 1]]
             C.append(c)
             SC.append(feats.depth_noise.covariance(c))
-            UV.append(feats.uv[m[:, 1]])
-        W, C, SW, SC, UV = (np.concatenate(x) for x in (W, C, SW, SC, UV))
+        W, C, SW, SC = (np.concatenate(x) for x in (W, C, SW, SC))
         if len(W) < max(3, rc.min_points):
             return pose
-        dn = feats.depth_noise
-        if rc.far_baselines > 0:
-            far = split_near_far(C[:, 2], dn.baseline, rc.far_baselines)
-            refined, _, _ = refine_pose_near_far(pose, C, SC, W, SW, far, UV, (dn.fx, dn.fy or dn.fx, dn.cx, dn.cy),
-                                                 dn.sigma_pixel, huber=rc.noise_refit_huber)
-        else:
-            refined, _, _ = refine_pose_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
+        refined, _, _ = refine_pose_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
         d = inv(pose) @ refined
         if np.linalg.norm(d[:3, 3]) > rc.reject_translation or rotation_angle(d[:3, :3]) > rc.reject_rotation:
             return pose
@@ -373,8 +366,8 @@ class Frontend:
         reprojection under ``pred`` is within :data:`FALLBACK_GATE_PX`: (C, SC, W, SW, far, UV).
         A reference point with stereo depth (any, also beyond ``matching.max_depth``) is that 3-D
         point, one without is its viewing ray at :data:`FAR_AWAY` m (a direction: its parallax is
-        nil); a current point is near when it is depth-valid and within ``far_baselines`` baselines
-        (all depth-valid ones with ``far_baselines`` 0), otherwise a bearing. None = too few matches."""
+        nil); a pair is near (3-D) when both points are depth-valid and the current one lies within
+        ``far_baselines`` baselines (any depth-valid one with ``far_baselines`` 0), otherwise a bearing. None = too few matches."""
         from rgbdslam.frontend.matching import match_descriptors
         from rgbdslam.geometry.mahalanobis import bearing_residuals, split_near_far
 
@@ -396,7 +389,7 @@ class Frontend:
         r, _, _ = bearing_residuals(pred, W, np.zeros_like(SW), UV, intr, dn.sigma_pixel)
         keep = np.linalg.norm(r, axis=1) <= FALLBACK_GATE_PX
         C = np.where(feats.valid[ib][:, None], feats.pts[ib], [0.0, 0.0, 1.0])
-        far = ~feats.valid[ib] | split_near_far(feats.depth_raw[ib], dn.baseline, self.rc.far_baselines)
+        far = ~feats.valid[ib] | ~rf.valid[ia] | split_near_far(feats.depth_raw[ib], dn.baseline, self.rc.far_baselines)
         SC = dn.covariance(C)
         return C[keep], SC[keep], W[keep], SW[keep], far[keep], UV[keep]
 
