@@ -93,3 +93,26 @@ def test_near_3d_plus_far_bearings_recover_pose_despite_wrong_far_depth():
                                      huber=1e9)
     assert np.linalg.norm(ok[:3, 3] - X[:3, 3]) < 1e-6
     assert np.linalg.norm(bad[:3, 3] - X[:3, 3]) > 0.05
+
+
+def test_synthetic_highway_tracked_whole_within_one_percent(tmp_path):
+    """28 frames of the synthetic highway (KITTI-like rig, 2.5-3 m per frame) reach its bare stretch
+    (frames ~22-36: no road texture, no rails, only far points), where the registration fails: with
+    the kitti preset's stereo fallback no frame is lost (without it 5 of 28 are) and the ATE stays
+    within 1 % of the distance driven (0.43 m over 72.6 m, 0.59 %)."""
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
+    from rgbdslam.io.kitti import read_kitti_poses
+    from rgbdslam.pipeline import run_sequence
+
+    seq = tmp_path / "highway"
+    summary = generate_stereo_sequence(seq, 0.54, "kitti", frames=28, motion="highway", width=1241, height=376,
+                                       noise=True, seed=0)
+    assert summary["fps"] == 10.0 and 70.0 < summary["distance_m"] < 80.0  # 25-30 m/s
+    gt = read_kitti_poses(seq / "poses" / "00.txt")
+    step = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)
+    assert step.min() > 2.4 and step.max() < 3.1
+    cfg = load_config("kitti", ["mapping.enabled=false", "output.plots=false"])
+    s = run_sequence(seq, tmp_path / "run", cfg, progress=False)
+    assert s["lost"] == 0
+    assert s["evaluation"]["ate"]["rmse"] <= 0.01 * step.sum()
