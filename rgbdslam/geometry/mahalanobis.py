@@ -64,8 +64,8 @@ def refine_pose_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarray, W: 
 
 def split_near_far(z: np.ndarray, baseline: float, far_baselines: float) -> np.ndarray:
     """(N,) bool: True for the **far** points of a stereo frame, those deeper than ``far_baselines``
-    baselines (ORB-SLAM's ``ThDepth``, 40): their disparity (at KITTI's fx B = 388 px m, below
-    ~9.7 px) is too small to trust their depth, but their bearing still holds. ``far_baselines``
+    baselines (ORB-SLAM's ``ThDepth``, 40): their disparity (below fx / far_baselines, ~18 px on
+    KITTI) is too small to trust their depth, but their bearing still holds. ``far_baselines``
     <= 0: no point is far."""
     z = np.asarray(z, dtype=np.float64)
     if far_baselines <= 0:
