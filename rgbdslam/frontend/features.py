@@ -252,7 +252,8 @@ def subset(features: FrameFeatures, idx: np.ndarray) -> FrameFeatures:
     return replace(features, uv=features.uv[idx], desc=features.desc[idx], pts=features.pts[idx],
                    valid=features.valid[idx], uv_raw=take(features.uv_raw), response=take(features.response),
                    octave=take(features.octave), row_R=take(features.row_R), row_t=take(features.row_t),
-                   uv_observed=take(features.uv_observed), edge=take(features.edge), _tree=None, _tree_index=None)
+                   uv_observed=take(features.uv_observed), edge=take(features.edge), depth_raw=take(features.depth_raw),
+                   _tree=None, _tree_index=None)
 
 
 def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:
