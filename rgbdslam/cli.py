@@ -380,7 +380,7 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
 
 @main.command()
 @click.argument("out", type=PATH)
-@click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz).")
+@click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz; --motion highway 10 Hz).")
 @click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static", "figure8", "revisit", "highway"]),
               default="xyz", show_default=True,
               help="Camera motion; 'loop' returns to and revisits the start view; 'figure8' a fast figure eight "
