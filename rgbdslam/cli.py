@@ -380,11 +380,12 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
 
 @main.command()
 @click.argument("out", type=PATH)
-@click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz).")
-@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static", "figure8", "revisit"]),
+@click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz; --motion highway 10 Hz).")
+@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static", "figure8", "revisit", "highway"]),
               default="xyz", show_default=True,
               help="Camera motion; 'loop' returns to and revisits the start view; 'figure8' a fast figure eight "
-                   "(~1 m/s, ~75 deg/s) with motion blur; 'revisit' maps a place, leaves, comes back to the same view.")
+                   "(~1 m/s, ~75 deg/s) with motion blur; 'revisit' maps a place, leaves, comes back to the same view; "
+                   "'highway' (--stereo only) a car at 25-30 m/s, 10 Hz, on a road with far structure.")
 @click.option("--noise", is_flag=True, help="Kinect-like depth noise (sigma 1.2 mm + 1.9 mm (z-0.4)^2) and colour noise.")
 @click.option("--dropout", type=float, default=0.0, show_default=True, help="Fraction of depth pixels lost in holes.")
 @click.option("--drift", type=float, default=0.0, show_default=True,
@@ -411,6 +412,8 @@ def synth(out, frames, motion, noise, dropout, drift, seed, camera, size, phase,
           layout, blur):
     """Render a synthetic RGB-D sequence with exact ground truth into OUT (TUM layout), or with
     --stereo a stereo sequence (KITTI or EuRoC layout)."""
+    if motion == "highway" and baseline is None:
+        raise InputError("--motion highway is a stereo scene; add --stereo BASELINE (KITTI: --stereo 0.54 --size 1241 376)")
     if baseline is not None:
         from rgbdslam.datasets.synthetic_stereo import synth_stereo_command
 

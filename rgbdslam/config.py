@@ -143,6 +143,12 @@ class RegistrationConfig:
     noise_refit: bool = False
     noise_refit_all: bool = True  # refit on every descriptor match (robust kernel), not only the inliers
     noise_refit_huber: float = 3.0  # Huber threshold of the refit (Mahalanobis distance, sigmas)
+    # stereo fallback (below): matched points deeper than this many baselines (ORB-SLAM's ThDepth, 40) are
+    # far: bearing-only (reprojection) residuals, their depth unused (docs/stereo.md); 0 = every depth-valid one 3-D
+    far_baselines: float = 0.0
+    # a stereo frame whose registration fails is not lost: constant-velocity pose, its rotation refit on the
+    # bearings of the newest reference's descriptor matches, then a near + far refit if enough pairs agree
+    stereo_fallback: bool = False
     threads: int = 1  # threads registering the ISLAM references in parallel
     constant_velocity: bool = True  # predict each pose from the last motion (else from the last pose)
     max_lost: int = 15  # consecutive lost frames before tracking restarts from the last pose (0 = never)
@@ -710,7 +716,7 @@ MAXIMA = {
     "mapping.seed": C_INT_MAX,  # Open3D's random seed is a C int
     "output.rerun_image_width": 8192, "output.rerun_log_every": 10**6,
     # stereo: disparities and noise in pixels, ORB budgets of the right image as a multiple of the left's
-    "registration.noise_refit_huber": 100.0,
+    "registration.noise_refit_huber": 100.0, "registration.far_baselines": 1e4,
     "stereo.sigma_disparity_sparse": 100.0, "stereo.sigma_disparity_sgbm": 100.0,
     "stereo.min_disparity": 1000.0, "stereo.row_tolerance": 100.0,
     "stereo.right_features": 4, "stereo.patch_radius": 64, "stereo.search_radius": 64,

@@ -160,11 +160,12 @@ def disparity_errors(motions: list[str], seeds: list[int], frames: int = 150, st
     return out
 
 
-def kitti_disparity_consistency() -> dict:
-    """KITTI 06 0-50 (no true disparity): each key point's disparity in frame i+1 against the one predicted
-    from its partner in frame i (descriptor match, cross-checked, within 3 px of the ground-truth
-    reprojection) moved by the ground-truth relative pose. The difference holds the error of both
-    measurements (and of the ground truth): per-measurement sigma ~ robust sd / sqrt(2)."""
+def consecutive_stereo_matches(path, sets: list[str]) -> list[tuple]:
+    """For each consecutive pair (i, i+1) of the stereo sequence at ``path`` (with ground truth; ``kitti``
+    preset plus ``sets``): the sparse stereo points of the left key points (``detect`` + ``sparse_matches``)
+    matched by descriptor (cross-checked) and kept within 3 px of their ground-truth reprojection.
+    Returns (T = ground-truth motion from i to i+1, Pa (K,3) frame i points, Pb (K,3) frame i+1 points,
+    pb (K,) frame i+1 disparities, Q (K,3) = T Pa) per pair, and fx * B as the last element."""
     import cv2
 
     from rgbdslam.config import load_config
@@ -173,31 +174,40 @@ def kitti_disparity_consistency() -> dict:
     from rgbdslam.geometry.se3 import inv
     from rgbdslam.stereo.depth import sparse_matches
 
-    seq = open_sequence(KITTI, load_config("kitti", []))
+    cfg = load_config("kitti", sets)
+    seq = open_sequence(path, cfg)
     G = seq.groundtruth().poses
-    cam, fb = seq.camera, seq.camera.fx * seq.rig.baseline
-    pairs = [seq.rectified_pair(i) for i in range(len(seq))]
+    cam = seq.camera
+    per = []
+    for i in range(len(seq)):
+        left, right = seq.rectified_pair(i)
+        det = detect(left, cfg.features)
+        m = sparse_matches(left, right, seq.rig, det.uv_raw, det.desc, cfg.stereo, cfg.features)
+        per.append((det.uv_raw[m.left_index], det.desc[m.left_index], m.disparity, m.points))
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+    out = []
+    for i in range(len(per) - 1):
+        (_, da, _, Pa), (ub, db, pb, Pb) = per[i], per[i + 1]
+        ms = bf.match(da, db)
+        ia = np.array([x.queryIdx for x in ms], int)
+        ib = np.array([x.trainIdx for x in ms], int)
+        T = inv(G[i + 1]) @ G[i]
+        Q = Pa[ia] @ T[:3, :3].T + T[:3, 3]
+        proj = np.stack([cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy], axis=1)
+        ok = (Q[:, 2] > 0) & np.all(np.abs(proj - ub[ib]) < 3.0, axis=1)
+        out.append((T, Pa[ia][ok], Pb[ib][ok], pb[ib][ok], Q[ok]))
+    return out + [cam.fx * seq.rig.baseline]
+
+
+def kitti_disparity_consistency() -> dict:
+    """KITTI 06 0-50 (no true disparity): each key point's disparity in frame i+1 against the one predicted
+    from its partner in frame i (descriptor match, cross-checked, within 3 px of the ground-truth
+    reprojection) moved by the ground-truth relative pose. The difference holds the error of both
+    measurements (and of the ground truth): per-measurement sigma ~ robust sd / sqrt(2)."""
     out = {}
     for method in SUBPIXEL:
-        cfg = load_config("kitti", [f"stereo.subpixel={method}"])
-        per = []
-        for left, right in pairs:
-            det = detect(left, cfg.features)
-            m = sparse_matches(left, right, seq.rig, det.uv_raw, det.desc, cfg.stereo, cfg.features)
-            per.append((det.uv_raw[m.left_index], det.desc[m.left_index], m.disparity, m.points))
-        bf = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-        diffs = []
-        for i in range(len(per) - 1):
-            (_, da, pa, Pa), (ub, db, pb, _) = per[i], per[i + 1]
-            ms = bf.match(da, db)
-            ia = np.array([x.queryIdx for x in ms], int)
-            ib = np.array([x.trainIdx for x in ms], int)
-            T = inv(G[i + 1]) @ G[i]
-            Q = Pa[ia] @ T[:3, :3].T + T[:3, 3]
-            proj = np.stack([cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy], axis=1)
-            ok = (Q[:, 2] > 0) & np.all(np.abs(proj - ub[ib]) < 3.0, axis=1)
-            diffs.append(np.stack([pb[ib][ok] - fb / Q[ok, 2], pb[ib][ok]], axis=1))
-        a = np.concatenate(diffs)
+        *pairs, fb = consecutive_stereo_matches(KITTI, [f"stereo.subpixel={method}"])
+        a = np.concatenate([np.stack([pb - fb / Q[:, 2], pb], axis=1) for _, _, _, pb, Q in pairs])
         d = _error_stats(a[:, 0])
         d["sigma_per_measurement_px"] = d["sigma_robust_px"] / np.sqrt(2.0)
         d["by_disparity"] = {f"{lo}-{hi} px": _error_stats(a[(a[:, 1] >= lo) & (a[:, 1] < hi), 0])

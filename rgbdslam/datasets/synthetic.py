@@ -37,6 +37,7 @@ FPS = 30.0
 EPOCH = 1_600_000_000.0  # time stamp of frame 0 (seconds)
 DEPTH_SCALE = 5000.0  # TUM: raw units per metre
 TEXEL = 0.005  # texture resolution on the surfaces (metres per texel)
+ATLAS_ROWS = 32000  # texels per side of the texture atlas at most (cv2.remap: below 32767)
 ROOM = (np.array([-3.0, -2.5, 0.0]), np.array([3.0, 2.5, 2.8]))
 EYE_HEIGHT = 1.4
 MAX_RANGE = 4.5  # beyond this the simulated sensor gives no depth (noise/dropout on)
@@ -55,6 +56,7 @@ class Surface:
     v: np.ndarray  # unit vector, orthogonal to u
     width: float
     height: float
+    texel: float = TEXEL  # metres per texel of this surface's texture
 
     @property
     def normal(self) -> np.ndarray:
@@ -157,19 +159,34 @@ class Scene:
 
     def __init__(self, seed: int = 0, surfaces: list[Surface] | None = None) -> None:
         self.surfaces = surfaces if surfaces is not None else scene_surfaces()
-        shapes = [(int(np.ceil(s.height / TEXEL)) + 2, int(np.ceil(s.width / TEXEL)) + 2) for s in self.surfaces]
-        width = max(w for _, w in shapes)
-        self.row_offset = np.cumsum([0] + [h for h, _ in shapes])[:-1]
-        atlas = np.zeros((sum(h for h, _ in shapes), width, 3), np.uint8)
+        shapes = [(int(np.ceil(s.height / s.texel)) + 2, int(np.ceil(s.width / s.texel)) + 2) for s in self.surfaces]
+        # textures stacked in columns of at most ATLAS_ROWS rows (OpenCV's remap takes < 32767 per side)
+        self.row_offset = np.zeros(len(shapes), np.int64)
+        self.col_offset = np.zeros(len(shapes), np.int64)
+        row = col = col_width = 0
+        for k, (h, w) in enumerate(shapes):
+            if row + h > ATLAS_ROWS and row > 0:
+                row, col, col_width = 0, col + col_width, 0
+            self.row_offset[k], self.col_offset[k] = row, col
+            row += h
+            col_width = max(col_width, w)
+        rows = max(int(o) + h for o, (h, _) in zip(self.row_offset, shapes))
+        cols = max(int(o) + w for o, (_, w) in zip(self.col_offset, shapes))
+        if rows >= ATLAS_ROWS or cols >= ATLAS_ROWS:
+            raise InputError(f"the scene's textures need a {cols}x{rows} texel atlas; at most {ATLAS_ROWS} per side "
+                             f"(fewer or smaller surfaces, or coarser texels)")
+        atlas = np.zeros((rows, cols, 3), np.uint8)
         for k, (h, w) in enumerate(shapes):
             sub_rng = np.random.default_rng([seed, k, 104729])
-            atlas[self.row_offset[k] : self.row_offset[k] + h, :w] = make_texture(h, w, sub_rng)
+            r0, c0 = self.row_offset[k], self.col_offset[k]
+            atlas[r0 : r0 + h, c0 : c0 + w] = make_texture(h, w, sub_rng)
         self.atlas = atlas
         self._O = np.array([s.origin for s in self.surfaces])
         self._U = np.array([s.u for s in self.surfaces])
         self._V = np.array([s.v for s in self.surfaces])
         self._N = np.array([s.normal for s in self.surfaces])
         self._size = np.array([(s.width, s.height) for s in self.surfaces])
+        self._texel = np.array([s.texel for s in self.surfaces])
 
     def render(self, rays: "Rays", pose: np.ndarray):
         """Ray-cast one frame seen through ``rays`` from ``pose`` (camera-to-world).
@@ -206,8 +223,8 @@ class Scene:
             ok = (t > 1e-6) & (t < sub) & (a >= 0) & (a <= w) & (b >= 0) & (b <= h)
             sub[ok] = t[ok]
             best_id[r0:r1, c0:c1][ok] = k
-            map_x[r0:r1, c0:c1][ok] = a[ok] / TEXEL + 0.5
-            map_y[r0:r1, c0:c1][ok] = b[ok] / TEXEL + 0.5 + self.row_offset[k]
+            map_x[r0:r1, c0:c1][ok] = a[ok] / self._texel[k] + 0.5 + self.col_offset[k]
+            map_y[r0:r1, c0:c1][ok] = b[ok] / self._texel[k] + 0.5 + self.row_offset[k]
         seen = best_id >= 0
         depth = np.where(seen, best, 0.0)
         rgb = cv2.remap(self.atlas, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -45,6 +45,7 @@ from rgbdslam.datasets.synthetic import (
     trajectory_at,
     validate_parameters,
 )
+from rgbdslam.datasets import synthetic_highway as hw
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.se3 import inv, make_pose, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text
@@ -52,6 +53,7 @@ from rgbdslam.io.kitti import format_kitti_calib, format_kitti_poses
 from rgbdslam.ui import console, frame_progress
 
 LAYOUTS = ("kitti", "euroc")
+STEREO_MOTIONS = ("highway",)  # motions of the stereo generator only (datasets/synthetic_highway.py)
 GENERATED = ("sequences", "poses", "mav0", "synthetic.yaml")
 # body (IMU) to cam0 of the synthetic EuRoC rig: camera z forward = body x, camera x = -body y
 T_BS_CAM0 = make_pose(np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]), np.array([0.02, -0.06, 0.01]))
@@ -99,22 +101,35 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
                              blur: float | None = None) -> dict:
     """Render a stereo sequence into ``out_dir`` in ``layout`` (see the module doc). ``blur``: the
     exposure (ms) of both cameras, as in :func:`rgbdslam.datasets.synthetic.generate_sequence`."""
-    validate_parameters(frames, motion, width, height, noise, 0.0, 0.0, seed, camera, blur=blur)
+    highway = motion == "highway"
+    validate_parameters(frames, "static" if highway else motion, width, height, noise, 0.0, 0.0, seed, camera, blur=blur)
     if isinstance(baseline, bool) or not isinstance(baseline, (int, float)) or not 0.0 < baseline <= 10.0:
         raise InputError(f"--stereo must be a baseline in metres, above 0 and at most 10 (got {baseline!r})")
     if layout not in LAYOUTS:
         raise InputError(f"unknown stereo layout '{layout}'; choose one of {', '.join(LAYOUTS)}")
-    cam = scaled_camera(camera, width, height)
+    if highway:
+        if layout != "kitti" or camera != "ros_default" or blur:
+            raise InputError("--motion highway renders its own KITTI-like camera (fx 718 px at 1241 px width) in the "
+                             "KITTI layout, without blur; leave out --camera, --layout euroc and --blur "
+                             "(e.g. --stereo 0.54 --size 1241 376)")
+        cam = hw.highway_camera(width, height)
+    else:
+        cam = scaled_camera(camera, width, height)
     if layout == "kitti" and cam.has_distortion:
         raise InputError(f"the KITTI layout holds rectified images, but camera '{camera}' has lens distortion; "
                          f"choose --camera ros_default or fr3, or --layout euroc (its reader rectifies)")
     start = time.perf_counter()
     out = Path(out_dir)
     _check_output(out)
-    poses = make_trajectory(motion, frames)
     params = dict(frames=int(frames), motion=motion, width=int(width), height=int(height), noise=bool(noise),
-                  seed=int(seed), camera=camera, stereo_baseline=float(baseline), layout=layout)
-    params.update(motion_parameters(motion, frames, resolve_blur(motion, blur)))
+                  seed=int(seed), camera=cam.name if highway else camera, stereo_baseline=float(baseline), layout=layout)
+    if highway:
+        path = hw.highway_path(frames, seed)
+        poses = hw.highway_poses(np.arange(frames), seed, path)
+        params.update(fps=hw.FPS, distance_m=round(float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()), 3))
+    else:
+        poses = make_trajectory(motion, frames)
+        params.update(motion_parameters(motion, frames, resolve_blur(motion, blur)))
     target, work = partial_folder(out)
     try:
         streaks: list[float] = []
@@ -134,13 +149,18 @@ def _render_pairs(cam, poses: np.ndarray, baseline: float, noise: bool, seed: in
                   streaks: list[float]):
     """Grey left and right images of every frame (motion-blurred over the exposure in ``params``;
     the left image's streak length per frame is appended to ``streaks``)."""
-    scene = Scene(seed)
     rays = Rays(cam)
     rng = np.random.default_rng([seed, 31337, 2])
     off = right_offset(baseline)
     frames = len(poses)
     exposure = exposure_frames(params.get("motion_blur", {}).get("exposure_ms", 0.0))
-    left_at = lambda u: trajectory_at(params["motion"], u, frames)  # noqa: E731
+    if params["motion"] == "highway":
+        path = hw.highway_path(frames, seed)
+        scene = Scene(seed, hw.highway_surfaces(float(path.s[-1]), seed, path))
+        left_at = lambda u: hw.highway_poses(u, seed, path)  # noqa: E731
+    else:
+        scene = Scene(seed)
+        left_at = lambda u: trajectory_at(params["motion"], u, frames)  # noqa: E731
     right_at = lambda u: left_at(u) @ off  # noqa: E731
     with frame_progress(frames, f"rendering {frames} stereo pairs", enabled=progress) as advance:
         for k in range(frames):
@@ -164,7 +184,8 @@ def _write_kitti(out: Path, cam, poses, baseline, noise, seed, progress, params,
     P1 = P0.copy()
     P1[0, 3] = -cam.fx * baseline
     atomic_write_text(seq / "calib.txt", format_kitti_calib(P0, P1))
-    atomic_write_text(seq / "times.txt", "".join(f"{k / FPS:.6e}\n" for k in range(len(poses))))
+    fps = params.get("fps", FPS)
+    atomic_write_text(seq / "times.txt", "".join(f"{k / fps:.6e}\n" for k in range(len(poses))))
     # KITTI's poses are relative to the first frame (frame 0 = identity)
     atomic_write_text(out / "poses" / "00.txt", format_kitti_poses(inv(poses[0]) @ poses))
 

@@ -52,6 +52,9 @@ class FrameFeatures:
     readout: float = 0.0  # the readout (s) the rolling shutter was undone with
     # (N,) bool: the key point sits at a depth discontinuity (matching.depth_edge_radius; all False when off)
     edge: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    # (N,) the depth read at each key point before the [min_depth, max_depth] limits (0 = none): a stereo
+    # frame's far points, used as bearings (registration.stereo_fallback, docs/stereo.md)
+    depth_raw: np.ndarray = field(default_factory=lambda: np.zeros(0))
     _tree: cKDTree | None = field(default=None, repr=False)
     _tree_index: np.ndarray | None = field(default=None, repr=False)
 
@@ -249,7 +252,8 @@ def subset(features: FrameFeatures, idx: np.ndarray) -> FrameFeatures:
     return replace(features, uv=features.uv[idx], desc=features.desc[idx], pts=features.pts[idx],
                    valid=features.valid[idx], uv_raw=take(features.uv_raw), response=take(features.response),
                    octave=take(features.octave), row_R=take(features.row_R), row_t=take(features.row_t),
-                   uv_observed=take(features.uv_observed), edge=take(features.edge), _tree=None, _tree_index=None)
+                   uv_observed=take(features.uv_observed), edge=take(features.edge), depth_raw=take(features.depth_raw),
+                   _tree=None, _tree_index=None)
 
 
 def with_detections(frame: Frame, fc: FeaturesConfig) -> Frame:
@@ -321,6 +325,7 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     if features.depth_motion is not None and n:
         z = _depth_at_colour_time(features, depth, camera, z)
     valid = np.isfinite(z) & (z >= mc.min_depth) & (z <= mc.max_depth)
+    features.depth_raw = np.where(np.isfinite(z) & (z > 0), z, 0.0)
     features.edge = np.zeros(n, bool)
     if mc.depth_edge_radius > 0 and n:
         features.edge = depth_edges(depth, u, v, mc.depth_edge_radius, mc.depth_edge_jump) & valid

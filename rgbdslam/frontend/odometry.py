@@ -94,6 +94,7 @@ class Frontend:
         self._n_lost = 0  # consecutive lost frames
         self._prediction_error = np.inf  # how far the last tracked frame was from its prediction (m)
         self.n_newest_guided = 0  # frames whose newest reference was matched around the prediction
+        self.n_fallback = 0  # stereo frames tracked by the fallback (registration.stereo_fallback)
         self._executor = ThreadPoolExecutor(max_workers=rc.threads) if rc.threads > 1 and self.mp > 1 else None
 
     def close(self) -> None:
@@ -181,13 +182,14 @@ class Frontend:
                   if np.linalg.norm(d[:3, 3]) <= rc.max_jump_translation * gap
                   and np.degrees(rotation_angle(d[:3, :3])) <= rc.max_jump_rotation_deg * gap]
         if not ok:
-            return self._lost(frame, feats, timings, n_matches)
+            return self._fallback(frame, feats, timings, pred, n_matches) or self._lost(frame, feats, timings, n_matches)
         cands = np.stack([r.pose @ inv(res.T) for r, res in ok])
         weights = np.array([res.weight for _, res in ok])
         pose, keep, frac = fuse_candidates(cands, weights, rc.fusion, rc.reject_translation, rc.reject_rotation)
         if frac < rc.min_agreement:
             timings["fusion"] = time.perf_counter() - t1
-            return self._lost(frame, feats, timings, n_matches, len(ok))
+            return self._fallback(frame, feats, timings, pred, n_matches, len(ok)) \
+                or self._lost(frame, feats, timings, n_matches, len(ok))
         kept = [res for (_, res), k in zip(ok, keep) if k]
         kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
         if rc.joint_refit and len(kept) > 1:
@@ -312,6 +314,85 @@ class Frontend:
             return pose
         return refined
 
+    def _fallback(self, frame: Frame, feats: FrameFeatures, timings: dict, pred: np.ndarray, n_matches: int,
+                  n_cand: int = 0) -> TrackResult | None:
+        """``registration.stereo_fallback``: a stereo frame whose registration failed gets the
+        constant-velocity pose ``pred`` with its rotation refit on the bearings of the descriptor
+        matches of **every** key point to the newest reference (a rotation needs no depth: far points,
+        even those without any disparity, fix it), then, when at least ``min_points`` near pairs agree,
+        one refit with near points in 3-D and far points as bearings (:func:`refine_pose_near_far`).
+        Kept only within the motion limits of ``pred``. Its ``information`` is weak on translation
+        (σ: a tenth of the step + 0.1 m; rotation σ 0.01 rad). None = not applicable (no velocity
+        yet, RGB-D, too few matches)."""
+        from rgbdslam.geometry.mahalanobis import refine_pose_near_far
+
+        rc = self.rc
+        dn = feats.depth_noise
+        if not rc.stereo_fallback or dn is None or self._velocity is None or not self.refs:
+            return None
+        ref = self.refs[-1]
+        pairs = self._bearing_pairs(ref, feats, pred)
+        need = max(3, rc.min_points)
+        if pairs is None or len(pairs[0]) < need:
+            return None
+        C, SC, W, SW, far, UV = pairs
+        intr = (dn.fx, dn.fy or dn.fx, dn.cx, dn.cy)
+        every = np.ones(len(C), bool)
+        pose, _, inl = refine_pose_near_far(pred, C, SC, W, SW, every, UV, intr, dn.sigma_pixel,
+                                            huber=rc.noise_refit_huber, rotation_only=True)
+        if inl.sum() >= need and (inl & ~far).sum() >= need:
+            full, _, inl2 = refine_pose_near_far(pose, C[inl], SC[inl], W[inl], SW[inl], far[inl], UV[inl], intr,
+                                                 dn.sigma_pixel, huber=rc.noise_refit_huber)
+            if inl2.sum() >= need:
+                pose = full
+        d = inv(pred) @ pose
+        if np.linalg.norm(d[:3, 3]) > rc.max_jump_translation or \
+                np.degrees(rotation_angle(d[:3, :3])) > rc.max_jump_rotation_deg or inl.sum() < need:
+            return None
+        last = self.refs[-1]
+        relative = inv(last.pose) @ pose
+        s_t = 0.1 * float(np.linalg.norm(relative[:3, 3])) + 0.1
+        info = np.diag([1.0 / 0.01 ** 2] * 3 + [1.0 / s_t ** 2] * 3)
+        self._prediction_error = np.inf
+        self._velocity = (relative, frame.index - last.features.index, frame.timestamp - last.features.timestamp)
+        self._n_lost = 0
+        self.n_fallback += 1
+        self.refs.append(_Ref(feats, pose))
+        return TrackResult(frame.index, frame.timestamp, pose, False, feats, relative, info, n_matches,
+                           int(inl.sum()), 0.0, timings, n_candidates=n_cand, map_features=self._full)
+
+    def _bearing_pairs(self, ref: _Ref, feats: FrameFeatures, pred: np.ndarray):
+        """Descriptor matches of every key point of ``ref`` and ``feats`` (depth or not) whose
+        reprojection under ``pred`` is within :data:`FALLBACK_GATE_PX`: (C, SC, W, SW, far, UV).
+        A reference point with stereo depth (any, also beyond ``matching.max_depth``) is that 3-D
+        point, one without is its viewing ray at :data:`FAR_AWAY` m (a direction: its parallax is
+        nil); a pair is near (3-D) when both points are depth-valid and the current one lies within
+        ``far_baselines`` baselines (any depth-valid one with ``far_baselines`` 0), otherwise a bearing. None = too few matches."""
+        from rgbdslam.frontend.matching import match_descriptors
+        from rgbdslam.geometry.mahalanobis import bearing_residuals, split_near_far
+
+        rf, dn = ref.features, feats.depth_noise
+        if rf.depth_noise is None or len(rf.depth_raw) != len(rf.uv) or len(feats.depth_raw) != len(feats.uv):
+            return None
+        ia, ib = match_descriptors(rf.desc, feats.desc, self.mc, rf.words, feats.words)
+        if len(ia) < 3:
+            return None
+        z = rf.depth_raw[ia]
+        has = z > 0
+        P = self.camera.backproject(rf.uv[ia], np.where(has, z, FAR_AWAY))
+        cov_p = rf.depth_noise.covariance(np.where(has[:, None], P, [0.0, 0.0, 1.0]))
+        cov_p[~has] = 0.0
+        R = ref.pose[:3, :3]
+        W, SW = transform_points(ref.pose, P), R @ cov_p @ R.T
+        UV = feats.uv[ib]
+        intr = (dn.fx, dn.fy or dn.fx, dn.cx, dn.cy)
+        r, _, _ = bearing_residuals(pred, W, np.zeros_like(SW), UV, intr, dn.sigma_pixel)
+        keep = np.linalg.norm(r, axis=1) <= FALLBACK_GATE_PX
+        C = np.where(feats.valid[ib][:, None], feats.pts[ib], [0.0, 0.0, 1.0])
+        far = ~feats.valid[ib] | ~rf.valid[ia] | split_near_far(feats.depth_raw[ib], dn.baseline, self.rc.far_baselines)
+        SC = dn.covariance(C)
+        return C[keep], SC[keep], W[keep], SW[keep], far[keep], UV[keep]
+
     def _map(self, jobs: list[tuple]) -> list:
         if self._executor is not None and len(jobs) > 1:
             return list(self._executor.map(lambda a: self.register(*a), jobs))
@@ -370,6 +451,8 @@ class Frontend:
 
 # information of the relative pose across a restart (GTSAM order: rotation, then translation):
 # σ = π rad and 5 m, i.e. "unknown" next to any registration, yet well conditioned
+FALLBACK_GATE_PX = 40.0  # pixels: a match further than this from the constant-velocity prediction is wrong
+FAR_AWAY = 1e5  # metres: a key point without disparity, as a direction (2.8 m of motion: 0.02 px at fx 718)
 RESTART_INFORMATION = np.diag([1.0 / np.pi**2] * 3 + [1.0 / 25.0] * 3)
 
 
