@@ -359,6 +359,8 @@ def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_pat
     with tempfile.TemporaryDirectory(prefix="rgbdslam-gt-") as tmp:
         if gt.is_dir():  # a sequence folder: its own ground truth (7-Scenes pose.txt files, groundtruth.txt, ...)
             gt = _groundtruth_file(gt, Path(tmp))
+        elif gt.name.endswith(".gt.freiburg"):  # ICL-NUIM's own file: its conventions, as its reader applies them
+            gt = _icl_groundtruth_file(gt, Path(tmp))
         if len(est) == 1:
             evaluate_and_print(gt, est[0], **opts)
         else:
@@ -370,12 +372,26 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
     from rgbdslam.datasets import open_sequence
     from rgbdslam.io.trajectory import write_tum
 
-    gt = open_sequence(sequence).groundtruth()
+    seq = open_sequence(sequence)
+    gt = seq.groundtruth()
     if gt is None:
         raise InputError(f"{sequence} is a folder without ground truth; give a TUM trajectory file as GT")
+    if seq.groundtruth_convention:
+        click.echo(f"ground truth: {seq.groundtruth_convention}")
     path = tmp / f"{sequence.resolve().name}_groundtruth.tum"
     write_tum(gt, path)
     return path
+
+
+def _icl_groundtruth_file(path: Path, tmp: Path) -> Path:
+    """An ICL-NUIM ``*.gt.freiburg`` converted as the ICL-NUIM reader reads it, as a TUM file."""
+    from rgbdslam.datasets.icl import convention, read_groundtruth
+    from rgbdslam.io.trajectory import write_tum
+
+    out = tmp / f"{path.name}.tum"
+    write_tum(read_groundtruth(path), out)
+    click.echo(f"ground truth: {convention(path)}")
+    return out
 
 
 @main.command()

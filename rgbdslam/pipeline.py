@@ -154,7 +154,10 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
 
 
 def announce_camera(seq: Sequence, console) -> None:
-    """Say which camera the run uses and where it came from; warn when it is only a guess."""
+    """Say which camera the run uses and where it came from (and how the reader converts the
+    ground truth, when it does); warn when the camera is only a guess."""
+    if seq.groundtruth_convention:
+        console.print(f"ground truth: {seq.groundtruth_convention}", highlight=False)
     setup = getattr(seq, "camera_setup", None)
     if setup is None:
         console.print(f"camera {seq.camera.name or 'custom'}: fx {seq.camera.fx:g} fy {seq.camera.fy:g} "
