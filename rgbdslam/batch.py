@@ -31,9 +31,10 @@ def _run_dirs(sequences: list[Path], out_root: Path) -> list[Path]:
     return out
 
 
-def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config, progress: bool = True,
+def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config | list[Config], progress: bool = True,
                   engine: str = "local", workers: int = 1, address: str | None = None) -> list[dict[str, Any]]:
-    """Run SLAM on several sequences, each into ``out_root/<sequence name>``, with one config.
+    """Run SLAM on several sequences, each into ``out_root/<sequence name>``, with one config (or
+    a list: one per sequence, as the command line gives each its own preset).
 
     A sequence that fails with an input error (missing folder, no trackable frame, ...) is
     reported and the others still run. Returns one row per sequence (``status`` "ok" or the
@@ -51,8 +52,9 @@ def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config
     dirs = _run_dirs([Path(s) for s in sequences], out_root)
     rows: list[dict[str, Any] | None] = [None] * len(sequences)
     serial = engine == "local" and workers == 1
-    jobs = [(str(seq), str(d), cfg, progress and serial, not serial, f"{k + 1}/{len(sequences)}")
-            for k, (seq, d) in enumerate(zip(sequences, dirs))]
+    cfgs = cfg if isinstance(cfg, list) else [cfg] * len(sequences)
+    jobs = [(str(seq), str(d), c, progress and serial, not serial, f"{k + 1}/{len(sequences)}")
+            for k, (seq, d, c) in enumerate(zip(sequences, dirs, cfgs))]
     with build_engine(engine, workers, address) as eng:
         if not serial:
             console.print(f"{len(sequences)} sequences on {eng.describe()}")

@@ -75,7 +75,8 @@ def main() -> None:
 
 config_option = click.option(
     "--config", "-c", "config_path", default=None,
-    help="YAML config file or the name of a preset shipped with rgbdslam (default, tum_fr1, ...).",
+    help="YAML config file or the name of a preset shipped with rgbdslam (rgbdslam config --list-presets); "
+         "without it the preset is chosen from the sequence's layout and camera.",
 )
 camera_option = click.option(
     "--camera", "camera_file", type=PATH, default=None, metavar="FILE",
@@ -92,6 +93,21 @@ def load_cli_config(config_path, overrides, camera_file=None):
     if camera_file is not None:
         cfg.dataset.camera_file = str(camera_file)
     return cfg
+
+
+def sequence_config(sequence, config_path, overrides, camera_file=None):
+    """The config of a command on one SEQUENCE, as :func:`load_cli_config`; without --config, the
+    preset that the sequence's layout and camera call for (:mod:`rgbdslam.datasets.preset_choice`).
+    Returns the config and the choice (None with --config, or when no reader recognises SEQUENCE)."""
+    from rgbdslam.datasets.preset_choice import choose_preset
+
+    cfg = load_cli_config(config_path, overrides, camera_file)
+    if config_path is not None:
+        return cfg, None
+    choice = choose_preset(sequence, cfg)
+    if choice is None or choice.name == "default":  # the defaults are the default preset
+        return cfg, choice
+    return load_cli_config(choice.name, overrides, camera_file), choice
 
 
 set_option = click.option(
@@ -161,31 +177,40 @@ def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_s
     """Run SLAM on SEQUENCE (a TUM, ETH3D, ICL-NUIM, 7-Scenes or PUT folder, a ROS 1/2 bag or a
     RealSense recording) and write trajectory.tum into --out.
 
-    Several sequences run one after the other with the same config (camera "auto" is decided
-    per sequence); a table of their results is printed and written to OUT/summary.md and .csv."""
-    from rgbdslam.config import load_config
+    Without --config the preset is chosen from each sequence's layout and camera (KITTI -> kitti,
+    TUM freiburg1/2/3 -> tum_fr1/2/3, PUT -> put_kinect1, else default) and printed with the reason;
+    --config and --set win. Several sequences run one after the other (camera "auto" is decided
+    per sequence); a table of their results is printed and written to OUT/summary.md and .csv.
+    A run that loses most of its frames ends with one error line naming the likely fix (exit 3)."""
     from rgbdslam.batch import format_batch_table, run_sequences
     from rgbdslam.pipeline import run_sequence
+    from rgbdslam.ui import console
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
-    cfg = load_cli_config(config_path, with_frame_options(overrides, first_frame, stride, max_frames), camera_file)
-    if no_map:
-        cfg.mapping.enabled = False
-    if rerun_spawn:
-        cfg.output.rerun = True
-    if rerun_save is not None:
-        cfg.output.rerun_save = str(rerun_save)
     if (map_dir is not None or localize) and len(sequences) > 1:
         raise click.UsageError("--map/--localize take a single SEQUENCE")
+    if len(sequences) == 1 and (engine != "local" or workers != 1 or address is not None):
+        raise click.UsageError("--engine/--workers/--address spread several sequences; give more than one SEQUENCE")
+    configs = []
+    for sequence in sequences:  # without --config, each sequence's own preset
+        cfg, choice = sequence_config(sequence, config_path, with_frame_options(overrides, first_frame, stride,
+                                                                                max_frames), camera_file)
+        if no_map:
+            cfg.mapping.enabled = False
+        if rerun_spawn:
+            cfg.output.rerun = True
+        if rerun_save is not None:
+            cfg.output.rerun_save = str(rerun_save)
+        if choice is not None:
+            console.print((f"{sequence.name}: " if len(sequences) > 1 else "") + choice.describe(), highlight=False)
+        configs.append(cfg)
     if len(sequences) == 1:
-        if engine != "local" or workers != 1 or address is not None:
-            raise click.UsageError("--engine/--workers/--address spread several sequences; give more than one SEQUENCE")
-        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet,
-                     map_dir=map_dir, localize=localize)
+        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, configs[0],
+                     progress=not quiet, map_dir=map_dir, localize=localize)
         return
     out_root = out_dir or Path("runs")
-    rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet, engine=engine, workers=workers,
+    rows = run_sequences(list(sequences), out_root, configs, progress=not quiet, engine=engine, workers=workers,
                          address=address)
     click.echo(format_batch_table(rows))
     failed = [r for r in rows if r["status"] != "ok"]
@@ -298,9 +323,18 @@ def live(config_path, overrides, out_dir, record_dir, playback, size, fps, seria
 @click.option("--explain", is_flag=True,
               help="Print every key with its type, accepted range, default and a one-line description "
                    "(and the value here when the preset or --set changed it).")
-def show_config(config_path, overrides, explain):
+@click.option("--list-presets", is_flag=True,
+              help="List the presets shipped with rgbdslam (for -c NAME), what each is for and the layouts "
+                   "`run` chooses it for without --config.")
+def show_config(config_path, overrides, explain, list_presets):
     """Print the effective configuration (defaults, preset, overrides) as YAML."""
     from rgbdslam.config import load_config
+
+    if list_presets:
+        from rgbdslam.config_doc import preset_list
+
+        click.echo(preset_list(), nl=False)
+        return
 
     cfg = load_config(config_path, overrides)
     if explain:
@@ -318,11 +352,15 @@ def show_config(config_path, overrides, explain):
 @camera_option
 @frame_options
 def info(sequence, config_path, overrides, camera_file, first_frame, stride, max_frames):
-    """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
+    """Describe SEQUENCE: reader, camera, frames, time span, ground truth, and the preset `run`
+    chooses for it without --config."""
     from rgbdslam.datasets import describe_sequence
 
-    cfg = load_cli_config(config_path, with_frame_options(overrides, first_frame, stride, max_frames), camera_file)
+    cfg, choice = sequence_config(sequence, config_path, with_frame_options(overrides, first_frame, stride,
+                                                                            max_frames), camera_file)
     click.echo(describe_sequence(sequence, cfg))
+    if choice is not None:
+        click.echo(f"preset      {choice.name}: {choice.reason} (what `run` uses without --config)")
 
 
 # ------------------------------------------------------------------ commands added by stages

@@ -146,11 +146,31 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     after["cpu"] = time.process_time() - c_end  # CPU seconds of this process (its helpers' are in map.timings)
     summary["after_tracking_s"] = {k: round(v, 3) for k, v in after.items()}
     record.stage = "end"
+    failure = None if run.interrupted else mostly_lost(seq, summary)
+    if failure is not None:
+        summary.update(status="failed", error=failure)
     record.write(summary, final=True)  # only now: "finished" (or "interrupted" from the tracking loop)
     print_summary(summary, out_dir, console)
     if run.interrupted:
         raise KeyboardInterrupt
+    if failure is not None:
+        raise TrackingLost(failure)
     return summary
+
+
+def mostly_lost(seq: Sequence, summary: dict[str, Any]) -> str | None:
+    """One line when tracking failed for most frames (more lost than tracked): the settings do not
+    fit the sequence, and its trajectory and ATE mean nothing. The outputs stay for a look."""
+    lost, tracked = summary["lost"], summary["tracked"]
+    if lost <= tracked:
+        return None
+    if getattr(seq, "rig", None) is not None:  # stereo: depth from the pair, no depth scale
+        fix = "a wrong preset (--config kitti for a car-mounted rig) or stereo calibration"
+    else:
+        fix = ("a wrong preset (--config, e.g. tum_fr1 for TUM freiburg1), camera (--camera FILE) or depth scale "
+               "(--set dataset.depth_scale=UNITS_PER_METRE)")
+    return (f"{lost} of {lost + tracked} frames of {seq.name} could not be tracked, so its trajectory "
+            f"and ATE mean nothing; likely {fix}; `rgbdslam info SEQUENCE` shows what was used")
 
 
 def announce_camera(seq: Sequence, console) -> None:

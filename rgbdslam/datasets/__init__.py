@@ -35,6 +35,15 @@ def _load_builtin() -> None:
     from rgbdslam.datasets import euroc, kitti, stereo_folder  # noqa: F401  (stereo readers)
 
 
+def detect_kind(path: Path, cfg) -> str | None:
+    """The reader for ``path``: ``cfg.kind`` (the dataset section) unless it is ``auto``, else the
+    first reader that recognises the folder (None: none does)."""
+    _load_builtin()
+    if cfg.kind not in ("auto", "synthetic"):
+        return cfg.kind
+    return next((n for n, (detect, _) in READERS.items() if detect(Path(path))), None)
+
+
 def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequence:
     """Open the sequence in ``path`` with the reader named by ``cfg.kind`` (or detected).
 
@@ -51,17 +60,15 @@ def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequenc
     if not path.is_dir() and not any(detect(path) for detect, _ in READERS.values()):
         raise InputError(f"{path} is not a folder or a known recording (.bag, .db3, .mcap); give the sequence's "
                          f"folder (the one with rgb.txt or matched) or a bag")
-    kind = cfg.kind
-    if kind in ("auto", "synthetic"):
-        kind = next((n for n, (detect, _) in READERS.items() if detect(path)), None)
-        if kind is None:
-            raise InputError(
-                f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
-                f"with time-stamp-named PNGs (TUM, ETH3D), rgb/N.png with a *.gt.freiburg (ICL-NUIM), "
-                f"frame-NNNNNN.color.jpg (7-Scenes), "
-                f"a 'matched' file (PUT), a ROS bag (metadata.yaml, .bag, .db3, .mcap), calib.txt with image_0/ "
-                f"and image_1/ (KITTI), mav0/cam0 and mav0/cam1 (EuRoC), or left/, right/ and stereo.yaml (stereo)"
-            )
+    kind = detect_kind(path, cfg)
+    if kind is None:
+        raise InputError(
+            f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
+            f"with time-stamp-named PNGs (TUM, ETH3D), rgb/N.png with a *.gt.freiburg (ICL-NUIM), "
+            f"frame-NNNNNN.color.jpg (7-Scenes), "
+            f"a 'matched' file (PUT), a ROS bag (metadata.yaml, .bag, .db3, .mcap), calib.txt with image_0/ "
+            f"and image_1/ (KITTI), mav0/cam0 and mav0/cam1 (EuRoC), or left/, right/ and stereo.yaml (stereo)"
+        )
     if kind not in READERS:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
     seq = READERS[kind][1](path, cfg)
@@ -109,4 +116,4 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["Frame", "Sequence", "open_sequence", "available", "describe_sequence"]
+__all__ = ["Frame", "Sequence", "open_sequence", "detect_kind", "available", "describe_sequence"]
