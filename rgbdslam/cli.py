@@ -184,7 +184,6 @@ def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_s
     A run that loses most of its frames ends with one error line naming the likely fix (exit 3)."""
     from rgbdslam.batch import format_batch_table, run_sequences
     from rgbdslam.pipeline import run_sequence
-    from rgbdslam.ui import console
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
@@ -192,7 +191,7 @@ def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_s
         raise click.UsageError("--map/--localize take a single SEQUENCE")
     if len(sequences) == 1 and (engine != "local" or workers != 1 or address is not None):
         raise click.UsageError("--engine/--workers/--address spread several sequences; give more than one SEQUENCE")
-    configs = []
+    configs, notes = [], []
     for sequence in sequences:  # without --config, each sequence's own preset
         cfg, choice = sequence_config(sequence, config_path, with_frame_options(overrides, first_frame, stride,
                                                                                 max_frames), camera_file)
@@ -202,16 +201,15 @@ def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_s
             cfg.output.rerun = True
         if rerun_save is not None:
             cfg.output.rerun_save = str(rerun_save)
-        if choice is not None:
-            console.print((f"{sequence.name}: " if len(sequences) > 1 else "") + choice.describe(), highlight=False)
         configs.append(cfg)
+        notes.append(choice.describe() if choice is not None else None)  # printed when the run starts
     if len(sequences) == 1:
         run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, configs[0],
-                     progress=not quiet, map_dir=map_dir, localize=localize)
+                     progress=not quiet, map_dir=map_dir, localize=localize, announce=notes[0])
         return
     out_root = out_dir or Path("runs")
     rows = run_sequences(list(sequences), out_root, configs, progress=not quiet, engine=engine, workers=workers,
-                         address=address)
+                         address=address, notes=notes)
     click.echo(format_batch_table(rows))
     failed = [r for r in rows if r["status"] != "ok"]
     if failed:

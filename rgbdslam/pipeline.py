@@ -41,8 +41,12 @@ class Tracking:
 
 
 def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Config,
-                 progress: bool = True, map_dir: str | Path | None = None, localize: bool = False) -> dict[str, Any]:
+                 progress: bool = True, map_dir: str | Path | None = None, localize: bool = False,
+                 announce: str | None = None) -> dict[str, Any]:
     """Run SLAM over a sequence and write the run folder (with its map, ``map.npz``); returns the run summary.
+
+    ``announce``: a line printed with the camera once the run has started (the command line's
+    choice of preset), so that an error before that stays the only line.
 
     ``map_dir``: a finished run's folder whose map the camera relocalises in and then extends, or
     only localises in with ``localize`` (:mod:`rgbdslam.session`); checked before anything is written.
@@ -67,7 +71,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     with folder_lock(out_dir, "run"):
         record = RunRecord(out_dir, str(Path(seq.root).resolve()))
         try:
-            return _run(seq, out_dir, cfg, progress, record, session)
+            return _run(seq, out_dir, cfg, progress, record, session, announce)
         except KeyboardInterrupt:
             record.close("interrupted")
             raise
@@ -85,12 +89,15 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
             raise
 
 
-def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunRecord, session) -> dict[str, Any]:
+def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunRecord, session,
+         announce: str | None = None) -> dict[str, Any]:
     """The run's steps, in the locked folder; ``record`` keeps run.json and the stage; ``session``
     the saved map this run localises in or extends (None: a new map)."""
     from rgbdslam.ui import console
 
     prepare_run_folder(out_dir, cfg, console, record)
+    if announce:
+        console.print(announce, highlight=False)
     announce_camera(seq, console)  # after the folder: a path that cannot be written stays one error line
     gt = seq.groundtruth()
     observer = make_observer(cfg, seq.camera, gt)
