@@ -47,8 +47,7 @@ AUTOMATIC = {
 OTHER = {
     "put": ("put_kinect1", "PUT layout ('matched'): a Kinect v1, depth in millimetres"),
     "icl": ("default", "ICL-NUIM layout: rendered indoor RGB-D, what the default is for"),
-    "7scenes": ("default", "7-Scenes layout: a hand-held Kinect indoors, with the 7-Scenes camera shipped with "
-                           "rgbdslam"),
+    "7scenes": ("default", "7-Scenes layout: a hand-held Kinect indoors"),
     "euroc": ("default", "EuRoC layout: an indoor stereo rig, within the default's indoor distances"),
     "stereo": ("default", "stereo folder: the default's indoor distances (use -c kitti for a car-mounted rig)"),
     "rosbag": ("default", "a recording: the camera from its CameraInfo, the indoor default"),
