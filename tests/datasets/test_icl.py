@@ -7,7 +7,9 @@ frames from 0 (``livingRoom2.gt.freiburg``), the office layout from 1 (``traj0.g
 
 from __future__ import annotations
 
+import csv
 import json
+import zipfile
 
 import cv2
 import numpy as np
@@ -92,20 +94,30 @@ def test_frames_are_numbered_at_30_hz_and_the_ground_truth_is_reflected(which, r
 
 
 @pytest.mark.slow
-def test_run_reports_the_right_ate_and_says_which_convention(living_room, tmp_path):
-    """The whole run, no flags: the frames are tracked (synthetic, exact depth) and the ATE
-    against the converted ground truth is millimetres; against the published y-up poses it would
-    be decimetres (no rigid alignment undoes a reflection)."""
-    root, poses = living_room
-    res = cli(["run", root, "--out", tmp_path / "run", "--no-map", "-q"])
+def test_run_batch_table_and_export_agree_on_the_right_ate(living_room, office, tmp_path):
+    """Both layouts in one `rgbdslam run`, no flags: the frames are tracked (synthetic, exact
+    depth) and the ATE against the converted ground truth is millimetres (0.096 m against the
+    published y-up poses: no rigid alignment undoes a reflection); the batch table, evaluation.json
+    and the evo export (which reads the ground truth again through the reader) agree."""
+    (root, poses), (office_root, office_poses) = living_room, office
+    res = cli(["run", root, office_root, "--out", tmp_path / "runs", "--no-map", "-q"])
     assert res.exit_code == 0, res.output
-    s = json.loads((tmp_path / "run" / "run.json").read_text())
-    ev = json.loads((tmp_path / "run" / "evaluation.json").read_text())
-    assert s["tracked"] == len(poses) and ev["ate"]["n_pairs"] == len(poses)
-    assert ev["ate"]["rmse"] < 0.005, ev["ate"]  # 0.096 m against the published (y-up) poses
-    assert "livingRoom2.gt.freiburg read as ICL-NUIM" in res.output
-    est = read_tum(tmp_path / "run" / "trajectory.tum")
-    np.testing.assert_allclose(est.timestamps, np.arange(len(poses)) / 30.0, atol=1e-6)
+    rows = {r["sequence"]: r for r in csv.DictReader(open(tmp_path / "runs" / "summary.csv"))}
+    for seq, p, first in ((root, poses, 0), (office_root, office_poses, 1)):
+        run = tmp_path / "runs" / seq.name
+        s = json.loads((run / "run.json").read_text())
+        ev = json.loads((run / "evaluation.json").read_text())
+        assert s["tracked"] == len(p) and ev["ate"]["n_pairs"] == len(p)
+        assert ev["ate"]["rmse"] < 0.005, ev["ate"]
+        assert float(rows[str(seq)]["ate_rmse"]) == pytest.approx(ev["ate"]["rmse"], abs=1e-6)
+        est = read_tum(run / "trajectory.tum")
+        np.testing.assert_allclose(est.timestamps, np.arange(first, first + len(p)) / 30.0, atol=1e-6)
+    assert "livingRoom2.gt.freiburg read as ICL-NUIM" in res.output and "traj0.gt.freiburg read as" in res.output
+    run = tmp_path / "runs" / root.name
+    assert cli(["export", run, "-f", "evo", "-q"]).exit_code == 0
+    evo = json.loads(zipfile.ZipFile(run / "export" / "evo_ape.zip").read("stats.json"))
+    ours = json.loads((run / "evaluation.json").read_text())["ate"]["rmse"]
+    assert evo["rmse"] == pytest.approx(ours, rel=1e-3, abs=1e-6)
 
 
 def test_evaluate_agrees_for_the_folder_and_the_gt_freiburg_file(office, tmp_path):
