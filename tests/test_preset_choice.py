@@ -49,6 +49,8 @@ def test_the_layout_and_camera_choose_the_preset_and_config_and_set_win(tmp_path
     generate_stereo_sequence(synth, 0.1, "kitti", frames=2, seed=0, width=64, height=48)
     assert _choice(synth)[1] == "default"
     assert _choice(tmp_path / "missing")[1] is None  # opening it says what is wrong, not the choice
+    res = cli(["info", KITTI])
+    assert res.exit_code == 0 and "\npreset      kitti: KITTI odometry layout" in res.output, res.output
 
 
 def test_every_automatic_choice_is_a_shipped_preset_and_the_list_comes_from_the_package():

@@ -90,7 +90,8 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
         f"reader      {type(seq).__name__}",
         f"camera      {cam.name or 'custom'}: fx {cam.fx} fy {cam.fy} cx {cam.cx} cy {cam.cy}, "
         f"{cam.width}x{cam.height}, distortion {' '.join(f'{d:g}' for d in cam.dist)}"
-        + (f" (from {setup.source})" if setup is not None else ""),
+        + (f" (from {setup.source})" if setup is not None else "")
+        + ("; depth re-projected into colour" if setup is not None and setup.depth_camera is not None else ""),
         f"frames      {len(seq)} over {span:.2f} s ({len(seq) / span if span > 0 else 0:.1f} Hz)",
         f"groundtruth {f'{len(gt)} poses' if gt is not None else 'none'}"
         + (f" ({seq.groundtruth_convention})" if gt is not None and seq.groundtruth_convention else ""),
