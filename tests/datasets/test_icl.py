@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 from tests.conftest import cli
 from rgbdslam.datasets import describe_sequence, open_sequence
 from rgbdslam.datasets.synthetic import Rays, Scene, make_trajectory
+from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.io.trajectory import Trajectory, read_tum, write_tum
 
@@ -41,9 +42,10 @@ def helix(frames: int) -> np.ndarray:
     return poses
 
 
-def write_icl(root, frames: int, first: int, gt_name: str, seed: int = 3) -> np.ndarray:
-    """An ICL-NUIM folder of ``frames`` frames numbered from ``first``; returns the true
-    camera-to-world poses of the images (the y-down world the images are rendered in)."""
+def write_icl(root, frames: int, first: int, gt_name: str, seed: int = 3, associations: bool = True) -> np.ndarray:
+    """An ICL-NUIM folder of ``frames`` frames numbered from ``first`` (without ``associations``
+    the frames are the numbers that have both images); returns the true camera-to-world poses of
+    the images (the y-down world the images are rendered in)."""
     poses = helix(frames)
     scene, rays = Scene(seed), Rays(ICL_CAMERA)
     (root / "rgb").mkdir(parents=True)
@@ -58,7 +60,8 @@ def write_icl(root, frames: int, first: int, gt_name: str, seed: int = 3) -> np.
         Ty = F @ T @ F  # as the data set publishes it: the renderer's y-up world
         q = Rotation.from_matrix(Ty[:3, :3]).as_quat()  # x y z w
         gt.append(f"{n} " + " ".join(f"{v:.9f}" for v in (*Ty[:3, 3], *q)) + "\n")
-    (root / "associations.txt").write_text("".join(assoc))
+    if associations:
+        (root / "associations.txt").write_text("".join(assoc))
     (root / gt_name).write_text("".join(gt))
     return poses
 
@@ -72,7 +75,7 @@ def living_room(tmp_path_factory):
 @pytest.fixture(scope="module")
 def office(tmp_path_factory):
     root = tmp_path_factory.mktemp("icl") / "traj0_frei_png"
-    return root, write_icl(root, 12, 1, "traj0.gt.freiburg", seed=5)
+    return root, write_icl(root, 12, 1, "traj0.gt.freiburg", seed=5, associations=False)
 
 
 @pytest.mark.parametrize("which", ["living_room", "office"])
@@ -142,3 +145,18 @@ def test_info_says_30_hz_and_the_convention(living_room):
     assert "reader      IclSequence" in text
     assert "frames      40 over 1.30 s (30.8 Hz)" in text  # 40 frames, 39 intervals of 1/30 s
     assert "groundtruth 40 poses (livingRoom2.gt.freiburg read as ICL-NUIM" in text
+
+
+def test_associations_in_either_order_and_a_bad_line_named(tmp_path):
+    root = tmp_path / "living_room_traj0_frei_png"
+    write_icl(root, 3, 0, "livingRoom0.gt.freiburg")
+    (root / "associations.txt").write_text("0 rgb/0.png 0 depth/0.png\n1 rgb/1.png 1 depth/1.png\n")
+    seq = open_sequence(root)
+    assert len(seq) == 2 and seq.depth_files[1].name == "1.png" and seq.depth_files[1].parent.name == "depth"
+    (root / "associations.txt").write_text("0 depth/0.png 0 rgb/0.png\n1 depth/1.png 2 rgb/2.png\n")
+    with pytest.raises(InputError, match=r"associations.txt:2: expected 'N depth/N.png N rgb/N.png'"):
+        open_sequence(root)
+    (root / "livingRoom0.gt.freiburg").write_text("0.5 0 0 0 0 0 0 1\n")
+    (root / "associations.txt").unlink()
+    with pytest.raises(InputError, match="the first column of an ICL-NUIM ground truth is the frame number"):
+        open_sequence(root).groundtruth()
