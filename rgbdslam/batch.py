@@ -31,9 +31,12 @@ def _run_dirs(sequences: list[Path], out_root: Path) -> list[Path]:
     return out
 
 
-def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config, progress: bool = True,
-                  engine: str = "local", workers: int = 1, address: str | None = None) -> list[dict[str, Any]]:
-    """Run SLAM on several sequences, each into ``out_root/<sequence name>``, with one config.
+def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config | list[Config], progress: bool = True,
+                  engine: str = "local", workers: int = 1, address: str | None = None,
+                  notes: list[str | None] | None = None) -> list[dict[str, Any]]:
+    """Run SLAM on several sequences, each into ``out_root/<sequence name>``, with one config (or
+    a list: one per sequence, as the command line gives each its own preset; ``notes``: a line for
+    each that its run prints when it starts, the preset chosen and why).
 
     A sequence that fails with an input error (missing folder, no trackable frame, ...) is
     reported and the others still run. Returns one row per sequence (``status`` "ok" or the
@@ -51,8 +54,10 @@ def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config
     dirs = _run_dirs([Path(s) for s in sequences], out_root)
     rows: list[dict[str, Any] | None] = [None] * len(sequences)
     serial = engine == "local" and workers == 1
-    jobs = [(str(seq), str(d), cfg, progress and serial, not serial, f"{k + 1}/{len(sequences)}")
-            for k, (seq, d) in enumerate(zip(sequences, dirs))]
+    cfgs = cfg if isinstance(cfg, list) else [cfg] * len(sequences)
+    notes = notes or [None] * len(sequences)
+    jobs = [(str(seq), str(d), c, progress and serial, not serial, f"{k + 1}/{len(sequences)}", note)
+            for k, (seq, d, c, note) in enumerate(zip(sequences, dirs, cfgs, notes))]
     with build_engine(engine, workers, address) as eng:
         if not serial:
             console.print(f"{len(sequences)} sequences on {eng.describe()}")
@@ -69,7 +74,8 @@ def _brief(row: dict[str, Any]) -> str:
     return f"{row['tracked']}/{row['frames']} tracked" + (f", ATE {ate:.4f} m" if ate is not None else "")
 
 
-def run_one(seq: str, out_dir: str, cfg: Config, progress: bool, quiet: bool, position: str) -> dict[str, Any]:
+def run_one(seq: str, out_dir: str, cfg: Config, progress: bool, quiet: bool, position: str,
+            note: str | None = None) -> dict[str, Any]:
     """One sequence of the batch (in this process or an engine's worker) -> its row."""
     import copy
 
@@ -82,7 +88,7 @@ def run_one(seq: str, out_dir: str, cfg: Config, progress: bool, quiet: bool, po
     row: dict[str, Any] = {"sequence": str(seq), "out": str(out_dir)}
     try:
         console.rule(f"[bold]{position}[/] {seq}")
-        s = run_sequence(seq, out_dir, copy.deepcopy(cfg), progress=progress)
+        s = run_sequence(seq, out_dir, copy.deepcopy(cfg), progress=progress, announce=note)
     except RgbdslamError as e:  # one bad sequence does not stop the batch
         console.print(f"[red]error:[/] {escape(str(e))}")
         row["status"] = str(e)

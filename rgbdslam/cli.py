@@ -75,7 +75,8 @@ def main() -> None:
 
 config_option = click.option(
     "--config", "-c", "config_path", default=None,
-    help="YAML config file or the name of a preset shipped with rgbdslam (default, tum_fr1, ...).",
+    help="YAML config file or the name of a preset shipped with rgbdslam (rgbdslam config --list-presets); "
+         "without it the preset is chosen from the sequence's layout and camera.",
 )
 camera_option = click.option(
     "--camera", "camera_file", type=PATH, default=None, metavar="FILE",
@@ -92,6 +93,21 @@ def load_cli_config(config_path, overrides, camera_file=None):
     if camera_file is not None:
         cfg.dataset.camera_file = str(camera_file)
     return cfg
+
+
+def sequence_config(sequence, config_path, overrides, camera_file=None):
+    """The config of a command on one SEQUENCE, as :func:`load_cli_config`; without --config, the
+    preset that the sequence's layout and camera call for (:mod:`rgbdslam.datasets.preset_choice`).
+    Returns the config and the choice (None with --config, or when no reader recognises SEQUENCE)."""
+    from rgbdslam.datasets.preset_choice import choose_preset
+
+    cfg = load_cli_config(config_path, overrides, camera_file)
+    if config_path is not None:
+        return cfg, None
+    choice = choose_preset(sequence, cfg)
+    if choice is None or choice.name == "default":  # the defaults are the default preset
+        return cfg, choice
+    return load_cli_config(choice.name, overrides, camera_file), choice
 
 
 set_option = click.option(
@@ -161,32 +177,39 @@ def run(sequences, config_path, overrides, camera_file, out_dir, no_map, rerun_s
     """Run SLAM on SEQUENCE (a TUM, ETH3D, ICL-NUIM, 7-Scenes or PUT folder, a ROS 1/2 bag or a
     RealSense recording) and write trajectory.tum into --out.
 
-    Several sequences run one after the other with the same config (camera "auto" is decided
-    per sequence); a table of their results is printed and written to OUT/summary.md and .csv."""
-    from rgbdslam.config import load_config
+    Without --config the preset is chosen from each sequence's layout and camera (KITTI -> kitti,
+    TUM freiburg1/2/3 -> tum_fr1/2/3, PUT -> put_kinect1, else default) and printed with the reason;
+    --config and --set win. Several sequences run one after the other (camera "auto" is decided
+    per sequence); a table of their results is printed and written to OUT/summary.md and .csv.
+    A run that loses most of its frames ends with one error line naming the likely fix (exit 3)."""
     from rgbdslam.batch import format_batch_table, run_sequences
     from rgbdslam.pipeline import run_sequence
 
     if len(sequences) > 1 and rerun_save is not None:
         raise click.UsageError("--rerun-save records one run: give a single SEQUENCE (or use --rerun)")
-    cfg = load_cli_config(config_path, with_frame_options(overrides, first_frame, stride, max_frames), camera_file)
-    if no_map:
-        cfg.mapping.enabled = False
-    if rerun_spawn:
-        cfg.output.rerun = True
-    if rerun_save is not None:
-        cfg.output.rerun_save = str(rerun_save)
     if (map_dir is not None or localize) and len(sequences) > 1:
         raise click.UsageError("--map/--localize take a single SEQUENCE")
+    if len(sequences) == 1 and (engine != "local" or workers != 1 or address is not None):
+        raise click.UsageError("--engine/--workers/--address spread several sequences; give more than one SEQUENCE")
+    configs, notes = [], []
+    for sequence in sequences:  # without --config, each sequence's own preset
+        cfg, choice = sequence_config(sequence, config_path, with_frame_options(overrides, first_frame, stride,
+                                                                                max_frames), camera_file)
+        if no_map:
+            cfg.mapping.enabled = False
+        if rerun_spawn:
+            cfg.output.rerun = True
+        if rerun_save is not None:
+            cfg.output.rerun_save = str(rerun_save)
+        configs.append(cfg)
+        notes.append(choice.describe() if choice is not None else None)  # printed when the run starts
     if len(sequences) == 1:
-        if engine != "local" or workers != 1 or address is not None:
-            raise click.UsageError("--engine/--workers/--address spread several sequences; give more than one SEQUENCE")
-        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, cfg, progress=not quiet,
-                     map_dir=map_dir, localize=localize)
+        run_sequence(sequences[0], out_dir or Path("runs") / sequences[0].resolve().name, configs[0],
+                     progress=not quiet, map_dir=map_dir, localize=localize, announce=notes[0])
         return
     out_root = out_dir or Path("runs")
-    rows = run_sequences(list(sequences), out_root, cfg, progress=not quiet, engine=engine, workers=workers,
-                         address=address)
+    rows = run_sequences(list(sequences), out_root, configs, progress=not quiet, engine=engine, workers=workers,
+                         address=address, notes=notes)
     click.echo(format_batch_table(rows))
     failed = [r for r in rows if r["status"] != "ok"]
     if failed:
@@ -298,9 +321,18 @@ def live(config_path, overrides, out_dir, record_dir, playback, size, fps, seria
 @click.option("--explain", is_flag=True,
               help="Print every key with its type, accepted range, default and a one-line description "
                    "(and the value here when the preset or --set changed it).")
-def show_config(config_path, overrides, explain):
+@click.option("--list-presets", is_flag=True,
+              help="List the presets shipped with rgbdslam (for -c NAME), what each is for and the layouts "
+                   "`run` chooses it for without --config.")
+def show_config(config_path, overrides, explain, list_presets):
     """Print the effective configuration (defaults, preset, overrides) as YAML."""
     from rgbdslam.config import load_config
+
+    if list_presets:
+        from rgbdslam.config_doc import preset_list
+
+        click.echo(preset_list(), nl=False)
+        return
 
     cfg = load_config(config_path, overrides)
     if explain:
@@ -318,11 +350,15 @@ def show_config(config_path, overrides, explain):
 @camera_option
 @frame_options
 def info(sequence, config_path, overrides, camera_file, first_frame, stride, max_frames):
-    """Describe SEQUENCE: reader, camera, frames, time span, ground truth."""
+    """Describe SEQUENCE: reader, camera, frames, time span, ground truth, and the preset `run`
+    chooses for it without --config."""
     from rgbdslam.datasets import describe_sequence
 
-    cfg = load_cli_config(config_path, with_frame_options(overrides, first_frame, stride, max_frames), camera_file)
+    cfg, choice = sequence_config(sequence, config_path, with_frame_options(overrides, first_frame, stride,
+                                                                            max_frames), camera_file)
     click.echo(describe_sequence(sequence, cfg))
+    if choice is not None:
+        click.echo(f"preset      {choice.name}: {choice.reason} (what `run` uses without --config)")
 
 
 # ------------------------------------------------------------------ commands added by stages
@@ -359,6 +395,8 @@ def evaluate(gt, est, align, delta, delta_unit, max_difference, offset, json_pat
     with tempfile.TemporaryDirectory(prefix="rgbdslam-gt-") as tmp:
         if gt.is_dir():  # a sequence folder: its own ground truth (7-Scenes pose.txt files, groundtruth.txt, ...)
             gt = _groundtruth_file(gt, Path(tmp))
+        elif gt.name.endswith(".gt.freiburg"):  # ICL-NUIM's own file: its conventions, as its reader applies them
+            gt = _icl_groundtruth_file(gt, Path(tmp))
         if len(est) == 1:
             evaluate_and_print(gt, est[0], **opts)
         else:
@@ -370,12 +408,26 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
     from rgbdslam.datasets import open_sequence
     from rgbdslam.io.trajectory import write_tum
 
-    gt = open_sequence(sequence).groundtruth()
+    seq = open_sequence(sequence)
+    gt = seq.groundtruth()
     if gt is None:
         raise InputError(f"{sequence} is a folder without ground truth; give a TUM trajectory file as GT")
+    if seq.groundtruth_convention:
+        click.echo(f"ground truth: {seq.groundtruth_convention}")
     path = tmp / f"{sequence.resolve().name}_groundtruth.tum"
     write_tum(gt, path)
     return path
+
+
+def _icl_groundtruth_file(path: Path, tmp: Path) -> Path:
+    """An ICL-NUIM ``*.gt.freiburg`` converted as the ICL-NUIM reader reads it, as a TUM file."""
+    from rgbdslam.datasets.icl import convention, read_groundtruth
+    from rgbdslam.io.trajectory import write_tum
+
+    out = tmp / f"{path.name}.tum"
+    write_tum(read_groundtruth(path), out)
+    click.echo(f"ground truth: {convention(path)}")
+    return out
 
 
 @main.command()

@@ -32,7 +32,7 @@ def preset_files() -> dict[str, Any]:
 
 @dataclass
 class DatasetConfig:
-    kind: Literal["auto", "tum", "put", "synthetic", "7scenes", "rosbag", "kitti", "euroc", "stereo"] = "auto"  # reader; auto: by the folder's files
+    kind: Literal["auto", "tum", "icl", "put", "synthetic", "7scenes", "rosbag", "kitti", "euroc", "stereo"] = "auto"  # reader; auto: by the folder's files
     # TUM association (semantics of TUM's associate.py)
     max_difference: float = 0.02  # seconds: colour and depth images closer in time than this are paired
     offset: float = 0.0  # seconds added to the depth time stamps before pairing

@@ -129,3 +129,18 @@ def explain(cfg: C.Config | None = None, width: int = 80) -> str:
         out.extend(textwrap.wrap(r["description"] or "(no description)", width=width, initial_indent="    ",
                                  subsequent_indent="    ", break_on_hyphens=False))
     return "\n".join(out) + "\n"
+
+
+def preset_list() -> str:
+    """``rgbdslam config --list-presets``: every preset shipped in the package, the first line of
+    its own comment, and the layouts ``run`` chooses it for without --config."""
+    from rgbdslam.datasets.preset_choice import AUTOMATIC
+
+    lines = []
+    for name, res in sorted(C.preset_files().items()):
+        text = res.read_text(encoding="utf-8").splitlines()
+        about = next((ln.lstrip("# ").strip() for ln in text if ln.startswith("#")), "")
+        lines.append(f"{name:<12} {about}")
+        if name in AUTOMATIC:
+            lines.append(f"{'':<12} chosen without --config for: {AUTOMATIC[name]}")
+    return "\n".join(lines) + "\n"

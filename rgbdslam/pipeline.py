@@ -41,8 +41,12 @@ class Tracking:
 
 
 def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Config,
-                 progress: bool = True, map_dir: str | Path | None = None, localize: bool = False) -> dict[str, Any]:
+                 progress: bool = True, map_dir: str | Path | None = None, localize: bool = False,
+                 announce: str | None = None) -> dict[str, Any]:
     """Run SLAM over a sequence and write the run folder (with its map, ``map.npz``); returns the run summary.
+
+    ``announce``: a line printed with the camera once the run has started (the command line's
+    choice of preset), so that an error before that stays the only line.
 
     ``map_dir``: a finished run's folder whose map the camera relocalises in and then extends, or
     only localises in with ``localize`` (:mod:`rgbdslam.session`); checked before anything is written.
@@ -67,7 +71,7 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     with folder_lock(out_dir, "run"):
         record = RunRecord(out_dir, str(Path(seq.root).resolve()))
         try:
-            return _run(seq, out_dir, cfg, progress, record, session)
+            return _run(seq, out_dir, cfg, progress, record, session, announce)
         except KeyboardInterrupt:
             record.close("interrupted")
             raise
@@ -85,12 +89,15 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
             raise
 
 
-def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunRecord, session) -> dict[str, Any]:
+def _run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, record: RunRecord, session,
+         announce: str | None = None) -> dict[str, Any]:
     """The run's steps, in the locked folder; ``record`` keeps run.json and the stage; ``session``
     the saved map this run localises in or extends (None: a new map)."""
     from rgbdslam.ui import console
 
     prepare_run_folder(out_dir, cfg, console, record)
+    if announce:
+        console.print(announce, highlight=False)
     announce_camera(seq, console)  # after the folder: a path that cannot be written stays one error line
     gt = seq.groundtruth()
     observer = make_observer(cfg, seq.camera, gt)
@@ -146,15 +153,38 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     after["cpu"] = time.process_time() - c_end  # CPU seconds of this process (its helpers' are in map.timings)
     summary["after_tracking_s"] = {k: round(v, 3) for k, v in after.items()}
     record.stage = "end"
+    failure = None if run.interrupted else mostly_lost(seq, summary)
+    if failure is not None:
+        summary.update(status="failed", error=failure)
     record.write(summary, final=True)  # only now: "finished" (or "interrupted" from the tracking loop)
     print_summary(summary, out_dir, console)
     if run.interrupted:
         raise KeyboardInterrupt
+    if failure is not None:
+        raise TrackingLost(failure)
     return summary
 
 
+def mostly_lost(seq: Sequence, summary: dict[str, Any]) -> str | None:
+    """One line when tracking failed for most frames (more lost than tracked): the settings do not
+    fit the sequence, and its trajectory and ATE mean nothing. The outputs stay for a look."""
+    lost, tracked = summary["lost"], summary["tracked"]
+    if lost <= tracked:
+        return None
+    if getattr(seq, "rig", None) is not None:  # stereo: depth from the pair, no depth scale
+        fix = "a wrong preset (--config kitti for a car-mounted rig) or stereo calibration"
+    else:
+        fix = ("a wrong preset (--config, e.g. tum_fr1 for TUM freiburg1), camera (--camera FILE) or depth scale "
+               "(--set dataset.depth_scale=UNITS_PER_METRE)")
+    return (f"{lost} of {lost + tracked} frames of {seq.name} could not be tracked, so its trajectory "
+            f"and ATE mean nothing; likely {fix}; `rgbdslam info SEQUENCE` shows what was used")
+
+
 def announce_camera(seq: Sequence, console) -> None:
-    """Say which camera the run uses and where it came from; warn when it is only a guess."""
+    """Say which camera the run uses and where it came from (and how the reader converts the
+    ground truth, when it does); warn when the camera is only a guess."""
+    if seq.groundtruth_convention:
+        console.print(f"ground truth: {seq.groundtruth_convention}", highlight=False)
     setup = getattr(seq, "camera_setup", None)
     if setup is None:
         console.print(f"camera {seq.camera.name or 'custom'}: fx {seq.camera.fx:g} fy {seq.camera.fy:g} "

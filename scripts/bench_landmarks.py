@@ -8,7 +8,7 @@ Usage::
         [--open3d-only]
 
 Sequences: TUM fr1/rpy head200 (``--data``/tum), 7-Scenes redkitchen 0-299 through the 7-Scenes
-reader with ``configs/7scenes_camera.yaml`` (``--data``/7scenes/frames_0000_0299, or ``--sevenscenes``:
+reader with ``rgbdslam/cameras/7scenes.yaml`` (``--data``/7scenes/frames_0000_0299, or ``--sevenscenes``:
 another folder; a TUM-layout copy runs with its own camera.yaml), and the project's synthetic generator (every motion x seed, Kinect-like noise, exact ground truth). Every
 variant (``default`` always first) runs on every sequence through ``rgbdslam.pipeline.run_sequence``
 (map fusion off). Per run: ATE RMSE, 1-frame RPE RMSE (translation), frames/s, loops, and from
@@ -233,7 +233,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data")))
     ap.add_argument("--sevenscenes", type=Path, default=None,
                     help="7-Scenes frames 0-299 (default DATA/7scenes/frames_0000_0299, read by the 7-Scenes reader "
-                         "with configs/7scenes_camera.yaml; a TUM-layout copy is run as it is)")
+                         "with rgbdslam/cameras/7scenes.yaml; a TUM-layout copy is run as it is)")
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--motions", default="loop,circle,xyz,rpy,figure8,revisit")
@@ -292,7 +292,7 @@ def main(argv=None) -> int:
         if rpy.is_dir() and "rpy" in a.real.split(","):
             seqs.append(("fr1/rpy head200", rpy))
         ss = a.sevenscenes or a.data / "7scenes" / "frames_0000_0299"
-        if ss.is_dir() and "7scenes" in a.real.split(","):  # the 7-Scenes reader with the colour camera of configs/7scenes_camera.yaml
+        if ss.is_dir() and "7scenes" in a.real.split(","):  # the 7-Scenes reader with the colour camera of rgbdslam/cameras/7scenes.yaml
             seqs.append(("7-Scenes redkitchen 0-299", ss))
     if not a.skip_synthetic:
         for motion in a.motions.split(","):
@@ -308,7 +308,7 @@ def main(argv=None) -> int:
     rows = []
     for name, d in seqs:
         for vname, sets in ({} if a.open3d_only else variants).items():
-            extra = [f"dataset.camera_file={ROOT / 'configs' / '7scenes_camera.yaml'}"] if name.startswith("7-Scenes") \
+            extra = [f"dataset.camera_file={ROOT / 'rgbdslam' / 'cameras' / '7scenes.yaml'}"] if name.startswith("7-Scenes") \
                 and not (d / "rgb.txt").exists() else []
             cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *extra, *sets])
             s = run_sequence(d, work / "runs" / run_dir_name(name, vname), cfg, progress=False)

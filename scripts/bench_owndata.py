@@ -3,7 +3,7 @@
 1. 7-Scenes redkitchen frames 0-299 (``$RGBDSLAM_DATA/7scenes/frames_0000_0299``): ATE RMSE
    against the KinectFusion poses, depth as recorded (the published intrinsics for colour too)
    and re-projected into the colour camera with several camera files (colour focal length and
-   depth-to-colour offset; configs/7scenes_camera.yaml is one of them).
+   depth-to-colour offset; rgbdslam/cameras/7scenes.yaml is one of them).
 2. fr1/rpy head200 (``$RGBDSLAM_DATA/tum``): the TUM folder, then the same frames written into a
    ROS 1 bag, a ROS 2 mcap bag (rosbags' writers), a RealSense SDK recording (pyrealsense2's
    recorder) and the SDK's playback of that recording through ``rgbdslam live``: ATE of each and
@@ -45,13 +45,13 @@ def _run(seq, out, *extra) -> dict:
 
 def seven_scenes(data: Path, work: Path) -> list[str]:
     seq = data / "7scenes" / "frames_0000_0299"
-    base = yaml.safe_load((ROOT / "configs" / "7scenes_camera.yaml").read_text())
+    base = yaml.safe_load((ROOT / "rgbdslam" / "cameras" / "7scenes.yaml").read_text())
     variants = [("as recorded: depth intrinsics (585) for colour, no re-projection", None)]
     for f, tx in ((530.0, 0.0), (530.0, -0.02), (530.0, 0.02), (525.0, -0.025), (585.0, -0.02)):
         cam = dict(base, fx=f, fy=f, depth_to_color=[tx, 0.0, 0.0])
         path = work / f"7s_f{f:g}_t{tx:+g}.yaml"
         path.write_text(yaml.safe_dump(cam))
-        note = " (configs/7scenes_camera.yaml)" if (f, tx) == (base["fx"], base["depth_to_color"][0]) else ""
+        note = " (rgbdslam/cameras/7scenes.yaml)" if (f, tx) == (base["fx"], base["depth_to_color"][0]) else ""
         variants.append((f"colour focal {f:g}, depth re-projected, depth-to-colour x {tx * 100:+.1f} cm{note}", path))
     rows = ["| depth / camera | ATE RMSE (m) | tracked | frames/s |", "|---|---|---|---|"]
     for label, cam in variants:

@@ -330,7 +330,7 @@ LANDMARK_ABLATION = {
 
 def landmark_sequences(data: Path, out: Path, motions: list[str], seeds: list[int], frames: int) -> list[tuple]:
     """(name, folder, extra config) of fr1/rpy head200, 7-Scenes redkitchen 0-299 (the 7-Scenes reader with
-    configs/7scenes_camera.yaml) and the synthetic generator's motions x seeds (Kinect noise, rendered once
+    rgbdslam/cameras/7scenes.yaml) and the synthetic generator's motions x seeds (Kinect noise, rendered once
     into ``out``), as scripts/bench_landmarks.py names them."""
     from rgbdslam.datasets.synthetic import generate_sequence
 
@@ -340,7 +340,7 @@ def landmark_sequences(data: Path, out: Path, motions: list[str], seeds: list[in
         seqs.append(("fr1/rpy head200", rpy, []))
     ss = data / "7scenes" / "frames_0000_0299"
     if ss.is_dir():
-        seqs.append(("7-Scenes redkitchen 0-299", ss, [f"dataset.camera_file={ROOT / 'configs' / '7scenes_camera.yaml'}"]))
+        seqs.append(("7-Scenes redkitchen 0-299", ss, [f"dataset.camera_file={ROOT / 'rgbdslam' / 'cameras' / '7scenes.yaml'}"]))
     for motion in motions:
         for seed in seeds:
             d = out / "synthetic" / f"{motion}_s{seed}_{frames}"

@@ -9,7 +9,7 @@ frames. No ground truth is used. Prints the best values and writes a camera file
 ``rgbdslam run --camera`` (depth_camera = the sequence's own intrinsics).
 
     .venv/bin/python scripts/calibrate_depth_to_color.py ../shared/data/7scenes/frames_0000_0299 \\
-        --out configs/7scenes_camera.yaml
+        --out my_7scenes_camera.yaml
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """rgbdslam as a real package: a wheel built from the sources, installed into a new virtual
-environment and run from a folder far from the repository, has its presets and runs the demo,
-a TUM folder and a ROS bag.
+environment and run from a folder far from the repository, has its presets and cameras and runs
+the demo, a TUM folder, a ROS bag and 7-Scenes (with the shipped camera), also as ``python -m rgbdslam``.
 
 To stay quick and offline the new environment gets the wheel with ``--no-deps`` and finds the
 already installed dependencies (numpy, open3d, ...) through a ``.pth`` line naming the test
@@ -12,6 +12,7 @@ with the pinned versions) is what ``scripts/setup.sh`` does on every fresh machi
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -23,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from tests.datasets.bagmaker import write_bag
-from tests.conftest import TUM_DESK9, need
+from tests.conftest import DATA, TUM_DESK9, need
 
 pytestmark = pytest.mark.data  # runs a TUM folder from the installed wheel
 
@@ -54,6 +55,7 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
     presets = sorted(n for n in names if n.startswith("rgbdslam/presets/") and n.endswith(".yaml"))
     assert {"rgbdslam/presets/tum_fr1.yaml", "rgbdslam/presets/default.yaml"} <= set(presets)
     assert not any(n.startswith(("configs/", "tests/")) for n in names)
+    assert {"rgbdslam/cameras/7scenes.yaml", "rgbdslam/__main__.py"} <= set(names)
     # a new environment that sees the installed dependencies but not the checkout
     venv = tmp_path / "venv"
     _run([sys.executable, "-m", "venv", "--without-pip", venv], cwd=tmp_path, env=env)
@@ -81,6 +83,14 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
     assert "from CameraInfo on /camera/color/camera_info" in " ".join(res.stderr.split())
     assert len((work / "runs" / TUM_DESK9.name / "trajectory.tum").read_text().splitlines()) >= 9
     assert len((work / "runs" / "desk.bag" / "trajectory.tum").read_text().splitlines()) >= 5
+    # `python -m rgbdslam`, and 7-Scenes with the camera shipped in the package, no flags
+    assert _run([py, "-m", "rgbdslam", "--help"], work, env).stdout.startswith("Usage: python -m rgbdslam")
+    seven = need(DATA / "7scenes" / "frames_0000_0299")
+    info = _run([exe, "info", seven], work, env).stdout
+    assert "camera      7scenes: fx 530.0 fy 530.0" in info and "shipped with rgbdslam" in info, info
+    _run([exe, "run", seven, "-o", "seven", "--max-frames", "20", "--no-map", "-q"], work, env)
+    run = json.loads((work / "seven" / "run.json").read_text())
+    assert run["tracked"] == 20 and run["camera_source"].startswith("the 7-Scenes camera shipped with rgbdslam")
     # no data folder outside the package: the pose-graph benchmark asks for one
     res = subprocess.run([exe, "posegraph", "bench", "--dataset", "m3500", "--instances", "1", "-q"], cwd=work,
                          env=env, capture_output=True, text=True, timeout=120)

@@ -64,8 +64,10 @@ def test_run_folder_contents(desk9, tmp_path):
     run = json.loads((out / "run.json").read_text())
     assert run["frames"] == 9 and run["tracked"] + run["lost"] == 9
     assert run["evaluation"]["ate"]["rmse"] < 0.03
-    # the config written next to the outputs loads back and equals the one used (overrides included)
-    used = load_config(None, ["registration.mp=3", "loop.min_votes=17"]).to_dict()
+    # the config written next to the outputs loads back and equals the one used (the preset the
+    # freiburg1 folder chooses, overrides included)
+    assert "preset tum_fr1: TUM layout, camera fr1" in res.output
+    used = load_config("tum_fr1", ["registration.mp=3", "loop.min_votes=17"]).to_dict()
     saved = load_config(out / "config.yaml").to_dict()
     assert saved["registration"]["mp"] == 3 and saved["loop"]["min_votes"] == 17
     assert {k: v for k, v in saved.items() if k != "mapping"} == {k: v for k, v in used.items() if k != "mapping"}

@@ -181,7 +181,7 @@ def test_a_full_disk_is_one_line_naming_the_file_and_never_a_finished_run(desk9,
                           *QUICK], capture_output=True, text=True, timeout=300)
     assert res.returncode == 2, res.stderr
     assert "RPly" not in res.stderr and "Traceback" not in res.stderr
-    lines = [ln for ln in res.stderr.splitlines() if not ln.startswith("camera ")]  # the run's camera line
+    lines = [ln for ln in res.stderr.splitlines() if not ln.startswith(("preset ", "camera "))]  # the run's start
     assert len(lines) == 1 and lines[0].startswith(f"error: {run / 'map'}/"), res.stderr
     assert ": File too large; " in lines[0] and ".fusing" not in lines[0]  # the map file, not our temporary one
     s = _status(run)

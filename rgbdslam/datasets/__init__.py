@@ -2,8 +2,8 @@
 :func:`open_sequence`, which picks the reader for a folder.
 
 Each source's module declares its reader with :func:`rgbdslam.datasets.registry.reader`:
-``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes, ETH3D SLAM and ICL-NUIM's
-TUM variant), ``put`` (POZNAN/PUT Kinect layout), ``7scenes`` (Microsoft 7-Scenes) and
+``tum`` (TUM RGB-D layout, also what ``rgbdslam synth`` writes, and ETH3D SLAM), ``icl``
+(ICL-NUIM's TUM-compatible archives: frame numbers, a y-up world), ``put`` (POZNAN/PUT Kinect layout), ``7scenes`` (Microsoft 7-Scenes) and
 ``rosbag`` (ROS 1 / ROS 2 bags and RealSense recordings); stereo: ``kitti`` (KITTI odometry),
 ``euroc`` (EuRoC/ASL) and ``stereo`` (a plain left/right folder), which compute depth from the
 pair (``datasets.stereo_base``).
@@ -28,10 +28,20 @@ def available() -> list[str]:
 def _load_builtin() -> None:
     # Importing the modules declares their readers (tum first: it is tried first).
     from rgbdslam.datasets import tum  # noqa: F401
+    from rgbdslam.datasets import icl  # noqa: F401  (asked before tum: a special case of its layout)
     from rgbdslam.datasets import put  # noqa: F401
     from rgbdslam.datasets import sevenscenes  # noqa: F401
     from rgbdslam.datasets import rosbag  # noqa: F401
     from rgbdslam.datasets import euroc, kitti, stereo_folder  # noqa: F401  (stereo readers)
+
+
+def detect_kind(path: Path, cfg) -> str | None:
+    """The reader for ``path``: ``cfg.kind`` (the dataset section) unless it is ``auto``, else the
+    first reader that recognises the folder (None: none does)."""
+    _load_builtin()
+    if cfg.kind not in ("auto", "synthetic"):
+        return cfg.kind
+    return next((n for n, (detect, _) in READERS.items() if detect(Path(path))), None)
 
 
 def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequence:
@@ -50,16 +60,15 @@ def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequenc
     if not path.is_dir() and not any(detect(path) for detect, _ in READERS.values()):
         raise InputError(f"{path} is not a folder or a known recording (.bag, .db3, .mcap); give the sequence's "
                          f"folder (the one with rgb.txt or matched) or a bag")
-    kind = cfg.kind
-    if kind in ("auto", "synthetic"):
-        kind = next((n for n, (detect, _) in READERS.items() if detect(path)), None)
-        if kind is None:
-            raise InputError(
-                f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
-                f"with time-stamp-named PNGs (TUM, ETH3D, ICL-NUIM), frame-NNNNNN.color.jpg (7-Scenes), "
-                f"a 'matched' file (PUT), a ROS bag (metadata.yaml, .bag, .db3, .mcap), calib.txt with image_0/ "
-                f"and image_1/ (KITTI), mav0/cam0 and mav0/cam1 (EuRoC), or left/, right/ and stereo.yaml (stereo)"
-            )
+    kind = detect_kind(path, cfg)
+    if kind is None:
+        raise InputError(
+            f"{path} is not a known sequence layout: expected rgb.txt and depth.txt, or rgb/ and depth/ "
+            f"with time-stamp-named PNGs (TUM, ETH3D), rgb/N.png with a *.gt.freiburg (ICL-NUIM), "
+            f"frame-NNNNNN.color.jpg (7-Scenes), "
+            f"a 'matched' file (PUT), a ROS bag (metadata.yaml, .bag, .db3, .mcap), calib.txt with image_0/ "
+            f"and image_1/ (KITTI), mav0/cam0 and mav0/cam1 (EuRoC), or left/, right/ and stereo.yaml (stereo)"
+        )
     if kind not in READERS:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
     seq = READERS[kind][1](path, cfg)
@@ -81,9 +90,11 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
         f"reader      {type(seq).__name__}",
         f"camera      {cam.name or 'custom'}: fx {cam.fx} fy {cam.fy} cx {cam.cx} cy {cam.cy}, "
         f"{cam.width}x{cam.height}, distortion {' '.join(f'{d:g}' for d in cam.dist)}"
-        + (f" (from {setup.source})" if setup is not None else ""),
+        + (f" (from {setup.source})" if setup is not None else "")
+        + ("; depth re-projected into colour" if setup is not None and setup.depth_camera is not None else ""),
         f"frames      {len(seq)} over {span:.2f} s ({len(seq) / span if span > 0 else 0:.1f} Hz)",
-        f"groundtruth {f'{len(gt)} poses' if gt is not None else 'none'}",
+        f"groundtruth {f'{len(gt)} poses' if gt is not None else 'none'}"
+        + (f" ({seq.groundtruth_convention})" if gt is not None and seq.groundtruth_convention else ""),
     ]
     if len(seq):
         from rgbdslam.stereo.depth import frame_warning
@@ -106,4 +117,4 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["Frame", "Sequence", "open_sequence", "available", "describe_sequence"]
+__all__ = ["Frame", "Sequence", "open_sequence", "detect_kind", "available", "describe_sequence"]

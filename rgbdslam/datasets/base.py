@@ -87,6 +87,9 @@ class Sequence(ABC):
     root: Path
     camera: Camera
     camera_setup: Any = None  # datasets.camera_file.CameraSetup: the camera, where it came from, depth registration
+    # one line on a conversion the reader applies to the ground truth (ICL-NUIM's y-up world), or None;
+    # run, info and evaluate print it
+    groundtruth_convention: str | None = None
     streaming: bool = False  # a live stream: length unknown until it ends, frames only through prefetched()
     # load() may run in several threads at once (no shared mutable state; OpenCV objects per thread):
     # prefetched() then prepares frames in up to ``workers`` threads, in order

@@ -20,13 +20,14 @@ sequence folder) gives the colour camera and, optionally, how the depth images r
     depth_to_color: [0.025, 0, 0]            # a translation in metres, or a 3x4 / 4x4 matrix
 
 :func:`resolve_camera` applies the one order every reader uses: the camera file given in the
-config, then a named ``dataset.camera``, then ``camera.yaml`` in the folder, then what the source
+config (a path, or the name of a camera file shipped in ``rgbdslam/cameras/``: ``7scenes``), then a named ``dataset.camera``, then ``camera.yaml`` in the folder, then what the source
 itself says (a bag's CameraInfo, 7-Scenes' camera-intrinsics.txt, ETH3D's calibration.txt, the
 folder name), else the reader's default, flagged as a fallback so the run warns.
 """
 
 from __future__ import annotations
 
+import importlib.resources
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -182,6 +183,18 @@ def read_camera_file(path: str | Path, source: str | None = None) -> CameraSetup
     return CameraSetup(cam, source or str(path), scale, depth_cam, T)
 
 
+def shipped_cameras() -> dict[str, object]:
+    """Name -> resource of every camera file shipped inside the package (``rgbdslam/cameras/*.yaml``)."""
+    root = importlib.resources.files("rgbdslam") / "cameras"
+    return {e.name[:-5]: e for e in root.iterdir() if e.name.endswith(".yaml") and e.is_file()}
+
+
+def read_shipped_camera(name: str, source: str) -> CameraSetup:
+    """The camera file ``name`` shipped with rgbdslam (``7scenes``), as :func:`read_camera_file` reads it."""
+    with importlib.resources.as_file(shipped_cameras()[name]) as path:
+        return read_camera_file(path, source)
+
+
 def named_camera(name: str, source: str) -> CameraSetup:
     if name not in CAMERAS:
         raise InputError(f"unknown camera '{name}'; choose one of {', '.join(CAMERAS)}")
@@ -194,6 +207,8 @@ def resolve_camera(cfg, root: Path | None, own: CameraSetup | None, default: str
     camera ``default`` marked as a fallback."""
     camera_file = getattr(cfg, "camera_file", None)
     if camera_file:
+        if not Path(camera_file).exists() and str(camera_file) in shipped_cameras():
+            return read_shipped_camera(str(camera_file), f"--camera {camera_file}, shipped with rgbdslam")
         return read_camera_file(camera_file, f"--camera {camera_file}")
     if cfg.camera != "auto":
         return named_camera(cfg.camera, f"dataset.camera = {cfg.camera}")

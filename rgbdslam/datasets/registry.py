@@ -16,11 +16,17 @@ from rgbdslam.datasets.base import Sequence
 READERS: dict[str, tuple[Callable[[Path], bool], Callable[..., Sequence]]] = {}
 
 
-def reader(name: str, detect: Callable[[Path], bool]):
+def reader(name: str, detect: Callable[[Path], bool], before: str | None = None):
     """Class decorator: the sequence reader for ``dataset.kind = name``; ``detect(folder)`` says
-    whether a folder is in its layout (for ``kind: auto``)."""
+    whether a folder is in its layout (for ``kind: auto``). ``before``: a reader whose layout this
+    one's is a special case of (ICL-NUIM's of TUM's): this one is asked first."""
     def deco(factory: Callable[..., Sequence]):
         READERS[name] = (detect, factory)
+        if before in READERS:
+            keys = list(READERS)
+            for other in keys[keys.index(before):]:
+                if other != name:
+                    READERS[other] = READERS.pop(other)  # ``before`` and those after it go behind ``name``
         return factory
 
     return deco

@@ -10,11 +10,11 @@ paired with TUM ``associate.py`` semantics, or read from an associations file
 
 Camera choice, first match wins (:func:`rgbdslam.datasets.camera_file.resolve_camera`):
 ``--camera FILE`` / ``dataset.camera_file``; ``dataset.camera`` if not ``auto``; a ``camera.yaml``
-in the folder; what the folder says (ETH3D SLAM's ``calibration.txt``, ICL-NUIM's TUM variant,
-``freiburg1/2/3`` in the folder name); else ``ros_default`` (TUM's default), with a warning.
+in the folder; what the folder says (ETH3D SLAM's ``calibration.txt``, ``freiburg1/2/3`` in the
+folder name); else ``ros_default`` (TUM's default), with a warning.
 
-Also read here: ETH3D SLAM data sets (TUM layout plus ``calibration.txt``, depth 5000 per metre)
-and ICL-NUIM's TUM variant (``*.gt.freiburg`` ground truth, depth 5000 per metre).
+Also read here: ETH3D SLAM data sets (TUM layout plus ``calibration.txt``, depth 5000 per metre).
+ICL-NUIM's TUM variant has a reader of its own (``datasets/icl.py``: frame numbers, a y-up world).
 
 The image loading here is shared with the PUT reader (:class:`RgbdFileSequence`).
 """
@@ -284,9 +284,6 @@ def camera_from_yaml(path: Path) -> Camera:
     return read_camera_file(path).camera
 
 
-ICL_NUIM = Camera(481.20, 480.00, 319.5, 239.5, 640, 480, (0.0,) * 5, "icl_nuim")
-
-
 def _eth3d_camera(root: Path) -> CameraSetup | None:
     """ETH3D SLAM: ``calibration.txt`` holds 'fx fy cx cy'; the size is the first colour image's."""
     p = root / "calibration.txt"
@@ -309,21 +306,13 @@ def _eth3d_camera(root: Path) -> CameraSetup | None:
                        depth_scale=TUM_DEPTH_SCALE)
 
 
-def _icl_groundtruth(root: Path) -> Path | None:
-    found = sorted(root.glob("*.gt.freiburg"))
-    return found[0] if found else None
-
-
 def _own_camera(root: Path) -> CameraSetup | None:
-    """What a TUM-like folder says about its camera: ETH3D's calibration.txt, ICL-NUIM's
-    ``*.gt.freiburg`` (its TUM variant; intrinsics from the data set's page, fy taken positive as
-    its TUM-format images are stored), or freiburg1/2/3 in the folder name (TUM)."""
+    """What a TUM-like folder says about its camera: ETH3D's calibration.txt or freiburg1/2/3 in
+    the folder name (TUM)."""
     eth = _eth3d_camera(root)
     if eth is not None:
         return eth
     name = root.resolve().name.lower()
-    if _icl_groundtruth(root) is not None or ("living_room" in name or "office_room" in name) and "frei" in name:
-        return CameraSetup(ICL_NUIM, "ICL-NUIM (TUM variant: *.gt.freiburg / folder name)", depth_scale=TUM_DEPTH_SCALE)
     for k in ("1", "2", "3"):
         if f"freiburg{k}" in name or f"fr{k}_" in name:
             return CameraSetup(CAMERAS[f"fr{k}"], f"'freiburg{k}' in the folder name")
@@ -398,6 +387,4 @@ class TumSequence(RgbdFileSequence):
 
     def groundtruth(self) -> Trajectory | None:
         p = optional_file(self.root / "groundtruth.txt", "ground-truth file")
-        if p is None:
-            p = _icl_groundtruth(self.root)  # ICL-NUIM's TUM variant
         return read_tum(p) if p is not None else None

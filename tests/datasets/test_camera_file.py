@@ -1,6 +1,6 @@
 """Camera files (--camera, dataset.camera_file), the one camera order every reader follows, what
 `run` says about the camera, and the TUM-like layouts recognised by their own files (ETH3D
-SLAM's calibration.txt, ICL-NUIM's TUM variant)."""
+SLAM's calibration.txt)."""
 
 from __future__ import annotations
 
@@ -78,7 +78,7 @@ def test_camera_order_and_what_run_says(tmp_path):
 
 
 @pytest.mark.data
-def test_eth3d_and_icl_nuim_layouts(tmp_path):
+def test_eth3d_layout(tmp_path):
     eth = tmp_path / "eth3d_sofa"
     shutil.copytree(need(TUM_DESK9), eth)
     (eth / "calibration.txt").write_text("726.28 726.28 354.65 186.47\n")
@@ -89,9 +89,4 @@ def test_eth3d_and_icl_nuim_layouts(tmp_path):
     (eth / "calibration.txt").write_text("726.28 726.28\n")
     with pytest.raises(InputError, match="expected one line 'fx fy cx cy'"):
         open_sequence(eth)
-    icl = tmp_path / "living_room_traj0_frei_png"
-    shutil.copytree(need(TUM_DESK9), icl)
-    (icl / "groundtruth.txt").rename(icl / "livingRoom0.gt.freiburg")
-    seq = open_sequence(icl)
-    assert seq.camera.name == "icl_nuim" and (seq.camera.fx, seq.camera.fy) == (481.2, 480.0)
-    assert len(seq.groundtruth()) > 1000  # read from the .gt.freiburg file
+    # ICL-NUIM's layout has a reader of its own: tests/datasets/test_icl.py
