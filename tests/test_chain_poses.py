@@ -4,10 +4,9 @@ the landmark stage), which must not move a single pose.
 
 ``GOLDEN`` holds, per configuration, the SHA-256 of the odometry poses and of the final poses (each
 the (N, 4, 4) float64 array in C order, little-endian bytes) and the frame count. They were written by
-``python -m tests.test_chain_poses`` (``RGBDSLAM_DATA`` pointing at the shared data) on the code of
-the commit that added this file, whose poses were checked against a run of the code before its
-refactor (trajectory.tum and odometry.tum byte-identical for the default, ``landmarks.enabled=true``
-and ``landmarks.local_ba=true`` on this sequence). A change that is *meant* to move poses
+``python -m tests.test_chain_poses`` (``RGBDSLAM_DATA`` pointing at the shared data), and the same
+computation on the code before the stage protocol and the removal of 22 landmark keys (main
+``0dc35c1``) gave the same three digests. A change that is *meant* to move poses
 regenerates them with the same command and says so in its commit."""
 
 from __future__ import annotations
@@ -25,9 +24,12 @@ CONFIGS = {
 }
 
 GOLDEN = {
-    "default": (200, "", ""),
-    "landmarks": (200, "", ""),
-    "landmarks_ba": (200, "", ""),
+    "default": (200, "38940ad40327c88da5a210f5adce390a26161d34ccfa2e54088e0cd9101d7fd0",
+                "ac0a70db2c12fff0c7837cae0e274901ba818f65b7d91f572b38f2149a12d507"),
+    "landmarks": (200, "f41975425a87dd95964daddbb5321f47a4191bd66afb09bedf570d4dac781218",
+                  "c28cd72a863fa15509321ec041e5e2df0a7161c04a5b971b1ee4d4e21fae90d8"),
+    "landmarks_ba": (200, "0c2d8fa5931bbea90126129851d3b9dfae0eaa4ef6ac3c9dccd2a35ebf48f51e",
+                     "4213a3e205ad33905e0c950d3f034b0d3d9f0d8f1de03fbac98806c75fd7c259"),
 }
 
 
