@@ -54,7 +54,7 @@ class Stage(Protocol):
         """After the front end placed the frame at ``pose`` (``result.reset``: tracking restarted)."""
 
     def on_loops(self, frame: Frame, result: TrackResult, loops: list) -> list:
-        """The loop (and map-tracking) edges found for the frame; returns those to add."""
+        """The loop closer's edges to the frame (map-tracking edges are not among them); returns those to add."""
 
     def on_frame(self, frame: Frame, result: TrackResult, pose: np.ndarray, keyframe: bool) -> dict[int, np.ndarray]:
         """The frame's final step, once the keyframe decision is made."""
