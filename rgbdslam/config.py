@@ -345,9 +345,6 @@ class LandmarksConfig:
     ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
     ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
     ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
-    # a keyframe observes every local-map landmark it sees (a projection search at its final pose; the local
-    # map = the landmarks of the kept keyframes), not only the ones its tracking kept as inliers
-    ba_search: bool = False
     # how the frames between two keyframes follow a local BA's corrections: 'rigid' = with their own
     # (older) keyframe's; 'interpolate' = along the geodesic from their keyframe's correction to the
     # next keyframe's, by frame index (a keyframe the BA did not move: no correction), so the

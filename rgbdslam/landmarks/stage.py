@@ -340,10 +340,6 @@ class LandmarkTracker:
         if self._last is not None and self._last[0] == index:
             lm_idx, lm_ids = self._last[1], self._last[2]
             matched_feat[lm_idx] = True
-        if self.ba is not None and c.ba_search:  # the keyframe observes every local-map landmark it sees
-            f, l = self._local_observations(feats, pose, lm_idx, lm_ids)
-            lm_idx, lm_ids = np.concatenate([lm_idx, f]), np.concatenate([lm_ids, l])
-            matched_feat[f] = True
         m = self._last_matches
         if m is not None and len(m.feat):  # every descriptor match (inlier or not) keeps its feature out
             matched_feat[m.feat] = True
@@ -375,25 +371,6 @@ class LandmarkTracker:
         for k, P in refined.items():
             self.kf_pose[k] = P
         return refined
-
-    def _local_observations(self, feats, pose: np.ndarray, f_have: np.ndarray, l_have: np.ndarray):
-        """The local map's landmarks (those the kept keyframes observe) that keyframe ``feats`` sees at its
-        final ``pose`` beyond the ones it has (``f_have``, ``l_have``): projected, matched by descriptor
-        within ``search_radius`` px, kept where the feature's point lies within ``ransac_threshold`` of the
-        landmark. Returns (feature indices, landmark ids)."""
-        c = self.cfg
-        none = np.zeros(0, np.int64), np.zeros(0, np.int64)
-        if not self.keyframes:
-            return none
-        local = np.unique(np.concatenate([k.lm for k in self.keyframes]))
-        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
-        ok = np.isin(m.lm, local) & ~np.isin(m.lm, l_have) & ~np.isin(m.feat, f_have)
-        f, l = m.feat[ok], m.lm[ok]
-        if not len(f):
-            return none
-        P = feats.pts[f] @ pose[:3, :3].T + pose[:3, 3]
-        near = np.linalg.norm(P - self.map.pos[l], axis=1) < c.ransac_threshold
-        return f[near].astype(np.int64), l[near].astype(np.int64)
 
     def log(self, observer, index: int, feats, is_kf: bool) -> None:
         """Send the map to a Rerun observer (landmarks by age, this frame's map matches, BA moves)."""
