@@ -1,11 +1,14 @@
 """The landmark stage of the per-frame chain: track against the map, update it, grow it at keyframes.
 
-``LandmarkTracker.track`` takes the frame-to-frame registration's pose (``landmarks.mode='seed'``:
-it predicts where the landmarks project) and returns the map pose (or the given pose when the map
-cannot place the frame); the matched landmarks are then re-observed (static Kalman update).
-``add_keyframe`` makes new landmarks from the keyframe's depth-valid features that matched no
-landmark, and runs the windowed local bundle adjustment (``landmarks.local_ba``). ``finish`` moves
-the landmarks with their anchor keyframes after the pose graph, and ``summary`` goes to run.json.
+``LandmarkTracker`` implements the chain's stage protocol (:class:`rgbdslam.slam.Stage`):
+``on_tracked`` takes the registration's pose, which predicts where the landmarks project, and
+returns the map pose fused with it (nothing when the map cannot place the frame); the matched
+landmarks are then re-observed (static Kalman update). ``on_loops`` re-measures loop edges against
+the map and drops those the map already holds. ``on_frame`` makes new landmarks at a keyframe from
+its depth-valid features that matched no landmark, runs the windowed local bundle adjustment
+(``landmarks.local_ba``; its refined keyframe poses are the corrections returned) and culls.
+``on_finish`` moves the landmarks with their anchor keyframes after the pose graph; ``summary``
+goes to run.json.
 """
 
 from __future__ import annotations
