@@ -271,10 +271,7 @@ class LandmarksConfig:
     max_hamming: int = 50  # largest Hamming distance of a landmark-to-feature descriptor match
     max_depth: float = 5.0  # metres: landmarks further from the camera are not searched, features not mapped
     ransac_threshold: float = 0.03  # metres: inlier distance of the map pose RANSAC
-    ransac_iterations: int = 100  # minimal samples drawn by the map pose RANSAC (at most: see ransac_confidence)
-    # the map pose RANSAC stops fitting samples (20 at a time) once an all-inlier sample was drawn with
-    # this probability at the best inlier share seen so far (0 = fit all ransac_iterations)
-    ransac_confidence: float = 0.0
+    ransac_iterations: int = 100  # minimal samples drawn by the map pose RANSAC
     min_inliers: int = 30  # fewer: the map pose is not used for this frame
     max_correction: float = 0.03  # metres / degrees: a map pose further from the registration's is rejected
     max_correction_deg: float = 2.0  # degrees: see max_correction
@@ -291,8 +288,6 @@ class LandmarksConfig:
     # the landmark's covariance in the reprojection refine: 'full' = its 3x3 carried through the
     # projection (along the ray into the inverse depth); 'isotropic' = sqrt(trace/3) in every direction
     landmark_cov: Literal["full", "isotropic"] = "full"
-    # which frames' observations update the landmarks (Kalman): every map-tracked frame or keyframes only
-    observe: Literal["frames", "keyframes"] = "frames"
     # the map pose's key point and depth noise rescaled per frame by the robust scale of its residuals
     adaptive_noise: bool = True
     fuse_scale: float = 0.4  # fuse/filter modes: the registration's information is multiplied by this (calibrated)
@@ -300,10 +295,6 @@ class LandmarksConfig:
     # / 5.35) is k > 1 times what their informations say, the map pose's covariance grows until it explains
     # the excess (0 = off): the map pose only gets the weight its agreement with the registration supports
     consistency_window: int = 30
-    # the smallest factor the consistency scaling may multiply the map pose's covariance by: 1 = it only
-    # grows (k > 1); below 1, a disagreement smaller than the informations say (k < 1: the map pose is
-    # under-confident) shrinks it too, s = max(1 + (k - 1) / r, this)
-    consistency_floor: float = 1.0
     old_fraction: float = 0.5  # old_first: minimal samples drawn from this oldest share of the matches
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
     # z sigma_px / f; process noise per step (m)
@@ -311,34 +302,16 @@ class LandmarksConfig:
     depth_noise_a: float = 0.001  # metres: constant term of the depth noise along the ray
     depth_noise_b: float = 0.002  # per metre: z^2 term of the depth noise along the ray
     sigma_px: float = 1.0  # pixels: key point noise across the ray
-    sigma_px_scale: float = 1.0  # key point noise of ORB pyramid level o: sigma_px * sigma_px_scale^o (1 = same)
     process_noise: float = 0.0002  # metres per step: Kalman process noise of a landmark position
-    # metres per sqrt(frame): the observing pose's drift since the landmark was made, added to each
-    # re-observation's covariance (sigma^2 * age): later, drifted observations move old landmarks less
-    drift_sigma: float = 0.0
     min_seen: int = 3  # landmarks seen fewer times cull_after frames after they were made are culled
     cull_after: int = 30  # frames after its creation a rarely seen landmark is culled (see min_seen)
     store: Literal["single", "multi"] = "multi"  # landmark store: one k-d tree or the logarithmic method
     store_n1: int = 3500  # multi-tree store: size of the smallest tree
     store_q: float = 5.5  # multi-tree store: size ratio of consecutive trees
     new_min_distance: float = 5.0  # pixels: a keyframe feature this close to a projected landmark makes no new one
-    old_age: int = 100  # frames: a matched landmark first seen this long ago counts as "old" (run.json, revisit)
-    # revisit search: old landmarks matched within this radius (pixels; 0 = off); their pose wins when
-    # revisit_min_inliers agree and it is within revisit_max_correction of the registration's
-    revisit_radius: float = 0.0  # pixels around an old landmark's projection (0 = no revisit search)
-    revisit_min_inliers: int = 20  # old landmarks that must agree on the revisit pose
-    revisit_max_correction: float = 0.1  # metres: a revisit pose further from the registration's is rejected
+    old_age: int = 100  # frames: a matched landmark first seen this long ago counts as "old" (run.json)
+    revisit_max_correction: float = 0.1  # metres: a re-measured loop edge further from the registration's is kept as it was
     revisit_max_correction_deg: float = 5.0  # degrees: see revisit_max_correction
-    # landmark-to-keyframe edges: a keyframe that sees anchor_min_landmarks landmarks made by one keyframe at
-    # least anchor_age frames earlier gets a pose-graph edge to that keyframe from its pose against them
-    # (robust, as a loop edge), so a revisit as a whole follows the old landmarks
-    anchor_edges: bool = False
-    anchor_age: int = 50  # frames: a landmark made this long before the keyframe counts for an anchor edge
-    anchor_min_landmarks: int = 20  # landmarks of one old keyframe the keyframe must see for its edge
-    anchor_info_scale: float = 1.0  # the edge's information (the refine's Gauss-Newton one) times this
-    # Hamming bonus of a landmark first seen old_age frames or more ago when features choose their landmark
-    # (an old landmark beats a younger copy of itself made along the drift; the max_hamming gate is unchanged)
-    match_old_bonus: int = 0
     # frames: a landmark not seen for longer is "stale" (an earlier visit of the place; the map is not
     # corrected between visits, so it carries other drift than the landmarks made since) and is left out
     # of the frame's map pose (0 = never); with stale_check it joins when its own pose agrees with the
@@ -346,17 +319,9 @@ class LandmarksConfig:
     stale_after: int = 30
     stale_check: bool = True  # stale landmarks join the map pose when they agree (see stale_after)
     stale_gate: float = 12.59  # chi-square (6 dof, 95 %) of the stale-only against the current map pose
-    # the pose graph's edges get calibrated informations: an odometry edge the sum of its frames' output
-    # covariances (registration x fuse_scale, fused with the map pose's), a loop edge its registration's
-    # x fuse_scale; off: the registration's raw informations (over-confident: docs/slam.md)
-    graph_information: bool = False
     # a loop edge i -> j is not added when frame j's map pose rests on at least this many landmarks that
     # existed at frame i (first seen at or before it): the map already ties the two (0 = every loop edge)
     map_loop_landmarks: int = 30
-    # at every loop edge the pose graph is solved (batch) and the map is moved into the corrected frame:
-    # each keyframe's landmarks move with its correction relative to the current keyframe (which stays
-    # put), so a revisit's stale landmarks agree with the ones made since and are matched again
-    loop_correct: bool = False
     # a loop edge i -> j re-measured against the landmarks first seen within loop_window frames of keyframe
     # i: projected with the edge's pose (kf_pose[i] T_ij) and matched within loop_search_radius px, the pose
     # of j against them (RANSAC + reprojection refine) gives T_ij = kf_pose[i]^-1 P_j and its information
@@ -373,9 +338,6 @@ class LandmarksConfig:
     local_ba: bool = False  # windowed local bundle adjustment on every new keyframe
     ba_window: int = 5  # keyframes optimised; older keyframes seeing their landmarks are held fixed
     ba_iterations: int = 5  # Levenberg-Marquardt iterations of one local BA
-    # local BA on every ba_every-th keyframe only (1 = every keyframe); the window still covers the
-    # keyframes in between (ba_window > ba_every), so each is optimised, less often: the BA's cost / ba_every
-    ba_every: int = 1
     # the local BA's solver: 'schur' = NumPy Levenberg-Marquardt with the landmarks eliminated in closed
     # form (the Schur complement; GTSAM's LM step for step, ~10x faster at this size); 'gtsam' = GTSAM's graph
     ba_solver: Literal["schur", "gtsam"] = "schur"
@@ -386,33 +348,14 @@ class LandmarksConfig:
     # metres added (in quadrature, every direction) to the prior's Kalman sigma: the filter counts every
     # frame's observation as independent, but they share the frames' pose errors
     ba_prior_floor: float = 0.004
-    # the BA's observation noise (sigma_px and the depth noise model) times this; the generator's key
-    # points scatter ~0.5 px and its depth noise is 0.6-0.8x the model's, so < 1 gives them their weight
-    # against the landmark priors
-    ba_noise_scale: float = 1.0
     ba_min_observations: int = 30  # a keyframe observing fewer of the optimised landmarks is left out
     ba_max_move: float = 0.05  # metres: a solution moving a keyframe further is dropped (bad convergence)
     ba_max_move_deg: float = 3.0  # degrees: see ba_max_move
-    # where local BA runs: 'sync' = on the tracking thread, written back at once; 'process' = in a
-    # helper process while tracking goes on (GTSAM holds the GIL, a thread would stop tracking),
-    # written back later (ba_handover; waiting for it then): faster, but not the same poses (7-Scenes
-    # worse, docs/slam.md); 'deferred' = as 'process' but solved on the tracking thread (same results)
-    ba_worker: Literal["sync", "process", "deferred"] = "sync"
-    # process / deferred: frames after its keyframe the BA is written back; 0 = at the next keyframe
-    ba_handover: int = 0
     # how the frames between two keyframes follow a local BA's corrections: 'rigid' = with their own
     # (older) keyframe's; 'interpolate' = along the geodesic from their keyframe's correction to the
     # next keyframe's, by frame index (a keyframe the BA did not move: no correction), so the
     # trajectory does not jump where one keyframe's frames end and the next keyframe begins
     ba_frames: Literal["rigid", "interpolate"] = "rigid"
-    # one bundle adjustment over every keyframe and its landmarks after the final pose graph
-    # (stereo-style factors as local BA, the pose graph's loop edges as relative-pose factors)
-    global_ba: bool = False  # bundle adjustment over all keyframes after the pose graph (run end)
-    global_ba_iterations: int = 20  # Levenberg-Marquardt iterations of the global bundle adjustment
-    global_ba_odometry: bool = True  # every pose-graph odometry edge in the global BA (else weak keyframes' only)
-    # the map inliers of the frames between keyframes join the global BA as observations of their
-    # keyframe's pose (their pose relative to it held)
-    global_ba_frames: bool = False
     # ORB key points per frame for the landmark map (0 = features.n_features): frames are detected with
     # this many; the registration, loop closure and the rest keep the strongest features.n_features of
     # them (per pyramid level, ORB's budget), the map matches and makes landmarks from all
@@ -637,11 +580,11 @@ POSITIVE = {
     "stereo.sgbm_block_size",
     "landmarks.search_radius", "landmarks.max_depth", "landmarks.ransac_threshold", "landmarks.ransac_iterations",
     "landmarks.min_seen", "landmarks.store_n1", "landmarks.old_age", "landmarks.ba_window",
-    "landmarks.ba_iterations", "landmarks.ba_every", "landmarks.global_ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
+    "landmarks.ba_iterations", "landmarks.ba_max_landmarks", "landmarks.ba_baseline", "landmarks.ba_huber", "landmarks.sigma_px",
     "landmarks.chi_gate", "landmarks.refine_iterations", "landmarks.max_correction", "landmarks.max_correction_deg",
-    "landmarks.ba_max_move", "landmarks.ba_max_move_deg", "landmarks.revisit_min_inliers",
+    "landmarks.ba_max_move", "landmarks.ba_max_move_deg",
     "landmarks.revisit_max_correction", "landmarks.revisit_max_correction_deg",
-    "landmarks.fuse_scale", "landmarks.sigma_px_scale", "landmarks.ba_noise_scale", "landmarks.loop_search_radius",
+    "landmarks.fuse_scale", "landmarks.loop_search_radius",
 }
 BOUNDS = {
     "features.scale_factor": (1.0 + 1e-6, 4.0), "features.n_levels": (1, 16), "features.patch_size": (2, 255),
@@ -651,7 +594,6 @@ BOUNDS = {
     # LSH bucket keys hold the table id above lsh_bits key bits in an int64
     "loop.lsh_bits": (1, 40),
     "mapping.floor_max_tilt_deg": (0.0, 90.0), "mapping.live_tolerance": (0.0, 10.0),
-    "landmarks.consistency_floor": (0.01, 1.0), "landmarks.ba_noise_scale": (1e-3, 100.0),
     "mapping.live_nice": (0, 19), "mapping.live_lag": (0, 10000), "mapping.live_backlog": (0, 10000),
     "stereo.ratio": (0.0, 1.0), "stereo.max_hamming": (0, 256), "stereo.sgbm_scale": (0.1, 1.0),
     "stereo.max_disparity": (1, 1024), "stereo.sgbm_block_size": (1, 31),
@@ -663,7 +605,7 @@ BOUNDS = {
     "registration.beta": (-100.0, 100.0),
     "mapping.obstacle_min_height": (-1e3, 1e3), "mapping.obstacle_max_height": (-1e3, 1e3),
     "landmarks.min_inliers": (3, 10**9), "landmarks.old_fraction": (0.0, 1.0),
-    "landmarks.ransac_confidence": (0.0, 1.0), "landmarks.store_q": (1.0 + 1e-6, 100.0),
+    "landmarks.store_q": (1.0 + 1e-6, 100.0),
     "landmarks.max_hamming": (0, 256),
     "stereo.row_scale": (1, 16),
     # voxel outlier removal: (2 r + 1)^3 - 1 gathers; r = 3 is already 342 of them
@@ -724,18 +666,15 @@ MAXIMA = {
     # landmark map: pixels, metres and counts of one frame's search; BA sizes bound its GTSAM problem
     "landmarks.search_radius": 1000.0, "landmarks.max_depth": 1e3, "landmarks.ransac_threshold": 10.0,
     "landmarks.ransac_iterations": 20_000, "landmarks.max_correction": 100.0, "landmarks.max_correction_deg": 360.0,
-    "landmarks.chi_gate": 100.0, "landmarks.refine_iterations": 100, "landmarks.fuse_scale": 1e6, "landmarks.sigma_px_scale": 10.0,
+    "landmarks.chi_gate": 100.0, "landmarks.refine_iterations": 100, "landmarks.fuse_scale": 1e6,
     "landmarks.depth_noise_a": 10.0, "landmarks.depth_noise_b": 10.0,
     "landmarks.sigma_px": 100.0, "landmarks.process_noise": 10.0, "landmarks.min_seen": 10**6,
     "landmarks.cull_after": 10**6, "landmarks.store_n1": 10**7, "landmarks.new_min_distance": 1000.0,
-    "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.n_features": 10_000, "landmarks.ba_iterations": 1000, "landmarks.ba_every": 1000,
-    "landmarks.global_ba_iterations": 1000,
+    "landmarks.old_age": 10**9, "landmarks.ba_window": 100, "landmarks.n_features": 10_000, "landmarks.ba_iterations": 1000,
     "landmarks.ba_max_landmarks": 100_000, "landmarks.ba_baseline": 10.0, "landmarks.ba_huber": 100.0,
     "landmarks.ba_min_observations": 10**6, "landmarks.ba_prior_floor": 10.0, "landmarks.ba_max_move": 100.0, "landmarks.ba_max_move_deg": 360.0,
-    "landmarks.ba_handover": 10**4, "landmarks.revisit_radius": 1000.0, "landmarks.revisit_min_inliers": 10**6, "landmarks.revisit_max_correction": 100.0,
+    "landmarks.revisit_max_correction": 100.0,
     "landmarks.revisit_max_correction_deg": 360.0,
-    "landmarks.drift_sigma": 10.0, "landmarks.anchor_age": 10**9, "landmarks.anchor_min_landmarks": 10**6,
-    "landmarks.anchor_info_scale": 1e6, "landmarks.match_old_bonus": 256,
     "landmarks.stale_after": 10**9, "landmarks.stale_gate": 1e6, "landmarks.map_loop_landmarks": 10**6,
     "landmarks.consistency_window": 10**6, 
     "landmarks.loop_window": 10**6, "landmarks.loop_min_inliers": 10**6, "landmarks.loop_search_radius": 1000.0,
@@ -804,10 +743,6 @@ def validate(cfg: Config) -> Config:
     for section in dataclasses.fields(cfg):
         validate_section(section.name, getattr(cfg, section.name))
     lm = cfg.landmarks
-    if lm.local_ba and lm.ba_every > lm.ba_window:
-        raise ConfigError(
-            f"config key 'landmarks.ba_every' ({lm.ba_every}) must be at most 'landmarks.ba_window' ({lm.ba_window}): "
-            f"otherwise keyframes between two local BAs are never in a window")
     if 0 < lm.n_features < cfg.features.n_features:
         raise ConfigError(
             f"config key 'landmarks.n_features' ({lm.n_features}) must be 0 (off) or at least "

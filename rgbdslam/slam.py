@@ -1,16 +1,22 @@
-"""The SLAM per-frame chain: one frame's way through the stages (docs/architecture.md).
+"""The SLAM per-frame chain: one frame's way through the stages (docs/architecture.md, docs/slam.md).
 
-``SLAM`` composes the stage objects, each built from its own config section::
+``SLAM`` composes the stage objects, each built from its own config section; :meth:`SLAM.track`
+takes a frame through them in this order::
 
     Frame ─▶ frontend.track   (ORB features, registration against the reference frames → pose or lost)
-          ─▶ landmarks        (landmarks.enabled: the pose checked against the landmark map, the map updated)
+          ─▶ stages.on_tracked (refinement stages, e.g. the landmark map: the pose checked against it)
           ─▶ depth_filter     (DIF, needs the pose; the filtered depth goes back to the front end)
           ─▶ loop.observe     (sharpness gate) ─▶ loop.detect (sharp or due frames only)
           ─▶ map_tracker      (--localize: registration against the nearest keyframes of the fixed map)
+          ─▶ stages.on_loops  (the loop edges re-measured or dropped)
           ─▶ keyframes        (motion policy; loops and restarts force a keyframe)
+          ─▶ stages.on_frame  (the end of the frame's step; keyframes: new landmarks, local BA)
           ─▶ graph            (GTSAM pose graph over keyframes, initial values from MASAT)
 
-The run driver (:mod:`rgbdslam.pipeline`) feeds the frames and writes the run folder.
+A refinement stage implements :class:`Stage`; a stage changes poses only by returning
+``{frame index: new pose}``, which :meth:`SLAM._apply` writes into the front end's references, the
+frame records and the pose graph together. The run driver (:mod:`rgbdslam.pipeline`) feeds the
+frames and writes the run folder.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -34,6 +41,26 @@ from rgbdslam.viz.observer import NullObserver
 
 
 MAP_BATCH_SHARE = 10.0  # a batch optimisation for the live map at most every 10x its own duration
+
+
+class Stage(Protocol):
+    """A per-frame refinement step between the front end and the back end (the landmark map is one:
+    :class:`rgbdslam.landmarks.stage.LandmarkTracker`). Corrections are ``{frame index: new pose}``:
+    the current frame's, or keyframes' that are already records (empty: nothing moves)."""
+
+    name: str  # its timing key in run.json
+
+    def on_tracked(self, frame: Frame, result: TrackResult, pose: np.ndarray) -> dict[int, np.ndarray]:
+        """After the front end placed the frame at ``pose`` (``result.reset``: tracking restarted)."""
+
+    def on_loops(self, frame: Frame, result: TrackResult, loops: list) -> list:
+        """The loop closer's edges to the frame (map-tracking edges are not among them); returns those to add."""
+
+    def on_frame(self, frame: Frame, result: TrackResult, pose: np.ndarray, keyframe: bool) -> dict[int, np.ndarray]:
+        """The frame's final step, once the keyframe decision is made."""
+
+    def on_finish(self, optimised: dict[int, np.ndarray]) -> None:
+        """After the final pose-graph optimisation (keyframe poses)."""
 
 
 @dataclass
@@ -87,7 +114,10 @@ class SLAM:
         if cfg.landmarks.enabled:
             from rgbdslam.landmarks.stage import LandmarkTracker
 
-            self.landmarks = LandmarkTracker(cfg.landmarks, camera)
+            observer = None if isinstance(self.observer, NullObserver) else self.observer
+            self.landmarks = LandmarkTracker(cfg.landmarks, camera, observer, cfg.output.rerun_log_every)
+        # the refinement stages between the front end and the back end, in chain order (protocol: Stage)
+        self.stages: list[Stage] = [s for s in (self.landmarks,) if s is not None]
         self.graph = None
         if cfg.backend.enabled or cfg.loop.enabled:
             from rgbdslam.backend.slam_graph import KeyframeGraph
@@ -108,126 +138,105 @@ class SLAM:
 
     # ------------------------------------------------------------------ one frame
     def track(self, frame: Frame) -> TrackResult:
-        st = self.state
-        # 1. front end: the frame's pose from its registrations against the reference frames
-        result = self.frontend.track(frame)
+        """One frame through the chain; every pose change goes through :meth:`_apply`."""
+        result = self.frontend.track(frame)  # ORB features, registration against the reference frames
         for k, v in result.timings.items():
-            st.add_time(k, v)
+            self.state.add_time(k, v)
         if result.lost or result.pose is None:
-            st.lost.append(frame.index)
-            self.observer.log_frame(frame, result)
-            return result
+            return self._lost(frame, result)
         pose, restart = result.pose, bool(result.reset)
         if result.information is not None:
             self._info_since_kf.append(result.information)
-        # 1b. the landmark map: the pose checked against it (fused with the registration's), the map updated
-        if self.landmarks is not None and not restart:
-            pose = self._track_map(frame, result, pose)
-        # 2. DIF: filtered depth for the map and the front end's references
-        depth = self._filter_depth(frame, pose, restart)
-        # 3. a restart after a tracking loss begins a new segment, to be relocalised
-        if restart:
-            st.restarts.append(frame.index)
-            if self.loop is not None:
-                self.loop.new_segment()
-        # 4. loop closure on sharp (or due) frames
+        for s in self.stages:  # e.g. the landmark map: the pose checked against it
+            pose = self._apply(frame, result, pose, self._timed(s.name, s.on_tracked, frame, result, pose))
+        depth = self._filter_depth(frame, pose, restart)  # DIF: filtered depth for the map and the references
+        if restart:  # a new segment, to be relocalised
+            self._restart(frame)
         loops, map_edges = self._detect_loops(frame, result, pose)
-        if loops and self.landmarks is not None and self.cfg.landmarks.loop_refine and not restart:
-            loops = [self.landmarks.refine_loop(frame.index, _map_feats(result), e) for e in loops]  # vs the map
-        if loops and self.landmarks is not None and self.cfg.landmarks.map_loop_landmarks > 0:
-            loops = [e for e in loops if not self.landmarks.holds(frame.index, e.i)]  # the map closed them
-        # 5. keyframe: by motion, or forced (a loop edge / a segment's first pose needs a graph node);
-        # map-tracking edges force one only every loop.map_track_keyframe_every-th anchored frame
+        for s in self.stages:
+            loops = self._timed(s.name, s.on_loops, frame, result, loops)
+        is_kf, loops = self._keyframe(frame, pose, restart, loops, map_edges)
+        for s in self.stages:  # the frame's last step in each stage (keyframe: new landmarks, local BA)
+            pose = self._apply(frame, result, pose, self._timed(s.name, s.on_frame, frame, result, pose, is_kf))
+        self._record(frame, result, pose, depth, is_kf)  # frame record; a keyframe: graph, loop closer, live map
+        self._add_loops(loops)  # into the pose graph (iSAM2 updates); the live map follows
+        if self._map_stale:
+            self._feed_map()
+        self._log(frame, result)
+        return result
+
+    def _apply(self, frame: Frame, result: TrackResult, pose: np.ndarray, moved: dict[int, np.ndarray]) -> np.ndarray:
+        """The one place poses change after the front end: ``moved`` = {frame index: new pose} from a
+        stage. This frame's new pose replaces ``pose`` (and ``result.pose``) and the front end continues
+        from it (its newest reference and constant velocity); the other entries are keyframes, written
+        back by :meth:`_move_keyframes` (their frames, the front end's references, the pose graph).
+        Returns the frame's pose."""
+        if not moved:
+            return pose
+        moved = dict(moved)
+        current = None
+        if frame.index in moved:
+            new = moved.pop(frame.index)
+            current = (frame.index, new @ inv(pose))  # for the frames before it (ba_frames: interpolate)
+            pose = new
+            result.pose = pose
+            self.frontend.correct_last(pose)
+        if moved:
+            self._move_keyframes(moved, current)
+        return pose
+
+    def _timed(self, name: str, step, *args):
+        t0 = time.perf_counter()
+        out = step(*args)
+        self.state.add_time(name, time.perf_counter() - t0)
+        return out
+
+    def _lost(self, frame: Frame, result: TrackResult) -> TrackResult:
+        self.state.lost.append(frame.index)
+        self.observer.log_frame(frame, result)
+        return result
+
+    def _restart(self, frame: Frame) -> None:
+        self.state.restarts.append(frame.index)
+        if self.loop is not None:
+            self.loop.new_segment()
+
+    def _keyframe(self, frame: Frame, pose: np.ndarray, restart: bool, loops: list, map_edges: list) -> tuple[bool, list]:
+        """Whether the frame is a keyframe — by motion, or forced (a loop edge or a segment's first pose
+        needs a graph node; map-tracking edges force one only every ``loop.map_track_keyframe_every``-th
+        anchored frame, else they are re-expressed to the last keyframe) — and the edges to add."""
         is_kf = self.keyframe_policy.is_keyframe(frame.index, pose)
-        to_last = False  # this frame's map edges re-expressed to the last keyframe (no new graph node)
+        to_last = False
         if map_edges and not (is_kf or loops or restart or self._last_kf is None):
             every = self.cfg.loop.map_track_keyframe_every
             self._anchored_since_kf += 1
             to_last = every <= 0 or self._anchored_since_kf < every
         if to_last:
-            loops = [self._to_last_keyframe(e, pose) for e in map_edges]
-        else:
-            loops = loops + map_edges
-            if (loops or restart) and not is_kf:
-                self.keyframe_policy.force(frame.index, pose)
-                is_kf = True
-        if self.landmarks is not None:
-            pose = self._update_map(frame, result, pose, is_kf)
+            return is_kf, [self._to_last_keyframe(e, pose) for e in map_edges]
+        loops = loops + map_edges
+        if (loops or restart) and not is_kf:
+            self.keyframe_policy.force(frame.index, pose)
+            is_kf = True
+        return is_kf, loops
+
+    def _record(self, frame: Frame, result: TrackResult, pose: np.ndarray, depth: np.ndarray, is_kf: bool) -> None:
         if is_kf:
             self._add_keyframe(frame, result, pose, depth)
-            if self.landmarks is not None and self.graph is not None:  # old landmarks -> their keyframes
-                for e in self.landmarks.anchor_edges(frame.index, _map_feats(result), pose, self.graph.guess):
-                    self.graph.add_loop(e)
         rec = FrameRecord(frame.index, frame.timestamp, pose.copy(), frame.index if is_kf else self._last_kf.index)
-        st.records.append(rec)
+        self.state.records.append(rec)
         if is_kf:
             self._last_kf = rec
-        # 6. loop edges into the pose graph (iSAM2 updates); the live map follows
-        self._add_loops(loops)
-        if loops and is_kf and self.landmarks is not None and self.cfg.landmarks.loop_correct and \
-                self.graph is not None and self.map_tracker is None:
-            t0 = time.perf_counter()  # the map moves into the loop-corrected frame (docs/slam.md)
-            self.landmarks.correct(frame.index, self.graph.batch_estimate())
-            st.add_time("landmarks", time.perf_counter() - t0)
-        if self._map_stale:
-            self._feed_map()
+
+    def _log(self, frame: Frame, result: TrackResult) -> None:
         self.observer.log_frame(frame, result)
         if result.matches is not None:
             self.observer.log_inlier_matches(frame.index, result.matches[:, :2], result.matches[:, 2:])
-        return result
 
-    def _track_map(self, frame: Frame, result: TrackResult, pose: np.ndarray) -> np.ndarray:
-        t0 = time.perf_counter()
-        info = result.information
-        if info is not None and result.n_fused > 1:  # the references share this frame's noise:
-            info = info / result.n_fused  # their summed information counts it n_fused times
-        mpose = self.landmarks.track(frame.index, _map_feats(result), pose, info)
-        if self.cfg.landmarks.graph_information and self.landmarks.step_information is not None and \
-                self._info_since_kf and result.information is not None:
-            self._info_since_kf[-1] = self.landmarks.step_information  # the odometry edge: what the pose is
-        if mpose is not pose:
-            pose = mpose
-            result.pose = pose
-            self.frontend.correct_last(pose)
-        self.state.add_time("landmarks", time.perf_counter() - t0)
-        return pose
-
-    def _update_map(self, frame: Frame, result: TrackResult, pose: np.ndarray, is_kf: bool) -> np.ndarray:
-        """New landmarks and local BA on a keyframe; the end of the map's step; Rerun."""
-        if is_kf:
-            t0 = time.perf_counter()
-            refined = self.landmarks.add_keyframe(frame.index, _map_feats(result), pose)
-            current = None
-            if frame.index in refined:  # local BA moved this keyframe: tracking continues from there
-                current = (frame.index, refined[frame.index] @ inv(pose))
-                pose = refined.pop(frame.index)
-                result.pose = pose
-                self.frontend.correct_last(pose)
-            if refined:  # the window's older keyframes, their frames, references and graph edges
-                self._move_keyframes(refined, pose, current)
-            self.state.add_time("local_ba" if self.landmarks.ba is not None else "landmarks", time.perf_counter() - t0)
-        else:
-            refined = self.landmarks.handover(frame.index, pose)  # landmarks.ba_handover: the BA due now
-            if refined:
-                t0 = time.perf_counter()
-                pose = refined.pop(frame.index, pose)
-                result.pose = pose
-                self.frontend.correct_last(pose)
-                self._move_keyframes(refined, pose)
-                self.state.add_time("local_ba", time.perf_counter() - t0)
-            self.landmarks.record_frame(frame.index, _map_feats(result), pose)
-        self.landmarks.end_frame(frame.index)
-        if not isinstance(self.observer, NullObserver) and frame.index % max(1, self.cfg.output.rerun_log_every) == 0:
-            self.landmarks.log(self.observer, frame.index, _map_feats(result), is_kf)
-        return pose
-
-    def _move_keyframes(self, refined: dict[int, np.ndarray], pose: np.ndarray | None = None,
-                        current: tuple[int, np.ndarray] | None = None) -> None:
-        """Write local-BA keyframe poses back: each keyframe's frames follow it rigidly (their pose
+    def _move_keyframes(self, refined: dict[int, np.ndarray], current: tuple[int, np.ndarray] | None = None) -> None:
+        """Write refined keyframe poses back: each keyframe's frames follow it rigidly (their pose
         relative to it kept), so do the front end's reference frames; the pose graph's odometry edges
-        are re-measured between the refined keyframes (the current keyframe, not yet a node, gets its
-        edge from ``pose``). ``current``: (this keyframe, its correction), which the frames since the
-        last keyframe approach with ``landmarks.ba_frames: interpolate``."""
+        are re-measured between the refined keyframes. ``current``: (this keyframe, its correction),
+        which the frames since the last keyframe approach with ``landmarks.ba_frames: interpolate``."""
         old = {r.index: r.pose for r in self.state.records if r.index in refined and r.keyframe == r.index}
         corr = {k: refined[k] @ inv(P) for k, P in old.items()}
         if not corr:
@@ -287,10 +296,6 @@ class SLAM:
         if not loops or self.graph is None:
             return
         t0 = time.perf_counter()
-        if self.landmarks is not None and self.cfg.landmarks.graph_information:
-            # a loop edge is one registration: its information calibrated as the fusion calibrates the
-            # registration's (landmarks.fuse_scale), so it weighs against the odometry edges' as measured
-            loops = [replace(e, information=e.information * self.cfg.landmarks.fuse_scale) for e in loops]
         for e in loops:
             self.graph.add_loop(e)
             self.state.loops.append((int(e.i), int(e.j)))
@@ -361,24 +366,14 @@ class SLAM:
 
         Non-keyframes follow their keyframe: final = optimised(kf) · odo(kf)⁻¹ · odo(frame).
         """
-        if self.landmarks is not None:  # the local BA still in flight (landmarks.ba_worker) is written back
-            refined = self.landmarks.flush()
-            if refined:
-                self._move_keyframes(refined)
-            self.landmarks.close()
         odo = self.odometry()
         if self.graph is None or not self.state.keyframes:
             return odo
         t0 = time.perf_counter()
         optimised = self.graph.optimize()
-        if self.landmarks is not None:  # landmarks move with the keyframe that anchors them
-            self.landmarks.finish(optimised)
+        for s in self.stages:  # e.g. the landmarks move with the keyframe that anchors them
+            s.on_finish(optimised)
         self.state.add_time("pose_graph", time.perf_counter() - t0)
-        if self.landmarks is not None and self.cfg.landmarks.global_ba and not self.map_poses:
-            t0 = time.perf_counter()  # one bundle adjustment over every keyframe, the loops kept
-            loops = [(int(e.i), int(e.j), e.T_ij, e.information) for e in self.graph.loops]
-            optimised = self.landmarks.global_ba(optimised, loops, self.graph.odometry)
-            self.state.add_time("global_ba", time.perf_counter() - t0)
         self.optimised = optimised
         kf_pose = {r.index: r.pose for r in self.state.records if r.index == r.keyframe}
         poses = []
@@ -422,11 +417,6 @@ def _interpolated(records: list, corr: dict[int, np.ndarray], current: tuple[int
         s = (r.index - a) / (b - a)
         out.append(Ca @ gtsam.Pose3.Expmap(s * gtsam.Pose3.Logmap(gtsam.Pose3(inv(Ca) @ Cb))).matrix())
     return out
-
-
-def _map_feats(result: TrackResult):
-    """The key points the landmark map works with: every one detected (``landmarks.n_features``) or the frame's."""
-    return result.features if result.map_features is None else result.map_features
 
 
 def _png_depth(depth: np.ndarray, scale: float = 5000.0) -> np.ndarray:

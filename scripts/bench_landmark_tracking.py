@@ -12,8 +12,7 @@ Usage::
 ``record`` runs ``rgbdslam.pipeline.run_sequence`` (map fusion and plots off, as
 ``bench_landmark_speed.py``; ``landmarks.enabled=true`` is added) with
 :class:`rgbdslam.landmarks.stage.LandmarkTracker` wrapped: every call the per-frame chain makes
-(``track``, ``add_keyframe``, ``handover``, ``record_frame``, ``end_frame``, ``holds``,
-``anchor_edges``) is stored with a copy of its arguments and its answer. ``replay`` makes a fresh
+(``track``, ``add_keyframe``, ``end_frame``, ``holds``) is stored with a copy of its arguments and its answer. ``replay`` makes a fresh
 tracker from the recorded configuration (``--set`` changes it, e.g. ``landmarks.stale_check=false``)
 and camera and makes the same calls in the same order: the inputs are the pipeline's, whatever the
 answers, so the replay of the recording code reproduces every answer bit for bit, and another
@@ -41,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-CALLS = ("track", "add_keyframe", "handover", "record_frame", "end_frame", "holds", "anchor_edges")
+CALLS = ("track", "add_keyframe", "end_frame", "holds")
 
 
 def _strip(feats):
@@ -63,9 +62,9 @@ def record(out: Path, seq: Path, sets: list[str]) -> None:
     cls = stage.LandmarkTracker
     orig_init = cls.__init__
 
-    def init_wrap(self, cfg, camera):
+    def init_wrap(self, cfg, camera, *rest):
         init["cfg"], init["camera"] = copy.deepcopy(cfg), copy.deepcopy(camera)
-        orig_init(self, cfg, camera)
+        orig_init(self, cfg, camera, *rest)
 
     def wrap(name):
         fn = getattr(cls, name)
@@ -134,15 +133,13 @@ def compare(log: list, answers: list) -> dict:
             d = np.linalg.inv(want) @ got
             dt, dr = max(dt, float(np.linalg.norm(d[:3, 3]))), max(dr, _rot_deg(d[:3, :3]))
             same = bool(np.array_equal(want, got))
-        elif name in ("add_keyframe", "handover"):
+        elif name == "add_keyframe":
             same = want.keys() == got.keys() and all(np.array_equal(want[k], got[k]) for k in want)
             for k in set(want) & set(got):
                 d = np.linalg.inv(want[k]) @ got[k]
                 dt, dr = max(dt, float(np.linalg.norm(d[:3, 3]))), max(dr, _rot_deg(d[:3, :3]))
         elif name == "holds":
             same = want == got
-        elif name == "anchor_edges":
-            same = len(want) == len(got) and all(np.array_equal(a.T, b.T) for a, b in zip(want, got))
         if not same:
             differ += 1
             if first is None:

@@ -97,7 +97,7 @@ def run(seq_dir: Path, sets: list[str], old_age: int) -> dict:
                     rr = estimate_pose(self.map, feats, sub, t["reg"], self._sigma(feats.pts[sub.feat, 2]),
                                        c.ransac_threshold, c.ransac_iterations, c.min_inliers, c.sampling,
                                        c.old_fraction, np.random.default_rng(0), c.refine, self.camera,
-                                       self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full", c.adaptive_noise)
+                                       c.sigma_px, c.chi_gate, c.landmark_cov == "full", c.adaptive_noise)
                     if rr is not None:
                         t["abs_map_" + name] = _trans_err(Gi, rr.pose)
         t.update(inliers=len(res.lm), matches=res.n_matches, old=int((age >= old_age).sum()),

@@ -308,15 +308,10 @@ def test_config_explain_command_prints_every_key(tmp_path):
 
 
 def test_landmark_keys_checked_against_each_other():
-    """``landmarks.ba_every`` beyond ``ba_window`` (with local BA) would leave keyframes out of every
-    window, and ``landmarks.n_features`` between 1 and ``features.n_features`` would be ignored:
-    both are refused with one line naming the keys."""
+    """``landmarks.n_features`` between 1 and ``features.n_features`` would be ignored: refused with
+    one line naming the keys."""
     from rgbdslam.config import ConfigError, load_config
 
-    with pytest.raises(ConfigError, match="landmarks.ba_every.*ba_window"):
-        load_config(None, ["landmarks.local_ba=true", "landmarks.ba_window=3", "landmarks.ba_every=4"])
-    load_config(None, ["landmarks.local_ba=true", "landmarks.ba_window=4", "landmarks.ba_every=4"])
-    load_config(None, ["landmarks.ba_window=3", "landmarks.ba_every=4"])  # no local BA: nothing to leave out
     with pytest.raises(ConfigError, match="landmarks.n_features.*features.n_features"):
         load_config(None, ["landmarks.n_features=500"])
     load_config(None, ["landmarks.n_features=1500"])

@@ -33,20 +33,6 @@ def observation_covariance(P_cam: np.ndarray, R_wc: np.ndarray, fx: float, sigma
     return np.einsum("ij,njk,lk->nil", R_wc, C, R_wc)
 
 
-def with_pose_drift(R: np.ndarray, age: np.ndarray, sigma: float) -> np.ndarray:
-    """Observation covariances ``R`` (N, 3, 3) plus the observing pose's drift since the landmark
-    was made: ``sigma² · age`` in every direction (a random walk of ``sigma`` metres per √frame;
-    ``age`` (N,) = frames since the landmark's first sighting, negative counts as 0).
-
-    The pose that takes a re-observation into the world has drifted from the poses that made the
-    landmark; without this term the filter counts every later observation as sharp as the first
-    ones and the landmark follows the trajectory's drift (docs/slam.md "Anchored landmarks")."""
-    if sigma <= 0:
-        return R
-    v = (sigma * sigma) * np.maximum(np.asarray(age, dtype=np.float64), 0.0)
-    return R + v[:, None, None] * np.eye(3)
-
-
 def kalman_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, q: float) -> tuple[np.ndarray, np.ndarray]:
     """One static-Kalman step for N landmarks at once: x (N,3), P (N,3,3), z (N,3), R (N,3,3).
 

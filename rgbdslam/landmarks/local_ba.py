@@ -49,13 +49,13 @@ class StereoFactors:
     def disparity_sigma(self, z: np.ndarray) -> np.ndarray:
         """Disparity noise (px) of depth ``z`` (m): f b σ_z / z², σ_z = a + b_z z² (unbinned)."""
         c = self.cfg
-        return self.fb * c.ba_noise_scale * (c.depth_noise_a + c.depth_noise_b * z * z) / (z * z)
+        return self.fb * (c.depth_noise_a + c.depth_noise_b * z * z) / (z * z)
 
     def _model(self, sd: float):
         b = int(np.round(np.log(max(sd, 1e-6)) / np.log(1.01)))
         m = self._models.get(b)
         if m is None:
-            s2, sd = (self.cfg.sigma_px * self.cfg.ba_noise_scale) ** 2, 1.01 ** b
+            s2, sd = self.cfg.sigma_px ** 2, 1.01 ** b
             # u_right = u_left - d: it carries u_left's pixel noise (correlated) plus the disparity's
             C = np.array([[s2, s2, 0.0], [s2, s2 + sd * sd, 0.0], [0.0, 0.0, s2]])
             m = self._models[b] = gtsam.noiseModel.Robust.Create(self.huber, gtsam.noiseModel.Gaussian.Covariance(C))
@@ -166,8 +166,7 @@ def make_problem(cfg: LandmarksConfig, lmap, keyframes: list, kf_pose: dict[int,
 
 def solve_problem(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem) -> BAResult | None:
     """Solve ``p`` (``ba_solver``: 'schur' = NumPy, :mod:`rgbdslam.landmarks.schur_ba`; 'gtsam' = the
-    factor graph; the same LM, the same result to rounding); None when the system is indeterminate.
-    Either holds the GIL on the tracking thread (GTSAM's optimize does), hence :class:`BAWorker`."""
+    factor graph; the same LM, the same result to rounding); None when the system is indeterminate."""
     import time
 
     t0 = time.perf_counter()
@@ -232,7 +231,7 @@ def schur_problem(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem):
     free = np.array([kf not in p.fixed for kf in kfs])
     cam = factors.camera
     ba = SchurBA(np.array([p.poses[kf] for kf in kfs]), free, op, ol, meas, sd, p.pos, prior,
-                 cam.fx, cam.fy, cam.cx, cam.cy, factors.fb, cfg.sigma_px * cfg.ba_noise_scale, cfg.ba_huber)
+                 cam.fx, cam.fy, cam.cx, cam.cy, factors.fb, cfg.sigma_px, cfg.ba_huber)
     return ba, kfs
 
 
@@ -281,52 +280,3 @@ class LocalBA:
         self.last_fixed = res.fixed
         self.last_landmarks = res.use
         return res.poses
-
-
-class BAWorker:
-    """Local BA in a process of its own (GTSAM's optimize holds the GIL, so a thread would stop
-    tracking): :meth:`submit` a :class:`BAProblem`, :meth:`result` waits for its :class:`BAResult`
-    (the process's error raised here), :meth:`close` ends it. One problem in flight at a time."""
-
-    def __init__(self, cfg: LandmarksConfig, camera: Camera):
-        import weakref
-
-        from rgbdslam.io.worker import end, spawn_context
-
-        ctx = spawn_context()
-        self._jobs = ctx.Queue()
-        self._results = ctx.Queue()
-        self._proc = ctx.Process(target=_serve, name="rgbdslam-local-ba", daemon=True,
-                                 args=(cfg, camera, self._jobs, self._results))
-        self._proc.start()
-        self.pending = False
-        self._finalizer = weakref.finalize(self, end, self._proc, self._jobs)
-
-    def submit(self, problem: BAProblem) -> None:
-        self._jobs.put(problem)
-        self.pending = True
-
-    def result(self) -> BAResult | None:
-        from rgbdslam.io.worker import receive
-
-        self.pending = False
-        status, value = receive(self._results, self._proc, "local BA process")
-        if status == "error":
-            raise value
-        return value
-
-    def close(self) -> None:
-        self._finalizer()
-
-
-def _serve(cfg: LandmarksConfig, camera: Camera, jobs, results) -> None:
-    """The BA process: one :class:`BAResult` (or None) per problem until ``None`` comes."""
-    from rgbdslam.io.worker import exit_now
-
-    factors = StereoFactors(cfg, camera)
-    while (p := jobs.get()) is not None:
-        try:
-            results.put(("ok", solve_problem(cfg, factors, p)))
-        except Exception as e:  # noqa: BLE001 - sent to the run, raised there
-            results.put(("error", e))
-    exit_now(results)

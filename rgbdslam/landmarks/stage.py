@@ -1,11 +1,14 @@
 """The landmark stage of the per-frame chain: track against the map, update it, grow it at keyframes.
 
-``LandmarkTracker.track`` takes the frame-to-frame registration's pose (``landmarks.mode='seed'``:
-it predicts where the landmarks project) and returns the map pose (or the given pose when the map
-cannot place the frame); the matched landmarks are then re-observed (static Kalman update).
-``add_keyframe`` makes new landmarks from the keyframe's depth-valid features that matched no
-landmark, and runs the windowed local bundle adjustment (``landmarks.local_ba``). ``finish`` moves
-the landmarks with their anchor keyframes after the pose graph, and ``summary`` goes to run.json.
+``LandmarkTracker`` implements the chain's stage protocol (:class:`rgbdslam.slam.Stage`):
+``on_tracked`` takes the registration's pose, which predicts where the landmarks project, and
+returns the map pose fused with it (nothing when the map cannot place the frame); the matched
+landmarks are then re-observed (static Kalman update). ``on_loops`` re-measures loop edges against
+the map and drops those the map already holds. ``on_frame`` makes new landmarks at a keyframe from
+its depth-valid features that matched no landmark, runs the windowed local bundle adjustment
+(``landmarks.local_ba``; its refined keyframe poses are the corrections returned) and culls.
+``on_finish`` moves the landmarks with their anchor keyframes after the pose graph; ``summary``
+goes to run.json.
 """
 
 from __future__ import annotations
@@ -18,11 +21,11 @@ from scipy.spatial import cKDTree
 
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.se3 import inv, project_to_so3, rotation_angle
-from rgbdslam.landmarks.kalman import observation_covariance, with_pose_drift
+from rgbdslam.geometry.se3 import inv, rotation_angle
+from rgbdslam.landmarks.kalman import observation_covariance
 from rgbdslam.landmarks.map import LandmarkMap
 from rgbdslam.frontend.features import map_valid
-from rgbdslam.landmarks.tracking import estimate_pose, match_to_map, refine_reprojection
+from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
 
 
 @dataclass
@@ -33,8 +36,6 @@ class _KeyframeObs:
     lm: np.ndarray
     uv: np.ndarray
     z: np.ndarray
-    # the map-placed frames hanging from this keyframe (global BA): (pose relative to it, lm, uv, z)
-    frames: list = field(default_factory=list)
 
 
 @dataclass
@@ -42,23 +43,18 @@ class LandmarkStats:
     frames: int = 0
     map_poses: int = 0  # frames placed by the map
     rejected: int = 0  # map poses too far from the registration's
-    revisits: int = 0  # frames placed by the revisit search (old landmarks, wide radius)
     stale_left_out: int = 0  # matches to stale landmarks left out of the map pose (stale_after)
     loops_held: int = 0  # loop edges not added: the map pose already rests on the older frame's landmarks
     stale_joined: int = 0  # frames whose stale matches agreed with the current ones and joined (stale_check)
-    loop_corrections: int = 0  # loop_correct: times the map was moved into the loop-corrected frame
-    loop_moved: list[float] = field(default_factory=list)  # per correction: the largest keyframe move (m)
     loops_refined: int = 0  # loop_refine: loop edges re-measured against the older end's landmarks
     loops_kept: int = 0  # loop_refine: loop edges left as the registration gave them (too few landmarks)
     loop_refine_moves: list[float] = field(default_factory=list)  # how far each re-measured edge moved (m)
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
-    anchor_edges: int = 0  # landmark-to-keyframe edges given to the pose graph
     consistency: list[float] = field(default_factory=list)  # per fused frame: median chi2 / 5.35
     ba_runs: int = 0
     ba_ms: list[float] = field(default_factory=list)  # the solves (where they ran)
-    ba_wait_ms: list[float] = field(default_factory=list)  # deferred BA: what making / collecting it cost tracking
 
 
 CHI2_MEDIAN_6DOF = 5.348  # median of a chi-square distribution with 6 degrees of freedom
@@ -93,65 +89,88 @@ def fuse_poses(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -
     return P1 @ gtsam.Pose3.Expmap(step).matrix()
 
 
+def map_features(result):
+    """The key points the landmark map works with: every one detected (``landmarks.n_features``) or the frame's."""
+    return result.features if result.map_features is None else result.map_features
+
+
 class LandmarkTracker:
-    def __init__(self, cfg: LandmarksConfig, camera: Camera):
+    """The landmark map as a stage of the per-frame chain (the protocol of :class:`rgbdslam.slam.Stage`:
+    ``on_tracked``, ``on_loops``, ``on_frame``, ``on_finish``); ``observer``: where :meth:`log` sends the
+    map every ``log_every``-th frame (None: nowhere)."""
+
+    name = "landmarks"  # the timing key of its steps (run.json)
+
+    def __init__(self, cfg: LandmarksConfig, camera: Camera, observer=None, log_every: int = 1):
         self.cfg = cfg
         self.camera = camera
+        self.observer = observer
+        self.log_every = max(1, log_every)
         self.map = LandmarkMap(cfg.store, cfg.kalman, cfg.process_noise, cfg.min_seen, cfg.cull_after,
                                cfg.store_n1, cfg.store_q)
         self.rng = np.random.default_rng(cfg.seed)
         self.stats = LandmarkStats()
         self.keyframes: list[_KeyframeObs] = []  # the last ones (bounded: what local BA can use)
-        self.all_keyframes: list[_KeyframeObs] = []  # every keyframe's (global_ba only)
-        self.global_ba_stats: dict = {}
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
-        # loop_correct: keyframe k's map-frame pose = _to_map[k] · its tracking (record) pose (absent: identity)
-        self._to_map: dict[int, np.ndarray] = {}
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
-        self._pending = None  # (feats, inlier feats, inlier ids) not yet observed (observe: keyframes)
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
         self.last_ba_moved: list[int] = []
-        self.step_information: np.ndarray | None = None  # the last returned pose's (see track)
         self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
         self._map_scale = 1.0  # the last consistency scale of the map pose's covariance (loop_refine uses it)
         self.ba = None
-        self._worker = None  # ba_worker 'process': the BA process
-        self._ba_old: dict[int, np.ndarray] = {}  # the keyframe poses the pending BA started from
-        self._ba_pending = None  # ba_worker 'deferred' / 'process': the BA made at the last keyframe (result or in flight)
-        self._ba_index = -1  # the keyframe the pending BA was made at
-        self._flush_ms = 0.0  # the last write-back's time on the tracking thread (counted with the next launch)
-        self._n_keyframes = 0  # keyframes added (ba_every: the local BA runs on every ba_every-th)
         if cfg.local_ba:
-            from rgbdslam.landmarks.local_ba import BAWorker, LocalBA
+            from rgbdslam.landmarks.local_ba import LocalBA
 
             self.ba = LocalBA(cfg, camera)
-            if cfg.ba_worker == "process":
-                try:
-                    self._worker = BAWorker(cfg, camera)
-                except (AssertionError, OSError):  # e.g. inside a daemonic process: solved here, same results
-                    self._worker = None
 
+    # ---------------------------------------------------------------- the stage protocol
+    def on_tracked(self, frame, result, pose: np.ndarray) -> dict[int, np.ndarray]:
+        """After the front end: the frame's map pose (fused with the registration's ``pose``) as a
+        correction ``{frame: pose}``; empty when the map cannot place the frame or tracking restarted."""
+        if result.reset:
+            return {}
+        info = result.information
+        if info is not None and result.n_fused > 1:  # the references share this frame's noise:
+            info = info / result.n_fused  # their summed information counts it n_fused times
+        mpose = self.track(frame.index, map_features(result), pose, info)
+        return {} if mpose is pose else {frame.index: mpose}
+
+    def on_loops(self, frame, result, loops: list) -> list:
+        """The loop closer's edges to this frame re-measured against the map (``loop_refine``; not on a
+        restart), less those the map already holds (``map_loop_landmarks``)."""
+        c = self.cfg
+        if loops and c.loop_refine and not result.reset:
+            loops = [self.refine_loop(frame.index, map_features(result), e) for e in loops]
+        if loops and c.map_loop_landmarks > 0:
+            loops = [e for e in loops if not self.holds(frame.index, e.i)]
+        return loops
+
+    def on_frame(self, frame, result, pose: np.ndarray, keyframe: bool) -> dict[int, np.ndarray]:
+        """The end of the frame's map step at its pose: on a keyframe new landmarks and the local BA,
+        whose refined keyframe poses are the corrections returned (this frame's among them); culling; Rerun."""
+        feats = map_features(result)
+        refined = self.add_keyframe(frame.index, feats, pose) if keyframe else {}
+        self.end_frame(frame.index)
+        if self.observer is not None and frame.index % self.log_every == 0:
+            self.log(self.observer, frame.index, feats, keyframe)
+        return refined
+
+    def on_finish(self, optimised: dict[int, np.ndarray]) -> None:
+        """After the final pose graph: the landmarks move with their anchor keyframes (:meth:`finish`)."""
+        self.finish(optimised)
+
+    # ---------------------------------------------------------------- the map step
     def _sigma(self, z: np.ndarray) -> np.ndarray:
         return self.cfg.depth_noise_a + self.cfg.depth_noise_b * z * z
 
-    def _sigma_px(self, feats):
-        """Key point noise (px): one per frame feature by ORB pyramid level, or the scalar."""
-        c = self.cfg
-        if c.sigma_px_scale == 1.0 or len(feats.octave) != len(feats.uv):
-            return c.sigma_px
-        return c.sigma_px * c.sigma_px_scale ** feats.octave.astype(float)
-
-    def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int,
-                 count: bool = True) -> None:
-        """Kalman update of landmarks ``ids`` from frame features ``idx`` seen from ``pose``
-        (``count``: also count them as seen at ``frame``)."""
+    def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int) -> None:
+        """Kalman update of landmarks ``ids`` from frame features ``idx`` seen from ``pose`` (counted as seen at ``frame``)."""
         P = feats.pts[idx]
         zw = P @ pose[:3, :3].T + pose[:3, 3]
         R = observation_covariance(P, pose[:3, :3], self.camera.fx, self.cfg.sigma_px, self.cfg.depth_noise_a,
                                    self.cfg.depth_noise_b)
-        R = with_pose_drift(R, frame - self.map.first[ids], self.cfg.drift_sigma)
-        self.map.observe(ids, zw, R, frame, count)
+        self.map.observe(ids, zw, R, frame)
 
     def track(self, index: int, feats, pose: np.ndarray, information: np.ndarray | None = None) -> np.ndarray:
         """The map pose of frame ``index`` given the registration's ``pose`` (returned unchanged if
@@ -160,14 +179,9 @@ class LandmarkTracker:
         self.stats.frames += 1
         self._last = None
         self._last_matches = None
-        self._pending = None
-        # the information of the returned pose's step (graph_information): the calibrated registration's
-        # alone, or fused with the map pose's
-        self.step_information = None if information is None else information * c.fuse_scale
         if self.map.size == 0:
             return pose
-        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth,
-                         old_before=index - c.old_age + 1, old_bonus=c.match_old_bonus)
+        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
         res, tried = None, False
         if c.stale_after > 0:
             m, res, tried = self._without_stale(index, feats, m, pose)
@@ -177,10 +191,6 @@ class LandmarkTracker:
         if res is not None and not _close(pose, res.pose, c.max_correction, c.max_correction_deg):
             self.stats.rejected += 1  # a map pose far from the registration's is a wrong map match
             res = None
-        if c.revisit_radius > 0:  # old landmarks, searched wider: a revisit snaps back to their coordinates
-            old = self._revisit(index, feats, pose if res is None else res.pose, pose)
-            if old is not None:
-                res = old
         # the registration's pose as a prediction: its information (mode 'filter': its covariance is
         # the last output's plus this step's; the covariances are only needed there)
         filt = c.mode == "filter"
@@ -196,9 +206,6 @@ class LandmarkTracker:
                 res.information = res.information / self._map_scale
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
-            self.step_information = H_pred + res.information
-        else:  # seed: the map pose replaces the registration's
-            self.step_information = res.information
         return self._accept(index, feats, res)
 
     def _estimate(self, feats, m, pose: np.ndarray, seeded: bool = False):
@@ -207,8 +214,8 @@ class LandmarkTracker:
         c = self.cfg
         return estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
                              0 if seeded else c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
-                             c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
-                             c.adaptive_noise, c.ransac_confidence, c.refine_iterations)
+                             c.refine, self.camera, c.sigma_px, c.chi_gate, c.landmark_cov == "full", c.adaptive_noise,
+                             refine_iterations=c.refine_iterations)
 
     def _without_stale(self, index: int, feats, m, pose: np.ndarray):
         """The matches with the *stale* landmarks (not seen for more than ``stale_after`` frames: an
@@ -253,7 +260,7 @@ class LandmarkTracker:
         rolling shutter — do not show in its residuals, the registration's are already calibrated by
         ``fuse_scale``): with r = tr(C⁻¹ H_map⁻¹) / 6, the map's share of the whitened disagreement,
         Σ_reg + s Σ_map is k times C for 1 - r + s r = k, s = 1 + (k - 1) / r (medians of k and r;
-        1 while k ≤ 1 or fewer than 5 frames are in; docs/slam.md "Consistency-scaled fusion")."""
+        1 while k ≤ 1 or fewer than 5 frames are in; docs/slam.md "Landmark map")."""
         eta, C = _disagreement(P_reg, H_reg, P_map, H_map)
         S_map = np.linalg.inv(H_map)
         share = float(np.trace(np.linalg.solve(C, S_map))) / 6.0  # the map's part of the whitened disagreement
@@ -263,13 +270,11 @@ class LandmarkTracker:
             return 1.0
         k = float(np.median([m for m, _ in self._chi2])) / CHI2_MEDIAN_6DOF
         self.stats.consistency.append(k)
-        floor = self.cfg.consistency_floor
-        if k <= 1.0 and floor >= 1.0:
+        if k <= 1.0:
             return 1.0
-        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share); below 1
-        # (consistency_floor < 1: the map pose under-confident) s is bounded by the floor
+        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share)
         r = max(float(np.median([x for _, x in self._chi2])), 1e-3)
-        return max(1.0 + (k - 1.0) / r, min(floor, 1.0))
+        return max(1.0 + (k - 1.0) / r, 1.0)
 
     def _accept(self, index: int, feats, res) -> np.ndarray:
         """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
@@ -279,84 +284,21 @@ class LandmarkTracker:
         self.stats.matched += len(res.lm)
         self.stats.matched_old += int((index - self.map.first[res.lm] >= c.old_age).sum())
         self._last = (index, res.feat, res.lm)
-        self._pending = (feats, res.feat, res.lm)
-        if c.observe == "frames":
-            self._observe(feats, res.feat, res.lm, res.pose, index)
-            self._pending = None
-        else:  # seen now (culling counts it); the position waits for the keyframe decision (end_frame)
-            self.map.observe(res.lm, None, None, index)
+        self._observe(feats, res.feat, res.lm, res.pose, index)
         return res.pose
-
-    def _revisit(self, index: int, feats, start: np.ndarray, pose: np.ndarray):
-        """The pose from landmarks first seen ``old_age`` frames or more ago, matched within
-        ``revisit_radius`` px of their projection from ``start`` (the drift since they were mapped
-        moves them by more than ``search_radius``); None unless ``revisit_min_inliers`` agree and the
-        pose is within ``revisit_max_correction`` of the registration's ``pose``. The map's younger
-        matched landmarks that agree with it (3-D residual under ``ransac_threshold``) join its inliers."""
-        c = self.cfg
-        if index < c.old_age:
-            return None
-        m = match_to_map(self.map, feats, start, self.camera, c.revisit_radius, c.max_hamming, c.max_depth,
-                         k=16, first_before=index - c.old_age + 1)
-        if len(m.lm) < c.revisit_min_inliers:
-            return None
-        res = estimate_pose(self.map, feats, m, start, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
-                            c.ransac_iterations, c.revisit_min_inliers, "uniform", 1.0, self.rng,
-                            c.refine, self.camera, self._sigma_px(feats), c.chi_gate, c.landmark_cov == "full",
-                            refine_iterations=c.refine_iterations)
-        if res is None or not _close(pose, res.pose, c.revisit_max_correction, c.revisit_max_correction_deg):
-            return None
-        self.stats.revisits += 1
-        y = self._last_matches  # the normal search's matches that agree with the old landmarks' pose
-        if y is not None and len(y.lm):
-            keep = ~np.isin(y.lm, res.lm) & ~np.isin(y.feat, res.feat)
-            f, l = y.feat[keep], y.lm[keep]
-            P = feats.pts[f] @ res.pose[:3, :3].T + res.pose[:3, 3]
-            ok = np.linalg.norm(P - self.map.pos[l], axis=1) < c.ransac_threshold
-            res.feat, res.lm = np.concatenate([res.feat, f[ok]]), np.concatenate([res.lm, l[ok]])
-        return res
 
     def holds(self, index: int, older: int) -> bool:
         """Whether frame ``index``'s map pose rests on at least ``map_loop_landmarks`` landmarks that
         already existed at frame ``older`` (first seen at or before it): the map itself ties the two
         frames together — through landmarks Kalman-averaged over many frames, more precisely than a loop
         edge's one registration — so a loop edge ``older`` -> ``index`` would only add that
-        registration's error (docs/slam.md "Stale landmarks and loops the map has closed")."""
+        registration's error (docs/slam.md "Landmark map")."""
         c = self.cfg
         if c.map_loop_landmarks <= 0 or self._last is None or self._last[0] != index:
             return False
         held = int((self.map.first[self._last[2]] <= older).sum()) >= c.map_loop_landmarks
         self.stats.loops_held += int(held)
         return held
-
-    def correct(self, index: int, estimate: dict[int, np.ndarray]) -> int:
-        """Move the map into the loop-corrected frame (``loop_correct``; ORB-SLAM's loop correction, as
-        a change of frame): ``estimate`` = the pose graph's keyframe poses with the new loop edge(s),
-        ``index`` = the current keyframe, which keeps its pose (T = kf_pose[index] · estimate[index]⁻¹;
-        tracking goes on from it unchanged). Every keyframe k gets the map-frame pose T · estimate[k] and
-        its landmarks move with it by D_k = T · estimate[k] · kf_pose[k]⁻¹ — the drift between k and the
-        current keyframe that the loop revealed — so a revisit's first-visit landmarks sit where the
-        current pose sees them. Returns the landmarks moved (0 when ``index`` is not in ``estimate``)."""
-        if index not in estimate or index not in self.kf_pose:
-            return 0
-        self._drop_pending_ba()  # made from the poses before the correction: writing it back would undo it
-        T = self.kf_pose[index] @ inv(estimate[index])
-        moves, before = {}, {}
-        for k, M in self.kf_pose.items():
-            if k == index or k not in estimate:
-                continue
-            before[k] = M
-            N = T @ estimate[k]
-            N[:3, :3] = project_to_so3(N[:3, :3])
-            D = N @ inv(M)
-            moves[k] = D
-            self.kf_pose[k] = N
-            self._to_map[k] = D @ self._to_map.get(k, np.eye(4))
-        moved = self.map.move_with_anchors(moves)
-        self.stats.loop_corrections += 1
-        self.stats.loop_moved.append(max((float(np.linalg.norm(self.kf_pose[k][:3, 3] - M[:3, 3]))
-                                          for k, M in before.items()), default=0.0))
-        return moved
 
     def refine_loop(self, index: int, feats, edge):
         """Loop edge ``edge`` (keyframe i -> this frame ``index``) re-measured against the map
@@ -384,81 +326,18 @@ class LandmarkTracker:
         self.stats.loops_refined += 1
         self.stats.loop_refine_moves.append(float(np.linalg.norm((inv(P0) @ res.pose)[:3, 3])))
         # the information as a map pose's: divided by the consistency scale the map poses get now (its
-        # over-confidence on real frames: docs/slam.md "Consistency-scaled fusion"; 1 without it)
+        # over-confidence on real frames: docs/slam.md "Landmark map"; 1 without it)
         H = res.information / (self._map_scale if c.loop_refine_scaled else 1.0)
         return replace(edge, T_ij=inv(A) @ res.pose, information=H, n_inliers=int(len(res.lm)))
 
-    def _to_tracking(self, refined: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-        """Map-frame keyframe poses (local BA) back in the tracking frame of the records (``loop_correct``)."""
-        return {k: (inv(self._to_map[k]) @ P if k in self._to_map else P) for k, P in refined.items()}
-
-    def anchor_edges(self, index: int, feats, pose: np.ndarray, nodes) -> list:
-        """Landmark-to-keyframe edges of keyframe ``index`` at ``pose`` (its final pose): for every
-        keyframe ``a`` in ``nodes`` that made at least ``anchor_min_landmarks`` of this frame's map
-        inliers ``anchor_age`` or more frames earlier, the pose refined on those landmarks alone
-        (reprojection Gauss-Newton from ``pose``) gives the edge a -> index,
-        T = kf_pose[a]⁻¹ · pose_a_landmarks, with the refine's information × ``anchor_info_scale``.
-        The landmarks hold the coordinates ``a`` gave them, so the pose graph pulls the whole revisit
-        (not one frame) back to them; the edges go in as loop edges (robust kernel)."""
-        from rgbdslam.loop.detector import LoopEdge
-
-        c = self.cfg
-        if not c.anchor_edges or self._last is None or self._last[0] != index:
-            return []
-        _, f, lm = self._last
-        anchor = self.map.anchor[lm]
-        old = (index - self.map.first[lm] >= c.anchor_age) & np.isin(anchor, list(nodes))
-        edges = []
-        for a in np.unique(anchor[old]):
-            sel = old & (anchor == a)
-            if sel.sum() < c.anchor_min_landmarks or int(a) not in self.kf_pose:
-                continue
-            fs, ls = f[sel], lm[sel]
-            P, _, H = refine_reprojection(pose, self.map.pos[ls], feats.uv[fs], feats.pts[fs, 2], self.camera,
-                                          c.sigma_px, self._sigma(feats.pts[fs, 2]), self.map.cov[ls])
-            if not _close(pose, P, c.max_correction, c.max_correction_deg):
-                continue  # as a map pose: further than a tracking error is a wrong association
-            edges.append(LoopEdge(int(a), int(index), inv(self.kf_pose[int(a)]) @ P, H * c.anchor_info_scale,
-                                  int(sel.sum()), 0.0))
-        self.stats.anchor_edges += len(edges)
-        return edges
-
-    def record_frame(self, index: int, feats, pose: np.ndarray) -> None:
-        """Keep a non-keyframe's map inliers for the global BA, relative to the last keyframe (the
-        frame moves rigidly with it); only with ``global_ba_frames``."""
-        if not (self.cfg.global_ba and self.cfg.global_ba_frames) or not self.all_keyframes:
-            return
-        if self._last is None or self._last[0] != index:
-            return
-        kf = self.all_keyframes[-1]
-        _, f, lm = self._last
-        kf.frames.append((inv(self.kf_pose[kf.index]) @ pose, lm.copy(), feats.uv[f].copy(), feats.pts[f, 2].copy()))
-
     def end_frame(self, index: int) -> None:
-        """The end of frame ``index``'s map step: (``observe: keyframes``) a keyframe's map matches
-        re-observe their landmarks from its final pose; culling."""
-        if self._pending is not None and index in self.kf_pose:
-            feats, f, l = self._pending
-            self._observe(feats, f, l, self.kf_pose[index], index, count=False)
-        self._pending = None
+        """The end of frame ``index``'s map step: culling."""
         self.map.end_step(index)
 
     def add_keyframe(self, index: int, feats, pose: np.ndarray) -> dict[int, np.ndarray]:
         """New landmarks from the keyframe's unmatched depth-valid features; local BA. Returns the
-        window keyframes' refined poses ``{keyframe: pose}`` (empty without local BA or when it did not run).
-
-        ``ba_worker`` 'process' / 'deferred': the BA made at the previous keyframe is written back
-        first (waiting for the process), and this keyframe, which hangs from that one, moves with it
-        (its refined pose is in the answer under ``index``); then this keyframe's BA is made and
-        handed to the process (or solved), to be written back at the next keyframe or at :meth:`flush`.
-        ``ba_every`` k > 1: the BA runs on every k-th keyframe only (the window still reaches back over
-        the keyframes in between)."""
+        window keyframes' refined poses ``{keyframe: pose}`` (empty without local BA or when it did not run)."""
         c = self.cfg
-        deferred = self.ba is not None and c.ba_worker != "sync"
-        refined_prev: dict[int, np.ndarray] = {}
-        if deferred:
-            refined_prev = self.handover(index, pose, due=True)
-            pose = refined_prev.get(index, pose)
         matched_feat = np.zeros(len(feats.valid), bool)
         lm_idx, lm_ids = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if self._last is not None and self._last[0] == index:
@@ -481,20 +360,12 @@ class LandmarkTracker:
             lm_ids = np.concatenate([lm_ids, ids])
         self.kf_pose[index] = pose.copy()
         self.keyframes.append(_KeyframeObs(index, lm_ids, feats.uv[lm_idx].copy(), feats.pts[lm_idx, 2].copy()))
-        if c.global_ba:
-            self.all_keyframes.append(self.keyframes[-1])
         keep = max(3 * c.ba_window, 10)
         if len(self.keyframes) > keep:
             del self.keyframes[: len(self.keyframes) - keep]
         self._last_matches = None
-        self._n_keyframes += 1
-        if self.ba is None or self._n_keyframes % c.ba_every:  # ba_every: not this keyframe's turn
-            if self.ba is not None and not deferred:
-                self.last_ba_moved = []
-            return refined_prev
-        if deferred:
-            self._launch_ba()
-            return refined_prev
+        if self.ba is None:
+            return {}
         t0 = time.perf_counter()
         refined = self.ba.run(self.map, self.keyframes, self.kf_pose)
         self.stats.ba_ms.append(1e3 * (time.perf_counter() - t0))
@@ -502,75 +373,7 @@ class LandmarkTracker:
         self.last_ba_moved = sorted(refined) if refined else []
         for k, P in refined.items():
             self.kf_pose[k] = P
-        return self._to_tracking(refined)
-
-    def handover(self, index: int, pose: np.ndarray, due: bool = False) -> dict[int, np.ndarray]:
-        """At frame ``index`` (pose ``pose``): the pending BA written back when it is due
-        (``ba_handover`` frames after its keyframe, or ``due``: at a keyframe). Returns the refined
-        poses; this frame, tracked from the newest keyframe's old pose, moves with it (under ``index``)."""
-        if self._ba_pending is None or not (due or 0 < self.cfg.ba_handover <= index - self._ba_index):
-            return {}
-        last = self.keyframes[-1].index
-        refined = self.flush()
-        if last in refined:
-            pose = refined[last] @ inv(self._ba_old[last]) @ pose
-            # a rotation again: corrections chained keyframe after keyframe (each from the last
-            # one's pose) otherwise grow its rounding error geometrically (det 0.998 after 35 keyframes)
-            pose[:3, :3] = project_to_so3(pose[:3, :3])
-            refined[index] = pose
         return refined
-
-    def _launch_ba(self) -> None:
-        """Make the local BA of the window ending at the newest keyframe and start it (process) or
-        solve it now (deferred); :meth:`flush` writes it back."""
-        from rgbdslam.landmarks.local_ba import make_problem, solve_problem
-
-        t0 = time.perf_counter()
-        p = make_problem(self.cfg, self.map, self.keyframes, self.kf_pose)
-        if p is not None:
-            self._ba_old = p.poses
-            self._ba_index = self.keyframes[-1].index
-            if self._worker is not None:
-                self._worker.submit(p)
-                self._ba_pending = "submitted"
-            else:
-                self._ba_pending = solve_problem(self.cfg, self.ba.factors, p)
-        self.stats.ba_wait_ms.append(self._flush_ms + 1e3 * (time.perf_counter() - t0))  # this keyframe's share
-        self._flush_ms = 0.0
-
-    def flush(self) -> dict[int, np.ndarray]:
-        """Write back the local BA still pending (``ba_worker`` 'process' / 'deferred'; waits for the
-        process): landmark positions, keyframe anchors; returns the refined poses ``{keyframe: pose}``
-        (empty when none was pending or it was dropped). Called at each keyframe and at the run's end."""
-        if self._ba_pending is None:
-            self.last_ba_moved = []
-            return {}
-        t0 = time.perf_counter()
-        res = self._worker.result() if self._ba_pending == "submitted" else self._ba_pending
-        self._ba_pending = None
-        refined = self.ba.apply(self.map, res)
-        if res is not None:
-            self.stats.ba_ms.append(1e3 * res.seconds)
-        self.stats.ba_runs += 1
-        self._flush_ms = 1e3 * (time.perf_counter() - t0)
-        self.last_ba_moved = sorted(refined)
-        for k, P in refined.items():
-            self.kf_pose[k] = P
-        return self._to_tracking(refined)
-
-    def _drop_pending_ba(self) -> None:
-        """Forget the local BA made at the last keyframe and not yet written back (waits for the BA
-        process's answer, so the next one is not mixed up with it)."""
-        if self._ba_pending == "submitted":
-            self._worker.result()
-        self._ba_pending = None
-
-    def close(self) -> None:
-        """End the BA process (if any); a pending BA is dropped."""
-        if self._worker is not None:
-            self._worker.close()
-            self._worker = None
-            self._ba_pending = None
 
     def log(self, observer, index: int, feats, is_kf: bool) -> None:
         """Send the map to a Rerun observer (landmarks by age, this frame's map matches, BA moves)."""
@@ -594,33 +397,12 @@ class LandmarkTracker:
         corr = {k: optimised[k] @ inv(P) for k, P in self.kf_pose.items() if k in optimised}
         return self.map.move_with_anchors(corr)
 
-    def global_ba(self, poses: dict[int, np.ndarray], loops=(), odometry=()) -> dict[int, np.ndarray]:
-        """Bundle adjustment over every keyframe at the pose graph's ``poses`` (after :meth:`finish`
-        moved the landmarks), the graph's ``loops`` and ``odometry`` as ``(i, j, T_ij, information)``;
-        returns ``poses`` with the refined keyframes (unchanged when it could not run)."""
-        from rgbdslam.landmarks.global_ba import global_bundle_adjustment
-
-        t0 = time.perf_counter()
-        res = global_bundle_adjustment(self.cfg, self.camera, self.map, self.all_keyframes, poses, loops, odometry)
-        if res is None:
-            self.global_ba_stats = {"ran": False}
-            return poses
-        self.global_ba_stats = {"ran": True, "keyframes": len(res.poses), "landmarks": res.landmarks,
-                                "observations": res.observations, "between": res.between,
-                                "error_before": round(float(res.error[0]), 3), "error_after": round(float(res.error[1]), 3),
-                                "seconds": round(time.perf_counter() - t0, 3)}
-        for k, P in res.poses.items():
-            self.kf_pose[k] = P
-        return {**poses, **res.poses}
-
     def summary(self) -> dict:
         s = self.stats
         return {
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
-            "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "revisits": s.revisits,
+            "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected,
             "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined, "loops_held": s.loops_held,
-            "anchor_edges": s.anchor_edges, "loop_corrections": s.loop_corrections,
-            "loop_correction_max_m": round(max(s.loop_moved), 4) if s.loop_moved else 0.0,
             "loops_refined": s.loops_refined, "loops_kept": s.loops_kept,
             "loop_refine_median_m": round(float(np.median(s.loop_refine_moves)), 4) if s.loop_refine_moves else 0.0,
             "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
@@ -629,8 +411,4 @@ class LandmarkTracker:
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),
             "local_ba_runs": s.ba_runs,
             "local_ba_median_ms": float(np.median(s.ba_ms)) if s.ba_ms else 0.0,
-            "local_ba_worker": self.cfg.ba_worker if self.ba is not None else None,
-            # deferred BA: the tracking thread's share (making the problem, waiting, writing back), per keyframe
-            "local_ba_tracking_median_ms": float(np.median(s.ba_wait_ms)) if s.ba_wait_ms else 0.0,
-            **({"global_ba": self.global_ba_stats} if self.global_ba_stats else {}),
         }

@@ -3,9 +3,12 @@ random points in front of the camera, and what a camera at a pose sees of them."
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from rgbdslam.frontend.features import descriptor_words
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
 
@@ -29,3 +32,12 @@ def seen(P: np.ndarray, X: np.ndarray):
     Tcw = inv(P)
     Pc = X @ Tcw[:3, :3].T + Tcw[:3, 3]
     return Pc, CAM.project(Pc), Pc[:, 2]
+
+
+def frame_features(P, X, desc):
+    """Frame features of the points of ``X`` a camera at ``P`` sees (exact pixels and depths)."""
+    _, uv, z = seen(P, X)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480) & (z > 0.3)
+    Xc = (X @ inv(P)[:3, :3].T + inv(P)[:3, 3])[inside]
+    return SimpleNamespace(pts=Xc, uv=uv[inside], uv_raw=uv[inside], valid=np.ones(inside.sum(), bool),
+                           desc=desc[inside], words=descriptor_words(desc[inside]), octave=np.zeros(0))

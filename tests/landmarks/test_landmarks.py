@@ -244,36 +244,3 @@ def test_local_ba_poses_reach_the_trajectory_and_the_graph(desk9):
         assert np.allclose(slam.graph.guess[k], P) and np.allclose(slam.landmarks.kf_pose[k], P)
     for i, j, T, _ in slam.graph.odometry:
         assert np.allclose(T, inv(kf[i]) @ kf[j], atol=1e-9)
-
-
-def test_revisit_search_snaps_a_drifted_pose_back_to_old_landmarks():
-    """A revisit after drift: the old landmarks project 15-25 px from their features, beyond the
-    normal search radius; the revisit search (old landmarks only, wider radius) finds them and
-    returns the pose they give, the normal search alone keeps the drifted one."""
-    from types import SimpleNamespace
-
-    from rgbdslam.config import LandmarksConfig
-    from rgbdslam.frontend.features import descriptor_words
-    from rgbdslam.landmarks.stage import LandmarkTracker
-
-    rng = np.random.default_rng(5)
-    X = _scene(400, 2)
-    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
-    truth = _pose([0.02, -0.05, 0.01], [0.1, 0.0, 0.05])
-    uv, z = _observe(truth, X)
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
-    Xc = (X @ inv(truth)[:3, :3].T + inv(truth)[:3, 3])[inside]
-    feats = SimpleNamespace(pts=Xc, uv=uv[inside], uv_raw=uv[inside], valid=np.ones(inside.sum(), bool),
-                            desc=desc[inside], words=descriptor_words(desc[inside]))
-    drifted = truth @ _pose([0.0, 0.03, 0.0], [0.03, 0.0, 0.0])
-    out = {}
-    for radius in (0.0, 40.0):
-        cfg = LandmarksConfig(enabled=True, mode="seed", revisit_radius=radius, max_correction=0.1, max_correction_deg=5)
-        tr = LandmarkTracker(cfg, CAM)
-        tr.map.add(X, np.tile(np.eye(3) * 1e-6, (len(X), 1, 1)), desc, 0, 0)
-        tr.map.end_step(0)
-        out[radius] = (tr.track(150, feats, drifted), tr.stats)
-    assert np.allclose(out[0.0][0], drifted)  # nothing within 10 px: the registration's pose stays
-    P, stats = out[40.0]
-    assert stats.revisits == 1 and stats.matched_old >= 100
-    assert np.linalg.norm(P[:3, 3] - truth[:3, 3]) < 1e-3 and np.allclose(P[:3, :3], truth[:3, :3], atol=1e-4)

@@ -9,9 +9,9 @@ from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.se3 import inv
 from rgbdslam.landmarks.stage import LandmarkTracker, pose_chi2
 from tests.landmarks.scenes import CAM
+from tests.landmarks.scenes import frame_features as _frame
 from tests.landmarks.scenes import pose as _pose
 from tests.landmarks.scenes import scene as _scene
-from tests.landmarks.test_anchor import _frame
 
 
 def test_pose_chi2_by_hand():
@@ -101,38 +101,6 @@ def test_a_loop_the_map_already_closed_is_held_by_the_map():
     assert tr.summary()["loops_held"] == 2
 
 
-def test_loop_correction_moves_the_first_visit_into_the_current_frame_and_it_joins():
-    """loop_correct: the first visit's half (anchored at keyframe 0, which the map saw at shift · A0)
-    sits 1.5 cm / 0.3° off; the pose graph's estimate after the loop puts keyframe 0 at A0 and the
-    current keyframe 95 where the map has it. correct() moves keyframe 0 by D = A0 (shift A0)⁻¹ =
-    shift⁻¹: its landmarks come back onto the current ones (exactly), keyframe 95's stay, keyframe 0's
-    map pose is A0 and its tracking pose comes back through _to_tracking; the next frame's stale matches
-    then agree and join the map pose, which sits on the truth."""
-    rng = np.random.default_rng(5)
-    X = _scene(600, 7)
-    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
-    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
-    shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
-    A0, B = _pose([0.0, -0.2, 0.0], [-0.3, 0.0, 0.1]), _pose([0.0, 0.02, 0.0], [0.01, 0.0, 0.0])
-    feats = _frame(truth, X, desc)
-    before = _tracker(X, desc, shift, stale_after=30, stale_check=True)
-    before.track(100, feats, truth)
-    assert before.summary()["stale_joined"] == 0 and before.summary()["stale_left_out"] >= 150
-    tr = _tracker(X, desc, shift, stale_after=30, stale_check=True)
-    tr.kf_pose[0], tr.kf_pose[95] = shift @ A0, B.copy()
-    h = len(X) // 2
-    assert tr.correct(95, {0: A0, 95: B}) == h  # only keyframe 0's landmarks move (95's by identity: none)
-    assert np.abs(tr.map.pos[:h] - X[:h]).max() < 1e-9 and np.abs(tr.map.pos[h:len(X)] - X[h:]).max() < 1e-12
-    assert np.abs(tr.kf_pose[0] - A0).max() < 1e-12 and np.abs(tr.kf_pose[95] - B).max() < 1e-12
-    assert np.abs(tr._to_tracking({0: A0})[0] - shift @ A0).max() < 1e-12
-    assert tr.summary()["loop_corrections"] == 1 and np.isclose(tr.summary()["loop_correction_max_m"],
-                                                                np.linalg.norm(inv(shift)[:3, 3]), atol=1e-4)
-    P = tr.track(100, feats, truth @ _pose([0, 0, 0], [0.002, 0, 0]))
-    assert np.linalg.norm((inv(truth) @ P)[:3, 3]) < 1e-4
-    assert tr.summary()["stale_joined"] == 1 and tr.summary()["stale_left_out"] == 0
-    assert tr.correct(96, {0: A0, 95: B}) == 0  # not a keyframe the map knows: nothing moves
-
-
 def test_loop_edge_is_re_measured_against_the_older_ends_landmarks():
     """loop_refine: keyframe 0 (at A0) made the first half of the map at the true coordinates; the
     second half, made at frame 95, sits 2 cm off (drift). A loop edge 0 -> 100 from a registration
@@ -204,18 +172,28 @@ def test_a_failed_pose_from_the_current_matches_is_not_tried_again():
     assert s["map_poses"] == 0 and s["stale_joined"] == 0 and s["stale_left_out"] >= 150
 
 
-def test_loop_correction_drops_the_local_ba_made_before_it():
-    """A local BA made at the last keyframe (``ba_worker`` 'deferred') from the poses before a loop
-    correction is not written back after it: that would put the BA window's keyframes back at their
-    uncorrected poses. After correct() nothing is pending and the corrected poses stay."""
-    rng = np.random.default_rng(5)
-    X = _scene(600, 7)
-    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
-    shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
-    A0, B = _pose([0.0, -0.2, 0.0], [-0.3, 0.0, 0.1]), _pose([0.0, 0.02, 0.0], [0.01, 0.0, 0.0])
-    tr = _tracker(X, desc, shift, stale_after=30, stale_check=True, local_ba=True, ba_worker="deferred")
-    tr.kf_pose[0], tr.kf_pose[95] = shift @ A0, B.copy()
-    tr._ba_pending = object()  # the BA made at keyframe 95 from the uncorrected poses
-    assert tr.correct(95, {0: A0, 95: B}) == len(X) // 2
-    assert tr._ba_pending is None and tr.flush() == {}
-    assert np.abs(tr.kf_pose[0] - A0).max() < 1e-12 and np.abs(tr.kf_pose[95] - B).max() < 1e-12
+def test_consistency_scale_is_the_median_disagreement_over_its_chi2_median():
+    """H_reg = H_map = 2 I: the disagreement's covariance is I, so its Mahalanobis² is |η|², and the
+    map's share of it is r = tr(C⁻¹ Σ_map) / 6 = 1/2. With |η|² = 4 · 5.348 (k = 4) the map's
+    covariance must grow by s with 1 - r + s r = k: s = 1 + 3 / 0.5 = 7 (then Σ_reg + 7 Σ_map = 4 I,
+    four times the assumed sum), once 5 frames are in (1 before); a disagreement within the
+    informations (|η|² = 1) never raises the map's weight (factor 1)."""
+    import gtsam
+
+    from rgbdslam.landmarks.stage import CHI2_MEDIAN_6DOF
+
+    eta = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 0.0])
+    eta *= np.sqrt(4 * CHI2_MEDIAN_6DOF / (eta @ eta))
+    A = _pose([0.1, 0, 0], [1.0, 2.0, 0.5])
+    B = A @ gtsam.Pose3.Expmap(eta).matrix()
+    tr = LandmarkTracker(LandmarksConfig(enabled=True, consistency_window=7), CAM)
+    ks = [tr._consistency(A, 2 * np.eye(6), B, 2 * np.eye(6)) for _ in range(6)]
+    assert ks[:4] == [1.0] * 4 and np.allclose(ks[4:], 7.0)
+    assert np.allclose(tr.stats.consistency, 4.0)
+    small = A @ gtsam.Pose3.Expmap(np.array([0, 0, 0, 1.0, 0, 0])).matrix()
+    tr2 = LandmarkTracker(LandmarksConfig(enabled=True, consistency_window=7), CAM)
+    assert [tr2._consistency(A, 2 * np.eye(6), small, 2 * np.eye(6)) for _ in range(6)] == [1.0] * 6
+    assert np.isclose(tr2.stats.consistency[-1], 1.0 / CHI2_MEDIAN_6DOF)
+    for _ in range(6):  # the window keeps the last 7: after 7 large ones the median is the large one
+        tr2._consistency(A, 2 * np.eye(6), B, 2 * np.eye(6))
+    assert len(tr2._chi2) == 7 and np.isclose(tr2.stats.consistency[-1], 4.0)

@@ -80,19 +80,6 @@ def test_sigma_by_octave_weights_the_sharp_key_points():
     assert _err(by_octave, P) < 0.25 * _err(flat, P)
 
 
-def test_tracker_sigma_px_follows_the_orb_octave():
-    from types import SimpleNamespace
-
-    from rgbdslam.config import LandmarksConfig
-    from rgbdslam.landmarks.stage import LandmarkTracker
-
-    t = LandmarkTracker(LandmarksConfig(sigma_px=0.8, sigma_px_scale=1.2), CAM)
-    feats = SimpleNamespace(uv=np.zeros((3, 2)), octave=np.array([0, 1, 3], np.int8))
-    assert np.allclose(t._sigma_px(feats), [0.8, 0.96, 0.8 * 1.728])
-    t = LandmarkTracker(LandmarksConfig(sigma_px=0.8), CAM)  # scale 1: one sigma
-    assert t._sigma_px(feats) == 0.8
-
-
 def test_isotropic_landmark_sigma_is_the_earlier_model():
     # hand-worked: f·σ_lm/z added to the pixels' sigma, nothing to the inverse depth's
     X = np.array([[0.5, 0.2, 2.0]])
