@@ -1,27 +1,18 @@
 """Speed-ups of the per-frame chain that must not change a single bit of the poses.
 
 The kernels (blocked Hamming matrix, pair Hamming distances, the 3x3 rigid fit, row norms) are
-checked against the expressions they replaced, written out here; the whole chain on fr1/rpy
-head200 against the hash of the poses the code gave before the speed-ups
-(``tests/data/chain_poses.json``, see :func:`chain_hash`).
+checked against the expressions they replaced, written out here; the whole chain's poses on fr1/rpy
+head200 are held bit for bit by ``tests/test_chain_poses.py``.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-from pathlib import Path
 
 import numpy as np
-import pytest
 
 from rgbdslam.frontend.features import descriptor_words
 from rgbdslam.frontend.matching import column_argmin, hamming_matrix, pair_hamming
 from rgbdslam.geometry.rigid import fit_rigid, row_norms
-from tests.conftest import TUM_RPY200, need
-
-REFERENCE = Path(__file__).resolve().parent.parent / "data" / "chain_poses.json"
-
 
 def _fit_rigid_before(S, D, weights=None):
     """fit_rigid as it was written before (mean, LAPACK determinant, diag product)."""
@@ -94,49 +85,3 @@ def test_row_norms_are_numpys_norms():
     for n in (1, 3, 17, 500):
         r = rng.normal(size=(n, 3)) * 10.0 ** rng.uniform(-4, 2, (n, 1))
         assert np.array_equal(row_norms(r), np.linalg.norm(r, axis=1))
-
-
-def chain_hash(sets: list[str], frames: int | None = None) -> dict[str, str]:
-    """sha256 (first 16 hex digits) of the float64 bytes of the odometry poses (every tracked frame,
-    after the landmark map) and of the final poses (after ``SLAM.finish``) of fr1/rpy head200,
-    every frame through ``SLAM.track`` with its key points detected as the reader detects them
-    (map fusion and plots off), the config's defaults plus ``sets``."""
-    from rgbdslam.config import load_config
-    from rgbdslam.datasets import open_sequence
-    from rgbdslam.frontend.features import with_detections
-    from rgbdslam.frontend.odometry import detection_features
-    from rgbdslam.slam import SLAM
-
-    cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *sets])
-    seq = open_sequence(need(TUM_RPY200), cfg)
-    fc = detection_features(cfg.features, cfg.landmarks.n_features if cfg.landmarks.enabled else 0)
-    slam = SLAM(cfg, seq.camera)
-    for i in range(len(seq) if frames is None else frames):
-        slam.track(with_detections(seq.load(i), fc))
-    odo, fin = slam.odometry().poses, slam.finish().poses
-
-    def h(x):
-        return hashlib.sha256(np.ascontiguousarray(x, dtype=np.float64).tobytes()).hexdigest()[:16]
-
-    return {"odometry": h(odo), "final": h(fin)}
-
-
-def _versions() -> dict[str, str]:
-    from importlib.metadata import version
-
-    return {p: version(p) for p in ("numpy", "scipy", "opencv-contrib-python-headless", "gtsam")}
-
-
-@pytest.mark.data
-@pytest.mark.slow
-@pytest.mark.parametrize("chain", ["default", "landmarks"])
-def test_chain_poses_are_bit_identical_to_before_the_speedups(chain):
-    """The poses of the whole chain are the same bits as before the speed-ups. The floating-point
-    results of BLAS/LAPACK/OpenCV kernels may differ between builds, so the reference holds only for
-    the library versions it was made with (recorded beside it): with others the test says so and
-    skips — re-make the reference there from the code before a change (``chain_hash``)."""
-    ref = json.loads(REFERENCE.read_text())
-    if ref["versions"] != _versions():
-        pytest.skip(f"reference made with {ref['versions']}, here {_versions()}")
-    entry = ref["chains"][chain]
-    assert chain_hash(entry["sets"]) == entry["hash"]
