@@ -112,7 +112,7 @@ def test_a_ctrl_c_inside_the_import_machinery_is_raised_again_after_it():
 
 _HOLD = """
 import sys, time
-from rgbdslam.run_folder import folder_lock
+from rgbdslam.runfolder.folder import folder_lock
 with folder_lock(sys.argv[1], "run"):
     print("locked", flush=True)
     time.sleep(600)

@@ -342,7 +342,8 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
 
     from rgbdslam.datasets import open_sequence
     from rgbdslam.io.trajectory import read_tum
-    from rgbdslam.mapping.fusion import check_run_frames, match_frames, read_run
+    from rgbdslam.mapping.fusion import match_frames
+    from rgbdslam.runfolder.read import check_run_frames, read_run
     from rgbdslam.ui import console, frame_progress
 
     run_dir, out_rrd = Path(run_dir), Path(out_rrd)

@@ -162,7 +162,7 @@ def test_match_frames_and_motion_selection():
 def test_voxel_cloud_averages_exactly_across_merges():
     vc = VoxelCloud(0.1)
     vc.add(np.array([[0.01, 0.01, 0.01], [0.05, 0.05, 0.05]]), np.array([[0, 0, 0], [100, 100, 100]]))
-    vc._merge()
+    vc.merge()
     vc.add(np.array([[0.09, 0.09, 0.09], [0.25, 0.0, 0.0]]), np.array([[200, 200, 200], [7, 8, 9]]))
     pts, cols = vc.result()
     order = np.argsort(pts[:, 0])
@@ -430,7 +430,7 @@ def test_run_json_not_utf8_or_not_an_object(plane_run):
 
 
 def test_a_run_folder_without_config_warns_that_defaults_are_used(plane_run, capsys):
-    from rgbdslam.mapping.fusion import read_run
+    from rgbdslam.runfolder.read import read_run
 
     _, run = plane_run
     (run / "config.yaml").unlink(missing_ok=True)
