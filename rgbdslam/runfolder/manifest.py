@@ -30,7 +30,7 @@ from typing import Iterable, Iterator
 
 from rgbdslam import __version__
 from rgbdslam.errors import InputError
-from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.atomic import atomic_write_text, make_dirs
 
 MANIFEST = ".rgbdslam-manifest.json"
 RUN = "run"  # a run (and its map fusion): the run folder's own files
@@ -171,6 +171,20 @@ class Manifest:
         atomic_write_text(self.path, json.dumps({"written_by": f"rgbdslam {__version__}", "complete": self.complete,
                                                  "entries": dict(sorted(self.entries.items()))}, indent=1) + "\n")
         self.exists = True
+
+
+def tables_ready(folder: Path, names: Iterable[str]) -> None:
+    """``folder`` made, and nothing at ``names`` (the results tables a sweep or a batch writes
+    there) that its manifest does not list as earlier tables: an InputError names it otherwise."""
+    m = Manifest(make_dirs(folder))
+    m.check_way(names, [TABLE], "move it away or choose another --out (the results tables replace only "
+                                "earlier results tables)")
+    m.unlink_links(names)
+
+
+def record_tables(folder: Path, names: Iterable[str]) -> None:
+    """List the results tables ``names`` now in ``folder`` in its manifest."""
+    Manifest(folder).record(names, TABLE)
 
 
 def remove_path(path: Path) -> None:
