@@ -146,14 +146,14 @@ def test_previous_is_only_replaced_when_it_holds_nothing_but_ours(desk9, tmp_pat
     run = tmp_path / "run"
     for _ in range(2):
         assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
-    manifest = json.loads((run / "previous" / ".rgbdslam-previous.json").read_text())
+    manifest = json.loads((run / "previous" / ".rgbdslam-manifest.json").read_text())
     assert "trajectory.tum" in manifest["entries"] and "map/mesh.ply" in manifest["entries"]
     # a user's file beside our run.json, and one inside our map/ folder: never deleted
     for mine in (run / "previous" / "thesis.tex", run / "previous" / "map" / "notes.txt"):
         mine.write_text("mine")
         res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK])
         assert res.exit_code == 2 and res.stderr.count("\n") == 1
-        assert f"holds {mine}, which rgbdslam did not write" in res.stderr
+        assert f"{mine} is in the way: rgbdslam did not write it" in res.stderr
         assert mine.read_text() == "mine" and _status(run)["status"] == "finished"
         mine.unlink()
     assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0

@@ -21,7 +21,7 @@ import contextlib
 import resource
 import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -33,7 +33,6 @@ from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 from rgbdslam.io.atomic import interrupts_deferred
-from rgbdslam.io.images import read_image
 from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.mapping.staging import MAP_FILES, FuseResult, remove_stale_stages, staged
 from rgbdslam.runfolder.depth import DEPTH_SCALE, keyframe_depth_path, read_keyframe_depth
