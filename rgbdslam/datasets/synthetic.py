@@ -29,6 +29,7 @@ from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.geometry.se3 import make_pose
 from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred, plain_permissions
+from rgbdslam.runfolder.manifest import SEQUENCE, Manifest
 from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.ui import console, frame_progress
 
@@ -600,13 +601,17 @@ def partial_folder(out: Path) -> tuple[Path, Path]:
     return target, work
 
 
-def _check_output(out: Path) -> None:
-    """``out`` may be new, an empty folder or an earlier synthetic sequence (which is replaced)."""
+def _check_output(out: Path, generated: tuple[str, ...] = GENERATED) -> None:
+    """``out`` may be new, an empty folder or an earlier synthetic sequence (which is replaced:
+    only what its manifest lists as the generator's, docs/outputs.md)."""
     if out.exists() and not out.is_dir():
         raise InputError(f"{out} exists and is not a folder; give a folder for the synthetic sequence")
     ours = f".{out.name}.partial-"  # a temporary folder a killed run of ours left behind
     if out.is_dir() and any(not p.name.startswith(ours) for p in out.iterdir()) and not (out / "synthetic.yaml").is_file():
         raise InputError(f"{out} is not empty and is not a synthetic sequence; give a new or empty folder")
+    if out.is_dir():
+        Manifest(out).check_way(generated, [SEQUENCE], "move it away or give a new or empty folder (a new "
+                                                       "sequence replaces only what the generator wrote)")
 
 
 def _remove(path: Path) -> None:
@@ -626,6 +631,7 @@ def _replace_folder(new: Path, out: Path, generated: tuple[str, ...] = GENERATED
     if not out.exists():
         plain_permissions(new)
         os.replace(new, out)
+        Manifest(out).record(generated, SEQUENCE)
         return
     replaced = new / ".replaced"  # removed with ``new`` at the end
     replaced.mkdir()
@@ -650,6 +656,7 @@ def _replace_folder(new: Path, out: Path, generated: tuple[str, ...] = GENERATED
     finally:  # swapped (also when a Ctrl-C held back during the renames is raised now): drop the old copy
         if len(moved_in) == len(want_in):
             shutil.rmtree(new, ignore_errors=True)
+    Manifest(out).record(generated, SEQUENCE)
 
 
 def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, drift: float, rng) -> None:

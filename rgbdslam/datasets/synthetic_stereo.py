@@ -110,7 +110,7 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
                          f"choose --camera ros_default or fr3, or --layout euroc (its reader rectifies)")
     start = time.perf_counter()
     out = Path(out_dir)
-    _check_output(out)
+    _check_output(out, GENERATED)
     poses = make_trajectory(motion, frames)
     params = dict(frames=int(frames), motion=motion, width=int(width), height=int(height), noise=bool(noise),
                   seed=int(seed), camera=camera, stereo_baseline=float(baseline), layout=layout)

@@ -7,7 +7,7 @@ sweep's or a batch's ``--out`` — keeps a manifest, ``FOLDER/.rgbdslam-manifest
      "entries": {"map": "run", "map/cloud.ply": "run", "colmap": "export", ...}}
 
 one entry per file and folder (paths relative to FOLDER, ``/``-separated) naming the kind of
-command that wrote it (:data:`RUN`, :data:`EXPORT`, :data:`TABLE`). A command replaces, moves or
+command that wrote it (:data:`RUN`, :data:`EXPORT`, :data:`TABLE`, :data:`SEQUENCE`). A command replaces, moves or
 removes only what the manifest lists with a kind that command may replace; anything else where it
 would write — a user's file or folder, a link the manifest does not list, another run's outputs
 — stops it with one line naming that path (:meth:`Manifest.check_way`, an InputError: exit 2).
@@ -35,8 +35,9 @@ from rgbdslam.io.atomic import atomic_write_text, make_dirs
 MANIFEST = ".rgbdslam-manifest.json"
 RUN = "run"  # a run (and its map fusion): the run folder's own files
 EXPORT = "export"  # `rgbdslam export`
-TABLE = "table"  # the results tables of a sweep or a batch
-KINDS = (RUN, EXPORT, TABLE)
+TABLE = "table"  # the results tables of a sweep, a batch or the pose-graph benchmark
+SEQUENCE = "sequence"  # a synthetic sequence (`rgbdslam synth`, the demo)
+KINDS = (RUN, EXPORT, TABLE, SEQUENCE)
 
 
 def walk(root: Path, rel: str) -> Iterator[str]:
