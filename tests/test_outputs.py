@@ -21,19 +21,12 @@ from click.testing import CliRunner
 
 from rgbdslam.cli import main
 
+from tests.conftest import LIMITED_FSIZE
+
 pytestmark = pytest.mark.data
 
 QUICK = ["-q", "--set", "output.plots=false", "--set", "mapping.map2d=false"]
 MANIFEST = ".rgbdslam-manifest.json"
-_LIMITED = """
-import resource, signal, sys
-signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
-limit = int(sys.argv[1])
-resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-sys.argv = ["rgbdslam"] + sys.argv[2:]
-from rgbdslam._entry import main
-main()
-"""
 
 
 def _cli(*args):
@@ -110,6 +103,13 @@ def test_an_export_never_replaces_a_folder_it_did_not_write(finished, tmp_path):
     # another run's outputs are not an export's to replace
     _one_error_line(_cli("export", finished, "-f", "tum", "--out", _copy(finished, tmp_path / "other"), "-q"),
                     "holds the outputs of `rgbdslam run`")
+
+
+def test_a_run_never_replaces_an_exports_trajectory(finished, tmp_path, desk9):
+    out = tmp_path / "exported"
+    assert _cli("export", finished, "-f", "tum", "--out", out, "-q").exit_code == 0
+    _one_error_line(_cli("run", desk9, "--out", out, *QUICK),
+                    f"{out / 'trajectory.tum'} is in the way: it holds the outputs of `rgbdslam export`")
 
 
 # ----------------------------------------------------------------------------- a run's artefact folders
@@ -307,7 +307,7 @@ def test_export_out_empty_is_refused(finished, tmp_path, monkeypatch):
 
 def test_a_full_disk_during_a_folder_export_names_the_file_in_its_final_place(finished, tmp_path):
     out = tmp_path / "out"
-    res = subprocess.run([sys.executable, "-c", _LIMITED, "30000", "export", str(finished), "-f", "colmap",
+    res = subprocess.run([sys.executable, "-c", LIMITED_FSIZE, "30000", "export", str(finished), "-f", "colmap",
                           "--out", str(out), "-q"], capture_output=True, text=True, timeout=300)
     assert res.returncode == 2, res.stderr
     lines = res.stderr.splitlines()

@@ -19,6 +19,8 @@ from click.testing import CliRunner
 
 from rgbdslam.cli import main
 
+from tests.conftest import LIMITED_FSIZE
+
 pytestmark = pytest.mark.data  # every test here runs on the shared TUM frames
 
 QUICK = ["-q", "--set", "output.plots=false", "--set", "mapping.map2d=false"]
@@ -161,23 +163,13 @@ def test_previous_is_only_replaced_when_it_holds_nothing_but_ours(desk9, tmp_pat
 
 # ----------------------------------------------------------------------------- class 7: disk full
 
-_LIMITED = """
-import resource, signal, sys
-signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
-limit = int(sys.argv[1])
-resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-sys.argv = ["rgbdslam"] + sys.argv[2:]
-from rgbdslam._entry import main
-main()
-"""
-
 
 def test_a_full_disk_is_one_line_naming_the_file_and_never_a_finished_run(desk9, tmp_path):
     """Files may grow to 200 kB only (RLIMIT_FSIZE: a full disk for every file, without root):
     the map's PLY files cannot be written. One error line naming map/mesh.ply, no library spam, run.json not
     'finished', the trajectory written before it intact, and no map half made."""
     run = tmp_path / "run"
-    res = subprocess.run([sys.executable, "-c", _LIMITED, str(200_000), "run", str(desk9), "--out", str(run),
+    res = subprocess.run([sys.executable, "-c", LIMITED_FSIZE, str(200_000), "run", str(desk9), "--out", str(run),
                           *QUICK], capture_output=True, text=True, timeout=300)
     assert res.returncode == 2, res.stderr
     assert "RPly" not in res.stderr and "Traceback" not in res.stderr

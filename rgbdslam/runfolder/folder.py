@@ -41,6 +41,7 @@ from rgbdslam.runfolder.read import finished_run
 # what a run writes into its folder; a new run into the same folder first moves these to previous/
 RUN_ARTEFACTS = ("trajectory.tum", "poses.txt", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
                  "plots", "map", "keyframes", "recording.rrd", "map.npz", "sessions", "export")
+EXPORT_DIR = "export"  # the default folder of `rgbdslam export RUN`, part of the run
 PREVIOUS = "previous"
 LOCK_NAME = ".rgbdslam.lock"
 
@@ -92,8 +93,9 @@ def make_way_for_run(out_dir: Path) -> bool:
     so is anything in ``previous/`` its own manifest does not list. The moves are renames (no
     disk space needed) with Ctrl-C deferred; the manifest goes along with the files it lists."""
     m = Manifest(out_dir)
-    m.check_way(RUN_ARTEFACTS, (RUN, EXPORT),
-                "move it away or choose another --out (a new run replaces only what rgbdslam wrote there)")
+    fix = "move it away or choose another --out (a new run replaces only what rgbdslam wrote there)"
+    m.check_way([name for name in RUN_ARTEFACTS if name != EXPORT_DIR], [RUN], fix)
+    m.check_way([EXPORT_DIR], [RUN, EXPORT], fix)  # the run's exports (`rgbdslam export RUN`) go with it
     present = [name for name in RUN_ARTEFACTS if os.path.lexists(out_dir / name)]
     if not present:
         return False
