@@ -327,3 +327,13 @@ def test_a_new_synthetic_sequence_never_deletes_a_users_file_in_the_old_one(tmp_
     mine.unlink()
     assert _cli(*args, "--seed", "1").exit_code == 0  # an earlier sequence of its own is replaced
     assert "seed: 1" in (seq / "synthetic.yaml").read_text()
+
+
+def test_a_full_disk_while_rendering_a_sequence_names_the_file_in_its_final_place(tmp_path):
+    seq = tmp_path / "synth"
+    res = subprocess.run([sys.executable, "-c", LIMITED_FSIZE, "3000", "synth", str(seq), "--frames", "3", "--size",
+                          "64", "48"], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {seq / 'rgb'}/") and "File too large" in lines[0], res.stderr
+    assert ".partial" not in lines[0] and not seq.exists() and list(tmp_path.iterdir()) == []

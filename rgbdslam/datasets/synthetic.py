@@ -28,7 +28,8 @@ import yaml
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.geometry.se3 import make_pose
-from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred, plain_permissions
+from rgbdslam.io.atomic import atomic_write_text, in_final_place, interrupts_deferred, plain_permissions
+from rgbdslam.io.images import write_png
 from rgbdslam.runfolder.manifest import SEQUENCE, Manifest
 from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.ui import console, frame_progress
@@ -669,10 +670,8 @@ def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, dr
     if noise or dropout > 0:
         depth[(depth > MAX_RANGE) | dropout_mask(depth.shape, dropout, rng)] = 0.0
     raw = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
-    png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
-    for path, img in ((out / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)), (out / "depth" / name, raw)):
-        if not cv2.imwrite(str(path), img, png):
-            raise InputError(f"cannot write {path}; check the folder is writable and not full")
+    write_png(out / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), compression=1)
+    write_png(out / "depth" / name, raw, compression=1)
 
 
 def generate_sequence(
@@ -729,7 +728,10 @@ def generate_sequence(
     # failure or Ctrl-C part-way leaves an earlier sequence in ``out`` as it was
     target, work = partial_folder(out)
     try:
-        _render_into(work, cam, poses, params, progress)
+        try:
+            _render_into(work, cam, poses, params, progress)
+        except OSError as e:  # a full disk: the file in its final place, never our temporary folder
+            raise in_final_place(e, work, out) from None
         _replace_folder(work, target)
     finally:
         if not (work / ".replaced").is_dir() or not any((work / ".replaced").iterdir()):

@@ -47,7 +47,8 @@ from rgbdslam.datasets.synthetic import (
 )
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.se3 import inv, make_pose, pose_to_tum
-from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.atomic import atomic_write_text, in_final_place
+from rgbdslam.io.images import write_png
 from rgbdslam.io.kitti import format_kitti_calib, format_kitti_poses
 from rgbdslam.ui import console, frame_progress
 
@@ -74,8 +75,7 @@ def _grey(rgb: np.ndarray, noise: bool, rng: np.random.Generator) -> np.ndarray:
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-        raise InputError(f"cannot write {path}; check the folder is writable and not full")
+    write_png(path, img, compression=1)
 
 
 def _sensor_yaml(cam, T_BS: np.ndarray, comment: str) -> str:
@@ -118,8 +118,11 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
     target, work = partial_folder(out)
     try:
         streaks: list[float] = []
-        (_write_kitti if layout == "kitti" else _write_euroc)(work, cam, poses, float(baseline), noise, seed, progress,
-                                                              params, streaks)
+        try:
+            (_write_kitti if layout == "kitti" else _write_euroc)(work, cam, poses, float(baseline), noise, seed,
+                                                                  progress, params, streaks)
+        except OSError as e:  # a full disk: the file in its final place, never our temporary folder
+            raise in_final_place(e, work, out) from None
         record_streaks(params, streaks)
         atomic_write_text(work / "synthetic.yaml",
                           yaml.safe_dump({"generator": "rgbdslam synthetic stereo v2", **params}, sort_keys=False))

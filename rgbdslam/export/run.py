@@ -15,7 +15,7 @@ import numpy as np
 
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.io.atomic import interrupts_deferred, plain_permissions
+from rgbdslam.io.atomic import in_final_place, interrupts_deferred, plain_permissions
 from rgbdslam.io.trajectory import Trajectory
 
 DEPTH_MM = 1000.0  # exported depth PNGs: 16-bit millimetres (nerfstudio's default depth_unit_scale_factor 1e-3)
@@ -185,9 +185,7 @@ def staged_folder(final: Path) -> Iterator[Path]:
         try:
             yield stage
         except OSError as e:  # a full disk: name the file in its final place, not in our temporary folder
-            if e.filename is not None and Path(e.filename).is_relative_to(stage):
-                raise OSError(e.errno, e.strerror, str(final / Path(e.filename).relative_to(stage))) from None
-            raise
+            raise in_final_place(e, stage, final) from None
         plain_permissions(stage)
         old = None
         with interrupts_deferred():

@@ -71,11 +71,12 @@ def read_image(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> tuple[np.
     return (img, None) if img is not None else (None, "it is not an image OpenCV can decode")
 
 
-def write_png(path: str | Path, image: np.ndarray) -> None:
-    """``image`` (as ``cv2.imwrite`` takes it: BGR, grey or 16-bit) as a PNG at ``path``: encoded
-    in memory, then written by Python, so a full disk is an OSError naming ``path`` (libpng
-    prints nothing of its own and ``imwrite`` would only return False)."""
-    ok, buf = cv2.imencode(".png", image)
+def write_png(path: str | Path, image: np.ndarray, compression: int = 3) -> None:
+    """``image`` (as ``cv2.imwrite`` takes it: BGR, grey or 16-bit) as a PNG at ``path`` (zlib
+    ``compression`` 0-9; 3 is OpenCV's default): encoded in memory, then written by Python, so a
+    full disk is an OSError naming ``path`` (libpng prints nothing of its own and ``imwrite``
+    would only return False)."""
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, compression])
     if not ok:
         raise ValueError(f"OpenCV cannot encode an image of shape {image.shape} and type {image.dtype} as PNG")
     try:
