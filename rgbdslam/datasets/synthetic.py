@@ -657,7 +657,7 @@ def _replace_folder(new: Path, out: Path, generated: tuple[str, ...] = GENERATED
     finally:  # swapped (also when a Ctrl-C held back during the renames is raised now): drop the old copy
         if len(moved_in) == len(want_in):
             shutil.rmtree(new, ignore_errors=True)
-    Manifest(out).record(generated, SEQUENCE)
+            Manifest(out).record(generated, SEQUENCE)
 
 
 def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, drift: float, rng) -> None:
