@@ -12,7 +12,7 @@ from typing import Any
 
 from rgbdslam.config import Config
 from rgbdslam.errors import RgbdslamError
-from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.pipeline import run_sequence
 from rgbdslam.runfolder.manifest import record_tables, tables_ready
 
@@ -49,6 +49,7 @@ def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config
 
     out_root = Path(out_root)
     tables_ready(out_root, SUMMARY_FILES)
+    make_dirs(out_root)
     dirs = _run_dirs([Path(s) for s in sequences], out_root)
     rows: list[dict[str, Any] | None] = [None] * len(sequences)
     serial = engine == "local" and workers == 1

@@ -25,7 +25,7 @@ from typing import Any
 
 from rgbdslam.config import Config, load_config
 from rgbdslam.errors import ConfigError, InputError, RgbdslamError
-from rgbdslam.io.atomic import atomic_path, atomic_write_text
+from rgbdslam.io.atomic import atomic_path, atomic_write_text, make_dirs
 from rgbdslam.runfolder.manifest import record_tables, tables_ready
 
 CELL_FILE = "cell.json"
@@ -183,6 +183,7 @@ def run_sweep(sequences: list[str | Path], grid_items, out_root: str | Path, con
     todo = [k for k, r in enumerate(rows) if r is None]
     kept = len(cells) - len(todo)
     tables_ready(out_root, TABLES)
+    make_dirs(out_root)
     console.print(f"sweep: {len(cells)} cells ({len(sequences)} sequence(s) x {len(cells) // len(sequences)} "
                   f"setting(s)); {kept} kept from an earlier run, {len(todo)} to run")
     t0 = time.perf_counter()

@@ -603,8 +603,6 @@ def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int =
                   optimizer: str = "gtsam", engine: str = "local", address: str | None = None) -> str:
     """CLI entry: parse the option strings, run :func:`run_benchmark` (or only
     :func:`time_initialisers`, or only :func:`merge_runs`), return the markdown report."""
-    if out_dir is not None:  # a file of the user's in the way: said before the benchmark runs
-        tables_ready(Path(out_dir), BENCH_FILES)
     if merge:
         return merge_runs(list(merge), out_dir, criterion)
     if dataset is None:
@@ -617,6 +615,8 @@ def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int =
         if not timed:
             raise InputError("--timing-only times initial guesses and ground_truth is none; add a method to --methods")
         return time_initialisers(dataset, levels, seed=seed, data_dir=data_dir, methods=timed)
+    if out_dir is not None:  # a file of the user's in the way: said before the benchmark runs
+        tables_ready(Path(out_dir), BENCH_FILES)
     res = run_benchmark(dataset, levels, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                         first_instance=first_instance, optimizer=optimizer, engine=engine, address=address,
                         out_dir=out_dir, data_dir=data_dir, methods=mlist, criterion=criterion, progress=progress)

@@ -30,7 +30,7 @@ from typing import Iterable, Iterator
 
 from rgbdslam import __version__
 from rgbdslam.errors import InputError
-from rgbdslam.io.atomic import atomic_write_text, make_dirs
+from rgbdslam.io.atomic import atomic_write_text
 
 MANIFEST = ".rgbdslam-manifest.json"
 RUN = "run"  # a run (and its map fusion): the run folder's own files
@@ -175,9 +175,10 @@ class Manifest:
 
 
 def tables_ready(folder: Path, names: Iterable[str]) -> None:
-    """``folder`` made, and nothing at ``names`` (the results tables a sweep or a batch writes
-    there) that its manifest does not list as earlier tables: an InputError names it otherwise."""
-    m = Manifest(make_dirs(folder))
+    """Nothing at ``names`` in ``folder`` (the results tables a sweep, a batch or the pose-graph
+    benchmark writes there) that its manifest does not list as earlier tables: an InputError
+    names it otherwise."""
+    m = Manifest(folder)
     m.check_way(names, [TABLE], "move it away or choose another --out (the results tables replace only "
                                 "earlier results tables)")
     m.unlink_links(names)
