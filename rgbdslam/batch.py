@@ -14,6 +14,7 @@ from rgbdslam.config import Config
 from rgbdslam.errors import RgbdslamError
 from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.pipeline import run_sequence
+from rgbdslam.runfolder.manifest import record_tables, tables_ready
 
 
 def _run_dirs(sequences: list[Path], out_root: Path) -> list[Path]:
@@ -50,6 +51,7 @@ def run_sequences(sequences: list[str | Path], out_root: str | Path, cfg: Config
     from rgbdslam.ui import console
 
     out_root = Path(out_root)
+    tables_ready(out_root, SUMMARY_FILES)
     make_dirs(out_root)
     dirs = _run_dirs([Path(s) for s in sequences], out_root)
     rows: list[dict[str, Any] | None] = [None] * len(sequences)
@@ -102,6 +104,7 @@ def run_one(seq: str, out_dir: str, cfg: Config, progress: bool, quiet: bool, po
     return row
 
 
+SUMMARY_FILES = ("summary.csv", "summary.md")  # what a batch writes into --out beside the run folders
 BATCH_COLUMNS = ("sequence", "status", "frames", "tracked", "lost", "restarts", "keyframes", "loops",
                  "ate_rmse", "fps", "out")
 
@@ -138,3 +141,4 @@ def _write_batch_summary(rows: list[dict[str, Any]], out_root: Path) -> None:
         w.writerow({c: ("" if r.get(c) is None else r[c]) for c in BATCH_COLUMNS})
     atomic_write_text(out_root / "summary.csv", buf.getvalue())
     atomic_write_text(out_root / "summary.md", format_batch_table(rows) + "\n")
+    record_tables(out_root, SUMMARY_FILES)

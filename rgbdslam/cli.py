@@ -613,10 +613,10 @@ def _export_help() -> str:
 
 
 @main.command()
-@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.argument("run_dir", type=PATH)
 @click.option("--format", "-f", "formats", multiple=True, required=True, metavar="FORMAT[,FORMAT...]",
               help=_export_help())
-@click.option("--out", "-o", "out_dir", type=click.Path(path_type=Path), default=None,
+@click.option("--out", "-o", "out_dir", type=PATH, default=None,
               help="Output folder (default: RUN_DIR/export).")
 @click.option("--max-points", default=100_000, show_default=True,
               help="Points in the COLMAP points3D.txt / nerfstudio sparse_pc.ply (the map's cloud, subsampled).")

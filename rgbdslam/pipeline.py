@@ -3,7 +3,7 @@
 ``run_sequence`` reads as its steps: check the settings, open the sequence, prepare the run
 folder, track every frame (:class:`rgbdslam.slam.SLAM`, one frame at a time), then either fail
 with one clear error or post-process (pose-graph optimisation, outputs, evaluation, map). The
-per-frame chain is in ``slam.py``, the run folder's files in ``run_folder.py``.
+per-frame chain is in ``slam.py``, the run folder in ``runfolder/``.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from rgbdslam.errors import InputError, RgbdslamError, TrackingLost, was_interru
 from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.stereo.depth import frame_warning
 from rgbdslam.io.trajectory import Trajectory
-from rgbdslam.run_folder import (RunRecord, folder_lock, keep_previous_run, print_summary, run_summary,
-                                 write_outputs, write_trajectories)
+from rgbdslam.runfolder.folder import (RunRecord, folder_lock, make_way_for_run, print_summary, run_summary,
+                                      write_outputs, write_trajectories)
 from rgbdslam.slam import SLAM
 from rgbdslam.viz.observer import make_observer
 
@@ -55,8 +55,8 @@ def run_sequence(sequence: str | Path | Sequence, out_dir: str | Path, cfg: Conf
     (``run.json`` says ``interrupted``) and KeyboardInterrupt is raised again. Ctrl-C at any
     other moment after the folder was prepared (start-up, evaluation, map) and any error there (a
     full disk) leave run.json saying ``interrupted`` or ``failed`` with the stage
-    (:class:`rgbdslam.run_folder.RunRecord`). The folder is locked while the run writes into it
-    (:func:`rgbdslam.run_folder.folder_lock`): a second run into it is one error line.
+    (:class:`rgbdslam.runfolder.folder.RunRecord`). The folder is locked while the run writes into it
+    (:func:`rgbdslam.runfolder.folder.folder_lock`): a second run into it is one error line.
     """
     check_settings(cfg)
     seq = sequence if isinstance(sequence, Sequence) else open_sequence(sequence, cfg)
@@ -229,9 +229,9 @@ def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
 def prepare_run_folder(out_dir: Path, cfg: Config, console, record: RunRecord) -> Path:
     """Move a finished earlier run in ``out_dir`` to ``previous/``, save the config used and a
     first run.json ("running")."""
-    if keep_previous_run(out_dir):
+    if make_way_for_run(out_dir):
         console.print(f"note: the earlier run in {out_dir} was moved to {out_dir / 'previous'}")
-    record.owns = True
+    record.start()
     save_config(cfg, out_dir / "config.yaml", outputs=False)  # a re-run from it must not overwrite this run's outputs
     record.write(record.summary)
     return out_dir

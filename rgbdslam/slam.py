@@ -35,8 +35,8 @@ from rgbdslam.frontend.odometry import TrackResult, build_frontend
 from rgbdslam.frontend.pairwise import build_pair_registration
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
-from rgbdslam.io.atomic import atomic_path, make_dirs
 from rgbdslam.io.trajectory import Trajectory
+from rgbdslam.runfolder.depth import keyframe_depth_path, quantise, write_keyframe_depth
 from rgbdslam.viz.observer import NullObserver
 
 
@@ -338,9 +338,9 @@ class SLAM:
         if self.loop is not None:
             self.loop.add_keyframe(result.features, pose)
         if self.keyframe_dir is not None and self.depth_filter is not None:
-            _write_depth_png(self.keyframe_dir / f"depth_{frame.index:06d}.png", depth)
+            write_keyframe_depth(keyframe_depth_path(self.keyframe_dir, frame.index), depth)
         if self.mapper is not None:  # at the pose graph's current estimate, with the depth the PNG holds
-            map_depth = _png_depth(depth) if self.depth_filter is not None else frame.depth
+            map_depth = quantise(depth) if self.depth_filter is not None else frame.depth
             fix = self._map_fix if self._map_fix is not None else (
                 self.graph.correction() if self.graph is not None else np.eye(4))
             self.mapper.add(frame.index, frame.rgb, map_depth, fix @ pose)
@@ -417,17 +417,3 @@ def _interpolated(records: list, corr: dict[int, np.ndarray], current: tuple[int
         s = (r.index - a) / (b - a)
         out.append(Ca @ gtsam.Pose3.Expmap(s * gtsam.Pose3.Logmap(gtsam.Pose3(inv(Ca) @ Cb))).matrix())
     return out
-
-
-def _png_depth(depth: np.ndarray, scale: float = 5000.0) -> np.ndarray:
-    """``depth`` as written to and read back from a keyframe depth PNG (1/scale m steps)."""
-    return np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16).astype(np.float32) / scale
-
-
-def _write_depth_png(path: Path, depth: np.ndarray, scale: float = 5000.0) -> None:
-    import cv2
-
-    make_dirs(path.parent)
-    d = np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16)
-    with atomic_path(path) as tmp:  # the temporary name keeps the .png suffix cv2 needs
-        cv2.imwrite(str(tmp), d)

@@ -17,6 +17,7 @@ import csv
 import io
 import itertools
 import json
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,9 +25,12 @@ from typing import Any
 
 from rgbdslam.config import Config, load_config
 from rgbdslam.errors import ConfigError, InputError, RgbdslamError
-from rgbdslam.io.atomic import atomic_path, atomic_write_text
+from rgbdslam.io.atomic import atomic_path, atomic_write_text, make_dirs
+from rgbdslam.runfolder.manifest import record_tables, tables_ready
 
 CELL_FILE = "cell.json"
+MAX_CELLS = 1000  # sequences x settings: a sweep beyond this is refused before any cell is planned
+TABLES = ("results.csv", "results.md", "results.png")  # what a sweep writes into --out beside cells/
 METRICS = ("status", "frames", "tracked", "keyframes", "loops", "ate_rmse", "rpe_trans_rmse", "rpe_rot_rmse",
            "tracking_fps", "cell_fps")
 TIMING_COLUMNS = ("tracking_fps", "cell_fps", "cell_s")  # differ between runs; everything else must not
@@ -71,22 +75,47 @@ def _safe(text: str) -> str:
     return "".join(c if c.isalnum() or c in "=.,-_+" else "_" for c in text)
 
 
+def cell_names(labels: list[str]) -> list[str]:
+    """A folder name per cell label: the label with every character a folder name should not
+    hold replaced by ``_``; labels whose names would then be equal (``a/b.txt`` and ``a_b.txt``,
+    also equal but for case) get ``~`` and 8 hex digits of the label's SHA-1 each, so no two
+    cells share a folder, whatever the order of the grid."""
+    import hashlib
+
+    safe = [_safe(label) or "default" for label in labels]
+    count: dict[str, int] = {}
+    for name in safe:
+        count[name.lower()] = count.get(name.lower(), 0) + 1
+    return [name if count[name.lower()] == 1 else f"{name}~{hashlib.sha1(label.encode()).hexdigest()[:8]}"
+            for name, label in zip(safe, labels)]
+
+
+def check_size(n_sequences: int, grid: list[tuple[str, list[str]]]) -> None:
+    """A ConfigError when the sweep would have more than :data:`MAX_CELLS` cells."""
+    n = n_sequences * math.prod(len(values) for _, values in grid)
+    if n > MAX_CELLS:
+        raise ConfigError(f"the sweep would run {n} cells ({n_sequences} sequence(s) x "
+                          f"{' x '.join(str(len(v)) for _, v in grid)} values); at most {MAX_CELLS} are allowed: "
+                          f"split it into several sweeps")
+
+
 def plan_cells(sequences: list[Path], grid: list[tuple[str, list[str]]], out_root: Path,
                config_path: str | None = None, overrides: tuple[str, ...] = (), mapping: bool = False) -> list[Cell]:
     """Every (sequence, grid combination), its config checked now (a bad value fails before any run).
     The map is not fused unless ``mapping`` (a sweep compares trajectories); plots are not drawn."""
     from rgbdslam.batch import _run_dirs
 
+    check_size(len(sequences), grid)
     combos = list(itertools.product(*[[(k, v) for v in vals] for k, vals in grid])) or [()]
+    names = cell_names([",".join(f"{k}={v}" for k, v in combo) for combo in combos])
     cells = []
     for seq, seq_dir in zip(sequences, _run_dirs(sequences, out_root / "cells")):
-        for combo in combos:
+        for combo, name in zip(combos, names):
             cfg = load_config(config_path, tuple(overrides) + tuple(f"{k}={v}" for k, v in combo))
             cfg.mapping.enabled = cfg.mapping.enabled and mapping
             cfg.output.plots = False
             cfg.output.rerun = False
             cfg.output.rerun_save = None
-            name = _safe(",".join(f"{k}={v}" for k, v in combo)) or "default"
             cells.append(Cell(Path(seq), tuple(combo), seq_dir / name, cfg))
     return cells
 
@@ -153,7 +182,8 @@ def run_sweep(sequences: list[str | Path], grid_items, out_root: str | Path, con
         rows[k] = _finished(c)
     todo = [k for k, r in enumerate(rows) if r is None]
     kept = len(cells) - len(todo)
-    out_root.mkdir(parents=True, exist_ok=True)
+    tables_ready(out_root, TABLES)
+    make_dirs(out_root)
     console.print(f"sweep: {len(cells)} cells ({len(sequences)} sequence(s) x {len(cells) // len(sequences)} "
                   f"setting(s)); {kept} kept from an earlier run, {len(todo)} to run")
     t0 = time.perf_counter()
@@ -210,6 +240,7 @@ def write_table(rows: list[dict[str, Any]], columns: list[str], out_root: Path, 
     atomic_write_text(out_root / "results.md", format_table(rows, columns) + "\n")
     if plot and rows:
         plot_results(rows, columns, out_root / "results.png")
+    record_tables(out_root, TABLES)
 
 
 def plot_results(rows: list[dict[str, Any]], columns: list[str], path: Path) -> None:

@@ -68,3 +68,16 @@ def assert_cli_error(res, message):
     assert isinstance(res.exception, SystemExit) and res.exit_code == 2, (res.exception, res.output)
     assert res.stdout == ""
     assert res.stderr == f"error: {message}\n"
+
+
+# ``python -c LIMITED_FSIZE LIMIT ARGS...``: the console script with files limited to LIMIT bytes
+# (RLIMIT_FSIZE: a full disk for every file, without root); a write past the limit fails with EFBIG
+LIMITED_FSIZE = """
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+limit = int(sys.argv[1])
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+sys.argv = ["rgbdslam"] + sys.argv[2:]
+from rgbdslam._entry import main
+main()
+"""

@@ -13,7 +13,7 @@ from rich.console import Console
 
 from tests.conftest import assert_cli_error, cli
 from rgbdslam import ui
-from rgbdslam.run_folder import summary_lines
+from rgbdslam.runfolder.folder import summary_lines
 
 
 def test_plain_progress_lines_when_not_a_terminal(monkeypatch):

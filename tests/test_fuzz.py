@@ -227,7 +227,7 @@ def test_fuzz_toro_and_isam_graphs(tmp_path_factory, data, fmt):
 @FUZZ
 @given(data=file_contents(RUN_JSON))
 def test_fuzz_run_json(tmp_path_factory, data):
-    from rgbdslam.mapping.fusion import read_run
+    from rgbdslam.runfolder.read import read_run
 
     d = tmp_path_factory.mktemp("r")
     _write(d, "run.json", data)

@@ -329,7 +329,7 @@ def test_tracking_loss_is_relocalised(tmp_path):
 
 
 def test_tracking_segments_hand_worked():
-    from rgbdslam.run_folder import tracking_segments
+    from rgbdslam.runfolder.folder import tracking_segments
 
     frames = [*range(0, 10), *range(20, 30), *range(40, 45)]
     # a loop from segment 1 back to segment 0 joins them (20 frames); segment 2 (5 frames) is alone
@@ -501,10 +501,10 @@ def test_a_foreign_previous_folder_is_never_deleted(desk9, tmp_path):
     (out / "previous").rmdir()
     run_sequence(desk9, out, _fast_cfg(), progress=False)
     run_sequence(desk9, out, _fast_cfg(), progress=False)
-    from rgbdslam.run_folder import LOCK_NAME, MANIFEST
+    from rgbdslam.runfolder.folder import LOCK_NAME
 
-    assert sorted(p.name for p in (out / "previous").iterdir() if p.name != MANIFEST) == sorted(
-        p.name for p in out.iterdir() if p.name not in ("previous", LOCK_NAME))
+    assert sorted(p.name for p in (out / "previous").iterdir()) == sorted(
+        p.name for p in out.iterdir() if p.name not in ("previous", LOCK_NAME))  # the manifest went along
 
 
 @pytest.mark.data

@@ -19,6 +19,8 @@ from click.testing import CliRunner
 
 from rgbdslam.cli import main
 
+from tests.conftest import LIMITED_FSIZE
+
 pytestmark = pytest.mark.data  # every test here runs on the shared TUM frames
 
 QUICK = ["-q", "--set", "output.plots=false", "--set", "mapping.map2d=false"]
@@ -112,7 +114,7 @@ def test_a_ctrl_c_inside_the_import_machinery_is_raised_again_after_it():
 
 _HOLD = """
 import sys, time
-from rgbdslam.run_folder import folder_lock
+from rgbdslam.runfolder.folder import folder_lock
 with folder_lock(sys.argv[1], "run"):
     print("locked", flush=True)
     time.sleep(600)
@@ -146,14 +148,14 @@ def test_previous_is_only_replaced_when_it_holds_nothing_but_ours(desk9, tmp_pat
     run = tmp_path / "run"
     for _ in range(2):
         assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
-    manifest = json.loads((run / "previous" / ".rgbdslam-previous.json").read_text())
+    manifest = json.loads((run / "previous" / ".rgbdslam-manifest.json").read_text())
     assert "trajectory.tum" in manifest["entries"] and "map/mesh.ply" in manifest["entries"]
     # a user's file beside our run.json, and one inside our map/ folder: never deleted
     for mine in (run / "previous" / "thesis.tex", run / "previous" / "map" / "notes.txt"):
         mine.write_text("mine")
         res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK])
         assert res.exit_code == 2 and res.stderr.count("\n") == 1
-        assert f"holds {mine}, which rgbdslam did not write" in res.stderr
+        assert f"{mine} is in the way: rgbdslam did not write it" in res.stderr
         assert mine.read_text() == "mine" and _status(run)["status"] == "finished"
         mine.unlink()
     assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
@@ -161,23 +163,13 @@ def test_previous_is_only_replaced_when_it_holds_nothing_but_ours(desk9, tmp_pat
 
 # ----------------------------------------------------------------------------- class 7: disk full
 
-_LIMITED = """
-import resource, signal, sys
-signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
-limit = int(sys.argv[1])
-resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-sys.argv = ["rgbdslam"] + sys.argv[2:]
-from rgbdslam._entry import main
-main()
-"""
-
 
 def test_a_full_disk_is_one_line_naming_the_file_and_never_a_finished_run(desk9, tmp_path):
     """Files may grow to 200 kB only (RLIMIT_FSIZE: a full disk for every file, without root):
     the map's PLY files cannot be written. One error line naming map/mesh.ply, no library spam, run.json not
     'finished', the trajectory written before it intact, and no map half made."""
     run = tmp_path / "run"
-    res = subprocess.run([sys.executable, "-c", _LIMITED, str(200_000), "run", str(desk9), "--out", str(run),
+    res = subprocess.run([sys.executable, "-c", LIMITED_FSIZE, str(200_000), "run", str(desk9), "--out", str(run),
                           *QUICK], capture_output=True, text=True, timeout=300)
     assert res.returncode == 2, res.stderr
     assert "RPly" not in res.stderr and "Traceback" not in res.stderr

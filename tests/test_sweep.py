@@ -68,3 +68,31 @@ def test_sweep_cli_prints_the_table_and_refuses_bad_grids(tmp_path, desk9):
     assert not (tmp_path / "d").exists()
     assert_cli_error(cli(["sweep", tmp_path / "missing", "--grid", "loop.enabled=true", "--out", tmp_path / "e"]),
                      f"sequence folder {tmp_path / 'missing'} does not exist; give TUM or PUT sequence folders")
+
+
+def test_cells_whose_names_would_collide_get_folders_of_their_own(tmp_path):
+    """``a/b.txt`` and ``a_b.txt`` (and names equal but for case) would share one cell folder:
+    each gets its own, the same whatever the order of the values."""
+    from rgbdslam.sweep import plan_cells
+
+    seq = tmp_path / "seq"
+    for values in (["a/b.txt", "a_b.txt", "A_B.txt", "c.txt"], ["c.txt", "A_B.txt", "a_b.txt", "a/b.txt"]):
+        cells = plan_cells([seq], parse_grid([f"dataset.groundtruth={','.join(values)}"]), tmp_path / "out")
+        names = {c.assignment[0][1]: c.out_dir.name for c in cells}
+        assert len({n.lower() for n in names.values()}) == 4, names
+        assert names["c.txt"] == "dataset.groundtruth=c.txt"  # a name that collides with none stays as it was
+        assert names["a/b.txt"].startswith("dataset.groundtruth=a_b.txt~") and "/" not in names["a/b.txt"]
+        if values[0] == "a/b.txt":
+            first = names
+    assert names == first
+
+
+def test_a_grid_beyond_the_bound_is_refused_before_any_cell_is_planned(tmp_path):
+    from rgbdslam.sweep import plan_cells
+
+    values = ",".join(f"{0.01 + k / 1000:.3f}" for k in range(40))
+    grid = parse_grid([f"mapping.voxel_size={values}", f"mapping.tsdf_voxel={values}"])
+    with pytest.raises(ConfigError, match=r"the sweep would run 1600 cells \(1 sequence\(s\) x 40 x 40 values\); at "
+                                          r"most 1000 are allowed: split it into several sweeps"):
+        plan_cells([tmp_path / "seq"], grid, tmp_path / "out")
+    assert len(plan_cells([tmp_path / "seq"], grid[:1], tmp_path / "out")) == 40

@@ -28,7 +28,9 @@ import yaml
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.geometry.se3 import make_pose
-from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred, plain_permissions
+from rgbdslam.io.atomic import atomic_write_text, in_final_place, interrupts_deferred, plain_permissions
+from rgbdslam.io.images import write_png
+from rgbdslam.runfolder.manifest import SEQUENCE, Manifest
 from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.ui import console, frame_progress
 
@@ -617,13 +619,17 @@ def partial_folder(out: Path) -> tuple[Path, Path]:
     return target, work
 
 
-def _check_output(out: Path) -> None:
-    """``out`` may be new, an empty folder or an earlier synthetic sequence (which is replaced)."""
+def _check_output(out: Path, generated: tuple[str, ...] = GENERATED) -> None:
+    """``out`` may be new, an empty folder or an earlier synthetic sequence (which is replaced:
+    only what its manifest lists as the generator's, docs/outputs.md)."""
     if out.exists() and not out.is_dir():
         raise InputError(f"{out} exists and is not a folder; give a folder for the synthetic sequence")
     ours = f".{out.name}.partial-"  # a temporary folder a killed run of ours left behind
     if out.is_dir() and any(not p.name.startswith(ours) for p in out.iterdir()) and not (out / "synthetic.yaml").is_file():
         raise InputError(f"{out} is not empty and is not a synthetic sequence; give a new or empty folder")
+    if out.is_dir():
+        Manifest(out).check_way(generated, [SEQUENCE], "move it away or give a new or empty folder (a new "
+                                                       "sequence replaces only what the generator wrote)")
 
 
 def _remove(path: Path) -> None:
@@ -643,6 +649,7 @@ def _replace_folder(new: Path, out: Path, generated: tuple[str, ...] = GENERATED
     if not out.exists():
         plain_permissions(new)
         os.replace(new, out)
+        Manifest(out).record(generated, SEQUENCE)
         return
     replaced = new / ".replaced"  # removed with ``new`` at the end
     replaced.mkdir()
@@ -667,6 +674,7 @@ def _replace_folder(new: Path, out: Path, generated: tuple[str, ...] = GENERATED
     finally:  # swapped (also when a Ctrl-C held back during the renames is raised now): drop the old copy
         if len(moved_in) == len(want_in):
             shutil.rmtree(new, ignore_errors=True)
+            Manifest(out).record(generated, SEQUENCE)
 
 
 def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, drift: float, rng) -> None:
@@ -679,10 +687,8 @@ def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, dr
     if noise or dropout > 0:
         depth[(depth > MAX_RANGE) | dropout_mask(depth.shape, dropout, rng)] = 0.0
     raw = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
-    png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
-    for path, img in ((out / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)), (out / "depth" / name, raw)):
-        if not cv2.imwrite(str(path), img, png):
-            raise InputError(f"cannot write {path}; check the folder is writable and not full")
+    write_png(out / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), compression=1)
+    write_png(out / "depth" / name, raw, compression=1)
 
 
 def generate_sequence(
@@ -739,7 +745,10 @@ def generate_sequence(
     # failure or Ctrl-C part-way leaves an earlier sequence in ``out`` as it was
     target, work = partial_folder(out)
     try:
-        _render_into(work, cam, poses, params, progress)
+        try:
+            _render_into(work, cam, poses, params, progress)
+        except OSError as e:  # a full disk: the file in its final place, never our temporary folder
+            raise in_final_place(e, work, out) from None
         _replace_folder(work, target)
     finally:
         if not (work / ".replaced").is_dir() or not any((work / ".replaced").iterdir()):

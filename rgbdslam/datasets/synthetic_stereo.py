@@ -48,7 +48,8 @@ from rgbdslam.datasets.synthetic import (
 from rgbdslam.datasets import synthetic_highway as hw
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.se3 import inv, make_pose, pose_to_tum
-from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.io.atomic import atomic_write_text, in_final_place
+from rgbdslam.io.images import write_png
 from rgbdslam.io.kitti import format_kitti_calib, format_kitti_poses
 from rgbdslam.ui import console, frame_progress
 
@@ -76,8 +77,7 @@ def _grey(rgb: np.ndarray, noise: bool, rng: np.random.Generator) -> np.ndarray:
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-        raise InputError(f"cannot write {path}; check the folder is writable and not full")
+    write_png(path, img, compression=1)
 
 
 def _sensor_yaml(cam, T_BS: np.ndarray, comment: str) -> str:
@@ -120,7 +120,7 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
                          f"choose --camera ros_default or fr3, or --layout euroc (its reader rectifies)")
     start = time.perf_counter()
     out = Path(out_dir)
-    _check_output(out)
+    _check_output(out, GENERATED)
     params = dict(frames=int(frames), motion=motion, width=int(width), height=int(height), noise=bool(noise),
                   seed=int(seed), camera=cam.name if highway else camera, stereo_baseline=float(baseline), layout=layout)
     if highway:
@@ -133,8 +133,11 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
     target, work = partial_folder(out)
     try:
         streaks: list[float] = []
-        (_write_kitti if layout == "kitti" else _write_euroc)(work, cam, poses, float(baseline), noise, seed, progress,
-                                                              params, streaks)
+        try:
+            (_write_kitti if layout == "kitti" else _write_euroc)(work, cam, poses, float(baseline), noise, seed,
+                                                                  progress, params, streaks)
+        except OSError as e:  # a full disk: the file in its final place, never our temporary folder
+            raise in_final_place(e, work, out) from None
         record_streaks(params, streaks)
         atomic_write_text(work / "synthetic.yaml",
                           yaml.safe_dump({"generator": "rgbdslam synthetic stereo v2", **params}, sort_keys=False))

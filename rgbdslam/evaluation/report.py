@@ -296,8 +296,8 @@ def _write(path: str | Path, writer) -> None:
     except OSError as e:
         where = f"{e.filename}: " if e.filename and str(e.filename) != str(path) else ""
         raise RgbdslamError(
-            f"cannot write {path} ({where}{e.strerror or e}); choose a writable folder (--plot-dir / --json) "
-            f"or pass --no-plots"
+            f"cannot write {path} ({where}{e.strerror or e}); choose a writable place for it (evaluate: "
+            f"--plot-dir, --json; run: --out, or --set output.plots=false)"
         ) from None
 
 

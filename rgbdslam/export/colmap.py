@@ -25,6 +25,7 @@ import numpy as np
 
 from rgbdslam.export.run import RunExport, staged_folder
 from rgbdslam.geometry.se3 import inv, pose_to_tum
+from rgbdslam.io.images import write_png
 
 TRACK_TOLERANCE = 0.03  # metres (+ 2 % of the depth) between a point and the keyframe depth that sees it
 
@@ -63,8 +64,7 @@ def write_colmap(run: RunExport, out: Path) -> list[Path]:
         ]
         for image_id, view in enumerate(run.views(), 1):
             name = f"{view.index:06d}.png"
-            if not cv2.imwrite(str(stage / "images" / name), cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR)):
-                raise OSError(f"could not write {stage / 'images' / name}")
+            write_png(stage / "images" / name, cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
             w2c = inv(view.pose)
             t, q = pose_to_tum(w2c)  # x y z w
             t, q = t[0], q[0]

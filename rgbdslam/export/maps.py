@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_path
 
@@ -17,7 +19,12 @@ def _written(ok: bool, path: Path) -> None:
 def write_pcd(run, out: Path) -> list[Path]:
     import open3d as o3d
 
-    pc = o3d.io.read_point_cloud(str(run.map_file("cloud.ply")))
+    ply = run.map_ply("cloud.ply")
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ply["points"]))
+    if "colors" in ply:
+        pc.colors = o3d.utility.Vector3dVector(ply["colors"])
+    if "normals" in ply:
+        pc.normals = o3d.utility.Vector3dVector(ply["normals"])
     path = out / "cloud.pcd"
     with atomic_path(path) as tmp:
         _written(o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False, compressed=False), path)
@@ -25,10 +32,17 @@ def write_pcd(run, out: Path) -> list[Path]:
 
 
 def _mesh(run):
+    """map/mesh.ply as an Open3D mesh (read by NumPy: a damaged file is one line, not RPly's)."""
     import open3d as o3d
 
-    mesh = o3d.io.read_triangle_mesh(str(run.map_file("mesh.ply")))
-    if not mesh.has_vertex_normals():
+    ply = run.map_ply("mesh.ply")
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(ply["points"]),
+                                     o3d.utility.Vector3iVector(ply.get("triangles", np.zeros((0, 3), np.int64))))
+    if "colors" in ply:
+        mesh.vertex_colors = o3d.utility.Vector3dVector(ply["colors"])
+    if "normals" in ply:
+        mesh.vertex_normals = o3d.utility.Vector3dVector(ply["normals"])
+    else:
         mesh.compute_vertex_normals()
     return mesh
 

@@ -27,13 +27,13 @@ import cv2
 import numpy as np
 
 from rgbdslam.export.run import DEPTH_MM, RunExport, staged_folder
+from rgbdslam.io.images import write_png
+from rgbdslam.io.ply import write_cloud_ply
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def write_nerfstudio(run: RunExport, out: Path) -> list[Path]:
-    import open3d as o3d
-
     cam = run.camera
     final = out / "nerfstudio"
     with staged_folder(final) as stage:
@@ -42,11 +42,9 @@ def write_nerfstudio(run: RunExport, out: Path) -> list[Path]:
         frames = []
         for view in run.views():
             name = f"{view.index:06d}.png"
-            if not cv2.imwrite(str(stage / "images" / name), cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR)):
-                raise OSError(f"could not write {stage / 'images' / name}")
+            write_png(stage / "images" / name, cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
             d = np.clip(np.round(view.depth * DEPTH_MM), 0, 65535).astype(np.uint16)
-            if not cv2.imwrite(str(stage / "depth" / name), d):
-                raise OSError(f"could not write {stage / 'depth' / name}")
+            write_png(stage / "depth" / name, d)
             frames.append({
                 "file_path": f"images/{name}",
                 "depth_file_path": f"depth/{name}",
@@ -56,10 +54,7 @@ def write_nerfstudio(run: RunExport, out: Path) -> list[Path]:
                 "frame_index": view.index,
             })
         points, colors, _ = run.points()
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        pc.colors = o3d.utility.Vector3dVector(colors.astype(np.float64) / 255.0)
-        if not o3d.io.write_point_cloud(str(stage / "sparse_pc.ply"), pc):
-            raise OSError(f"could not write {stage / 'sparse_pc.ply'}")
+        write_cloud_ply(stage / "sparse_pc.ply", points, colors)
         doc = {
             "camera_model": "OPENCV",
             "fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx + 0.5, "cy": cam.cy + 0.5,

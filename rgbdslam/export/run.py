@@ -15,7 +15,7 @@ import numpy as np
 
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.io.atomic import interrupts_deferred, plain_permissions
+from rgbdslam.io.atomic import in_final_place, interrupts_deferred, plain_permissions
 from rgbdslam.io.trajectory import Trajectory
 
 DEPTH_MM = 1000.0  # exported depth PNGs: 16-bit millimetres (nerfstudio's default depth_unit_scale_factor 1e-3)
@@ -36,7 +36,7 @@ class RunExport:
     """What the exporters read of a run folder (see ``docs/formats.md``)."""
 
     def __init__(self, run_dir: str | Path, max_points: int = 100_000, progress: bool = True):
-        from rgbdslam.mapping.fusion import read_run
+        from rgbdslam.runfolder.read import read_run
 
         self.run_dir = Path(run_dir)
         if max_points < 1:
@@ -44,12 +44,13 @@ class RunExport:
         self.max_points = int(max_points)
         self.progress = progress
         self.info, self.cfg, self.trajectory = read_run(self.run_dir)
+        self._plys: dict[str, dict[str, np.ndarray]] = {}
 
     # ------------------------------------------------------------------ the sequence
     @cached_property
     def sequence(self):
         from rgbdslam.datasets import open_sequence
-        from rgbdslam.mapping.fusion import check_run_frames
+        from rgbdslam.runfolder.read import check_run_frames
 
         try:
             seq = open_sequence(self.info["sequence"], self.cfg.dataset)
@@ -94,18 +95,20 @@ class RunExport:
     def views(self) -> Iterator[View]:
         """The keyframes' colour and depth (the run's DIF-filtered depth where it saved one),
         undistorted to :attr:`camera`, one at a time."""
-        from rgbdslam.mapping.fusion import _Undistorter, read_depth_png
+        from rgbdslam.mapping.fusion import Undistorter
+        from rgbdslam.runfolder.depth import keyframe_depth_path, read_keyframe_depth
         from rgbdslam.ui import frame_progress
 
         seq = self.sequence
-        undistort = _Undistorter(seq.camera, True)
+        undistort = Undistorter(seq.camera, True)
         depth_dir = self.run_dir / "keyframes"
         with frame_progress(len(self.keyframes), "exporting keyframes", enabled=self.progress) as advance:
             for i, r in self.keyframes:
                 frame = seq.load(i)
                 depth = frame.depth
-                if (depth_dir / f"depth_{i:06d}.png").is_file():
-                    depth = read_depth_png(depth_dir / f"depth_{i:06d}.png")
+                png = keyframe_depth_path(depth_dir, i)
+                if png.is_file():
+                    depth = read_keyframe_depth(png)
                 rgb, depth = undistort(frame.rgb, depth.astype(np.float32, copy=False))
                 if rgb.ndim == 2:  # grey images (stereo): three equal channels for the tools downstream
                     rgb = np.repeat(rgb[:, :, None], 3, axis=2)
@@ -120,16 +123,28 @@ class RunExport:
                              + (" (mapping.mesh=true)" if name == "mesh.ply" else ""))
         return p
 
+    def map_ply(self, name: str) -> dict[str, np.ndarray]:
+        """map/``name`` read (:func:`rgbdslam.io.ply.read_ply`, once); an InputError names a
+        missing, cut-short or damaged file."""
+        from rgbdslam.io.ply import read_ply
+
+        if name not in self._plys:
+            p = self.map_file(name)
+            try:
+                self._plys[name] = read_ply(p)
+            except ValueError as e:
+                raise InputError(f"{p} is damaged ({e}); make the map again with `rgbdslam fuse {self.run_dir}`"
+                                 ) from None
+        return self._plys[name]
+
     def points(self, seed: int = 0) -> tuple[np.ndarray, np.ndarray, str]:
         """At most ``max_points`` coloured points (float64 (N, 3), uint8 (N, 3)) for a sparse
         model: the fused cloud (map/cloud.ply) subsampled with a seeded choice, else the keyframes'
         depth back-projected; and a word on where they came from."""
-        import open3d as o3d
-
         cloud = self.run_dir / "map" / "cloud.ply"
         if cloud.is_file():
-            pc = o3d.io.read_point_cloud(str(cloud))
-            P, C = np.asarray(pc.points), np.asarray(pc.colors)
+            ply = self.map_ply("cloud.ply")
+            P, C = ply["points"], ply.get("colors", np.zeros((0, 3)))
             source = f"{cloud} (subsampled)" if len(P) > self.max_points else str(cloud)
             C = (np.clip(C, 0, 1) * 255 + 0.5).astype(np.uint8) if len(C) == len(P) else np.full((len(P), 3), 128,
                                                                                                 np.uint8)
@@ -167,7 +182,10 @@ def staged_folder(final: Path) -> Iterator[Path]:
     final.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{final.name}-", dir=final.parent))
     try:
-        yield stage
+        try:
+            yield stage
+        except OSError as e:  # a full disk: name the file in its final place, not in our temporary folder
+            raise in_final_place(e, stage, final) from None
         plain_permissions(stage)
         old = None
         with interrupts_deferred():

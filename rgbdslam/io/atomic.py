@@ -97,6 +97,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def in_final_place(e: OSError, stage: Path, final: Path) -> OSError:
+    """``e`` naming the file in ``final`` when it names one in the temporary folder ``stage`` that
+    is built to become ``final`` (a full disk part-way): a message never names our temporary folder."""
+    if e.filename is not None and Path(e.filename).is_relative_to(stage):
+        return OSError(e.errno, e.strerror, str(final / Path(e.filename).relative_to(stage)))
+    return e
+
+
 def atomic_write_text(path: str | Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

@@ -69,3 +69,17 @@ def read_image(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> tuple[np.
         return None, problem
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     return (img, None) if img is not None else (None, "it is not an image OpenCV can decode")
+
+
+def write_png(path: str | Path, image: np.ndarray, compression: int = 3) -> None:
+    """``image`` (as ``cv2.imwrite`` takes it: BGR, grey or 16-bit) as a PNG at ``path`` (zlib
+    ``compression`` 0-9; 3 is OpenCV's default): encoded in memory, then written by Python, so a
+    full disk is an OSError naming ``path`` (libpng prints nothing of its own and ``imwrite``
+    would only return False)."""
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, compression])
+    if not ok:
+        raise ValueError(f"OpenCV cannot encode an image of shape {image.shape} and type {image.dtype} as PNG")
+    try:
+        Path(path).write_bytes(buf.tobytes())
+    except OSError as e:  # a failed write() names no file
+        raise OSError(e.errno, e.strerror, str(path)) from None

@@ -17,38 +17,39 @@ the world-to-camera extrinsic, i.e. the inverse.
 
 from __future__ import annotations
 
-import json
+import contextlib
 import resource
 import time
 from pathlib import Path
-from typing import Any
+from typing import Iterator
 
 import cv2
 import numpy as np
 
-from rgbdslam.config import Config, MappingConfig, load_config, validate_section
+from rgbdslam.config import MappingConfig, load_config, validate_section
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.base import Sequence, as_rgb
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 from rgbdslam.io.atomic import interrupts_deferred
-from rgbdslam.io.images import read_image
-from rgbdslam.io.text import read_text
-from rgbdslam.io.trajectory import Trajectory, read_tum
-from rgbdslam.mapping.staging import FuseResult, staged
+from rgbdslam.io.trajectory import Trajectory
+from rgbdslam.mapping.staging import MAP_FILES, FuseResult, remove_stale_stages, staged
+from rgbdslam.runfolder.depth import DEPTH_SCALE, keyframe_depth_path, read_keyframe_depth
+from rgbdslam.runfolder.manifest import RUN, Manifest
+from rgbdslam.runfolder.read import check_run_frames, read_run
 
 with interrupts_deferred():  # Ctrl-C during Open3D's start-up leaves its C++ state half made (exit 1
     import open3d as o3d  # and a page of memory statistics at exit): the interrupt waits for the import
 
-DEPTH_PNG_SCALE = 5000.0  # keyframes/depth_*.png units per metre
+MAP_DIR = "map"  # a run folder's map, beside its trajectory
 STAMP_TOLERANCE = 1e-3  # seconds: a trajectory line belongs to a frame when the stamps agree this well
 
 
 # ----------------------------------------------------------------------------- helpers
 
 
-def _rss_mb() -> float:
+def rss_mb() -> float:
     """Current resident set size in MB (Linux /proc; 0 elsewhere)."""
     try:
         with open("/proc/self/statm") as f:
@@ -57,7 +58,7 @@ def _rss_mb() -> float:
         return 0.0
 
 
-def _peak_rss_mb() -> float:
+def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
@@ -92,7 +93,7 @@ def select_by_motion(poses: np.ndarray, min_translation: float, min_rotation_deg
     return chosen
 
 
-class _Undistorter:
+class Undistorter:
     """Remaps colour (bilinear) and depth (nearest: never blends depths across edges) to the ideal pinhole."""
 
     def __init__(self, camera: Camera, enabled: bool):
@@ -110,13 +111,6 @@ class _Undistorter:
             cv2.remap(rgb, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
             cv2.remap(depth, m1, m2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT),
         )
-
-
-def read_depth_png(path: Path) -> np.ndarray:
-    d, _ = read_image(path)
-    if d is None or d.ndim != 2:
-        raise InputError(f"depth image {path} is unreadable or not a 16-bit single-channel PNG; delete it or re-run")
-    return d.astype(np.float32) / DEPTH_PNG_SCALE
 
 
 def backproject_image(depth: np.ndarray, camera: Camera, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -172,9 +166,9 @@ class VoxelCloud:
         self.pending.append(part)
         self.pending_n += len(part[0])
         if self.pending_n >= max(len(self.keys), 200_000):
-            self._merge()
+            self.merge()
 
-    def _merge(self) -> None:
+    def merge(self) -> None:
         if not self.pending:
             return
         parts = [(self.keys, self.sums, self.counts)] + self.pending
@@ -182,17 +176,17 @@ class VoxelCloud:
         self.keys, self.sums, self.counts = _reduce(*(np.concatenate(x) for x in zip(*parts)))
 
     def __len__(self) -> int:
-        self._merge()
+        self.merge()
         return len(self.keys)
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean position (N, 3) float64 and mean colour (N, 3) uint8 of every occupied voxel."""
-        self._merge()
+        self.merge()
         mean = self.sums / self.counts[:, None]
         return mean[:, :3], np.clip(mean[:, 3:] + 0.5, 0, 255).astype(np.uint8)
 
 
-class _Tsdf:
+class Tsdf:
     """Open3D tensor VoxelBlockGrid (CPU). The legacy ScalableTSDFVolume of the Open3D 0.20
     wheel returned empty meshes for every input tried here, so it is not offered."""
 
@@ -217,12 +211,13 @@ class _Tsdf:
         import open3d as o3d
 
         o3c = self.o3c
-        units = np.round(depth * DEPTH_PNG_SCALE).astype(np.uint16)  # the uint16/uint8 kernel is the lean one
+        # in the keyframe depth images' own steps (lossless for them); the uint16/uint8 kernel is the lean one
+        units = np.round(depth * DEPTH_SCALE).astype(np.uint16)
         d = o3d.t.geometry.Image(o3c.Tensor(units))
         c = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(rgb, dtype=np.uint8)))
         ext = o3c.Tensor(inv(pose_c2w), o3c.float64)  # Open3D wants world -> camera
-        blocks = self.vol.compute_unique_block_coordinates(d, self.intr, ext, DEPTH_PNG_SCALE, self.cfg.depth_max)
-        self.vol.integrate(blocks, d, c, self.intr, ext, DEPTH_PNG_SCALE, self.cfg.depth_max,
+        blocks = self.vol.compute_unique_block_coordinates(d, self.intr, ext, DEPTH_SCALE, self.cfg.depth_max)
+        self.vol.integrate(blocks, d, c, self.intr, ext, DEPTH_SCALE, self.cfg.depth_max,
                            self.cfg.sdf_trunc / self.cfg.tsdf_voxel)
 
     def mesh(self, min_frames: int):
@@ -350,7 +345,7 @@ def fuse(
     from rgbdslam.ui import console, frame_progress
 
     t_start = time.perf_counter()
-    rss0 = _rss_mb()
+    rss0 = rss_mb()
     validate_mapping(cfg)
     out_dir = Path(out_dir)
     depth_dir = Path(depth_dir) if depth_dir is not None else None
@@ -370,8 +365,8 @@ def fuse(
     res = staged(out_dir, lambda stage: _fuse_into(stage, sequence, trajectory, todo, cfg, depth_dir, progress,
                                                    console, frame_progress))
     res.seconds = time.perf_counter() - t_start
-    res.peak_rss_mb = _peak_rss_mb()
-    res.rss_growth_mb = max(_peak_rss_mb() - rss0, 0.0)
+    res.peak_rss_mb = peak_rss_mb()
+    res.rss_growth_mb = max(peak_rss_mb() - rss0, 0.0)
     return res
 
 
@@ -403,8 +398,8 @@ def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: li
                cfg: MappingConfig, depth_dir: Path | None, progress: bool, console, frame_progress) -> FuseResult:
     """The work of :func:`fuse`, writing into the (temporary) folder ``stage``."""
     camera = sequence.camera
-    undistort = _Undistorter(camera, cfg.undistort)
-    tsdf = _Tsdf(cfg, camera) if cfg.mesh else None
+    undistort = Undistorter(camera, cfg.undistort)
+    tsdf = Tsdf(cfg, camera) if cfg.mesh else None
     acc = VoxelCloud(cfg.voxel_size)
     timings = {"load": 0.0, "tsdf": 0.0, "cloud": 0.0}
     fused: list[int] = []
@@ -414,8 +409,8 @@ def _fuse_into(stage: Path, sequence: Sequence, trajectory: Trajectory, todo: li
             t0 = time.perf_counter()
             frame = sequence.load(i)
             depth = frame.depth
-            if depth_dir is not None and (depth_dir / f"depth_{i:06d}.png").is_file():
-                depth = read_depth_png(depth_dir / f"depth_{i:06d}.png")
+            if depth_dir is not None and keyframe_depth_path(depth_dir, i).is_file():
+                depth = read_keyframe_depth(keyframe_depth_path(depth_dir, i))
             rgb, depth = prepare_frame(frame.rgb, depth, undistort, cfg)
             n_depth += int(np.count_nonzero(depth))
             timings["load"] += time.perf_counter() - t0
@@ -655,76 +650,6 @@ def _accelerometer_of(sequence: Sequence) -> Path | None:
     return p if p.is_file() else None
 
 
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _check_run_info(info: Any, path: Path) -> dict[str, Any]:
-    """The fields of run.json that fusion and the viewer read, with the types they need;
-    an InputError names ``path`` and the field otherwise."""
-    fix = "re-run `rgbdslam run` to rewrite it, or correct the field"
-    if not isinstance(info, dict):
-        raise InputError(f"{path} must hold a JSON object (the run summary), not {type(info).__name__}; {fix}")
-    if "sequence" not in info:
-        raise InputError(f"{path} has no 'sequence' entry; it must name the sequence folder the run used")
-    if not isinstance(info["sequence"], str) or not info["sequence"].strip():
-        raise InputError(f"{path}: 'sequence' must be the path of the sequence folder as a string; got "
-                         f"{info['sequence']!r}; {fix}")
-    kf = info.get("keyframes")
-    if kf is not None and not (isinstance(kf, list) and all(_is_int(i) for i in kf)):
-        bad = kf if not isinstance(kf, list) else next(i for i in kf if not _is_int(i))
-        raise InputError(f"{path}: 'keyframes' must be a list of frame numbers (whole numbers); found {bad!r}; {fix}")
-    loops = info.get("loops")
-    if loops is not None and not (isinstance(loops, list) and all(
-            isinstance(x, list) and len(x) == 2 and all(_is_int(i) for i in x) for x in loops)):
-        raise InputError(f"{path}: 'loops' must be a list of frame-number pairs [i, j]; got {loops!r:.60}; {fix}")
-    segs = info.get("segments")
-    if segs is not None:
-        ok = isinstance(segs, list) and all(
-            isinstance(g, dict) and _is_int(g.get("first")) and _is_int(g.get("last"))
-            and isinstance(g.get("map", True), bool) for g in segs)
-        if not ok:
-            raise InputError(f"{path}: 'segments' must be a list of objects with whole numbers 'first' and 'last' "
-                             f"(and true/false 'map'); got {segs!r:.60}; {fix}")
-    return info
-
-
-def read_run(run_dir: str | Path) -> tuple[dict[str, Any], Config, Trajectory]:
-    """run.json (its fields checked, see :func:`_check_run_info`), the configuration used and the
-    final trajectory of a run folder."""
-    run_dir = Path(run_dir)
-    info_path = run_dir / "run.json"
-    if not info_path.is_file():
-        raise InputError(f"{run_dir} is not a run folder: {info_path.name} is missing; give the --out folder of `rgbdslam run`")
-    try:
-        info = json.loads(read_text(info_path, "run file"))
-    except json.JSONDecodeError as e:
-        raise InputError(f"{info_path} is not valid JSON (line {e.lineno}); re-run `rgbdslam run` to rewrite it") from None
-    info = _check_run_info(info, info_path)
-    cfg_path = run_dir / "config.yaml"
-    if cfg_path.is_file():
-        cfg = load_config(cfg_path)
-    else:  # the camera, depth scale and frame selection of the run are unknown: say so
-        from rgbdslam.ui import console
-
-        console.print(f"[yellow]warning:[/] {cfg_path} is missing; the default config is used to re-read the sequence "
-                      f"(if the run used a preset or --set, copy its config.yaml back)")
-        cfg = Config()
-    traj = read_tum(run_dir / "trajectory.tum")
-    return info, cfg, traj
-
-
-def check_run_frames(run_dir: str | Path, info: dict[str, Any], n_frames: int) -> None:
-    """run.json's keyframes and loop frames must be frames of its sequence (``n_frames`` of them):
-    one outside means run.json does not belong to the sequence as it is now."""
-    path = Path(run_dir) / "run.json"
-    frames = list(info.get("keyframes") or []) + [i for pair in info.get("loops") or [] for i in pair]
-    bad = [i for i in frames if not 0 <= i < n_frames]
-    if bad:
-        raise InputError(f"{path}: frame {bad[0]} is not in the sequence {info['sequence']} (frames 0..{n_frames - 1}); "
-                         f"run.json does not belong to this sequence as it is now: re-run `rgbdslam run`")
-
-
 def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bool = True) -> FuseResult:
     """Fuse the map of a finished run folder into ``run_dir``/map (see :func:`fuse`).
 
@@ -741,7 +666,8 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
         from rgbdslam.session.fusion import joined_source
 
         seq, traj, frames, per_session = joined_source(run_dir, cfg.keyframes_only, run_cfg)
-        res = fuse(seq, traj, frames, cfg, run_dir / "map", None, progress)  # raw depth: keyframes/ is per run
+        with map_of(run_dir):
+            res = fuse(seq, traj, frames, cfg, run_dir / "map", None, progress)  # raw depth: keyframes/ is per run
         res.sessions = per_session
         return res
     seq = open_sequence(info["sequence"], run_cfg, purpose="map")
@@ -762,7 +688,30 @@ def fuse_run(run_dir: str | Path, cfg: MappingConfig | None = None, progress: bo
             raise InputError(f"{run_dir / 'run.json'}: no frame of the run is in a tracking segment that "
                              f"belongs to the map; re-run with loop closure on (loop.enabled=true)")
     depth_dir = run_dir / "keyframes"
-    return fuse(seq, traj, frames, cfg, run_dir / "map", depth_dir if depth_dir.is_dir() else None, progress)
+    with map_of(run_dir):
+        return fuse(seq, traj, frames, cfg, run_dir / "map", depth_dir if depth_dir.is_dir() else None, progress)
+
+
+@contextlib.contextmanager
+def map_of(run_dir: Path) -> Iterator[None]:
+    """The map folder of a run folder, for a block that writes the map: first nothing in the way of
+    its files that the run folder's manifest does not list as a run's (an InputError naming it;
+    a user's other files in map/ stay as they are), then the files made listed there."""
+    m = Manifest(run_dir)
+    remove_stale_stages(run_dir / MAP_DIR)  # a killed fusion's temporary folders (ours by their name)
+    fix = f"move it away (a map is written only over the files rgbdslam made in {run_dir / MAP_DIR})"
+    m.check_way([MAP_DIR], [RUN], fix, below=False)
+    m.check_way(map_paths(), [RUN], fix)
+    m.unlink_links([MAP_DIR, *map_paths()])
+    yield
+    m = Manifest(run_dir)  # as the block left it (a run records its own files meanwhile)
+    m.record([MAP_DIR], RUN, below=False)
+    m.record(map_paths(), RUN)
+
+
+def map_paths() -> list[str]:
+    """The files a fusion writes, relative to the run folder."""
+    return [f"{MAP_DIR}/{name}" for name in MAP_FILES]
 
 
 def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (), progress: bool = True,
@@ -771,7 +720,7 @@ def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (
     summary; ``render``: also PNG previews of the cloud and the mesh (:mod:`rgbdslam.viz.render`)."""
     from rgbdslam.ui import console
 
-    from rgbdslam.run_folder import folder_lock
+    from rgbdslam.runfolder.folder import folder_lock
 
     from rgbdslam.errors import ConfigError
 
@@ -787,14 +736,15 @@ def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (
         read_run(run_dir)  # the one-line error of a folder that is no run folder
     with folder_lock(run_dir, "fusion"):  # never while a run (or another fusion) writes there
         res = fuse_run(run_dir, cfg.mapping, progress=progress)
-    console.print(
-        f"fused {len(res.frames)} frames in {res.seconds:.1f} s (peak memory {res.peak_rss_mb:.0f} MB): "
-        f"{res.n_points} cloud points, {res.n_triangles} mesh triangles -> {res.out_dir}",
-        soft_wrap=True,
-    )
-    if render:
-        from rgbdslam.viz.render import render_run
+        console.print(
+            f"fused {len(res.frames)} frames in {res.seconds:.1f} s (peak memory {res.peak_rss_mb:.0f} MB): "
+            f"{res.n_points} cloud points, {res.n_triangles} mesh triangles -> {res.out_dir}",
+            soft_wrap=True,
+        )
+        if render:
+            from rgbdslam.viz.render import render_run
 
-        for p in render_run(run_dir, res.out_dir):
-            console.print(f"rendered {p}", soft_wrap=True, highlight=False)
+            with map_of(run_dir):
+                for p in render_run(run_dir, res.out_dir):
+                    console.print(f"rendered {p}", soft_wrap=True, highlight=False)
     return res

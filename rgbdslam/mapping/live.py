@@ -96,12 +96,12 @@ class MapState:
 
     def __init__(self, cfg: MappingConfig, camera: Camera, load: Callable[[int], tuple[np.ndarray, np.ndarray]],
                  cache_mb: float = CACHE_MB):
-        from rgbdslam.mapping.fusion import _Undistorter
+        from rgbdslam.mapping.fusion import Undistorter
 
         self.cfg = cfg
         self.camera = camera
         self.load = load
-        self.undistort = _Undistorter(camera, cfg.undistort)
+        self.undistort = Undistorter(camera, cfg.undistort)
         # live_tolerance voxels (a quarter by default): how far a keyframe's points may be from where
         # its final pose puts them (translation + rotation angle x depth_max)
         self.tol_m = min(cfg.voxel_size, cfg.tsdf_voxel) * cfg.live_tolerance
@@ -161,16 +161,17 @@ class MapState:
         least ``mapping.tsdf_initial_blocks``) and voxel cloud (None when not ``cloud``)."""
         import dataclasses
 
-        from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf
+        from rgbdslam.mapping.fusion import VoxelCloud, Tsdf
 
         cfg = self.cfg if blocks <= self.cfg.tsdf_initial_blocks else dataclasses.replace(self.cfg, tsdf_initial_blocks=blocks)
-        return ((_Tsdf(cfg, self.camera) if self.cfg.mesh and tsdf else None),
+        return ((Tsdf(cfg, self.camera) if self.cfg.mesh and tsdf else None),
                 VoxelCloud(self.cfg.voxel_size) if cloud else None)
 
     def _prepared(self, index: int, rgb=None, depth=None) -> tuple[np.ndarray, np.ndarray]:
         """A keyframe's colour and depth as fused (:func:`prepare_frame`): from the cache, else
         prepared from ``rgb``/``depth`` or from ``load`` (and cached while the cache has room)."""
-        from rgbdslam.mapping.fusion import DEPTH_PNG_SCALE, prepare_frame
+        from rgbdslam.mapping.fusion import prepare_frame
+        from rgbdslam.runfolder.depth import DEPTH_SCALE
 
         hit = self.cache.get(index)
         if hit is not None:
@@ -182,7 +183,7 @@ class MapState:
         self.n_depth[index] = int(np.count_nonzero(depth))
         if index not in self.box:
             self.box[index] = points_box(depth, self.camera)
-        keep = _pack_depth(depth, DEPTH_PNG_SCALE)
+        keep = _pack_depth(depth, DEPTH_SCALE)
         size = rgb.nbytes + keep.nbytes
         if self.cache_bytes + size <= self.cache_limit:
             self.cache[index] = (rgb, keep)
@@ -319,10 +320,10 @@ class MapState:
             self.used[i] = pose
             self.stats["integrated"] += 1
             if self.stats["integrated"] % SIZE_LOG_EVERY == 0:  # how the map grows (docs/benchmarks.md "Memory")
-                from rgbdslam.mapping.fusion import _rss_mb
+                from rgbdslam.mapping.fusion import rss_mb
 
                 self.stats.setdefault("size_log", []).append(
-                    {"keyframes": self.stats["integrated"], "rss_mb": round(_rss_mb(), 1),
+                    {"keyframes": self.stats["integrated"], "rss_mb": round(rss_mb(), 1),
                      **{k: round(v, 1) if isinstance(v, float) else v for k, v in self.sizes().items()}})
 
     def refresh(self, poses: dict[int, np.ndarray], keep: set[int] | None = None, between=None,
@@ -451,17 +452,15 @@ class _SequenceImages:
         self._seq = None
 
     def __call__(self, i: int):
-        from pathlib import Path
-
         from rgbdslam.datasets import open_sequence
-        from rgbdslam.mapping.fusion import read_depth_png
+        from rgbdslam.runfolder.depth import keyframe_depth_path, read_keyframe_depth
 
         if self._seq is None:
             # the whole config: a stereo sequence then computes its map depth (stereo.map_depth, e.g. SGBM)
             self._seq = open_sequence(self.root, self.dataset_cfg, purpose="map")
         frame = self._seq.load(i)
-        png = Path(self.depth_dir) / f"depth_{i:06d}.png" if self.depth_dir else None
-        return frame.rgb, (read_depth_png(png) if png is not None and png.is_file() else frame.depth)
+        png = keyframe_depth_path(self.depth_dir, i) if self.depth_dir else None
+        return frame.rgb, (read_keyframe_depth(png) if png is not None and png.is_file() else frame.depth)
 
 
 def limit_threads(n: int) -> None:
@@ -701,7 +700,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     from pathlib import Path
 
     from rgbdslam.errors import InputError
-    from rgbdslam.mapping.fusion import _peak_rss_mb, check_depth, cloud_points, write_mesh
+    from rgbdslam.mapping.fusion import check_depth, cloud_points, peak_rss_mb, write_mesh
     from rgbdslam.ui import console
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -746,7 +745,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
         state.stats["at_mesh_done"] = time.time()
     state.stats["final_cpu_s"] = time.process_time() - c0  # CPU of every thread of the map process after the last frame
     out["timings"] = {k: round(v, 3) if isinstance(v, float) else v for k, v in state.stats.items()}
-    out["peak_rss_mb"] = _peak_rss_mb()
+    out["peak_rss_mb"] = peak_rss_mb()
     return out
 
 
@@ -983,10 +982,10 @@ def _cloud_end(stage, cfg: MappingConfig, trajectory, accelerometer, want_points
 def add_cloud(dst, src, sign: int) -> None:
     """Add (``sign`` +1) or take out (-1) the voxel cloud ``src`` from ``dst``; voxels left
     without points disappear."""
-    src._merge()
-    dst._merge()
+    src.merge()
+    dst.merge()
     dst.pending.append((src.keys, sign * src.sums, sign * src.counts))
-    dst._merge()
+    dst.merge()
     keep = dst.counts > 0.5
     if not keep.all():
         dst.keys, dst.sums, dst.counts = dst.keys[keep], dst.sums[keep], dst.counts[keep]

@@ -93,8 +93,8 @@ def _commit(stage: Path, out_dir: Path) -> None:
     with interrupts_deferred():  # a Ctrl-C waits for the renames: never half an old, half a new map
         for name in made:
             os.replace(stage / name, out_dir / name)
-        for name in MAP_FILES:
-            if name not in made and (out_dir / name).is_file():
+        for name in MAP_FILES:  # checked to be ours by the caller (rgbdslam.mapping.fusion.map_of); a link stays a link
+            if name not in made and ((out_dir / name).is_file() or (out_dir / name).is_symlink()):
                 (out_dir / name).unlink()
 
 

@@ -36,7 +36,8 @@ from rgbdslam.errors import InputError
 from rgbdslam.posegraph.convergence import check_iteration_options, chi2_floor, has_converged
 from rgbdslam.posegraph.factors import degrees_of_freedom
 from rgbdslam.posegraph.optimize import OPTIMIZERS, gauss_newton, run_gauss_newton
-from rgbdslam.io.atomic import atomic_write_text, make_dirs
+from rgbdslam.io.atomic import atomic_write_text
+from rgbdslam.runfolder.manifest import record_tables, tables_ready
 from rgbdslam.io.text import read_text
 
 DATASETS = ("m3500", "city10k", "m10000")
@@ -582,13 +583,18 @@ def write_runs_csv(path: Path, records) -> None:
     atomic_write_text(path, _csv_text([asdict(r) for r in records]))
 
 
+BENCH_FILES = ("runs.csv", "table1.csv", "table2.csv", "report.md")  # what --out receives
+
+
 def write_outputs(out_dir: Path, records, dataset, methods, report: str, criterion: str = "relative") -> None:
-    make_dirs(out_dir)
+    """The tables into ``out_dir``, replacing only earlier tables (its manifest, docs/outputs.md)."""
+    tables_ready(out_dir, BENCH_FILES)
     write_runs_csv(out_dir / "runs.csv", records)
     t1, t2 = table_rows(records, dataset, methods, criterion)
     atomic_write_text(out_dir / "table1.csv", _csv_text(t1))
     atomic_write_text(out_dir / "table2.csv", _csv_text(t2))
     atomic_write_text(out_dir / "report.md", report)
+    record_tables(out_dir, BENCH_FILES)
 
 
 def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int = 50, workers: int = 1, seed: int = 0,
@@ -609,6 +615,8 @@ def bench_command(dataset: str, noise: str, instances: int = 50, max_iter: int =
         if not timed:
             raise InputError("--timing-only times initial guesses and ground_truth is none; add a method to --methods")
         return time_initialisers(dataset, levels, seed=seed, data_dir=data_dir, methods=timed)
+    if out_dir is not None:  # a file of the user's in the way: said before the benchmark runs
+        tables_ready(Path(out_dir), BENCH_FILES)
     res = run_benchmark(dataset, levels, instances=instances, max_iter=max_iter, workers=workers, seed=seed,
                         first_instance=first_instance, optimizer=optimizer, engine=engine, address=address,
                         out_dir=out_dir, data_dir=data_dir, methods=mlist, criterion=criterion, progress=progress)

@@ -342,7 +342,8 @@ def record_run(run_dir: str | Path, out_rrd: str | Path, progress: bool = True) 
 
     from rgbdslam.datasets import open_sequence
     from rgbdslam.io.trajectory import read_tum
-    from rgbdslam.mapping.fusion import check_run_frames, match_frames, read_run
+    from rgbdslam.mapping.fusion import match_frames
+    from rgbdslam.runfolder.read import check_run_frames, read_run
     from rgbdslam.ui import console, frame_progress
 
     run_dir, out_rrd = Path(run_dir), Path(out_rrd)
@@ -439,6 +440,10 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
             raise InputError(f"--save {rrd} is a folder; give a file name such as {rrd / 'recording.rrd'}")
         if save is not None or not rrd.exists():
             record_run(path, rrd, progress=progress)
+            if save is None:  # the run folder's own recording: listed as the run's (docs/outputs.md)
+                from rgbdslam.runfolder.manifest import RUN, Manifest
+
+                Manifest(path).record(["recording.rrd"], RUN)
     elif path.is_file():
         if path.suffix not in (".rrd", ".rbl"):
             raise InputError(f"{path} is not a Rerun recording (.rrd) or a run folder; give one of them")

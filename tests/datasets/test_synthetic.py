@@ -353,4 +353,5 @@ def test_ctrl_c_during_the_swap_finishes_it_and_leaves_no_copy(tmp_path, monkeyp
         generate_sequence(out, frames=4, width=64, height=48, seed=2)
     assert sent and len((out / "rgb.txt").read_text().split("rgb/")) - 1 == 4  # the new sequence, whole
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]  # no .seq.partial-* left, beside or inside
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == [".rgbdslam-manifest.json"]
+    generate_sequence(out, frames=3, width=64, height=48, seed=3)  # the manifest lists the new sequence: replaced

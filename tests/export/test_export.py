@@ -298,16 +298,20 @@ def test_an_interrupted_export_keeps_the_earlier_one(run_dir, tmp_path, monkeypa
         export_run(run_dir, ["colmap"], out, max_points=900, progress=False)
     after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
     assert after == before  # the earlier model, whole; no temporary folder left beside it
-    assert sorted(p.name for p in out.iterdir()) == ["colmap"]
+    assert sorted(p.name for p in out.iterdir()) == [".rgbdslam-manifest.json", ".rgbdslam.lock", "colmap"]
 
 
 def test_a_new_run_moves_the_earlier_export_with_the_earlier_run(tmp_path):
     """An export belongs to its run: a new run into the folder moves it to previous/ with the rest."""
-    from rgbdslam.run_folder import keep_previous_run
+    from rgbdslam.runfolder.folder import make_way_for_run
+    from rgbdslam.runfolder.manifest import EXPORT, RUN, Manifest
 
     (tmp_path / "run.json").write_text(json.dumps({"status": "finished"}))
     (tmp_path / "export").mkdir()
     (tmp_path / "export" / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
-    assert keep_previous_run(tmp_path)
+    Manifest(tmp_path).record(["run.json"], RUN)
+    Manifest(tmp_path).record(["export"], EXPORT)
+    assert make_way_for_run(tmp_path)
     assert not (tmp_path / "export").exists()
     assert (tmp_path / "previous" / "export" / "poses.txt").is_file()
+    assert Manifest(tmp_path / "previous").entries == {"run.json": RUN, "export": EXPORT, "export/poses.txt": EXPORT}

@@ -115,4 +115,5 @@ def test_cli_outputs_to_devices_fifos_and_links(tmp_path):
     assert res.exit_code == 2
     lines = res.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and str(full) in lines[0], res.output
+    assert "--no-plots" not in lines[0]  # an option that does nothing is never the advice
     assert stat.S_ISCHR(os.stat(full).st_mode)

@@ -10,7 +10,7 @@ import pytest
 
 from rgbdslam.config import MappingConfig
 from rgbdslam.datasets import open_sequence
-from rgbdslam.mapping.fusion import VoxelCloud, _Tsdf, _Undistorter, integrate_frame, prepare_frame
+from rgbdslam.mapping.fusion import VoxelCloud, Tsdf, Undistorter, integrate_frame, prepare_frame
 from rgbdslam.mapping.live import MapState, merge_tsdf
 
 from tests.conftest import cli
@@ -28,8 +28,8 @@ def synth(tmp_path_factory):
 def _fresh(seq, cfg, poses: dict[int, np.ndarray], camera=None):
     """The map fusing ``poses`` from scratch, the way `rgbdslam fuse` does."""
     camera = camera or seq.camera
-    tsdf, cloud = _Tsdf(cfg, camera), VoxelCloud(cfg.voxel_size)
-    und = _Undistorter(camera, cfg.undistort)
+    tsdf, cloud = Tsdf(cfg, camera), VoxelCloud(cfg.voxel_size)
+    und = Undistorter(camera, cfg.undistort)
     for i, p in poses.items():
         f = seq.load(i)
         rgb, depth = prepare_frame(f.rgb, f.depth, und, cfg)
@@ -73,7 +73,7 @@ def test_merging_two_volumes_equals_integrating_all_frames_into_one(synth):
     a = _fresh(synth, cfg, {i: poses[i] for i in range(3)})
     b = _fresh(synth, cfg, {i: poses[i] for i in range(3, 6)})
     merge_tsdf(a[0].vol, b[0].vol)
-    a[1].pending.append((*(b[1]._merge() or (b[1].keys, b[1].sums, b[1].counts)),))
+    a[1].pending.append((*(b[1].merge() or (b[1].keys, b[1].sums, b[1].counts)),))
     _same_map(one, a, synth, cfg)
 
 
@@ -240,7 +240,7 @@ def test_points_box_holds_every_point_of_a_real_keyframe(desk9):
     seq = open_sequence(desk9)
     cfg = MappingConfig()
     f = seq.load(0)
-    _, depth = prepare_frame(f.rgb, f.depth, _Undistorter(seq.camera, True), cfg)
+    _, depth = prepare_frame(f.rgb, f.depth, Undistorter(seq.camera, True), cfg)
     pts, _ = backproject_image(depth, seq.camera)
     box = points_box(depth, seq.camera)
     np.testing.assert_allclose(box, [pts.min(axis=0), pts.max(axis=0)], atol=1e-5)
@@ -286,7 +286,7 @@ def test_without_a_mesh_the_map_is_the_cloud_alone(synth):
     fresh = VoxelCloud(cfg.voxel_size)
     for i in (0, 5, 10):
         f = synth.load(i)
-        integrate_frame(None, fresh, *prepare_frame(f.rgb, f.depth, _Undistorter(synth.camera, True), cfg),
+        integrate_frame(None, fresh, *prepare_frame(f.rgb, f.depth, Undistorter(synth.camera, True), cfg),
                         gt.poses[i], synth.camera, cfg)
     np.testing.assert_allclose(np.sort(live.cloud.result()[0], axis=0), np.sort(fresh.result()[0], axis=0), atol=1e-9)
 
@@ -604,7 +604,7 @@ def test_a_cloud_part_added_reduced_is_the_cloud_adding_its_points_gives(synth):
     sums and counts, bit for bit, as adding the points themselves."""
     cfg = MappingConfig()
     gt = synth.groundtruth()
-    und = _Undistorter(synth.camera, cfg.undistort)
+    und = Undistorter(synth.camera, cfg.undistort)
     direct, via = VoxelCloud(cfg.voxel_size), VoxelCloud(cfg.voxel_size)
     for i in (0, 4, 8):
         f = synth.load(i)
@@ -754,7 +754,7 @@ def test_a_cloud_part_made_ahead_keeps_a_keyframe_of_more_than_200k_voxels(tmp_p
     assert part is not None and len(part[0]) >= 200_000
     alone = VoxelCloud(cfg.voxel_size)
     live._integrate(None, alone, np.asarray(gt.poses[0], np.float64), live._prepared(0))
-    alone._merge()
+    alone.merge()
     np.testing.assert_array_equal(np.sort(part[0]), np.sort(alone.keys))
     live.refresh({i: gt.poses[i] for i in (0, 1)}, flush=True)
     _, cloud, fused, _ = live.result()

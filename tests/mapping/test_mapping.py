@@ -162,7 +162,7 @@ def test_match_frames_and_motion_selection():
 def test_voxel_cloud_averages_exactly_across_merges():
     vc = VoxelCloud(0.1)
     vc.add(np.array([[0.01, 0.01, 0.01], [0.05, 0.05, 0.05]]), np.array([[0, 0, 0], [100, 100, 100]]))
-    vc._merge()
+    vc.merge()
     vc.add(np.array([[0.09, 0.09, 0.09], [0.25, 0.0, 0.0]]), np.array([[200, 200, 200], [7, 8, 9]]))
     pts, cols = vc.result()
     order = np.argsort(pts[:, 0])
@@ -372,8 +372,11 @@ def test_failure_part_way_leaves_the_earlier_map_whole(plane_run):
 
 def test_a_finished_fusion_leaves_no_files_of_an_earlier_one(plane_run):
     seq_dir, run = plane_run
+    from rgbdslam.runfolder.manifest import RUN, Manifest
+
     fuse_run(run, _cfg(), progress=False)
     (run / "map" / "map2d.png").write_bytes(b"from an older fusion")
+    Manifest(run).record(["map/map2d.png"], RUN)  # as that fusion listed it (a file it did not list stops fuse)
     res = fuse_run(run, _cfg(mesh=False), progress=False)
     assert sorted(_map_state(run)) == ["cloud.ply"] and res.cloud_path == run / "map" / "cloud.ply"
 
@@ -430,7 +433,7 @@ def test_run_json_not_utf8_or_not_an_object(plane_run):
 
 
 def test_a_run_folder_without_config_warns_that_defaults_are_used(plane_run, capsys):
-    from rgbdslam.mapping.fusion import read_run
+    from rgbdslam.runfolder.read import read_run
 
     _, run = plane_run
     (run / "config.yaml").unlink(missing_ok=True)

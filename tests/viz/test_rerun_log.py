@@ -114,8 +114,8 @@ def test_view_run_folder_without_display_writes_recording(tmp_path, monkeypatch)
 
 
 def _hidden(folder: Path) -> list[str]:
-    """Hidden (temporary) files; a run folder's lock file (rgbdslam.run_folder) is not one."""
-    from rgbdslam.run_folder import LOCK_NAME
+    """Hidden (temporary) files; a run folder's lock file (rgbdslam.runfolder.folder) is not one."""
+    from rgbdslam.runfolder.folder import LOCK_NAME
 
     return sorted(p.name for p in folder.iterdir() if p.name.startswith(".") and p.name != LOCK_NAME)
 

@@ -1,16 +1,16 @@
-"""The run folder (docs/formats.md): what a run writes, its summary (run.json) and its printout,
+"""Writing the run folder (docs/formats.md, docs/outputs.md): what a run writes, its summary (run.json) and its printout,
 and its housekeeping.
 
 * :func:`folder_lock`: an exclusive ``flock`` on ``FOLDER/.rgbdslam.lock`` while a run (or a
   fusion) writes into the folder. A second process gets one error line instead of mixing its
   outputs with the first one's; the kernel drops the lock when its process dies, so a killed
   run never blocks the next one.
-* :func:`keep_previous_run`: a finished earlier run is moved to ``previous/`` with a manifest
-  (``previous/.rgbdslam-previous.json``, every path moved there); an older ``previous/`` is only
-  deleted when it holds nothing but what its manifest lists (a user's file beside it stops the
-  run with one line instead).
+* :func:`make_way_for_run`: a finished earlier run is moved to ``previous/``, an unfinished one
+  removed, and only what the folder's manifest lists as a run's (:mod:`.manifest`): anything
+  else in the way stops the run with one line naming it.
 * :class:`RunRecord`: run.json says ``running`` until the run's very end, ``finished`` only then,
-  ``interrupted`` or ``failed`` (with the stage) when Ctrl-C or an error stops it at any moment.
+  ``interrupted`` or ``failed`` (with the stage) when Ctrl-C or an error stops it at any moment;
+  the manifest is rewritten with it.
 
 The trajectories, the keyframe pose graph and ``run.json`` are written atomically.
 """
@@ -35,12 +35,14 @@ from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred
 from rgbdslam.io.kitti import write_kitti_poses
 from rgbdslam.io.trajectory import Trajectory, write_tum
+from rgbdslam.runfolder.manifest import EXPORT, KINDS, MANIFEST, RUN, Manifest, remove_path
+from rgbdslam.runfolder.read import finished_run
 
 # what a run writes into its folder; a new run into the same folder first moves these to previous/
 RUN_ARTEFACTS = ("trajectory.tum", "poses.txt", "odometry.tum", "posegraph.g2o", "config.yaml", "run.json", "evaluation.json",
                  "plots", "map", "keyframes", "recording.rrd", "map.npz", "sessions", "export")
+EXPORT_DIR = "export"  # the default folder of `rgbdslam export RUN`, part of the run
 PREVIOUS = "previous"
-MANIFEST = ".rgbdslam-previous.json"
 LOCK_NAME = ".rgbdslam.lock"
 
 
@@ -68,74 +70,52 @@ def folder_lock(folder: str | Path, what: str = "run") -> Iterator[None]:
         os.close(fd)  # releases the lock; the file stays (removing it would race with a waiting process)
 
 
-def finished_run(run_json: Path) -> bool:
-    """True when ``run_json`` records a run that ran to its end (``status`` "finished"; older
-    run.json files without a status count as finished unless they say ``interrupted``)."""
-    try:
-        info = json.loads(run_json.read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):
+def _previous_is_ours(prev: Path) -> None:
+    """An InputError unless ``prev`` is a folder holding nothing but what its manifest lists."""
+    if not prev.is_dir() or prev.is_symlink() or not os.path.lexists(prev / MANIFEST):
+        raise InputError(f"{prev} exists and is not an earlier run of rgbdslam (it has no {MANIFEST}); move it away "
+                         f"or choose another --out (a new run keeps the last finished one in {PREVIOUS}/)")
+    Manifest(prev).check_way(sorted(set(os.listdir(prev)) - {MANIFEST}), KINDS,
+                             f"move it away or choose another --out (a new run keeps the last finished one in "
+                             f"{PREVIOUS}/ and deletes an older {PREVIOUS}/ only when it holds nothing else)")
+
+
+def make_way_for_run(out_dir: Path) -> bool:
+    """Clear the names a run writes (:data:`RUN_ARTEFACTS`) in ``out_dir`` of an earlier run's
+    outputs: a finished earlier run is moved to ``out_dir/previous`` (replacing an older
+    ``previous`` made by rgbdslam), so that a new run that fails or is interrupted part-way never
+    costs a finished one; an unfinished one (failed, interrupted, killed) is removed, and
+    ``previous/`` keeps the last finished one. True when a run was moved.
+
+    Only what the folder's manifest lists as a run's is moved or removed (:mod:`.manifest`):
+    anything else at those names — a user's file, also inside ``map/`` or ``plots/``, a link,
+    an export's folder written with ``--out`` — is an InputError naming it, before anything moves;
+    so is anything in ``previous/`` its own manifest does not list. The moves are renames (no
+    disk space needed) with Ctrl-C deferred; the manifest goes along with the files it lists."""
+    m = Manifest(out_dir)
+    fix = "move it away or choose another --out (a new run replaces only what rgbdslam wrote there)"
+    m.check_way([name for name in RUN_ARTEFACTS if name != EXPORT_DIR], [RUN], fix)
+    m.check_way([EXPORT_DIR], [RUN, EXPORT], fix)  # the run's exports (`rgbdslam export RUN`) go with it
+    present = [name for name in RUN_ARTEFACTS if os.path.lexists(out_dir / name)]
+    if not present:
         return False
-    if not isinstance(info, dict):
-        return False
-    return info.get("status", "interrupted" if info.get("interrupted") else "finished") == "finished"
-
-
-def _tree(root: Path, names) -> list[str]:
-    """Relative paths of ``names`` in ``root`` and of everything below them (links not followed)."""
-    out = []
-    for name in names:
-        p = root / name
-        if not os.path.lexists(p):
-            continue
-        out.append(name)
-        if p.is_dir() and not p.is_symlink():
-            out += [str(q.relative_to(root)) for q in sorted(p.rglob("*"))]
-    return out
-
-
-def _foreign_entry(prev: Path) -> str | None:
-    """The first path in ``prev`` that rgbdslam did not put there, "" when ``prev`` is no run of
-    rgbdslam at all, or None when everything in it is ours."""
-    try:
-        listed = set(json.loads((prev / MANIFEST).read_text(encoding="utf-8"))["entries"])
-    except (OSError, ValueError, KeyError, TypeError, RecursionError):
-        listed = None
-    if listed is None:  # an earlier version's previous/ (no manifest): our top-level names only
-        if not (prev / "run.json").is_file():
-            return ""
-        return next((p.name for p in sorted(prev.iterdir()) if p.name not in RUN_ARTEFACTS), None)
-    present = _tree(prev, sorted(os.listdir(prev)))
-    return next((p for p in present if p != MANIFEST and p not in listed), None)
-
-
-def keep_previous_run(out_dir: Path) -> bool:
-    """Move a finished earlier run's files in ``out_dir`` to ``out_dir/previous`` (replacing an
-    older ``previous`` made by rgbdslam), so that a new run that fails or is interrupted part-way
-    never overwrites a finished one. A failed or interrupted run in ``out_dir`` is not moved: the
-    new run replaces it, and ``previous/`` keeps the last finished one. True when a run was moved.
-
-    ``previous/`` is deleted only when everything in it is listed in its manifest (what rgbdslam
-    moved there); anything else in it, or a ``previous`` that is not a folder, is an InputError."""
     if not finished_run(out_dir / "run.json"):
+        with interrupts_deferred():  # the unfinished run is replaced: its files go, never a user's
+            for name in present:
+                remove_path(out_dir / name)
+            m.forget(present)
         return False
     prev = out_dir / PREVIOUS
     if os.path.lexists(prev):
-        foreign = _foreign_entry(prev) if prev.is_dir() and not prev.is_symlink() else ""
-        if foreign is not None:  # not ours: never delete it
-            what = (f"{prev} holds {prev / foreign}, which rgbdslam did not write" if foreign else
-                    f"{prev} exists and is not an earlier run of rgbdslam")
-            raise InputError(f"{what}; move it away or choose another --out (a new run keeps the last finished one "
-                             f"in {PREVIOUS}/ and replaces only what it wrote there)")
+        _previous_is_ours(prev)
     with interrupts_deferred():  # Ctrl-C waits: never half an old run here, half in previous/
         if os.path.lexists(prev):
             shutil.rmtree(prev)
-        entries = _tree(out_dir, RUN_ARTEFACTS)
         prev.mkdir()
-        (prev / MANIFEST).write_text(json.dumps({"written_by": f"rgbdslam {__version__}", "entries": entries},
-                                                indent=1))
-        for name in RUN_ARTEFACTS:
-            if os.path.lexists(out_dir / name):
-                (out_dir / name).replace(prev / name)
+        if m.exists:
+            os.replace(m.path, prev / MANIFEST)  # first: whatever follows, previous/ says what is ours
+        for name in present:
+            os.replace(out_dir / name, prev / name)
     return True
 
 
@@ -288,12 +268,21 @@ class RunRecord:
         self.stage = "start-up"
         self.owns = False  # True once an earlier finished run is out of the way (previous/)
 
+    def start(self) -> None:
+        """Claim the names a run writes in the folder's manifest (the earlier run is out of the
+        way: :func:`make_way_for_run`); from now on run.json is this run's."""
+        self.owns = True
+        Manifest(self.out_dir).claim(RUN_ARTEFACTS, RUN)
+
     def write(self, summary: dict[str, Any], final: bool = False) -> None:
+        """run.json, then the manifest listing every file the run has written so far (complete
+        when ``final``)."""
         self.summary = summary
         self.owns = True
         if not final and summary.get("status") == "finished":
             summary = {**summary, "status": "running"}
         write_summary(self.out_dir, summary)
+        Manifest(self.out_dir).record(RUN_ARTEFACTS, RUN, complete=final)
 
     def close(self, status: str, error: str | None = None) -> None:
         """Write run.json once more saying ``status`` (and where the run stopped); a second
@@ -309,3 +298,8 @@ class RunRecord:
                 write_summary(self.out_dir, s)
         except OSError:
             pass
+        try:
+            with interrupts_deferred():
+                Manifest(self.out_dir).record(RUN_ARTEFACTS, RUN, complete=True)
+        except (OSError, InputError):
+            pass  # the claims stay: the next run into the folder still knows these files as a run's
