@@ -1,0 +1,109 @@
+"""benchmarks.peers: the ratio maths and the table on hand-made numbers, publishing between markers,
+and one real run of rgbdslam on fr1/desk (9 frames) that must give the trajectory ``rgbdslam run`` gives."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from benchmarks import common, peers
+from benchmarks.common import Metrics
+from tests.conftest import TUM_DESK9, need
+
+
+def _m(ate, ms, scale=1.0, rpe=0.002, frames=100, tracked=100):
+    return Metrics(ate=ate, scale=scale, rpe=rpe, frames=frames, tracked=tracked, ms=ms)
+
+
+def _rows():
+    R = peers.Row
+    return [
+        R("A", "rgbdslam default", [_m(0.010, 20.0), _m(0.010, 30.0)]),
+        R("A", peers.ORB, [_m(0.004, 10.0), _m(0.006, 14.0)]),  # median ATE 0.005, ms 12
+        R("A", peers.OPEN3D, [_m(0.100, 300.0)]),
+        R("B", "rgbdslam default", [_m(0.003, 12.0)]),
+        R("B", peers.ORB, [_m(0.006, 12.0), _m(0.006, 12.0)]),
+        R("C", "rgbdslam default", [_m(0.008, 40.0, frames=50, tracked=47)]),
+        R("C", peers.ORB, [_m(0.004, 20.0)]),
+        R("D", "rgbdslam default", [_m(0.020, 10.0)]),  # no ORB-SLAM3 row: no ratio
+    ]
+
+
+def test_ratios_and_their_median_and_worst_on_hand_made_numbers():
+    rat = peers.ratios(_rows())
+    assert set(rat) == {"rgbdslam default"}
+    per = rat["rgbdslam default"]
+    assert set(per) == {"A", "B", "C"}
+    assert per["A"] == pytest.approx((2.0, 12.0 / 25.0))  # 0.010 / 0.005; ORB 12 ms / rgbdslam 25 ms
+    assert per["B"] == pytest.approx((0.5, 1.0))
+    assert per["C"] == pytest.approx((2.0, 0.5))
+    s = peers.summarise(per)
+    assert s["ate"][0] == pytest.approx(2.0) and s["ate"][2] == pytest.approx(2.0) and s["ate"][1] in ("A", "C")
+    assert s["rate"][0] == pytest.approx(0.5) and s["rate"][1] == "A" and s["rate"][2] == pytest.approx(0.48)
+    # a sequence whose ratio is NaN (ORB-SLAM3 failed) is left out, not counted as best or worst
+    s = peers.summarise({"A": (float("nan"), 1.0), "B": (3.0, float("nan")), "C": (1.0, 2.0)})
+    assert s["ate"] == (2.0, "B", 3.0) and s["rate"] == (1.5, "A", 1.0)
+
+
+def test_table_cells_on_hand_made_numbers():
+    lines = peers.markdown(_rows()).splitlines()
+    assert lines[0].startswith("| sequence | method | ATE RMSE (m) | Sim(3) scale |")
+    assert lines[2] == "| A | rgbdslam default | 0.0100 | 1.000 | 2.00 | 100/0 | 25.0 | 2.00 | 0.48 |"
+    assert lines[3] == "| A | ORB-SLAM3 | 0.0040 / 0.0060 | 1.000 | 2.00 | 100/0 | 12.0 | – | – |"
+    assert lines[4] == "| A | Open3D hybrid odometry | 0.1000 | 1.000 | 2.00 | 100/0 | 300.0 | – | – |"
+    assert lines[7] == "| C | rgbdslam default | 0.0080 | 1.000 | 2.00 | 47/3 | 40.0 | 2.00 | 0.50 |"
+    assert lines[9] == "| D | rgbdslam default | 0.0200 | 1.000 | 2.00 | 100/0 | 10.0 | – | – |"
+    summary = [ln for ln in lines if ln.startswith("- **rgbdslam default**")]
+    assert summary == ["- **rgbdslam default** over 3 sequences: ATE ÷ ORB-SLAM3 median **2.00**, worst 2.00 (A); "
+                       "rate × ORB-SLAM3 median 0.50, worst 0.48 (A)"]
+    # the rows survive the JSON round trip that --report reads
+    again = peers.from_json(json.loads(json.dumps(peers.to_json(_rows()))))
+    assert peers.markdown(again) == peers.markdown(_rows())
+
+
+def test_publish_replaces_only_its_own_block(tmp_path):
+    doc = tmp_path / "benchmarks.md"
+    doc.write_text("# B\n\nintro\n\n<!-- benchmark:peers -->\nold\n<!-- /benchmark:peers -->\n\n## Next\nkept\n")
+    common.publish("peers", "| t |", "python -m benchmarks.peers", "machine M", "note", path=doc, write=True)
+    assert doc.read_text() == ("# B\n\nintro\n\n<!-- benchmark:peers -->\n```bash\npython -m benchmarks.peers\n```\n\n"
+                               "machine M\n\n| t |\n\nnote\n<!-- /benchmark:peers -->\n\n## Next\nkept\n")
+    common.publish("other", "| u |", "cmd", "m", path=doc, write=True)  # a new block is appended
+    assert doc.read_text().endswith("<!-- benchmark:other -->\n```bash\ncmd\n```\n\nm\n\n| u |\n<!-- /benchmark:other -->\n")
+    doc.write_text("<!-- /benchmark:peers -->\n<!-- benchmark:peers -->\n")
+    with pytest.raises(ValueError, match="markers of benchmark 'peers'"):
+        common.publish("peers", "x", "c", "m", path=doc, write=True)
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_one_real_run_on_desk9_matches_the_command_line(tmp_path):
+    need(TUM_DESK9)
+    out = tmp_path / "peers.json"
+    assert peers.main(["--sequences", "desk9", "--rounds", "2", "--no-orb", "--no-open3d", "--json", str(out),
+                       "--work", str(tmp_path / "work")]) == 0
+    data = json.loads(out.read_text())
+    assert data["command"].startswith("python -m benchmarks.peers --sequences desk9")
+    (row,) = data["rows"]
+    assert row["sequence"] == "fr1/desk 9 frames" and row["method"] == "rgbdslam default"
+    a, b = row["runs"]
+    assert a["ate"] == b["ate"] and a["scale"] == b["scale"]  # rgbdslam is deterministic
+    assert a["frames"] == 9 and a["tracked"] == 9 and a["ms"] > 0
+    # the same frames through the whole command: the same ATE (its run.json and trajectory.tum)
+    summary = common.run_pipeline(TUM_DESK9, tmp_path / "run")
+    assert a["ate"] == pytest.approx(summary["evaluation"]["ate"]["rmse"], abs=1e-6)
+    assert 0.001 < a["ate"] < 0.01 and np.isfinite(a["rpe"])
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_orbslam3_peer_on_desk9(tmp_path):
+    why = common.orbslam3_missing()
+    if why:
+        pytest.skip(why)
+    from rgbdslam.datasets import open_sequence
+
+    gt = open_sequence(need(TUM_DESK9), common.load_config()).groundtruth()
+    m = common.run_orbslam3(TUM_DESK9, "fr1", tmp_path / "orb", gt)
+    assert m.frames == 9 and m.tracked >= 3 and 0 < m.ate < 0.05 and m.ms > 0
