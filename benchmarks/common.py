@@ -116,6 +116,35 @@ def run_rgbdslam(path: Path, sets: list[str] | tuple[str, ...] = (), preset: str
     return m, est
 
 
+def sequence_view(seq, load):
+    """``seq`` with its frames read through ``load(seq, i)`` (a :class:`rgbdslam.datasets.base.Sequence`
+    that ``run_sequence`` takes in its place): a benchmark sees or changes each frame without
+    patching the reader."""
+    from rgbdslam.datasets.base import Sequence
+
+    class View(Sequence):
+        def __init__(self):
+            self.name, self.root, self.camera, self.camera_setup = seq.name, seq.root, seq.camera, seq.camera_setup
+            self.streaming, self.parallel_load, self.own_key_points = (seq.streaming, seq.parallel_load,
+                                                                       seq.own_key_points)
+            self.wrapped = seq
+
+        def __getattr__(self, name):  # what a reader has beyond Sequence (rig, depth scale, ...)
+            return getattr(seq, name)
+
+        @property
+        def timestamps(self):
+            return seq.timestamps
+
+        def groundtruth(self):
+            return seq.groundtruth()
+
+        def load(self, i: int):
+            return load(seq, i)
+
+    return View()
+
+
 def run_pipeline(path: Path, out: Path, sets: list[str] | tuple[str, ...] = (), preset: str | None = None,
                  camera: Path | None = None) -> dict:
     """The whole ``rgbdslam run`` (map fusion and plots off) into ``out``; its run summary."""
@@ -125,11 +154,11 @@ def run_pipeline(path: Path, out: Path, sets: list[str] | tuple[str, ...] = (), 
 
 
 def parse_variant(text: str) -> tuple[str, list[str]]:
-    """``NAME=key=value,key=value`` -> ``(NAME, ["key=value", ...])``; ``NAME`` alone: no settings."""
-    name, _, rest = text.partition("=")
-    if not name:
+    """``NAME=section.key=value[,section.key=value...]`` -> ``(NAME, ["section.key=value", ...])``."""
+    name, sep, rest = text.partition("=")
+    if not name or not sep or "=" not in rest:
         raise SystemExit(f"--variant {text!r}: expected NAME=section.key=value[,section.key=value...]")
-    return name, [s for s in rest.split(",") if s]
+    return name, rest.split(",")
 
 
 # ----------------------------------------------------------------------------- peers
@@ -174,24 +203,20 @@ def run_orbslam3(seq_dir: Path, camera: str, out: Path, gt, stereo: bool = False
     return metrics(gt, est, frames, ms)
 
 
-def open3d_odometry(path: Path, camera: Path | None = None) -> Metrics:
-    """Open3D's hybrid (photometric + geometric) RGB-D odometry, frame to frame, no loop closure,
-    on the frames rgbdslam's reader gives (undistortion and depth registration as rgbdslam's);
-    a frame it fails on keeps the previous pose."""
+def open3d_trajectory(frames, camera):
+    """Open3D's hybrid (photometric + geometric) RGB-D odometry, frame to frame, no loop closure, on
+    loaded frames: ``(Trajectory, wall s per pair, CPU s per pair, failed pairs)``; a pair it fails
+    on keeps the previous pose."""
     import open3d as o3d
 
-    from rgbdslam.datasets import open_sequence
     from rgbdslam.io.trajectory import Trajectory
 
-    seq = open_sequence(path, load_config(None, (), camera))
-    cam = seq.camera
-    intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+    intr = o3d.camera.PinholeCameraIntrinsic(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
     opt = o3d.pipelines.odometry.OdometryOption()
     jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
-    prev, pose, poses, times, failed = None, np.eye(4), [], [], 0
-    for i in range(len(seq)):
-        f = seq.load(i)
-        t0 = time.perf_counter()
+    prev, pose, poses, times, cpu, failed = None, np.eye(4), [], [], [], 0
+    for f in frames:
+        c0, t0 = time.process_time(), time.perf_counter()
         img = o3d.geometry.RGBDImage.create_from_color_and_depth(
             o3d.geometry.Image(np.ascontiguousarray(f.rgb)), o3d.geometry.Image(f.depth.astype(np.float32)),
             depth_scale=1.0, depth_trunc=4.0, convert_rgb_to_intensity=True)
@@ -200,9 +225,20 @@ def open3d_odometry(path: Path, camera: Path | None = None) -> Metrics:
             failed += not ok
             pose = pose @ (T if ok else np.eye(4))
             times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
         prev = img
         poses.append(pose.copy())
-    est = Trajectory(seq.timestamps.copy(), np.array(poses))
+    est = Trajectory(np.array([f.timestamp for f in frames]), np.array(poses))
+    return est, np.array(times), np.array(cpu), failed
+
+
+def open3d_odometry(path: Path, camera: Path | None = None) -> Metrics:
+    """:func:`open3d_trajectory` on the frames rgbdslam's reader gives (undistortion and depth
+    registration as rgbdslam's), against the sequence's ground truth."""
+    from rgbdslam.datasets import open_sequence
+
+    seq = open_sequence(path, load_config(None, (), camera))
+    est, times, _, failed = open3d_trajectory((seq.load(i) for i in range(len(seq))), seq.camera)
     m = metrics(seq.groundtruth(), est, len(seq), 1e3 * float(np.median(times)))
     m.tracked = len(seq) - failed
     return m
@@ -309,3 +345,47 @@ def publish(name: str, table: str, command: str, machine_line: str, notes: str =
         text = path.read_text() if path.exists() else "# Benchmarks\n"
         atomic_write_text(path, replace_block(text, name, block))
     return block
+
+
+def publish_markdown(text: str, write: bool, name: str | None = None, path: Path = BENCHMARKS_MD) -> int:
+    """A benchmark's whole markdown (its command and machine inside) printed, and with ``write`` put
+    into ``path`` between the markers of ``name`` (default: the text's "## " heading as a slug);
+    the heading itself stays the page's (it is not written into the block)."""
+    print(text)
+    lines = text.strip().splitlines()
+    heading = lines[0].lstrip("#").strip() if lines and lines[0].startswith("#") else None
+    name = name or re.sub(r"[^a-z0-9]+", "-", (heading or "benchmark").lower()).strip("-")
+    if write:
+        from rgbdslam.io.atomic import atomic_write_text
+
+        body = "\n".join(lines[1:] if heading else lines)
+        doc = path.read_text() if path.exists() else "# Benchmarks\n"
+        atomic_write_text(path, replace_block(doc, name, body))
+    return 0
+
+
+def reference_timing(reps: int = 20) -> str:
+    """A fixed workload timed on this machine now, printed next to a benchmark's numbers, so that
+    runs on different days (the machines are shared and their speed varies) can be compared:
+    ORB (1000 features) on a seeded 640x480 texture and a 1000x1000 Hamming matrix (NumPy)."""
+    import cv2
+
+    from rgbdslam.frontend.features import descriptor_words
+    from rgbdslam.frontend.matching import hamming_matrix
+
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (480, 640), dtype=np.uint8), (0, 0), 1.5)
+    orb = cv2.ORB_create(1000)
+    words = descriptor_words(rng.integers(0, 256, (1000, 32), dtype=np.uint8))
+
+    def median_ms(fn) -> float:
+        fn()
+        times = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return 1e3 * float(np.median(times))
+
+    return (f"reference workload (median of {reps}): ORB on 640x480 {median_ms(lambda: orb.detectAndCompute(img, None)):.1f} ms, "
+            f"1000x1000 Hamming matrix {median_ms(lambda: hamming_matrix(words, words)):.1f} ms")

@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python scripts/bench_tracking_loss.py [--data DIR] [--work DIR] [--write-docs]
+    python -m benchmarks.tracking_loss [--data DIR] [--work DIR] [--write-docs]
 
 Two sequences, each in a temporary copy (the data are never modified):
 
@@ -34,10 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import DATA
 
-from rgbdslam.config import load_config  # noqa: E402
+from rgbdslam.config import load_config
 
 
 def blackout(src: Path, dst: Path, first: int, stop: int) -> Path:
@@ -110,13 +109,13 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", default=os.environ.get("RGBDSLAM_DATA", str(ROOT.parent / "shared" / "data")))
+    ap.add_argument("--data", default=str(DATA))
     ap.add_argument("--work", default=None, help="folder for the altered copies and the runs (default: temporary)")
     ap.add_argument("--gaps", default="60-90,20-50,130-165",
                     help="fr1/rpy frames to black out, FIRST-STOP (STOP excluded), comma-separated")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args(argv)
-    command = "python scripts/bench_tracking_loss.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    command = "python -m benchmarks.tracking_loss " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="bench_loss_"))
     work.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -133,7 +132,7 @@ def main(argv=None) -> int:
     generate_sequence(work / "synth", frames=120, motion="loop", noise=True, seed=0)
     rows += run_case("synthetic loop (120)", blackout(work / "synth", work / "synth_gap", 50, 85), 50, 85, work)
     md = markdown(rows, command)
-    from _docs import publish
+    from benchmarks.common import publish_markdown as publish
 
     return publish(md, a.write_docs)
 

@@ -1,7 +1,8 @@
-"""Write real ROS bags (ROS 1, ROS 2 sqlite3/mcap, RealSense SDK layout) from a TUM folder with
-``rosbags``' own writers, for the bag reader's tests. Every kind keeps the TUM images' values
-exactly (lossless PNG compression, depth units chosen so the raw values survive), so a run on
-the bag can be compared with the run on the folder bit for bit."""
+"""Test data for the readers: real ROS bags (ROS 1, ROS 2 sqlite3/mcap, RealSense SDK layout)
+written from a TUM folder with ``rosbags``' own writers, for the bag reader's tests and the
+own-data benchmark. Every kind keeps the TUM images' values exactly (lossless PNG compression,
+depth units chosen so the raw values survive), so a run on the bag can be compared with the run
+on the folder bit for bit."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@ stereo with exact ground truth.
 
 Usage::
 
-    .venv/bin/python scripts/bench_stereo.py [--seeds 0,1,2] [--frames 150] [--motions loop,circle]
+    python -m benchmarks.stereo [--seeds 0,1,2] [--frames 150] [--motions loop,circle]
         [--work DIR] [--json FILE] [--parts depth,disparity,kitti,synthetic,oracle,speed] [--repeats 3]
         [--methods sparse,...] [--set KEY=VALUE ...] [--tag NAME] [--reuse-rgbd] [--oracle-modes ...]
 
@@ -49,10 +49,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import DATA, sequence_view
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
 KITTI = DATA / "kitti" / "odometry_06_head51"
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 # stereo depth variants of the synthetic comparison
@@ -118,7 +116,7 @@ def disparity_errors(motions: list[str], seeds: list[int], frames: int = 150, st
     and by image column third."""
     from rgbdslam.config import load_config
     from rgbdslam.datasets.synthetic import Rays, Scene, make_trajectory, scaled_camera
-    from rgbdslam.datasets.synthetic_stereo import _render_pairs
+    from rgbdslam.datasets.synthetic_stereo import render_pairs
     from rgbdslam.frontend.features import detect
     from rgbdslam.geometry.stereo import StereoRig
     from rgbdslam.stereo.depth import sparse_matches
@@ -129,10 +127,11 @@ def disparity_errors(motions: list[str], seeds: list[int], frames: int = 150, st
     out = {}
     for motion in motions:
         for seed in seeds:
-            poses = make_trajectory(motion, frames)[::step]
+            poses = make_trajectory(motion, max(2, frames // step))  # the same path, every step-th frame's spacing
             scene, rays = Scene(seed), Rays(cam)
             rows: dict[str, list] = {m: [] for m in SUBPIXEL}
-            for k, left, right in _render_pairs(cam, poses, rig.baseline, True, seed, False):
+            pairs = render_pairs(cam, poses, rig.baseline, True, seed, False, {"motion": motion}, [])
+            for k, left, right in pairs:
                 z_true = scene.render(rays, poses[k])[1]
                 for method in SUBPIXEL:
                     cfg = load_config(None, [f"stereo.subpixel={method}"])
@@ -221,10 +220,8 @@ def with_oracle_depth(seq, motion: str, seed: int, mode: str):
     world = make_trajectory(motion, len(seq))  # KITTI layout poses start at the identity: render from the world's
     scene, rays = Scene(seed), Rays(seq.camera)
     fb = seq.camera.fx * seq.rig.baseline
-    load = seq.load
-
-    def oracle_load(i: int):
-        f = load(i)
+    def oracle_load(seq, i: int):
+        f = seq.load(i)
         true = scene.render(rays, world[i])[1]
         rng = np.random.default_rng([seed, i, 777])
         has = f.depth > 0
@@ -242,8 +239,7 @@ def with_oracle_depth(seq, motion: str, seed: int, mode: str):
         f.depth = depth
         return f
 
-    seq.load = oracle_load
-    return seq
+    return sequence_view(seq, oracle_load)
 
 
 def run(seq, cfg_name: str | None, sets: list[str], out: Path) -> dict:

@@ -24,7 +24,7 @@ starts elsewhere: ``loop`` (phase 0) then ``loop`` (phase 0.5, the far side of t
 jump between them is a tracking loss, the run relocalises with the loop closer, like any run
 after a loss).
 
-    .venv/bin/python scripts/bench_sessions.py [--cases fr1_rpy,redkitchen,synth_half,synth_circle]
+    python -m benchmarks.sessions [--cases fr1_rpy,redkitchen,synth_half,synth_circle]
         [--work /tmp/rgbdslam_bench_sessions] [--json out.json] [--reuse] [--set KEY=VALUE ...]
 """
 

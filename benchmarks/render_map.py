@@ -1,9 +1,8 @@
-#!/usr/bin/env python
 """Render a run's fused map to PNG without a display, for the docs (rgbdslam.viz.render; the
 same pictures as `rgbdslam fuse --render`, here into another folder with a name prefix, and the
 2-D map preview copied beside them).
 
-    python scripts/render_map.py RUN_DIR --out docs/ [--prefix rpy200_] [--width 640]
+    python -m benchmarks.render_map RUN_DIR --out docs/ [--prefix rpy200_] [--width 640]
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@
    recorder) and the SDK's playback of that recording through ``rgbdslam live``: ATE of each and
    the largest pose difference to the folder run.
 
-    .venv/bin/python scripts/bench_owndata.py --work /tmp/bench_owndata
+    python -m benchmarks.owndata --work /tmp/bench_owndata
 """
 
 from __future__ import annotations
@@ -24,12 +24,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # the bag writers of the tests (tests/datasets/bagmaker.py)
+from benchmarks.common import DATA, ROOT
 
-from rgbdslam.config import load_config  # noqa: E402
-from rgbdslam.io.trajectory import read_tum  # noqa: E402
-from rgbdslam.pipeline import run_sequence  # noqa: E402
+from rgbdslam.config import load_config
+from rgbdslam.io.trajectory import read_tum
+from rgbdslam.pipeline import run_sequence
 
 
 def _cfg(*extra):
@@ -64,7 +63,7 @@ def seven_scenes(data: Path, work: Path) -> list[str]:
 
 
 def parity(data: Path, work: Path) -> list[str]:
-    from tests.datasets.bagmaker import write_bag, write_realsense_recording
+    from rgbdslam.datasets.testing import write_bag, write_realsense_recording
 
     src = data / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
     runs = [("TUM folder", src, [])]
@@ -103,7 +102,7 @@ def parity(data: Path, work: Path) -> list[str]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default=os.environ.get("RGBDSLAM_DATA", str(ROOT.parent / "shared" / "data")))
+    ap.add_argument("--data", default=str(DATA))
     ap.add_argument("--work", required=True, help="an empty folder for the bags and runs")
     a = ap.parse_args()
     work = Path(a.work)

@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python scripts/bench_synthetic.py [--frames 150] [--seeds 0,1] [--motions loop,circle,xyz,rpy]
+    python -m benchmarks.synthetic [--frames 150] [--seeds 0,1] [--motions loop,circle,xyz,rpy]
         [--variant NAME=KEY=VALUE[,KEY=VALUE...]] ... [--work DIR] [--write-docs]
 
 Every (motion, seed) sequence is rendered once (``rgbdslam.datasets.synthetic.generate_sequence``
@@ -27,22 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from rgbdslam.config import load_config  # noqa: E402
+from benchmarks.common import parse_variant
+from rgbdslam.config import load_config
 
 DEFAULT_VARIANTS = ["sharp frames only=loop.query_gap=0",
                     "ORB response gate, sharp frames only=loop.sharpness_measure=response,loop.query_gap=0",
                     "newest reference by brute force always=registration.predicted_gate=null"]
-
-
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    """'NAME=KEY=VALUE[,KEY=VALUE...]' -> (NAME, ['KEY=VALUE', ...])."""
-    name, sep, rest = text.partition("=")
-    if not sep or "=" not in rest:
-        raise SystemExit(f"--variant {text!r}: expected NAME=KEY=VALUE[,KEY=VALUE...]")
-    return name, rest.split(",")
 
 
 def run_all(frames: int, seeds: list[int], motions: list[str], variants: dict[str, list[str]],
@@ -103,13 +93,13 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default=None, help="folder for sequences and runs (default: temporary)")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args(argv)
-    command = "python scripts/bench_synthetic.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    command = "python -m benchmarks.synthetic " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     variants = {"default": []}
     variants.update(dict(parse_variant(v) for v in (a.variant or DEFAULT_VARIANTS)))
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="bench_synth_"))
     work.mkdir(parents=True, exist_ok=True)
     rows = run_all(a.frames, [int(x) for x in a.seeds.split(",")], a.motions.split(","), variants, work)
-    from _docs import publish
+    from benchmarks.common import publish_markdown as publish
 
     return publish(markdown(rows, variants, a.frames, command), a.write_docs)
 

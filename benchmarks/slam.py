@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python scripts/bench_slam.py [--data DIR] [--out DIR] [--write-docs] [--skip-synthetic]
+    python -m benchmarks.slam [--data DIR] [--out DIR] [--write-docs] [--skip-synthetic]
                                            [--skip-index] [--frames N] [--repeat N]
                                            [--landmark-ablation [--ablation-motions M,..] [--ablation-seeds S,..]
                                             [--landmark-section HEADING] [--json FILE]]
@@ -30,7 +30,7 @@ disagrees with the ground truth by more than 0.10 m or 5 degrees) as markdown. T
 ``--landmark-ablation`` (issue 17) runs ``LANDMARK_ABLATION`` — today's default; landmark tracking
 without BA; with local BA; Kalman off; uniform instead of old-first RANSAC sampling; one k-d tree
 instead of the multi-tree; the map pose alone (seed mode) — on fr1/rpy head200, 7-Scenes redkitchen
-0-299 and the synthetic motions x seeds (``--synthetic-frames``), with scripts/bench_landmarks.py's
+0-299 and the synthetic motions x seeds (``--synthetic-frames``), with benchmarks/landmarks.py's
 tables plus the landmark stage's cost per variant, as its own section (``--landmark-section``).
 With ``--skip-table --skip-ablation --skip-synthetic --skip-index`` it runs alone.
 
@@ -41,6 +41,7 @@ landmark ablation's section, appended when new).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import shlex
@@ -51,75 +52,52 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "scripts"))
-
-from rgbdslam.config import Config  # noqa: E402
-from rgbdslam.geometry.se3 import inv, rotation_angle  # noqa: E402
+from benchmarks import common
+from benchmarks.common import ROOT
+from rgbdslam.config import Config, merge
+from rgbdslam.evaluation.ate import ate
+from rgbdslam.geometry.se3 import inv, rotation_angle
 
 FALSE_LOOP_T = 0.10
 FALSE_LOOP_R_DEG = 5.0
 
 
 def data_root(arg: str | None) -> Path:
-    return Path(arg or os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
+    return Path(arg) if arg else common.DATA
 
 
-def configs() -> dict[str, Config]:
+def configs() -> dict[str, list[str]]:
+    """name -> config settings (``section.key=value``) on top of the defaults (map and plots off)."""
+    on = {True: "true", False: "false"}
     out = {}
     for name, method, lc, dif in [("ISVD", "isvd", False, False), ("ISVD+LC", "isvd", True, False),
                                   ("ISVD+LC+DIF", "isvd", True, True), ("ISLAM", "islam", False, False),
                                   ("best (ISLAM+LC)", "islam", True, False), ("ISLAM+LC+DIF", "islam", True, True)]:
-        cfg = Config()
-        cfg.registration.method = method
-        cfg.loop.enabled = lc
-        cfg.backend.enabled = lc
-        cfg.depth_filter.enabled = dif
-        cfg.mapping.enabled = False
-        cfg.output.plots = False
-        out[name] = cfg
-    # the landmark map (issue 17) on top of the best: fused with ISLAM, alone (seed mode), with local BA,
+        out[name] = [f"registration.method={method}", f"loop.enabled={on[lc]}", f"backend.enabled={on[lc]}",
+                     f"depth_filter.enabled={on[dif]}"]
+    # the landmark map on top of the best: fused with ISLAM, alone (seed mode), with local BA,
     # and its ablations (Kalman off, uniform RANSAC sampling, single k-d tree); docs/slam.md "Landmark map"
-    for name, sets in [("ISLAM+LC+landmarks", {}), ("… seed mode", {"mode": "seed"}),
-                       ("… + local BA", {"local_ba": True}), ("… Kalman off", {"kalman": False}),
-                       ("… uniform sampling", {"sampling": "uniform"}), ("… single k-d tree", {"store": "single"})]:
-        cfg = Config()
-        cfg.mapping.enabled = False
-        cfg.output.plots = False
-        cfg.landmarks.enabled = True
-        for k, v in sets.items():
-            setattr(cfg.landmarks, k, v)
-        out[name] = cfg
+    for name, sets in [("ISLAM+LC+landmarks", []), ("… seed mode", ["landmarks.mode=seed"]),
+                       ("… + local BA", ["landmarks.local_ba=true"]), ("… Kalman off", ["landmarks.kalman=false"]),
+                       ("… uniform sampling", ["landmarks.sampling=uniform"]),
+                       ("… single k-d tree", ["landmarks.store=single"])]:
+        out[name] = ["landmarks.enabled=true", *sets]
     return out
 
 
-class _Recorder:
-    """Records the loop edges and per-query times of every LoopCloser (bench instrumentation)."""
+def config(sets: list[str], max_frames: int | None = None) -> Config:
+    return common.load_config(None, [*sets, *([f"dataset.max_frames={max_frames}"] if max_frames else [])])
 
-    def __init__(self):
-        from rgbdslam.loop import detector
 
-        self.edges: list = []
-        self.closers: list = []
-        self._orig_detect = detector.LoopCloser.detect
-        self._orig_init = detector.LoopCloser.__init__
-        rec = self
+def loop_edges(run_dir: Path) -> list[tuple[int, int, np.ndarray]]:
+    """The loop edges ``(i, j, T_ij)`` of a finished run: the edges of its posegraph.g2o (vertex ids =
+    frame indices) between the frame pairs run.json lists as loops."""
+    from rgbdslam.posegraph.graph_io import read_graph
 
-        def init(obj, *a, **k):
-            rec._orig_init(obj, *a, **k)
-            rec.closers.append(obj)
-
-        def detect(obj, features, pose):
-            e = rec._orig_detect(obj, features, pose)
-            rec.edges.extend(e)
-            return e
-
-        detector.LoopCloser.__init__ = init
-        detector.LoopCloser.detect = detect
-
-    def reset(self):
-        self.edges, self.closers = [], []
+    pairs = {tuple(p) for p in json.loads((run_dir / "run.json").read_text())["loops"]}
+    g = read_graph(run_dir / "posegraph.g2o")
+    return [(int(g.ids[a]), int(g.ids[b]), T) for a, b, T in zip(g.edges_i, g.edges_j, g.meas)
+            if (int(g.ids[a]), int(g.ids[b])) in pairs]
 
 
 def gt_pose_lookup(seq):
@@ -137,11 +115,11 @@ def gt_pose_lookup(seq):
 
 def loop_errors(edges, gt_pose) -> list[tuple[float, float]]:
     out = []
-    for e in edges:
-        a, b = gt_pose(e.i), gt_pose(e.j)
+    for i, j, T_ij in edges:
+        a, b = gt_pose(i), gt_pose(j)
         if a is None or b is None:
             continue
-        d = inv(inv(a) @ b) @ e.T_ij
+        d = inv(inv(a) @ b) @ T_ij
         out.append((float(np.linalg.norm(d[:3, 3])), float(np.degrees(rotation_angle(d[:3, :3])))))
     return out
 
@@ -164,28 +142,25 @@ def timed_runs(seq, out: Path, cfg: Config, repeat: int) -> dict:
     return s
 
 
-def run_table(data: Path, out: Path, rec: _Recorder, max_frames: int | None, repeat: int = 1) -> list[dict]:
+def run_table(data: Path, out: Path, max_frames: int | None, repeat: int = 1) -> list[dict]:
     from rgbdslam.datasets import open_sequence
 
     rows = []
     seqs = sorted(p for p in (data / "tum").glob("rgbd_dataset_*") if p.is_dir())
     for sp in seqs:
-        for name, cfg in configs().items():
-            cfg.dataset.max_frames = max_frames
+        for name, sets in configs().items():
+            cfg = config(sets, max_frames)
             seq = open_sequence(sp, cfg.dataset)
             if len(seq) < 20:  # too short for loop closure to mean anything
                 break
-            rec.reset()
             t0 = time.perf_counter()
-            s = timed_runs(seq, out / sp.name / "".join(ch if ch.isalnum() or ch in "+-" else "_" for ch in name),
-                           cfg, repeat)
+            run_dir = out / sp.name / "".join(ch if ch.isalnum() or ch in "+-" else "_" for ch in name)
+            s = timed_runs(seq, run_dir, cfg, repeat)
             wall = (time.perf_counter() - t0) / max(1, repeat)
-            rec.edges = rec.edges[:len(rec.edges) // max(1, repeat)]  # the first run's loops
-            rec.closers = rec.closers[:1]
             ev = (s.get("evaluation") or {}).get("ate") or {}
-            errs = loop_errors(rec.edges, gt_pose_lookup(seq))
+            errs = loop_errors(loop_edges(run_dir), gt_pose_lookup(seq))  # the first run's loops
             false = sum(1 for t, r in errs if t > FALSE_LOOP_T or r > FALSE_LOOP_R_DEG)
-            lc = rec.closers[0].stats if rec.closers else {}
+            lc = s.get("loop_closure") or {}
             rows.append({
                 "sequence": sp.name.replace("rgbd_dataset_", ""), "config": name, "frames": s["frames"],
                 "ate": ev.get("rmse", float("nan")), "fps": s["fps"], "processing_fps": s["processing_fps"],
@@ -202,7 +177,7 @@ def run_table(data: Path, out: Path, rec: _Recorder, max_frames: int | None, rep
     return rows
 
 
-def run_synthetic(out: Path, frames: int, rec: _Recorder) -> dict:
+def run_synthetic(out: Path, frames: int) -> dict:
     from rgbdslam.datasets.synthetic import generate_sequence
     from rgbdslam.io.trajectory import read_tum
     from rgbdslam.pipeline import run_sequence
@@ -210,27 +185,18 @@ def run_synthetic(out: Path, frames: int, rec: _Recorder) -> dict:
     seq_dir = out / "synthetic_loop"
     if not (seq_dir / "groundtruth.txt").exists():
         generate_sequence(seq_dir, frames=frames, motion="loop", noise=True, seed=0)
-    cfg = configs()["best (ISLAM+LC)"]
-    rec.reset()
+    cfg = config(configs()["best (ISLAM+LC)"])
     s = run_sequence(seq_dir, out / "synthetic_run", cfg, progress=False)
     gt = read_tum(seq_dir / "groundtruth.txt")
     res = {"frames": frames, "loops": len(s["loops"]), "sharp": s["sharp_frames"], "fps": s["fps"]}
     for name in ("odometry", "trajectory"):
-        res[name] = _ate(gt, read_tum(out / "synthetic_run" / f"{name}.tum"))
+        res[name] = ate(gt, read_tum(out / "synthetic_run" / f"{name}.tum")).rmse
     from rgbdslam.datasets import open_sequence
 
-    errs = loop_errors(rec.edges, gt_pose_lookup(open_sequence(seq_dir, cfg.dataset)))
+    errs = loop_errors(loop_edges(out / "synthetic_run"), gt_pose_lookup(open_sequence(seq_dir, cfg.dataset)))
     res["false_loops"] = sum(1 for t, r in errs if t > FALSE_LOOP_T or r > FALSE_LOOP_R_DEG)
     print(f"  synthetic loop: {res}", flush=True)
     return res
-
-
-def _ate(gt, est) -> float:
-    from rgbdslam.evaluation.report import evaluate_trajectories
-
-    rep = evaluate_trajectories(gt, est)
-    d = rep.to_dict() if hasattr(rep, "to_dict") else rep
-    return float(d["ate"]["rmse"])
 
 
 def run_index_scaling(data: Path, sizes=(50, 100, 200, 400, 800, 1600, 3200), n_queries: int = 20) -> list[dict]:
@@ -300,11 +266,12 @@ def run_ablation(data: Path, out: Path, max_frames: int | None, repeat: int = 1)
         return []
     rows = []
     for name, sets in ABLATION.items():
-        cfg = configs()["ISLAM+LC+DIF"]
-        cfg.dataset.max_frames = max_frames
+        cfg = config(configs()["ISLAM+LC+DIF"], max_frames)
+        nested: dict[str, dict] = {}
         for k, v in sets.items():
             sec, key = k.split(".")
-            setattr(getattr(cfg, sec), key, v)
+            nested.setdefault(sec, {})[key] = v
+        merge(cfg, nested, f"ablation {name}")
         s = timed_runs(sp, out / "ablation" / f"{len(rows):02d}", cfg, repeat)
         rows.append({"config": name, "ate": ((s.get("evaluation") or {}).get("ate") or {}).get("rmse", float("nan")),
                      "loops": len(s["loops"]), "fps": s["fps"],
@@ -331,7 +298,7 @@ LANDMARK_ABLATION = {
 def landmark_sequences(data: Path, out: Path, motions: list[str], seeds: list[int], frames: int) -> list[tuple]:
     """(name, folder, extra config) of fr1/rpy head200, 7-Scenes redkitchen 0-299 (the 7-Scenes reader with
     configs/7scenes_camera.yaml) and the synthetic generator's motions x seeds (Kinect noise, rendered once
-    into ``out``), as scripts/bench_landmarks.py names them."""
+    into ``out``), as benchmarks/landmarks.py names them."""
     from rgbdslam.datasets.synthetic import generate_sequence
 
     seqs = []
@@ -355,7 +322,7 @@ def run_landmark_ablation(data: Path, out: Path, motions: list[str], seeds: list
     """Every :data:`LANDMARK_ABLATION` variant on every sequence of :func:`landmark_sequences` (map
     fusion off): ATE, 1-frame RPE, frames/s, the landmark stage's and the local BA's median ms, the
     share of old landmarks matched, and first visit / revisit ATE on the loop-type motions."""
-    from bench_landmarks import LOOP_TYPE, _metrics, revisit_errors, run_dir_name
+    from benchmarks.landmarks import LOOP_TYPE, summary_metrics, revisit_errors, run_dir_name
 
     from rgbdslam.config import load_config
 
@@ -366,7 +333,7 @@ def run_landmark_ablation(data: Path, out: Path, motions: list[str], seeds: list
             run = out / "landmark_ablation" / run_dir_name(name, vname.replace(",", "").replace("+", "plus"))
             s = timed_runs(d, run, cfg, repeat)
             lm = s.get("landmarks") or {}
-            row = {"sequence": name, "variant": vname, "dir": str(d), **_metrics(s),
+            row = {"sequence": name, "variant": vname, "dir": str(d), **summary_metrics(s),
                    "landmarks_ms": (s["timings"].get("landmarks") or {}).get("median_ms"),
                    "local_ba_ms": lm.get("local_ba_median_ms") if lm.get("local_ba_runs") else None,
                    "store_trees": lm.get("store_trees")}
@@ -383,7 +350,7 @@ def run_landmark_ablation(data: Path, out: Path, motions: list[str], seeds: list
 def landmark_markdown(rows: list[dict], section: str, command: str, machine: str) -> str:
     """bench_landmarks.py's tables (per sequence x variant, revisit, synthetic medians and ratios) and the
     landmark stage's cost per variant (median over the sequences of each run's median ms per frame)."""
-    from bench_landmarks import markdown as lm_markdown
+    from benchmarks.landmarks import markdown as lm_markdown
 
     text = lm_markdown(rows, section, [command], machine)
     variants = list(dict.fromkeys(r["variant"] for r in rows))
@@ -492,14 +459,14 @@ def main(argv=None) -> int:
                          "and the synthetic --ablation-motions x --ablation-seeds; its own section")
     ap.add_argument("--ablation-motions", default="loop,circle,xyz,rpy,figure8,revisit")
     ap.add_argument("--ablation-seeds", default="0")
-    ap.add_argument("--landmark-section", default="## Landmark map ablation (scripts/bench_slam.py)",
+    ap.add_argument("--landmark-section", default="## Landmark map ablation (benchmarks/slam.py)",
                     help="heading of the landmark ablation's section (--write-docs replaces it or appends it)")
     ap.add_argument("--json", default=None, help="write the landmark ablation's rows here")
     a = ap.parse_args(argv)
-    command = "python scripts/bench_slam.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    command = "python -m benchmarks.slam " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     data = data_root(a.data)
     out = Path(a.out) if a.out else Path(tempfile.mkdtemp(prefix="bench_slam_"))
-    from _docs import publish, reference_timing
+    from benchmarks.common import publish_markdown as publish, reference_timing
 
     if a.landmark_ablation:
         load0 = ", ".join(f"{x:.1f}" for x in os.getloadavg())
@@ -509,8 +476,6 @@ def main(argv=None) -> int:
                    f"{time.strftime('%Y-%m-%d %H:%M')}, load average at the start {load0} and at the end "
                    f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}")
         if a.json:
-            import json
-
             from rgbdslam.io.atomic import atomic_write_text
 
             atomic_write_text(Path(a.json), json.dumps({"command": command, "machine": machine, "rows": lrows}, indent=1))
@@ -518,10 +483,9 @@ def main(argv=None) -> int:
         if a.skip_table and a.skip_ablation and a.skip_synthetic and a.skip_index:
             return 0
     reference = [("before the runs", reference_timing())]
-    rec = _Recorder()
-    rows = [] if a.skip_table else run_table(data, out, rec, a.frames, a.repeat)
+    rows = [] if a.skip_table else run_table(data, out, a.frames, a.repeat)
     ablation = [] if a.skip_ablation else run_ablation(data, out, a.frames, a.repeat)
-    synth = None if a.skip_synthetic else run_synthetic(out, a.synthetic_frames, rec)
+    synth = None if a.skip_synthetic else run_synthetic(out, a.synthetic_frames)
     index_rows = [] if a.skip_index else run_index_scaling(data)
     reference.append(("after them", reference_timing()))
     md = markdown(rows, synth, index_rows, command, ablation, a.repeat, reference)

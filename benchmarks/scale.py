@@ -4,7 +4,7 @@ memory of a long run. One command gives the whole table.
 
 Usage::
 
-    .venv/bin/python scripts/bench_scale.py [--work DIR] [--parts run,sweep,memory]
+    python -m benchmarks.scale [--work DIR] [--parts run,sweep,memory]
                                             [--long-frames 5000] [--repeat 3] [--write-docs]
 
 * run: ``rgbdslam run`` on TUM fr1/rpy head200 (preset tum_fr1), as a user starts it (a new
@@ -41,13 +41,10 @@ import time
 from datetime import date
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "scripts"))
+from benchmarks.common import DATA
 
-from _docs import publish, reference_timing  # noqa: E402
+from benchmarks.common import publish_markdown as publish, reference_timing
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
 RPY = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk_9frames"
 BIN = Path(sys.executable).parent / "rgbdslam"
@@ -369,7 +366,7 @@ def main() -> int:
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     parts = a.parts.split(",")
-    cmd = "python scripts/bench_scale.py " + " ".join(shlex.quote(x) for x in sys.argv[1:])
+    cmd = "python -m benchmarks.scale " + " ".join(shlex.quote(x) for x in sys.argv[1:])
     out = ["## Scale", "", f"Command: `{cmd}`  ",
            f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
            f"{date.today().isoformat()}; shared with other jobs, so compare ratios within this run.  ",

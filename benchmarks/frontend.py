@@ -1,33 +1,29 @@
-#!/usr/bin/env python
 """Front-end benchmark: accuracy (ATE/RPE) and per-frame time of every registration variant.
 
 All variants run on the same preloaded frames (image decoding is timed once, separately).
-Prints a markdown table; ``--write-docs`` replaces the "Front end" section of
-docs/benchmarks.md with it.
+Prints a markdown table; ``--write-docs`` puts it into docs/benchmarks.md (block ``frontend``).
 
-    .venv/bin/python scripts/bench_frontend.py [SEQUENCE] [--variants a,b] [--write-docs]
+    python -m benchmarks.frontend [SEQUENCE] [--variants a,b] [--write-docs]
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.config import Config
+from rgbdslam.config import Config, merge
 from rgbdslam.datasets import open_sequence
 from rgbdslam.evaluation.ate import ate
+from rgbdslam.evaluation.rpe import rpe
 from rgbdslam.frontend.odometry import build_frontend
 from rgbdslam.io.trajectory import Trajectory
 
-ROOT = Path(__file__).resolve().parent.parent
-DATA = Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
+from benchmarks import common
+from benchmarks.common import DATA
+
 DEFAULT_SEQ = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
 
 
@@ -53,11 +49,7 @@ def variants() -> dict[str, dict]:
 
 
 def make_config(over: dict) -> Config:
-    cfg = Config()
-    for section, values in over.items():
-        for k, v in values.items():
-            setattr(getattr(cfg, section), k, v)
-    return cfg
+    return merge(Config(), over, "benchmarks.frontend variant")
 
 
 def run_variant(frames, camera, cfg: Config):
@@ -77,46 +69,10 @@ def run_variant(frames, camera, cfg: Config):
     return Trajectory(np.array(stamps), np.array(poses)), np.array(times), np.array(cpu), lost
 
 
-def rpe_rmse(gt: Trajectory, est: Trajectory, max_difference: float = 0.02) -> tuple[float, float]:
-    """Frame-to-frame RPE RMSE (translation m, rotation deg), via rgbdslam.evaluation.rpe if present."""
-    try:
-        from rgbdslam.evaluation.rpe import rpe
-
-        r = rpe(gt, est, max_difference=max_difference)
-        return float(r.trans.rmse), float(r.rot.rmse)
-    except Exception:  # noqa: BLE001 - the evaluation API may still be moving
-        return float("nan"), float("nan")
-
-
-def o3d_odometry(frames, camera) -> tuple[Trajectory, np.ndarray]:
-    import open3d as o3d
-
-    intr = o3d.camera.PinholeCameraIntrinsic(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
-    opt = o3d.pipelines.odometry.OdometryOption()
-    jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
-    imgs = [
-        o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(f.rgb)), o3d.geometry.Image(f.depth),
-            depth_scale=1.0, depth_trunc=4.0, convert_rgb_to_intensity=True)
-        for f in frames
-    ]
-    pose = np.eye(4)
-    poses, times, cpu = [pose], [], []
-    for a, b in zip(imgs[:-1], imgs[1:]):
-        c0, t0 = time.process_time(), time.perf_counter()
-        ok, T, _ = o3d.pipelines.odometry.compute_rgbd_odometry(b, a, intr, np.eye(4), jac, opt)
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-        pose = pose @ (T if ok else np.eye(4))
-        poses.append(pose)
-    return Trajectory(np.array([f.timestamp for f in frames]), np.array(poses)), np.array(times), np.array(cpu)
-
-
-def machine() -> str:
-    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                if ln.startswith("model name")), platform.processor())
-    nproc = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip()
-    return f"{cpu}, nproc={nproc}, Python {platform.python_version()}"
+def rpe_rmse(gt: Trajectory, est: Trajectory) -> tuple[float, float]:
+    """Frame-to-frame RPE RMSE (translation m, rotation deg)."""
+    r = rpe(gt, est, delta=1, delta_unit="f")
+    return float(r.trans.rmse), float(r.rot.rmse)
 
 
 def main(argv=None) -> int:
@@ -127,7 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--write-docs", action="store_true", help="write the table into docs/benchmarks.md")
     args = ap.parse_args(argv)
 
-    from _docs import reference_timing
+    from benchmarks.common import reference_timing
 
     reference = reference_timing()
     seq = open_sequence(args.sequence)
@@ -153,7 +109,7 @@ def main(argv=None) -> int:
                      np.mean(cpu[1:]) * 1e3, same))
         print(f"  {name}: ATE {a.rmse:.4f} m, median {med * 1e3:.1f} ms, lost {lost}, reproducible {same}", flush=True)
     if not args.no_open3d:
-        est, times, cpu = o3d_odometry(frames, seq.camera)
+        est, times, cpu, _ = common.open3d_trajectory(frames, seq.camera)
         a = ate(gt, est)
         rt, rr = rpe_rmse(gt, est)
         med = np.median(times)
@@ -168,27 +124,13 @@ def main(argv=None) -> int:
         for n, a, rt, rr, lost, m, p, fps, c, s in rows
     ]
     table = "\n".join(lines)
-    print()
-    print(table)
-    if args.write_docs:
-        cmd = "cd /work/main && .venv/bin/python scripts/bench_frontend.py " + " ".join(argv if argv is not None else sys.argv[1:])
-        section = (
-            "## Front end\n\n"
-            f"Sequence: `{args.sequence}` ({len(frames)} frames, 640x480). Machine: {machine()} "
-            "(shared with other jobs while measured, so timings are noisy). "
-            f"Speed of the machine before the runs: {reference}.\n"
-            f"Command: `{cmd.strip()}`\n\n"
-            f"Image decoding (excluded from the times below): {decode * 1e3:.1f} ms/frame. "
-            "Per-frame time = `Frontend.track` (ORB + matching + registration + fusion). "
-            "ATE: SE(3)-aligned, TUM association 0.02 s; lost frames are left out of the estimate. "
-            "Reproducible = a second run on the first 40 frames gives bit-identical poses. "
-            f"Load average when the run ended: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; "
-            "mean CPU ms (process time per frame) is the load-independent cost.\n\n"
-            + table + "\n"
-        )
-        from _docs import replace_section
-
-        replace_section(section)
+    notes = (f"Sequence: `{args.sequence}` ({len(frames)} frames). {reference}. Image decoding (excluded "
+             f"from the times): {decode * 1e3:.1f} ms/frame. Per-frame time = `Frontend.track` (ORB + matching + "
+             "registration + fusion). ATE: SE(3)-aligned, TUM association 0.02 s; lost frames are left out of the "
+             "estimate. Reproducible = a second run on the first 40 frames gives bit-identical poses. Mean CPU ms "
+             "(process time per frame) is the load-independent cost.")
+    common.publish("frontend", table, common.command_line("benchmarks.frontend", argv), common.machine(), notes,
+                   write=args.write_docs)
     return 0
 
 

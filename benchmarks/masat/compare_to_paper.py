@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python scripts/masat/compare_to_paper.py RUNS.csv [RUNS.csv ...] [--methods masat,weighted_masat]
+    python -m benchmarks.masat.compare_to_paper RUNS.csv [RUNS.csv ...] [--methods masat,weighted_masat]
         [--alpha 0.05] [--paper-instances 50] [--paired weighted_masat,masat]
 
 Reads the ``runs.csv`` files of ``rgbdslam posegraph bench`` (several files of one data set are
@@ -31,9 +31,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from rgbdslam.posegraph import bench as pb
-import paper_stats as ps  # beside this script
+from benchmarks.masat import paper_stats as ps
 from rgbdslam.errors import InputError
+from rgbdslam.posegraph import bench as pb
 
 
 def main(argv=None) -> int:
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
         print("error: give runs.csv files of exactly one data set", file=sys.stderr)
         return 2
     rows = pb.compare_with_paper(records, [m.strip() for m in a.methods.split(",") if m.strip()], a.alpha, a.paper_instances)
-    print(f"{pb.DATASET_NAMES[records[0].dataset]} — `{' '.join(['scripts/masat/compare_to_paper.py'] + (argv or sys.argv[1:]))}`\n")
+    print(f"{pb.DATASET_NAMES[records[0].dataset]} — `{' '.join(['python -m benchmarks.masat.compare_to_paper'] + (argv or sys.argv[1:]))}`\n")
     print(ps.format_paper_comparison(rows))
     for key, what in (("verdict", "each cell on its own"), ("verdict_holm", "Holm-adjusted over the table")):
         tally = {v: sum(r[key] == v for r in rows) for v in ("above", "same", "below")}

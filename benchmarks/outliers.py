@@ -1,18 +1,19 @@
-#!/usr/bin/env python
 """The cloud's two outlier filters (mapping.outlier_method statistical / voxel) on the real cloud
 of finished runs: CPU time (median of repeats, in one sitting), which points each keeps, how far
 the points each removes lie from the run's TSDF mesh (speckles and flying pixels lie off the
 surface), and the 2-D maps of the two kept clouds.
 
-    python scripts/bench_outliers.py RUN_DIR... [--repeat 5] [--min 2,3,4,5,6]
+    python -m benchmarks.outliers RUN_DIR... [--repeat 5] [--min 2,3,4,5,6]
 
 RUN_DIR is a finished `rgbdslam run` folder; it is fused again (`fusion.fuse_run`, its map/ is
-rewritten, with the run's own configuration) to get the cloud before outlier removal and the mesh.
+rewritten, with the run's own configuration and outlier removal off) to get the cloud before outlier
+removal and the mesh.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import time
@@ -24,20 +25,14 @@ from rgbdslam.mapping import fusion
 
 
 def cloud_before_outliers(run: Path) -> np.ndarray:
-    """The run's fused cloud before outlier removal (what the filters get), by fusing it again."""
-    seen = {}
-    orig = fusion.outlier_keep
+    """The run's fused cloud before outlier removal (what the filters get): the run fused again
+    with its own configuration, outlier removal off (its map/ is rewritten so)."""
+    import open3d as o3d
 
-    def grab(points, cfg):
-        seen["points"] = np.array(points, dtype=np.float64)
-        return orig(points, cfg)
-
-    fusion.outlier_keep = grab  # write_cloud looks the function up in the module at call time
-    try:
-        fusion.fuse_run(run, progress=False)
-    finally:
-        fusion.outlier_keep = orig
-    return seen["points"]
+    _, run_cfg, _ = fusion.read_run(run)
+    cfg = dataclasses.replace(run_cfg.mapping, outlier_method="statistical", outlier_neighbors=0)
+    res = fusion.fuse_run(run, cfg, progress=False)
+    return np.asarray(o3d.io.read_point_cloud(str(res.cloud_path)).points, dtype=np.float64)
 
 
 def cpu(fn, repeat: int) -> float:

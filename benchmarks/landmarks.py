@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python scripts/bench_landmarks.py [--work DIR] [--data DIR] [--sevenscenes DIR]
+    python -m benchmarks.landmarks [--work DIR] [--data DIR] [--sevenscenes DIR]
         [--frames 150] [--seeds 0,1,2] [--motions loop,circle,xyz,rpy,figure8,revisit] [--no-open3d]
         [--variant NAME=KEY=VALUE[,KEY=VALUE...]] ... [--json FILE] [--skip-real] [--skip-synthetic]
         [--open3d-only]
@@ -34,22 +34,12 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from rgbdslam.config import load_config  # noqa: E402
-
-LOOP_TYPE = ("loop", "circle", "figure8", "revisit")
+from benchmarks import common
+from benchmarks.common import DATA, LOOP_TYPE, ROOT, parse_variant
+from rgbdslam.config import load_config
 
 
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    name, sep, rest = text.partition("=")
-    if not sep or "=" not in rest:
-        raise SystemExit(f"--variant {text!r}: expected NAME=KEY=VALUE[,KEY=VALUE...]")
-    return name, rest.split(",")
-
-
-def _metrics(s: dict) -> dict:
+def summary_metrics(s: dict) -> dict:
     ev = s.get("evaluation") or {}
     ate = (ev.get("ate") or {}).get("rmse", float("nan"))
     rpe = ((ev.get("rpe") or {}).get("trans") or {}).get("rmse", float("nan"))
@@ -97,34 +87,8 @@ def run_dir_name(seq_name: str, variant: str) -> str:
 
 def open3d_odometry(seq_dir: Path) -> dict:
     """Open3D's hybrid RGB-D odometry (frame to frame, no loop closure) on a TUM-layout folder."""
-    import open3d as o3d
-
-    from rgbdslam.config import Config
-    from rgbdslam.datasets import open_sequence
-    from rgbdslam.evaluation.report import evaluate_trajectories
-    from rgbdslam.io.trajectory import Trajectory
-
-    seq = open_sequence(seq_dir, Config().dataset)
-    cam = seq.camera
-    intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
-    opt = o3d.pipelines.odometry.OdometryOption()
-    jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
-    prev, pose, poses, stamps = None, np.eye(4), [], []
-    t0 = time.perf_counter()
-    for i in range(len(seq)):
-        f = seq[i]
-        img = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(f.rgb)), o3d.geometry.Image(f.depth.astype(np.float32)),
-            depth_scale=1.0, depth_trunc=4.0, convert_rgb_to_intensity=True)
-        if prev is not None:
-            ok, T, _ = o3d.pipelines.odometry.compute_rgbd_odometry(img, prev, intr, np.eye(4), jac, opt)
-            pose = pose @ (T if ok else np.eye(4))
-        prev = img
-        poses.append(pose.copy())
-        stamps.append(f.timestamp)
-    wall = time.perf_counter() - t0
-    rep = evaluate_trajectories(seq.groundtruth(), Trajectory(np.array(stamps), np.array(poses)))
-    return {"ate": rep.ate.rmse, "rpe": rep.rpe.trans.rmse, "fps": len(seq) / wall}
+    m = common.open3d_odometry(seq_dir)
+    return {"ate": m.ate, "rpe": m.rpe, "fps": 1e3 / m.ms}
 
 
 def parse_log(path: Path) -> dict:
@@ -230,7 +194,7 @@ def markdown(rows: list[dict], section: str, commands: list[str], machine: str) 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--work", type=Path, default=None)
-    ap.add_argument("--data", type=Path, default=Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data")))
+    ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--sevenscenes", type=Path, default=None,
                     help="7-Scenes frames 0-299 (default DATA/7scenes/frames_0000_0299, read by the 7-Scenes reader "
                          "with configs/7scenes_camera.yaml; a TUM-layout copy is run as it is)")
@@ -274,8 +238,7 @@ def main(argv=None) -> int:
                        f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
                        f"{time.strftime('%Y-%m-%d')}")
         text = markdown(rows, a.section, [d["command"] for d in data], machine)
-        sys.path.insert(0, str(ROOT / "scripts"))
-        from _docs import publish
+        from benchmarks.common import publish_markdown as publish
 
         return publish(text, a.write_docs)
     from rgbdslam.datasets.synthetic import generate_sequence
@@ -312,7 +275,7 @@ def main(argv=None) -> int:
                 and not (d / "rgb.txt").exists() else []
             cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *extra, *sets])
             s = run_sequence(d, work / "runs" / run_dir_name(name, vname), cfg, progress=False)
-            row = {"sequence": name, "variant": vname, "dir": str(d), **_metrics(s)}
+            row = {"sequence": name, "variant": vname, "dir": str(d), **summary_metrics(s)}
             if " seed " in name and name.split(" ")[0] in LOOP_TYPE:
                 rv = revisit_errors(d, work / "runs" / run_dir_name(name, vname))
                 if rv:

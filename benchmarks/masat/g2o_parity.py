@@ -3,11 +3,11 @@
 Usage::
 
     # the protocol's instances, optimised by g2o itself; --compare checks run-by-run agreement
-    .venv/bin/python scripts/masat/g2o_parity.py --dataset m3500 --noise 0.15,0.15,0.3 --method masat \\
+    python -m benchmarks.masat.g2o_parity --dataset m3500 --noise 0.15,0.15,0.3 --method masat \\
         --instances 50 [--first-instance 0] [--seed 0] [--compare RUNS.csv]
 
     # re-record the reference file the test suite compares gn2d.py with
-    .venv/bin/python scripts/masat/g2o_parity.py --record tests/data/g2o_reference.json
+    python -m benchmarks.masat.g2o_parity --record tests/data/g2o_reference.json
 
 The MASAT paper ran g2o; ``rgbdslam/posegraph/gn2d.py`` re-implements g2o's SE(2) edge, vertex update
 and Gauss–Newton step in NumPy.  This script checks that claim against g2o itself, through the
@@ -37,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]  # the repository (this file is in scripts/masat/)
+ROOT = Path(__file__).resolve().parents[2]  # the repository (this file is in benchmarks/masat/)
 G2O_VENV = ROOT / ".venv-g2o"
 G2O_PINS = ("numpy==1.26.4", "g2o-python==0.0.12")
 
@@ -145,7 +145,7 @@ def protocol(a) -> int:
         for r in pb.load_runs(a.compare):
             if (r.dataset, (r.sigma_x, r.sigma_y, r.sigma_theta), r.method) == (a.dataset, tuple(sigma), a.method):
                 ours[r.instance] = r
-    lines = [f"`scripts/masat/g2o_parity.py {' '.join(sys.argv[1:])}` — {pb.DATASET_NAMES[a.dataset]}, noise {a.noise}, "
+    lines = [f"`python -m benchmarks.masat.g2o_parity {' '.join(sys.argv[1:])}` — {pb.DATASET_NAMES[a.dataset]}, noise {a.noise}, "
              f"start {a.method}, instances {insts[0]}-{insts[-1]} of seed {a.seed}; g2o-python 0.0.12 in .venv-g2o; "
              f"{os.cpu_count()} CPUs ({platform.machine()}), wall time {wall:.0f} s", "",
              "| instance | g2o: converged / iterations / reduced χ² | ours (--compare) | same verdict |",
@@ -197,7 +197,7 @@ def record(path: Path) -> int:
     doc = dict(source="g2o via g2o-python 0.0.12 (numpy 1.26.4), SparseOptimizer + BlockSolverSE2 + "
                       "LinearSolverEigenSE2 + OptimizationAlgorithmGaussNewton, vertex 0 fixed, "
                       "chi2 recomputed after each optimize(1); graph: manhattan_world(300, seed=11)",
-               command="scripts/masat/g2o_parity.py --record " + str(path), cases=cases)
+               command="python -m benchmarks.masat.g2o_parity --record " + str(path), cases=cases)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc) + "\n")
     print(f"wrote {path}: {len(cases)} cases")

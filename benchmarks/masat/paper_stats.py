@@ -1,6 +1,6 @@
 """Statistics of the MASAT paper-reproduction studies (not part of the rgbdslam package):
 the paper comparison as a table, and paired (McNemar) comparisons of two initial guesses on the
-same instances. Used by compare_to_paper.py and the study_*.py scripts beside this file; the
+same instances. Used by compare_to_paper.py beside this file; the
 benchmark protocol itself is ``rgbdslam.posegraph.bench`` (``rgbdslam posegraph bench``).
 """
 

@@ -3,7 +3,7 @@ multi-k-d-tree (logarithmic method), time per step and per insertion against the
 
 Usage::
 
-    .venv/bin/python scripts/bench_landmark_store.py [--max 70000] [--batch 500] [--queries 500]
+    python -m benchmarks.landmark_store [--max 70000] [--batch 500] [--queries 500]
         [--dim 3] [--sweep] [--write-docs]
 
 A run of steps as in the thesis' SLAM: every step inserts ``--batch`` new landmarks (random points,
@@ -25,14 +25,9 @@ import platform
 import shlex
 import sys
 import time
-from pathlib import Path
-
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from rgbdslam.landmarks.store import MultiTreeStore, SingleTreeStore  # noqa: E402
+from rgbdslam.landmarks.store import MultiTreeStore, SingleTreeStore
 
 
 def run(stores: list, n_max: int, batch: int, queries: int, dim: int, seed: int = 0) -> list[list[tuple]]:
@@ -90,7 +85,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sweep", action="store_true")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args(argv)
-    command = "python scripts/bench_landmark_store.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    command = "python -m benchmarks.landmark_store " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     single, multi = run([SingleTreeStore(a.dim), MultiTreeStore(a.dim, a.n1, a.q)], a.max, a.batch, a.queries,
                         a.dim)
     bins = [0, 5000, 10000, 15000, 20000, 30000, 40000, 50000, 60000, 65000, a.max]
@@ -134,8 +129,7 @@ def main(argv=None) -> int:
             L.append(f"| {q} | " + " | ".join(row) + " |")
         L += ["", f"Fastest here: q = {best[1][0]}, n1 = {best[1][1]:,} ({best[0]:.2f} s); the single tree: "
                   f"{sum(r[1] for r in single):.2f} s."]
-    sys.path.insert(0, str(ROOT / "scripts"))
-    from _docs import publish
+    from benchmarks.common import publish_markdown as publish
 
     return publish("\n".join(L) + "\n", a.write_docs)
 

@@ -2,7 +2,7 @@
 
 Usage::
 
-    .venv/bin/python scripts/bench_landmark_speed.py [--sequence DIR] [--repeat 3] [--work DIR]
+    python -m benchmarks.landmark_speed [--sequence DIR] [--repeat 3] [--work DIR]
         [--variant NAME=KEY=VALUE[,KEY=VALUE...]] ... [--code NAME=DIR] ... [--json FILE]
         [--profile VARIANT] [--profile-cpu]
 
@@ -16,8 +16,8 @@ unpacked ``git archive`` of main: the code before a change), interleaved too. Pe
 median (and range) of frames/s over the repeats (whole tracking loop, images included), its ratio
 to the default's median, the CPU time per frame of the run's process (all its threads, start-up
 and the end of the run included: less sensitive to the machine's load than frames/s), the same for
-the tracking loop alone (``pipeline.track_all``: what frames/s measures, without the start-up's imports
-and the end's outputs — e.g. the landmark top view drawn with matplotlib) and that of its
+the run without its start-up's imports and its end (``run_sequence``'s CPU time less run.json's
+``after_tracking_s.cpu``: the tracking loop, which frames/s measures, and the run's small set-up) and that of its
 child processes (the local BA process), the ATE, the per-stage medians (ms) from run.json, the local BA's median
 ms per keyframe; ``uptime``'s load before and after. ``--profile VARIANT`` runs that variant once
 more under cProfile and prints the 30 most expensive functions (own time); ``--profile-cpu`` times
@@ -30,7 +30,6 @@ import argparse
 import json
 import os
 import platform
-import shlex
 import subprocess
 import sys
 import tempfile
@@ -39,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+from benchmarks.common import DATA, ROOT, command_line
 DEFAULT_VARIANTS = {"default": [], "landmarks": ["landmarks.enabled=true"],
                     "landmarks+BA": ["landmarks.enabled=true", "landmarks.local_ba=true"]}
 
@@ -48,22 +47,16 @@ import json, sys
 sys.path.insert(0, sys.argv[1])
 from rgbdslam.config import load_config
 import time
-import rgbdslam.pipeline as pipeline
 from rgbdslam.pipeline import run_sequence
 sets = json.loads(sys.argv[4])
-_track_all, loop_cpu = pipeline.track_all, []
-def _timed(*a, **k):  # the tracking loop's own CPU time (no start-up, no end of the run)
-    t0 = time.process_time()
-    try:
-        return _track_all(*a, **k)
-    finally:
-        loop_cpu.append(time.process_time() - t0)
-pipeline.track_all = _timed
 cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *sets])
 if sys.argv[5]:
     import cProfile, pstats, time
     pr = cProfile.Profile(time.process_time) if sys.argv[5] == "cpu" else cProfile.Profile(); pr.enable()
+c0 = time.process_time()
 s = run_sequence(sys.argv[2], sys.argv[3], cfg, progress=False)
+# the run's CPU time less that of its end (run.json after_tracking_s.cpu): the tracking loop's
+loop_cpu = time.process_time() - c0 - s["after_tracking_s"]["cpu"]
 if sys.argv[5]:
     pr.disable(); pstats.Stats(pr, stream=sys.stderr).sort_stats("tottime").print_stats(30)
 import resource
@@ -74,7 +67,7 @@ print("RESULT " + json.dumps({"fps": s["fps"], "processing_fps": s["processing_f
       "ate": (ev.get("ate") or {}).get("rmse"), "timings": s.get("timings", {}),
       "ba_ms": lm.get("local_ba_median_ms"), "ba_runs": lm.get("local_ba_runs"),
       "keyframes": len(s.get("keyframes", [])), "frames": s["frames"],
-      "cpu_s": me.ru_utime + me.ru_stime, "loop_cpu_s": sum(loop_cpu), "child_cpu_s": kids.ru_utime + kids.ru_stime}))
+      "cpu_s": me.ru_utime + me.ru_stime, "loop_cpu_s": loop_cpu, "child_cpu_s": kids.ru_utime + kids.ru_stime}))
 """
 
 
@@ -145,7 +138,7 @@ def markdown(rows: list[dict], command: str, machine: str) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sequence", type=Path, default=Path(os.environ.get("RGBDSLAM_DATA", ROOT.parent / "shared" / "data"))
+    ap.add_argument("--sequence", type=Path, default=DATA
                     / "tum" / "rgbd_dataset_freiburg1_rpy_head200")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--work", type=Path, default=None)
@@ -180,7 +173,7 @@ def main(argv=None) -> int:
     machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
                f"{time.strftime('%Y-%m-%d %H:%M')} UTC, shared; load average (1, 5, 15 min) {load0} at the start, "
                f"{load()} at the end")
-    command = "python " + " ".join(shlex.quote(x) for x in [os.path.relpath(sys.argv[0], ROOT), *sys.argv[1:]])
+    command = command_line("benchmarks.landmark_speed", argv)
     print(markdown(rows, command, machine))
     if a.json is not None:
         a.json.parent.mkdir(parents=True, exist_ok=True)

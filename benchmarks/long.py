@@ -3,10 +3,10 @@ map grows?
 
 Usage::
 
-    .venv/bin/python scripts/bench_long.py [--frames 1500] [--motion loop] [--seed 0] [--window 300]
+    python -m benchmarks.long [--frames 1500] [--motion loop] [--seed 0] [--window 300]
                                            [--size W H] [--set KEY=VALUE ...] [--work DIR] [--json FILE]
                                            [--write-docs]
-    .venv/bin/python scripts/bench_long.py --report A.json B.json ... [--section TITLE] [--write-docs]
+    python -m benchmarks.long --report A.json B.json ... [--section TITLE] [--write-docs]
 
 A synthetic sequence with Kinect-like noise and exact ground truth
 (``rgbdslam.datasets.synthetic.generate_sequence``; rendered once into ``--work``) is run with the
@@ -36,11 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import sequence_view
 
-from rgbdslam.config import load_config  # noqa: E402
-from rgbdslam.datasets.base import Sequence  # noqa: E402
+from rgbdslam.config import load_config
 
 
 def rss_mb() -> float:
@@ -54,35 +52,28 @@ def rss_mb() -> float:
     return float("nan")
 
 
-class TimedSequence:
-    """A sequence that records when each frame is read (and the memory every ``every`` frames)."""
+class FrameClock:
+    """Records when each frame is read (and the memory every ``every`` frames): the ``load`` of
+    :func:`benchmarks.common.sequence_view` (``run_sequence``'s reader thread reads through it)."""
 
-    prefetched = Sequence.prefetched  # reads through this wrapper's load, in the reader thread
-
-    def __init__(self, seq, every: int):
-        self._seq, self._every = seq, every
+    def __init__(self, every: int):
+        self.every = every
         self.read_at: dict[int, float] = {}
         self.rss: dict[int, float] = {}
 
-    def __getattr__(self, name):
-        return getattr(self._seq, name)
-
-    def __len__(self):
-        return len(self._seq)
-
-    def load(self, i):
+    def __call__(self, seq, i: int):
         self.read_at[i] = time.perf_counter()
-        if i % self._every == 0 or i == len(self._seq) - 1:
+        if i % self.every == 0 or i == len(seq) - 1:
             self.rss[i] = rss_mb()
-        return self._seq.load(i)
+        return seq.load(i)
 
 
 def run(frames: int, motion: str, seed: int, window: int, work: Path, sets: list[str] | None = None,
         size: tuple[int, int] = (640, 480)) -> dict:
     import resource
 
-    import rgbdslam.pipeline as pipeline
     from rgbdslam.datasets import open_sequence
+    from rgbdslam.pipeline import run_sequence
     from rgbdslam.datasets.synthetic import generate_sequence
 
     seq_dir = work / (f"{motion}_{frames}_seed{seed}" + ("" if tuple(size) == (640, 480) else f"_{size[0]}x{size[1]}"))
@@ -91,10 +82,9 @@ def run(frames: int, motion: str, seed: int, window: int, work: Path, sets: list
         generate_sequence(seq_dir, frames=frames, motion=motion, noise=True, seed=seed, progress=False,
                           width=size[0], height=size[1])
     cfg = load_config(None, ["mapping.enabled=false", "output.plots=false", *(sets or [])])
-    timed = TimedSequence(open_sequence(seq_dir, cfg.dataset), window)
-    pipeline.open_sequence = lambda *a, **k: timed  # run_sequence opens the sequence through this name
-    s = pipeline.run_sequence(seq_dir, work / ("run" if not sets else "run_" + "_".join(sets).replace("/", "_")), cfg,
-                              progress=False)
+    timed = FrameClock(window)
+    s = run_sequence(sequence_view(open_sequence(seq_dir, cfg.dataset), timed), work / ("run" if not sets else "run_" + "_".join(sets).replace("/", "_")), cfg,
+                     progress=False)
     t = np.array([timed.read_at[i] for i in range(frames)])
     rows = []
     for a in range(0, frames, window):
@@ -183,12 +173,12 @@ def main(argv=None) -> int:
                     help="only build one memory table from earlier --json files (one per configuration)")
     ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args(argv)
-    from _docs import publish, reference_timing
+    from benchmarks.common import publish_markdown as publish, reference_timing
 
     if a.report:
         runs = [json.loads(p.read_text()) for p in a.report]
         return publish(memory_markdown(runs, a.section), a.write_docs)
-    command = "python scripts/bench_long.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    command = "python -m benchmarks.long " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="bench_long_"))
     work.mkdir(parents=True, exist_ok=True)
     load0 = ", ".join(f"{x:.1f}" for x in os.getloadavg())
