@@ -178,16 +178,32 @@ def orb_settings(camera: str) -> Path:
                           "kitti": "KITTI04-12_v1.yaml"}[camera]
 
 
-def run_orbslam3(seq_dir: Path, camera: str, out: Path, gt, stereo: bool = False) -> Metrics:
+def orb_settings_for_folder(seq_dir: Path, out: Path) -> Path:
+    """A settings file for the peer on a sequence that carries its own pinhole ``camera.yaml``
+    (rgbdslam's synthetic sequences: fx fy cx cy, no distortion, depth 5000 per metre): TUM3's
+    settings with the folder's intrinsics, written to ``out``."""
+    import yaml
+
+    cam = yaml.safe_load((seq_dir / "camera.yaml").read_text())
+    text = orb_settings("fr3").read_text()
+    for key in ("fx", "fy", "cx", "cy"):
+        text = re.sub(rf"^Camera1\.{key}: .*$", f"Camera1.{key}: {float(cam[key])}", text, flags=re.M)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    return out
+
+
+def run_orbslam3(seq_dir: Path, camera: str | Path, out: Path, gt, stereo: bool = False) -> Metrics:
     """ORB-SLAM3 (RGB-D on a TUM-layout folder, paced at the recording's rate as a live camera; or
     stereo on a KITTI ``sequences/NN`` folder) on the same frames, in its own venv; its metrics
-    against ``gt``. ``ms``: its median ``track_rgbd`` / ``track_stereo`` time."""
+    against ``gt``. ``camera``: a key of :func:`orb_settings` or a settings file. ``ms``: its median
+    ``track_rgbd`` / ``track_stereo`` time."""
     from rgbdslam.io.trajectory import read_tum
 
     out.mkdir(parents=True, exist_ok=True)
     script = ORB_SCRIPTS / ("run_orb_stereo.py" if stereo else "run_orb.py")
     cmd = [str(ORB_HOME / "bin" / "python"), str(script), str(seq_dir), str(out), "--vocab", str(ORB_HOME / "voc.txt"),
-           "--settings", str(orb_settings(camera))]
+           "--settings", str(camera if isinstance(camera, Path) else orb_settings(camera))]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ORB_SCRIPTS)
     traj_file = out / "CameraTrajectory.txt"
     if proc.returncode != 0 or not traj_file.exists():

@@ -13,8 +13,9 @@ In one run, on each selected sequence:
   7-Scenes frames 0-299 through its reader (``7scenes``) and with ``--camera
   configs/7scenes_camera.yaml`` (``7scenes-camera``); KITTI 06 frames 0-50 stereo with ``-c kitti``;
   synthetic sequences (``--seeds`` x ``--motions``, Kinect noise, fr3 camera);
-* ORB-SLAM3 (RGB-D, or stereo on KITTI) on the same frames: TUM1 settings on fr1, TUM3 on fr3 and
-  the synthetic ones, SEVEN on 7-Scenes' TUM conversion (written to the work folder), KITTI04-12;
+* ORB-SLAM3 (RGB-D, or stereo on KITTI) on the same frames: TUM1 settings on fr1, TUM3 on fr3,
+  TUM3 with the sequence's own intrinsics (its camera.yaml) on the synthetic ones, SEVEN on
+  7-Scenes' TUM conversion (written to the work folder), KITTI04-12;
   skipped with a message when ``/root/orbpeer`` is absent;
 * Open3D's hybrid RGB-D odometry on the RGB-D sequences (frame to frame, once).
 
@@ -53,7 +54,7 @@ class Case:
     path: Path
     preset: str | None = None  # rgbdslam -c
     camera: Path | None = None  # rgbdslam --camera
-    orb_camera: str | None = None  # common.orb_settings key; None: no ORB-SLAM3
+    orb_camera: str | None = None  # common.orb_settings key, "synthetic" (the folder's camera.yaml); None: none
     orb_input: Path | None = None  # TUM-layout folder (RGB-D) or KITTI sequences/NN (stereo)
     stereo: bool = False
     open3d: bool = True
@@ -96,7 +97,7 @@ def cases(keys: list[str], seeds: list[int], motions: list[str], frames: int, wo
             for motion in motions:
                 for seed in seeds:
                     d = work / "synthetic" / f"{motion}_s{seed}_{frames}"
-                    out.append(Case(f"synthetic {motion} seed {seed}", d, orb_camera="fr3", orb_input=d))
+                    out.append(Case(f"synthetic {motion} seed {seed}", d, orb_camera="synthetic", orb_input=d))
         else:
             raise SystemExit(f"--sequences: unknown '{key}'; choose from {', '.join(SEQUENCE_KEYS)}")
     return [c for c in out if c.path.exists() or c.name.startswith("synthetic")]
@@ -127,8 +128,10 @@ def run_case(case: Case, variants: dict[str, list[str]], rounds: int, orb: bool,
             log(f"{case.name:38s} {name:22s} round {r + 1}: ATE {m.ate:.4f} scale {m.scale:.3f} "
                 f"RPE {1e3 * m.rpe:.2f} mm  {m.ms:6.1f} ms/frame  lost {m.lost}")
         if ORB in rows:
+            settings = case.orb_camera if case.orb_camera != "synthetic" else \
+                common.orb_settings_for_folder(case.orb_input, work / "orb" / f"{slug(case.name)}.yaml")
             try:
-                m = common.run_orbslam3(case.orb_input, case.orb_camera, work / "orb" / f"{slug(case.name)}_{r}", gt,
+                m = common.run_orbslam3(case.orb_input, settings, work / "orb" / f"{slug(case.name)}_{r}", gt,
                                         stereo=case.stereo)
             except RuntimeError as e:
                 log(f"{case.name:38s} {ORB:22s} round {r + 1}: {e}")
