@@ -107,3 +107,35 @@ def test_orbslam3_peer_on_desk9(tmp_path):
     gt = open_sequence(need(TUM_DESK9), common.load_config()).groundtruth()
     m = common.run_orbslam3(TUM_DESK9, "fr1", tmp_path / "orb", gt)
     assert m.frames == 9 and m.tracked >= 3 and 0 < m.ate < 0.05 and m.ms > 0
+
+
+def test_orb_settings_take_a_synthetic_folders_own_intrinsics(tmp_path):
+    if not common.orb_settings("fr3").exists():
+        pytest.skip(f"the peer's settings are not here ({common.orb_settings('fr3')})")
+    (tmp_path / "camera.yaml").write_text("fx: 525.0\nfy: 526.5\ncx: 319.5\ncy: 239.5\nwidth: 640\nheight: 480\n")
+    text = common.orb_settings_for_folder(tmp_path, tmp_path / "s" / "orb.yaml").read_text()
+    assert "Camera1.fx: 525.0\nCamera1.fy: 526.5\nCamera1.cx: 319.5\nCamera1.cy: 239.5\n" in text
+    assert "RGBD.DepthMapFactor: 5000.0" in text and "535.4" not in text  # the rest is TUM3's
+
+
+@pytest.mark.data
+def test_a_sequence_view_runs_like_its_sequence_and_sees_every_frame(tmp_path):
+    """benchmarks.common.sequence_view: what benchmarks hand to run_sequence instead of patching a
+    reader. Reading through it gives the run of the folder itself, pose for pose."""
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.io.trajectory import read_tum
+
+    need(TUM_DESK9)
+    seen = []
+
+    def load(seq, i):
+        seen.append(i)
+        return seq.load(i)
+
+    view = common.sequence_view(open_sequence(TUM_DESK9, common.load_config()), load)
+    a = common.run_pipeline(view, tmp_path / "view")
+    b = common.run_pipeline(TUM_DESK9, tmp_path / "folder")
+    assert sorted(set(seen)) == list(range(9)) and a["tracked"] == b["tracked"] == 9
+    ta, tb = read_tum(tmp_path / "view" / "trajectory.tum"), read_tum(tmp_path / "folder" / "trajectory.tum")
+    assert np.array_equal(ta.timestamps, tb.timestamps) and np.array_equal(ta.poses, tb.poses)
+    assert a["evaluation"]["ate"]["rmse"] == b["evaluation"]["ate"]["rmse"]
