@@ -186,7 +186,12 @@ def _list(row: Row, attr: str, spec: str, scale: float = 1.0) -> str:
 
 
 def markdown(rows: list[Row]) -> str:
-    """The comparison table, then the median and worst ratios per rgbdslam configuration."""
+    """The comparison table (rows grouped by sequence, in the order the sequences first appear),
+    then the median and worst ratios per rgbdslam configuration."""
+    first = {}
+    for k, r in enumerate(rows):
+        first.setdefault(r.sequence, k)
+    rows = sorted(rows, key=lambda r: first[r.sequence])
     rat = ratios(rows)
     table = []
     for r in rows:
@@ -243,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="another rgbdslam configuration beside the default (repeatable)")
     ap.add_argument("--no-orb", action="store_true")
     ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--open3d-only", action="store_true",
+                    help="only Open3D's odometry (its rows join another run's with --report)")
     ap.add_argument("--work", type=Path, default=common.WORK / "peers")
     ap.add_argument("--json", type=Path, help="write every run's numbers here")
     ap.add_argument("--report", type=Path, nargs="+", help="only build the table from earlier --json files "
@@ -258,8 +265,9 @@ def main(argv: list[str] | None = None) -> int:
     if orb and (why := common.orbslam3_missing()):
         print(f"{why}: ORB-SLAM3 left out", file=sys.stderr)
         orb = False
-    variants = {"rgbdslam default": []}
-    variants.update(dict(common.parse_variant(v) for v in a.variant))
+    variants = {} if a.open3d_only else {"rgbdslam default": []}
+    variants.update({} if a.open3d_only else dict(common.parse_variant(v) for v in a.variant))
+    orb = orb and not a.open3d_only
     machine_before = common.machine()
     rows: list[Row] = []
     for case in cases(a.sequences.split(","), [int(s) for s in a.seeds.split(",")], a.motions.split(","), a.frames,

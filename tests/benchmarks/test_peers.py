@@ -58,6 +58,10 @@ def test_table_cells_on_hand_made_numbers():
     summary = [ln for ln in lines if ln.startswith("- **rgbdslam default**")]
     assert summary == ["- **rgbdslam default** over 3 sequences: ATE ÷ ORB-SLAM3 median **2.00**, worst 2.00 (A); "
                        "rate × ORB-SLAM3 median 0.50, worst 0.48 (A)"]
+    # rows of another run (--open3d-only, joined by --report) go to their sequence's group
+    moved = _rows()
+    moved.append(moved.pop(2))
+    assert peers.markdown(moved) == peers.markdown(_rows())
     # the rows survive the JSON round trip that --report reads
     again = peers.from_json(json.loads(json.dumps(peers.to_json(_rows()))))
     assert peers.markdown(again) == peers.markdown(_rows())
