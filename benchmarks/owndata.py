@@ -25,7 +25,6 @@ import numpy as np
 import yaml
 
 from benchmarks.common import DATA, ROOT
-
 from rgbdslam.config import load_config
 from rgbdslam.io.trajectory import read_tum
 from rgbdslam.pipeline import run_sequence

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
+from benchmarks.common import DATA
 
 
 # ----------------------------------------------------------------------------- sequences
