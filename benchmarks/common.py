@@ -284,7 +284,7 @@ def sevenscenes_as_tum(src: Path, dst: Path) -> Path:
         d = cv2.imread(str(src / f"{stem}.depth.png"), cv2.IMREAD_UNCHANGED).astype(np.uint32)
         d = np.where(d == 65535, 0, d * 5).clip(0, 65535).astype(np.uint16)
         cv2.imwrite(str(dst / "depth" / f"{stem}.png"), d)
-        pos, q = pose_to_tum(np.loadtxt(src / f"{stem}.pose.txt"))
+        pos, q = (np.ravel(x) for x in pose_to_tum(np.loadtxt(src / f"{stem}.pose.txt")))
         rgb_lines.append(f"{t} rgb/{stem}.jpg")
         depth_lines.append(f"{t} depth/{stem}.png")
         gt_lines.append(t + " " + " ".join(f"{v:.7f}" for v in (*pos, *q)))
