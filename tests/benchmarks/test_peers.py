@@ -143,3 +143,32 @@ def test_a_sequence_view_runs_like_its_sequence_and_sees_every_frame(tmp_path):
     ta, tb = read_tum(tmp_path / "view" / "trajectory.tum"), read_tum(tmp_path / "folder" / "trajectory.tum")
     assert np.array_equal(ta.timestamps, tb.timestamps) and np.array_equal(ta.poses, tb.poses)
     assert a["evaluation"]["ate"]["rmse"] == b["evaluation"]["ate"]["rmse"]
+
+
+@pytest.mark.data
+def test_sevenscenes_as_tum_keeps_poses_and_depth(tmp_path):
+    """The peer reads 7-Scenes from a TUM-layout copy: the same poses, depth at 5000 per metre."""
+    import shutil
+
+    import cv2
+
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.io.trajectory import read_tum
+
+    src = need(common.SEVENSCENES)
+    small = tmp_path / "src"
+    small.mkdir()
+    shutil.copy(src / "camera-intrinsics.txt", small)
+    for i in range(3):
+        for part in ("color.jpg", "depth.png", "pose.txt"):
+            shutil.copy(src / f"frame-{i:06d}.{part}", small)
+    dst = common.sevenscenes_as_tum(small, tmp_path / "tum")
+    gt, ref = read_tum(dst / "groundtruth.txt"), open_sequence(small, common.load_config()).groundtruth()
+    assert np.allclose(gt.timestamps, [0.0, 1 / 30, 2 / 30], atol=1e-6)
+    assert np.allclose(gt.poses[:, :3, 3], ref.poses[:, :3, 3], atol=1e-7)
+    # KinectFusion's rotations are orthonormal to ~1e-4 only; the quaternion makes them exactly so
+    assert np.allclose(gt.poses[:, :3, :3], ref.poses[:, :3, :3], atol=2e-4)
+    mm = cv2.imread(str(small / "frame-000001.depth.png"), cv2.IMREAD_UNCHANGED).astype(np.int64)
+    tum = cv2.imread(str(dst / "depth" / "frame-000001.png"), cv2.IMREAD_UNCHANGED).astype(np.int64)
+    assert (mm > 0).mean() > 0.5 and np.array_equal(tum, np.where(mm == 65535, 0, np.minimum(mm * 5, 65535)))
+    assert open_sequence(dst, common.load_config()).load(2).rgb.shape == (480, 640, 3)
