@@ -274,11 +274,13 @@ def main(argv: list[str] | None = None) -> int:
                       a.work):
         prepare(case, a.frames)
         rows += run_case(case, variants, a.rounds, orb, not a.no_open3d, a.work)
-    machine = f"{machine_before} before, {common.load_average()} after"
-    if a.json:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps({"command": command, "machine": machine, "rows": to_json(rows)}, indent=1))
-    return _publish(rows, command, machine, a.write_docs)
+        machine = f"{machine_before} before, {common.load_average()} after"
+        if a.json:  # after every sequence: a run cut short keeps what it measured
+            from rgbdslam.io.atomic import atomic_write_text
+
+            a.json.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(a.json, json.dumps({"command": command, "machine": machine, "rows": to_json(rows)}, indent=1))
+    return _publish(rows, command, f"{machine_before} before, {common.load_average()} after", a.write_docs)
 
 
 def _publish(rows: list[Row], command: str, machine: str, write: bool) -> int:
