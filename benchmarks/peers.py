@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -260,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.report:
         data = [json.loads(p.read_text()) for p in a.report]
         return _publish([r for d in data for r in from_json(d["rows"])], "\n".join(d["command"] for d in data),
-                        "; ".join(d["machine"] for d in data), a.write_docs)
+                        joined_machine([d["machine"] for d in data]), a.write_docs)
     orb = not a.no_orb
     if orb and (why := common.orbslam3_missing()):
         print(f"{why}: ORB-SLAM3 left out", file=sys.stderr)
@@ -281,6 +282,16 @@ def main(argv: list[str] | None = None) -> int:
             a.json.parent.mkdir(parents=True, exist_ok=True)
             atomic_write_text(a.json, json.dumps({"command": command, "machine": machine, "rows": to_json(rows)}, indent=1))
     return _publish(rows, command, f"{machine_before} before, {common.load_average()} after", a.write_docs)
+
+
+def joined_machine(lines: list[str]) -> str:
+    """Several runs' machine lines (``common.machine()`` + the load after) as one: the machine, the
+    first start, and the range of the 1-minute load averages they saw."""
+    if len(set(lines)) == 1:
+        return lines[0]
+    loads = [float(x) for ln in lines for x in re.findall(r"(?:load average |, |after, |before, )?(\d+\.\d), \d+\.\d, \d+\.\d", ln)]
+    head = min(lines).split(", load average")[0]
+    return f"{head} (the first of {len(lines)} runs at the same time); 1-minute load average {min(loads):.0f}–{max(loads):.0f}"
 
 
 def _publish(rows: list[Row], command: str, machine: str, write: bool) -> int:

@@ -172,3 +172,11 @@ def test_sevenscenes_as_tum_keeps_poses_and_depth(tmp_path):
     tum = cv2.imread(str(dst / "depth" / "frame-000001.png"), cv2.IMREAD_UNCHANGED).astype(np.int64)
     assert (mm > 0).mean() > 0.5 and np.array_equal(tum, np.where(mm == 65535, 0, np.minimum(mm * 5, 65535)))
     assert open_sequence(dst, common.load_config()).load(2).rgb.shape == (480, 640, 3)
+
+
+def test_joined_machine_line_of_runs_made_at_the_same_time():
+    a = "x86_64, 2 cores, Python 3.11.7, 2026-12-07 03:24 UTC, load average 43.3, 41.0, 28.2 before, 48.4, 45.0, 38.8 after"
+    b = "x86_64, 2 cores, Python 3.11.7, 2026-12-07 03:20 UTC, load average 20.0, 1.0, 1.0 before, 30.5, 2.0, 2.0 after"
+    assert peers.joined_machine([a, b]) == ("x86_64, 2 cores, Python 3.11.7, 2026-12-07 03:20 UTC (the first of 2 runs "
+                                            "at the same time); 1-minute load average 20–48")
+    assert peers.joined_machine([a, a]) == a
