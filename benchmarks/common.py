@@ -230,7 +230,7 @@ def open3d_trajectory(frames, camera):
     intr = o3d.camera.PinholeCameraIntrinsic(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
     opt = o3d.pipelines.odometry.OdometryOption()
     jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
-    prev, pose, poses, times, cpu, failed = None, np.eye(4), [], [], [], 0
+    prev, pose, poses, stamps, times, cpu, failed = None, np.eye(4), [], [], [], [], 0
     for f in frames:
         c0, t0 = time.process_time(), time.perf_counter()
         img = o3d.geometry.RGBDImage.create_from_color_and_depth(
@@ -244,7 +244,8 @@ def open3d_trajectory(frames, camera):
             cpu.append(time.process_time() - c0)
         prev = img
         poses.append(pose.copy())
-    est = Trajectory(np.array([f.timestamp for f in frames]), np.array(poses))
+        stamps.append(f.timestamp)
+    est = Trajectory(np.array(stamps), np.array(poses))
     return est, np.array(times), np.array(cpu), failed
 
 

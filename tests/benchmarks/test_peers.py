@@ -180,3 +180,11 @@ def test_joined_machine_line_of_runs_made_at_the_same_time():
     assert peers.joined_machine([a, b]) == ("x86_64, 2 cores, Python 3.11.7, 2026-12-07 03:20 UTC (the first of 2 runs "
                                             "at the same time); 1-minute load average 20–48")
     assert peers.joined_machine([a, a]) == a
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_open3d_odometry_on_desk9():
+    """Open3D's hybrid odometry through common (frames read one by one, as the peer table runs it)."""
+    m = common.open3d_odometry(need(TUM_DESK9))
+    assert m.frames == 9 and m.tracked == 9 and 0 < m.ate < 0.02 and m.ms > 0 and np.isfinite(m.scale)
