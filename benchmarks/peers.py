@@ -206,13 +206,19 @@ def markdown(rows: list[Row]) -> str:
          "ATE ÷ ORB-SLAM3", "rate × ORB-SLAM3"], table)
     lines = []
     for method, per in rat.items():
-        s = summarise(per)
-        if "ate" in s:
-            lines.append(f"- **{method}** over {len(per)} sequences: ATE ÷ ORB-SLAM3 median **{s['ate'][0]:.2f}**, "
-                         f"worst {s['ate'][2]:.2f} ({s['ate'][1]}); rate × ORB-SLAM3 median {s['rate'][0]:.2f}, "
-                         f"worst {s['rate'][2]:.2f} ({s['rate'][1]})" if "rate" in s else
-                         f"- **{method}** over {len(per)} sequences: ATE ÷ ORB-SLAM3 median **{s['ate'][0]:.2f}**, "
-                         f"worst {s['ate'][2]:.2f} ({s['ate'][1]})")
+        groups = {"": per}
+        real = {q: v for q, v in per.items() if not q.startswith("synthetic")}
+        if real and len(real) < len(per):  # the real sequences and the synthetic ones on their own too
+            groups.update({"real ": real, "synthetic ": {q: v for q, v in per.items() if q not in real}})
+        for label, group in groups.items():
+            s = summarise(group)
+            if "ate" not in s:
+                continue
+            line = (f"- **{method}** over {len(group)} {label}sequences: ATE ÷ ORB-SLAM3 median **{s['ate'][0]:.2f}**, "
+                    f"worst {s['ate'][2]:.2f} ({s['ate'][1]})")
+            if "rate" in s:
+                line += f"; rate × ORB-SLAM3 median {s['rate'][0]:.2f}, worst {s['rate'][2]:.2f} ({s['rate'][1]})"
+            lines.append(line if not label else "  " + line)
     return text + ("\n\n" + "\n".join(lines) if lines else "")
 
 

@@ -58,6 +58,16 @@ def test_table_cells_on_hand_made_numbers():
     summary = [ln for ln in lines if ln.startswith("- **rgbdslam default**")]
     assert summary == ["- **rgbdslam default** over 3 sequences: ATE ÷ ORB-SLAM3 median **2.00**, worst 2.00 (A); "
                        "rate × ORB-SLAM3 median 0.50, worst 0.48 (A)"]
+    # real and synthetic sequences together, and each group on its own
+    syn = _rows() + [peers.Row("synthetic loop seed 0", "rgbdslam default", [_m(0.001, 10.0)]),
+                     peers.Row("synthetic loop seed 0", peers.ORB, [_m(0.004, 5.0)])]
+    assert [ln for ln in peers.markdown(syn).splitlines() if ln.lstrip().startswith("- ")] == [
+        "- **rgbdslam default** over 4 sequences: ATE ÷ ORB-SLAM3 median **1.25**, worst 2.00 (A); "
+        "rate × ORB-SLAM3 median 0.50, worst 0.48 (A)",
+        "  - **rgbdslam default** over 3 real sequences: ATE ÷ ORB-SLAM3 median **2.00**, worst 2.00 (A); "
+        "rate × ORB-SLAM3 median 0.50, worst 0.48 (A)",
+        "  - **rgbdslam default** over 1 synthetic sequences: ATE ÷ ORB-SLAM3 median **0.25**, worst 0.25 "
+        "(synthetic loop seed 0); rate × ORB-SLAM3 median 0.50, worst 0.50 (synthetic loop seed 0)"]
     # rows of another run (--open3d-only, joined by --report) go to their sequence's group
     moved = _rows()
     moved.append(moved.pop(2))
