@@ -97,3 +97,77 @@ def test_layers_run_one_way():
             assert not any(d.startswith(("rgbdslam.backend", "rgbdslam.frontend", "rgbdslam.posegraph")) for d in deps), m
         if m.startswith("rgbdslam.geometry"):
             assert all(d.startswith(("rgbdslam.geometry", "rgbdslam.errors")) for d in deps), (m, deps)
+
+
+# ----------------------------------------------------------------------------- benchmarks/
+BENCHMARKS = PACKAGE.parent / "benchmarks"
+TESTS = PACKAGE.parent / "tests"
+
+
+def benchmark_violations(source: str) -> list[str]:
+    """What a benchmark module must not do: import a private name (``from rgbdslam.x import _y``,
+    ``import rgbdslam._x``), read one (``module._y``, ``obj._y`` of anything but ``self``/``cls``), or
+    patch the library at run time (``setattr``/``delattr``, assigning an attribute of a name imported
+    from rgbdslam, or an attribute two levels deep such as ``cfg.section.key = ...``)."""
+    tree = ast.parse(source)
+    imported: set[str] = set()  # names bound to rgbdslam modules, classes and functions
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("rgbdslam"):
+            if any(p.startswith("_") for p in node.module.split(".")):
+                out.append(f"line {node.lineno}: imports the private module {node.module}")
+            for a in node.names:
+                if a.name.startswith("_"):
+                    out.append(f"line {node.lineno}: imports the private name {a.name} from {node.module}")
+                imported.add(a.asname or a.name)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("rgbdslam"):
+                    if any(p.startswith("_") for p in a.name.split(".")):
+                        out.append(f"line {node.lineno}: imports the private module {a.name}")
+                    imported.add(a.asname or a.name.split(".")[0])
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+            if not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+                out.append(f"line {node.lineno}: reads the private attribute {node.attr}")
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("setattr", "delattr"):
+            out.append(f"line {node.lineno}: {node.func.id}() (patching at run time)")
+        targets = list(node.targets) if isinstance(node, ast.Assign) else \
+            [node.target] if isinstance(node, (ast.AugAssign, ast.AnnAssign)) else []
+        while targets:
+            a = targets.pop()
+            if isinstance(a, (ast.Tuple, ast.List)):
+                targets += a.elts
+                continue
+            while isinstance(a, (ast.Subscript, ast.Starred)):  # x.y[i] = ... changes x.y
+                a = a.value
+            if isinstance(a, ast.Attribute):
+                base = a.value
+                if isinstance(base, ast.Name) and base.id in imported:
+                    out.append(f"line {node.lineno}: assigns {base.id}.{a.attr} (patching the library)")
+                elif isinstance(base, ast.Attribute):
+                    out.append(f"line {node.lineno}: assigns .{base.attr}.{a.attr} (another object's state)")
+    return out
+
+
+def test_the_benchmark_check_finds_private_imports_and_patches():
+    found = benchmark_violations(
+        "import rgbdslam.pipeline as pipeline\nfrom rgbdslam.loop import detector\n"
+        "from rgbdslam.posegraph.masat import _edge_variances\nfrom rgbdslam.frontend import features\n"
+        "pipeline.track_all = print\nsetattr(detector.LoopCloser, 'detect', print)\ncfg.landmarks.enabled = True\n"
+        "x = features._detect\nself._ok = 1\nrow.tracked = 3\nkeep[features.detect(x)] = True\n")
+    assert sorted(int(f.split(":")[0][5:]) for f in found) == [3, 5, 6, 7, 8]  # not self._ok, not row.tracked
+
+
+def test_benchmarks_use_public_names_and_patch_nothing():
+    files = sorted(BENCHMARKS.rglob("*.py"))
+    assert files, BENCHMARKS
+    bad = {str(p.relative_to(PACKAGE.parent)): v for p in files if (v := benchmark_violations(p.read_text()))}
+    assert not bad, bad
+
+
+def test_tests_never_load_code_by_file_path():
+    """Benchmarks are imported as the package ``benchmarks``; no test execs a file by its path."""
+    bad = [str(p.relative_to(PACKAGE.parent)) for p in TESTS.rglob("*.py")
+           if p.name != "test_imports.py" and "spec_from_file_location" in p.read_text()]
+    assert not bad, bad

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.datasets.bagmaker import write_bag
+from rgbdslam.datasets.testing import write_bag
 from tests.conftest import DATA, TUM_DESK9, need
 
 pytestmark = pytest.mark.data  # runs a TUM folder from the installed wheel

@@ -148,7 +148,7 @@ def generate_stereo_sequence(out_dir: str | Path, baseline: float, layout: str =
     return {"path": str(out), "seconds": time.perf_counter() - start, **params}
 
 
-def _render_pairs(cam, poses: np.ndarray, baseline: float, noise: bool, seed: int, progress: bool, params: dict,
+def render_pairs(cam, poses: np.ndarray, baseline: float, noise: bool, seed: int, progress: bool, params: dict,
                   streaks: list[float]):
     """Grey left and right images of every frame (motion-blurred over the exposure in ``params``;
     the left image's streak length per frame is appended to ``streaks``)."""
@@ -180,7 +180,7 @@ def _write_kitti(out: Path, cam, poses, baseline, noise, seed, progress, params,
     (seq / "image_0").mkdir(parents=True)
     (seq / "image_1").mkdir()
     (out / "poses").mkdir()
-    for k, left, right in _render_pairs(cam, poses, baseline, noise, seed, progress, params, streaks):
+    for k, left, right in render_pairs(cam, poses, baseline, noise, seed, progress, params, streaks):
         _write_png(seq / "image_0" / f"{k:06d}.png", left)
         _write_png(seq / "image_1" / f"{k:06d}.png", right)
     P0 = np.hstack([cam.K, np.zeros((3, 1))])
@@ -202,7 +202,7 @@ def _write_euroc(out: Path, cam, poses, baseline, noise, seed, progress, params,
         atomic_write_text(mav / c / "sensor.yaml", _sensor_yaml(cam, T_BS, f"synthetic {c}"))
         atomic_write_text(mav / c / "data.csv", "#timestamp [ns],filename\n"
                           + "".join(f"{t},{t}.png\n" for t in stamps))
-    for k, left, right in _render_pairs(cam, poses, baseline, noise, seed, progress, params, streaks):
+    for k, left, right in render_pairs(cam, poses, baseline, noise, seed, progress, params, streaks):
         _write_png(mav / "cam0" / "data" / f"{stamps[k]}.png", left)
         _write_png(mav / "cam1" / "data" / f"{stamps[k]}.png", right)
     body = poses @ inv(T_BS_CAM0)  # T_WB = T_WS inv(T_BS)

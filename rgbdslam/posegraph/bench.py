@@ -579,7 +579,7 @@ def _csv_text(rows: list[dict]) -> str:
 
 
 def write_runs_csv(path: Path, records) -> None:
-    """One row per :class:`RunRecord` (what ``--merge-runs`` and ``scripts/masat/compare_to_paper.py`` read)."""
+    """One row per :class:`RunRecord` (what ``--merge-runs`` and ``benchmarks/masat/compare_to_paper.py`` read)."""
     atomic_write_text(path, _csv_text([asdict(r) for r in records]))
 
 

@@ -26,7 +26,7 @@ the gauge is fixed by *holding vertex ``root`` constant*, as g2o fixes the first
 prior, so it adds nothing to χ²) — and solves ``H δ = −b`` with SuperLU (``splu``, minimum
 degree on ``Hᵀ + H``).  χ² = ``Σ eᵀ Ω e`` with this error.
 
-Checked against g2o itself (``scripts/masat/g2o_parity.py``; g2o-python 0.0.12): the χ² after every
+Checked against g2o itself (``benchmarks/masat/g2o_parity.py``; g2o-python 0.0.12): the χ² after every
 iteration agrees to ~1e-9 relative (``tests/test_gn2d.py::test_matches_real_g2o_chi2_history``).
 """
 

@@ -287,18 +287,19 @@ def test_convert_refuses_nonempty_output(tmp_path):
 
 @pytest.mark.data
 @need_desk
-def test_tum_to_put_script(tmp_path, capsys):
-    import importlib.util
+def test_tum_to_put_script(tmp_path):
+    import subprocess
+    import sys
 
-    path = REPO / "scripts" / "tum_to_put.py"
-    spec = importlib.util.spec_from_file_location("tum_to_put", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    assert mod.main([str(DESK), str(tmp_path / "p"), "--max-frames", "2"]) == 0
+    script = REPO / "scripts" / "tum_to_put.py"
+    ok = subprocess.run([sys.executable, str(script), str(DESK), str(tmp_path / "p"), "--max-frames", "2"],
+                        capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
     assert len((tmp_path / "p" / "matched").read_text().splitlines()) == 2
     assert (tmp_path / "p" / "groundtruth.txt").read_bytes() == (DESK / "groundtruth.txt").read_bytes()
-    assert mod.main([str(tmp_path / "nope"), str(tmp_path / "q")]) == 2
-    assert "does not exist" in capsys.readouterr().err
+    bad = subprocess.run([sys.executable, str(script), str(tmp_path / "nope"), str(tmp_path / "q")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "does not exist" in bad.stderr
 
 
 @pytest.mark.parametrize("ahead", [0, 1, 3])

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.datasets.bagmaker import write_realsense_recording
+from rgbdslam.datasets.testing import write_realsense_recording
 from tests.conftest import TUM_RPY200, cli, need
 from rgbdslam.config import load_config
 from rgbdslam.evaluation.report import evaluate_trajectories

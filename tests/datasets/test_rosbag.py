@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.datasets.bagmaker import write_bag
+from rgbdslam.datasets.testing import write_bag
 from tests.conftest import TUM_DESK9, TUM_RPY200, cli, need
 from rgbdslam.config import load_config
 from rgbdslam.datasets import open_sequence
@@ -150,7 +150,7 @@ def test_realsense_sdk_recording_equals_folder_run(tmp_path, folder_run):
     .db3 with compressed images, text options and frame times in image/metadata), read by the
     bag reader: the folder run's trajectory (the SDK stores the intrinsics as float32, hence
     the tolerance)."""
-    from tests.datasets.bagmaker import write_realsense_recording
+    from rgbdslam.datasets.testing import write_realsense_recording
 
     rec = write_realsense_recording(TUM_RPY200, tmp_path / "rs.db3", frames=FRAMES + 2)
     seq = open_sequence(rec, _cfg().dataset)

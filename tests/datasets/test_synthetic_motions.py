@@ -214,15 +214,10 @@ def test_synth_cli_figure8_and_revisit(tmp_path):
 
 
 def test_bench_landmarks_takes_the_visits_from_synthetic_yaml(tmp_path):
-    """scripts/bench_landmarks.py's revisit table: the revisit motion's recorded ranges, else the
+    """benchmarks.landmarks' revisit table: the revisit motion's recorded ranges, else the
     first and last 15 % of the frames."""
-    import importlib.util
-    from pathlib import Path
+    from benchmarks import landmarks as mod
 
-    path = Path(__file__).resolve().parents[2] / "scripts" / "bench_landmarks.py"
-    spec = importlib.util.spec_from_file_location("bench_landmarks", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
     (tmp_path / "synthetic.yaml").write_text(yaml.safe_dump({"frames": 150, "motion": "revisit",
                                                              **revisit_ranges(150)}))
     assert mod.visit_ranges(tmp_path, 150) == (range(0, 22), range(128, 150))

@@ -1,24 +1,9 @@
-"""The issue-17 benchmark tables built from rows by hand: scripts/bench_landmarks.py's comparison
-with Open3D's odometry on the loop-type sequences, scripts/bench_slam.py's landmark ablation."""
+"""The landmark benchmark tables built from rows by hand: benchmarks.landmarks' comparison with
+Open3D's odometry on the loop-type sequences, benchmarks.slam's landmark ablation."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
-SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
-
-
-def _script(name: str):
-    sys.path.insert(0, str(SCRIPTS))  # bench_slam imports bench_landmarks and _docs from there
-    try:
-        spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        return mod
-    finally:
-        sys.path.remove(str(SCRIPTS))
+from benchmarks import landmarks, slam
 
 
 def _row(seq, variant, ate, rpe, fps=10.0, **kw):
@@ -26,7 +11,7 @@ def _row(seq, variant, ate, rpe, fps=10.0, **kw):
 
 
 def test_open3d_comparison_marks_and_counts_each_variant():
-    md = _script("bench_landmarks").markdown([
+    md = landmarks.markdown([
         _row("loop seed 0", "default", 0.0030, 0.0020), _row("loop seed 0", "landmarks", 0.0020, 0.0009),
         _row("loop seed 0", "Open3D hybrid odometry", 0.2000, 0.0010, 0.5),
         _row("circle seed 0", "default", 0.0060, 0.0030), _row("circle seed 0", "landmarks", 0.0100, 0.0012),
@@ -49,10 +34,10 @@ def test_landmark_ablation_cost_table():
             _row("rpy seed 0", "default", 0.005, 0.003, 40.0, landmarks_ms=None, local_ba_ms=None),
             _row("rpy seed 0", "landmarks", 0.004, 0.003, 20.0, landmarks_ms=6.0, local_ba_ms=None),
             _row("rpy seed 0", "landmarks + local BA", 0.004, 0.003, 20.0, landmarks_ms=7.0, local_ba_ms=20.0)]
-    md = _script("bench_slam").landmark_markdown(rows, "## A", "cmd", "machine")
+    md = slam.landmark_markdown(rows, "## A", "cmd", "machine")
     assert "| landmarks | 7.0 | - | 0.62 |" in md  # medians of (8, 6) ms and of the ratios (0.75, 0.5)
     assert "| landmarks + local BA | 8.0 | 16.0 | 0.50 |" in md
     assert "| landmarks | 0.0030 | 0.0025 | 0.60 | 0.83 | 2 / 0 |" in md  # synthetic medians and ratios
-    assert set(_script("bench_slam").LANDMARK_ABLATION) >= {
+    assert set(slam.LANDMARK_ABLATION) >= {
         "default", "landmarks", "landmarks + local BA", "landmarks, Kalman off", "landmarks, uniform sampling",
         "landmarks, single k-d tree"}

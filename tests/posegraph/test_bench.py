@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,19 +17,7 @@ from rgbdslam.posegraph.bench import (NOISE_LEVELS, first_convergence, noisy_ins
 from rgbdslam.posegraph.synthetic import manhattan_world as manhattan_like
 from rgbdslam.errors import InputError
 
-from tests.conftest import DATA, REPO, need
-
-# the paper-reproduction studies: scripts outside the package, importing paper_stats.py beside them
-MASAT_SCRIPTS = REPO / "scripts" / "masat"
-
-
-def _masat_script(name: str) -> Path:
-    import sys
-
-    if str(MASAT_SCRIPTS) not in sys.path:
-        sys.path.insert(0, str(MASAT_SCRIPTS))
-    return MASAT_SCRIPTS / f"{name}.py"
-
+from tests.conftest import DATA, need
 
 def test_parse_noise():
     assert parse_noise("0.2,0.2,0.2") == [(0.2, 0.2, 0.2)]
@@ -204,15 +191,10 @@ def test_optimum_rate_counts_only_runs_ending_at_ground_truths_chi2():
 
 
 def test_compare_to_paper_script(tmp_path, capsys):
-    """scripts/masat/compare_to_paper.py: counts, Wilson interval and Fisher verdicts on hand-made runs."""
-    import importlib.util
-
+    """benchmarks.masat.compare_to_paper: counts, Wilson interval and Fisher verdicts on hand-made runs."""
+    from benchmarks.masat import compare_to_paper as mod
     from rgbdslam.posegraph.bench import RunRecord, compare_with_paper, format_report, write_outputs
 
-    path = _masat_script("compare_to_paper")
-    spec = importlib.util.spec_from_file_location("compare_to_paper", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
     s = (0.15, 0.15, 0.3)  # City10k: the paper's MASAT 0.22 (11/50), ground truth 0.80 (40/50)
 
     def rec(inst, method, conv):
@@ -263,12 +245,8 @@ def test_holm_adjustment_by_hand():
 
 def test_paired_comparison_exact_mcnemar_by_hand():
     """8 instances where only A converged, none where only B did: p = 2 * 0.5**8 (two-sided)."""
-    import sys
-
+    from benchmarks.masat.paper_stats import format_paired, paired_comparison
     from rgbdslam.posegraph.bench import RunRecord
-
-    sys.path.insert(0, str(MASAT_SCRIPTS))
-    from paper_stats import format_paired, paired_comparison  # the studies' statistics, outside the package
 
     s = (0.2, 0.2, 0.2)
 
@@ -287,63 +265,6 @@ def test_paired_comparison_exact_mcnemar_by_hand():
         format_paired([row], "weighted_masat", "masat")
     # without ground-truth runs there is no optimum to compare with
     assert paired_comparison(recs[:40], "weighted_masat", "masat")[0]["optimum"] is None
-
-
-def test_heterogeneous_noise_study_instances():
-    """scripts/masat/study_heterogeneous_noise.py: each edge's information matches its own noise."""
-    import importlib.util
-
-    path = _masat_script("study_heterogeneous_noise")
-    spec = importlib.util.spec_from_file_location("study_heterogeneous_noise", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    ref, _ = manhattan_like(400, seed=6)
-    odo = ref.edges_j == ref.edges_i + 1
-    assert odo.any() and (~odo).any()
-    s = mod.edge_scales(ref, "loops", 3.0, np.random.default_rng(0))
-    assert np.all(s[odo] == 1 / 3) and np.all(s[~odo] == 3.0)
-    s = mod.edge_scales(ref, "loguniform", 3.0, np.random.default_rng(0))
-    assert s.min() >= 1 / 3 and s.max() <= 3 and abs(np.log(s).mean()) < 0.15
-    sigma = (0.1, 0.2, 0.05)
-    g = mod.heterogeneous_instance(ref, sigma, "loops", 3.0, np.random.default_rng(1))
-    sig = np.sqrt(1.0 / np.diagonal(g.info, axis1=1, axis2=2))
-    assert np.allclose(sig[odo], np.array(sigma) / 3) and np.allclose(sig[~odo], np.array(sigma) * 3)
-    assert np.all(g.info[:, 0, 1] == 0)
-    # the noise has the advertised per-edge scale: whitened residuals are standard normal
-    r = (g.meas[:, :2] - ref.meas[:, :2]) / sig[:, :2]
-    assert abs(r.std() - 1) < 0.1 and abs(r.mean()) < 0.1
-    with pytest.raises(InputError, match="unknown noise model"):
-        mod.edge_scales(ref, "nope", 3.0, np.random.default_rng(0))
-
-
-@pytest.mark.data
-def test_spanning_tree_tie_study_reproduces_the_benchmark_column(tmp_path, capsys):
-    """scripts/masat/study_spanning_tree_ties.py: its ``index`` tree is the benchmark's spanning tree, run
-    for run, on the protocol's own instances; other tie rules are valid but different trees."""
-    import importlib.util
-
-    from rgbdslam.posegraph.bench import load_runs, reference_graph, run_instance
-
-    need(DATA / "posegraph" / "iSAM" / "groundtruth" / "manhattanOlson3500_groundtruth.txt")
-    path = _masat_script("study_spanning_tree_ties")
-    spec = importlib.util.spec_from_file_location("study_spanning_tree_ties", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    assert (mod.tie_rule("index"), mod.tie_rule("edge_order"), mod.tie_rule("r7")) == ("index", "edge_order", 7)
-    with pytest.raises(InputError, match="tie-breaking rule"):
-        mod.tie_rule("random")
-    args = ["--dataset", "m3500", "--noise", "0.3,0.3,0.3", "--instances", "1", "--first-instance", "3",
-            "--workers", "1", "--optimizer", "gtsam", "--ties", "index,r0", "--data", str(DATA), "--out", str(tmp_path)]
-    assert mod.main(args) == 0
-    assert "| index | " in capsys.readouterr().out
-    recs = {(r.instance, r.method): r for r in load_runs(tmp_path / "runs.csv")}
-    ref, gt, _ = reference_graph("m3500", DATA)
-    for inst in (3,):
-        (bench,) = run_instance(ref, gt, "m3500", (0.3, 0.3, 0.3), 4, inst, 0, ("spanning_tree",))
-        mine = recs[(inst, "spanning_tree[index]")]
-        assert (mine.chi2_initial, mine.converged_rel, mine.iterations_rel, mine.reduced_chi2_rel) == \
-            (bench.chi2_initial, bench.converged_rel, bench.iterations_rel, bench.reduced_chi2_rel)
-        assert recs[(inst, "spanning_tree[r0]")].chi2_initial != bench.chi2_initial  # a different tree
 
 
 def test_cli_bench_without_dataset_is_a_usage_error(tmp_path):

@@ -199,7 +199,7 @@ def test_levenberg_marquardt_agrees_with_gn_and_never_increases_chi2():
 
 def test_matches_real_g2o_chi2_history():
     """gn2d.py against g2o itself: χ² after every one of 20 Gauss–Newton iterations, recorded from
-    g2o (g2o-python 0.0.12) by ``scripts/masat/g2o_parity.py --record`` on a synthetic grid world, for a
+    g2o (g2o-python 0.0.12) by ``python -m benchmarks.masat.g2o_parity --record`` on a synthetic grid world, for a
     mild, a heading-noise and a large-noise case (odometry start, angle errors past ±π)."""
     import json
 
