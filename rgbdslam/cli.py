@@ -381,10 +381,11 @@ def _groundtruth_file(sequence: Path, tmp: Path) -> Path:
 @main.command()
 @click.argument("out", type=PATH)
 @click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz).")
-@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static", "figure8", "revisit"]),
+@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static", "figure8", "revisit", "orbit"]),
               default="xyz", show_default=True,
               help="Camera motion; 'loop' returns to and revisits the start view; 'figure8' a fast figure eight "
-                   "(~1 m/s, ~75 deg/s) with motion blur; 'revisit' maps a place, leaves, comes back to the same view.")
+                   "(~1 m/s, ~75 deg/s) with motion blur; 'revisit' maps a place, leaves, comes back to the same view; "
+                   "'orbit' a slow orbit around a near, textured figure in a bare room (as TUM fr3/teddy).")
 @click.option("--noise", is_flag=True, help="Kinect-like depth noise (sigma 1.2 mm + 1.9 mm (z-0.4)^2) and colour noise.")
 @click.option("--dropout", type=float, default=0.0, show_default=True, help="Fraction of depth pixels lost in holes.")
 @click.option("--drift", type=float, default=0.0, show_default=True,

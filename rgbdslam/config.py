@@ -100,9 +100,13 @@ class MatchingConfig:
     # has a missing pixel or one differing from its own depth by more than depth_edge_jump * z is
     # flagged (FrameFeatures.edge); 0 = off. Its depth may belong to the other surface (a
     # misregistered or late depth image, mixed pixels along an outline)
+    # the radius is the window's at ORB pyramid level 0, scaled by features.scale_factor**level (a coarse
+    # key point's position is good to its level's pixel size only)
     depth_edge_radius: int = 0
     depth_edge_jump: float = 0.05  # relative depth jump that makes a depth edge
-    depth_edge_use: Literal["all", "landmarks"] = "all"  # flagged points: no depth anywhere, or only not in the landmark map
+    # flagged points: no depth anywhere (all), or kept for matching and outlier rejection but left out of
+    # each registration's final pose fit and of the landmark map (landmarks; docs/frontend.md "Scale bias")
+    depth_edge_use: Literal["all", "landmarks"] = "all"
 
 
 @dataclass
