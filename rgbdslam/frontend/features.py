@@ -326,8 +326,6 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     features.edge = np.zeros(n, bool)
     if mc.depth_edge_radius > 0 and n:
         features.edge = depth_edges(depth, u, v, edge_radii(features, mc.depth_edge_radius), mc.depth_edge_jump) & valid
-        if mc.depth_edge_use == "all":
-            valid &= ~features.edge
     pts = np.full((n, 3), np.nan)
     if valid.any() and features.row_R is not None:  # rolling shutter: each point from its row's pose
         X = camera.backproject(features.uv_observed[valid], z[valid])

@@ -76,7 +76,7 @@ class PairRegistration:
             return None
         keep = fit.inliers
         if len(ref.edge) == len(ref.uv) and len(cur.edge) == len(cur.uv):
-            # key points at depth edges (matching.depth_edge_use = landmarks) helped choose the
+            # key points at depth edges (matching.depth_edge_radius) helped choose the
             # inliers; the pose is fitted without them when enough others are left: their depth may
             # be the other surface's, which shortens the translation (docs/frontend.md "Scale bias")
             clean = keep & ~ref.edge[ia] & ~cur.edge[ib]

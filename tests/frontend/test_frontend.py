@@ -435,17 +435,14 @@ def test_depth_edge_radius_grows_with_the_pyramid_level():
 
 
 @pytest.mark.data
-def test_depth_edge_points_lose_depth_or_only_their_landmarks(desk):
+def test_depth_edge_points_keep_their_depth_but_not_their_landmarks(desk):
     _, frames = desk
     cfg = Config()
+    cfg.matching.depth_edge_radius = 0
     plain = extract_features(frames[0], cfg.features, cfg.matching)
     assert not plain.edge.any()
     cfg.matching.depth_edge_radius = 2
     f = extract_features(frames[0], cfg.features, cfg.matching)
     assert 0 < f.edge.sum() < 0.5 * plain.valid.sum()  # a real desk frame has outlines, most points are not on them
-    np.testing.assert_array_equal(f.valid, plain.valid & ~f.edge)
-    np.testing.assert_array_equal(f.map_valid, f.valid)
-    cfg.matching.depth_edge_use = "landmarks"
-    g = extract_features(frames[0], cfg.features, cfg.matching)
-    np.testing.assert_array_equal(g.valid, plain.valid)  # the registration keeps them
-    np.testing.assert_array_equal(g.map_valid, plain.valid & ~g.edge)
+    np.testing.assert_array_equal(f.valid, plain.valid)  # matching and the inlier choice keep them
+    np.testing.assert_array_equal(f.map_valid, plain.valid & ~f.edge)  # the landmark map does not
