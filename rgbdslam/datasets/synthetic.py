@@ -99,15 +99,16 @@ def scene_surfaces(motion: str | None = None) -> list[Surface]:
     a body and a head, turned 30° about the vertical) in its middle, as TUM fr3/teddy: a near,
     textured object in front of a far, bare room."""
     (x0, y0, z0), (x1, y1, z1) = ROOM
+    room = [
+        _rect("floor", (x0, y0, z0), (x1, y0, z0), (x0, y1, z0)),
+        _rect("ceiling", (x0, y0, z1), (x1, y0, z1), (x0, y1, z1)),
+        _rect("wall_xmax", (x1, y0, z0), (x1, y1, z0), (x1, y0, z1)),
+        _rect("wall_xmin", (x0, y0, z0), (x0, y1, z0), (x0, y0, z1)),
+        _rect("wall_ymax", (x0, y1, z0), (x1, y1, z0), (x0, y1, z1)),
+        _rect("wall_ymin", (x0, y0, z0), (x1, y0, z0), (x0, y0, z1)),
+    ]
+    panel_a = _rect("panel_a", (2.0, -2.5, 0.2), (3.0, -1.7, 0.2), (2.0, -2.5, 2.2))
     if motion == "orbit":
-        room = [
-            _rect("floor", (x0, y0, z0), (x1, y0, z0), (x0, y1, z0)),
-            _rect("ceiling", (x0, y0, z1), (x1, y0, z1), (x0, y1, z1)),
-            _rect("wall_xmax", (x1, y0, z0), (x1, y1, z0), (x1, y0, z1)),
-            _rect("wall_xmin", (x0, y0, z0), (x0, y1, z0), (x0, y0, z1)),
-            _rect("wall_ymax", (x0, y1, z0), (x1, y1, z0), (x0, y1, z1)),
-            _rect("wall_ymin", (x0, y0, z0), (x1, y0, z0), (x0, y0, z1)),
-        ]
         for r in room:
             r.bare = True
         figure = (_box("pedestal", 0.0, 0.0, 0.45, 0.45, 0.55) + _box("body", 0.0, 0.0, 0.42, 0.3, 0.5, 0.55)
@@ -115,17 +116,8 @@ def scene_surfaces(motion: str | None = None) -> list[Surface]:
         turn = _rot(2, np.radians(30.0))
         for f in figure:
             f.origin, f.u, f.v = turn @ f.origin, turn @ f.u, turn @ f.v
-        return room + figure + [_rect("panel_a", (2.0, -2.5, 0.2), (3.0, -1.7, 0.2), (2.0, -2.5, 2.2))]
-    s = [
-        _rect("floor", (x0, y0, z0), (x1, y0, z0), (x0, y1, z0)),
-        _rect("ceiling", (x0, y0, z1), (x1, y0, z1), (x0, y1, z1)),
-        _rect("wall_xmax", (x1, y0, z0), (x1, y1, z0), (x1, y0, z1)),
-        _rect("wall_xmin", (x0, y0, z0), (x0, y1, z0), (x0, y0, z1)),
-        _rect("wall_ymax", (x0, y1, z0), (x1, y1, z0), (x0, y1, z1)),
-        _rect("wall_ymin", (x0, y0, z0), (x1, y0, z0), (x0, y0, z1)),
-        _rect("panel_a", (2.0, -2.5, 0.2), (3.0, -1.7, 0.2), (2.0, -2.5, 2.2)),
-        _rect("panel_b", (-3.0, 1.6, 0.5), (-2.1, 2.5, 0.5), (-3.0, 1.6, 2.4)),
-    ]
+        return room + figure + [panel_a]
+    s = room + [panel_a, _rect("panel_b", (-3.0, 1.6, 0.5), (-2.1, 2.5, 0.5), (-3.0, 1.6, 2.4))]
     s += _box("box1", 2.2, 1.2, 0.8, 1.0, 0.9)
     s += _box("box2", 2.3, -1.3, 0.6, 0.6, 1.4)
     s += _box("box3", -2.0, 1.2, 1.0, 0.8, 0.7)
