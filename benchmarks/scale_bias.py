@@ -63,7 +63,7 @@ def measure(path: Path, frames: int) -> dict[str, tuple[float, float, float]]:
     feats = [extract_features(f, cfg.features, cfg.matching) for f in loaded]
     s = cfg.features.scale_factor
     rules = {"all matches": lambda o: 0, "no depth edge, r = 4 px": lambda o: 4, "no depth edge, r = 8 px": lambda o: 8}
-    for r0 in (2, 3):
+    for r0 in (1, 2, 3):
         rules[f"no depth edge, r = {r0}·{s}^level"] = (lambda r0: lambda o: int(np.ceil(r0 * s ** o - 1e-9)))(r0)
     flags = {k: [edge_flags(f, fr.depth, rule) for f, fr in zip(feats, loaded)] for k, rule in rules.items()}
     est = {k: [] for k in rules}
