@@ -16,7 +16,7 @@ from rgbdslam.frontend.odometry import build_frontend
 
 def _odometry_scale(path, cfg) -> float:
     seq = open_sequence(path, cfg)
-    frontend = build_frontend(cfg, seq.camera if hasattr(seq, "camera") else seq.load(0).camera)
+    frontend = build_frontend(cfg, seq.load(0).camera)
     poses = []
     for i in range(len(seq)):
         res = frontend.track(seq.load(i))
