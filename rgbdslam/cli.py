@@ -433,10 +433,12 @@ def _icl_groundtruth_file(path: Path, tmp: Path) -> Path:
 @main.command()
 @click.argument("out", type=PATH)
 @click.option("--frames", "-n", default=100, show_default=True, help="Number of frames (30 Hz; --motion highway 10 Hz).")
-@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static", "figure8", "revisit", "highway"]),
+@click.option("--motion", type=click.Choice(["xyz", "rpy", "loop", "circle", "static", "figure8", "revisit", "orbit",
+                                             "highway"]),
               default="xyz", show_default=True,
               help="Camera motion; 'loop' returns to and revisits the start view; 'figure8' a fast figure eight "
                    "(~1 m/s, ~75 deg/s) with motion blur; 'revisit' maps a place, leaves, comes back to the same view; "
+                   "'orbit' a slow orbit around a near, textured figure in a bare room (as TUM fr3/teddy); "
                    "'highway' (--stereo only) a car at 25-30 m/s, 10 Hz, on a road with far structure.")
 @click.option("--noise", is_flag=True, help="Kinect-like depth noise (sigma 1.2 mm + 1.9 mm (z-0.4)^2) and colour noise.")
 @click.option("--dropout", type=float, default=0.0, show_default=True, help="Fraction of depth pixels lost in holes.")

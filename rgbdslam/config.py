@@ -96,13 +96,15 @@ class MatchingConfig:
     prefilter_iterations: int = 200  # RANSAC iterations of the pre-filter
     min_depth: float = 0.1  # metres: key points with depth outside [min_depth, max_depth] are not used
     max_depth: float = 6.0  # metres: see min_depth
-    # key points at depth discontinuities (issue 17): a key point whose (2r+1)^2 depth neighbourhood
-    # has a missing pixel or one differing from its own depth by more than depth_edge_jump * z is
-    # flagged (FrameFeatures.edge); 0 = off. Its depth may belong to the other surface (a
-    # misregistered or late depth image, mixed pixels along an outline)
-    depth_edge_radius: int = 0
+    # key points at depth discontinuities: a key point whose (2r+1)^2 depth neighbourhood has a missing
+    # pixel or one differing from its own depth by more than depth_edge_jump * z is flagged
+    # (FrameFeatures.edge); r is depth_edge_radius at ORB pyramid level 0, scaled by
+    # features.scale_factor**level (a coarse key point's position is good to its level's pixel size);
+    # 0 = off. Its depth may be the other surface's (mixed or misregistered pixels along an outline):
+    # flagged points help match and choose the inliers, but each registration's pose is fitted without
+    # them and the landmark map leaves them out (docs/frontend.md "Scale bias")
+    depth_edge_radius: int = 1
     depth_edge_jump: float = 0.05  # relative depth jump that makes a depth edge
-    depth_edge_use: Literal["all", "landmarks"] = "all"  # flagged points: no depth anywhere, or only not in the landmark map
 
 
 @dataclass

@@ -34,7 +34,7 @@ from rgbdslam.runfolder.manifest import SEQUENCE, Manifest
 from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.ui import console, frame_progress
 
-MOTIONS = ("xyz", "rpy", "loop", "circle", "static", "figure8", "revisit")
+MOTIONS = ("xyz", "rpy", "loop", "circle", "static", "figure8", "revisit", "orbit")
 FPS = 30.0
 EPOCH = 1_600_000_000.0  # time stamp of frame 0 (seconds)
 DEPTH_SCALE = 5000.0  # TUM: raw units per metre
@@ -59,6 +59,7 @@ class Surface:
     width: float
     height: float
     texel: float = TEXEL  # metres per texel of this surface's texture
+    bare: bool = False  # a plain, almost untextured surface (a white wall): no key points
 
     @property
     def normal(self) -> np.ndarray:
@@ -79,30 +80,48 @@ def _rect(name, p0, p1, p2) -> Surface:
     return Surface(name, p0, eu / np.linalg.norm(eu), ev / np.linalg.norm(ev), float(np.linalg.norm(eu)), float(np.linalg.norm(ev)))
 
 
-def _box(name, cx, cy, sx, sy, sz) -> list[Surface]:
+def _box(name, cx, cy, sx, sy, sz, z0=0.0) -> list[Surface]:
     x0, x1, y0, y1 = cx - sx / 2, cx + sx / 2, cy - sy / 2, cy + sy / 2
+    z1 = z0 + sz
     return [
-        _rect(f"{name}_top", (x0, y0, sz), (x1, y0, sz), (x0, y1, sz)),
-        _rect(f"{name}_xmin", (x0, y0, 0), (x0, y1, 0), (x0, y0, sz)),
-        _rect(f"{name}_xmax", (x1, y0, 0), (x1, y1, 0), (x1, y0, sz)),
-        _rect(f"{name}_ymin", (x0, y0, 0), (x1, y0, 0), (x0, y0, sz)),
-        _rect(f"{name}_ymax", (x0, y1, 0), (x1, y1, 0), (x0, y1, sz)),
+        _rect(f"{name}_top", (x0, y0, z1), (x1, y0, z1), (x0, y1, z1)),
+        _rect(f"{name}_xmin", (x0, y0, z0), (x0, y1, z0), (x0, y0, z1)),
+        _rect(f"{name}_xmax", (x1, y0, z0), (x1, y1, z0), (x1, y0, z1)),
+        _rect(f"{name}_ymin", (x0, y0, z0), (x1, y0, z0), (x0, y0, z1)),
+        _rect(f"{name}_ymax", (x0, y1, z0), (x1, y1, z0), (x0, y1, z1)),
     ]
 
 
-def scene_surfaces() -> list[Surface]:
-    """The fixed room layout (textures depend on the seed, geometry does not)."""
+# the orbit motion's object: a textured figure on a pedestal in the middle of the room (x, y centre)
+ORBIT_CENTRE = np.array([0.0, 0.0, 0.95])  # the point the camera looks at
+ORBIT_RADIUS = 0.9  # metres from the camera to the figure's axis (the figure's front 0.6-0.8 m away)
+
+
+def scene_surfaces(motion: str | None = None) -> list[Surface]:
+    """The fixed room layout (textures depend on the seed, geometry does not). ``orbit``: the
+    same room with bare walls, floor and ceiling, no boxes, and a textured figure (a pedestal,
+    a body and a head, turned 30° about the vertical) in its middle, as TUM fr3/teddy: a near,
+    textured object in front of a far, bare room."""
     (x0, y0, z0), (x1, y1, z1) = ROOM
-    s = [
+    room = [
         _rect("floor", (x0, y0, z0), (x1, y0, z0), (x0, y1, z0)),
         _rect("ceiling", (x0, y0, z1), (x1, y0, z1), (x0, y1, z1)),
         _rect("wall_xmax", (x1, y0, z0), (x1, y1, z0), (x1, y0, z1)),
         _rect("wall_xmin", (x0, y0, z0), (x0, y1, z0), (x0, y0, z1)),
         _rect("wall_ymax", (x0, y1, z0), (x1, y1, z0), (x0, y1, z1)),
         _rect("wall_ymin", (x0, y0, z0), (x1, y0, z0), (x0, y0, z1)),
-        _rect("panel_a", (2.0, -2.5, 0.2), (3.0, -1.7, 0.2), (2.0, -2.5, 2.2)),
-        _rect("panel_b", (-3.0, 1.6, 0.5), (-2.1, 2.5, 0.5), (-3.0, 1.6, 2.4)),
     ]
+    panel_a = _rect("panel_a", (2.0, -2.5, 0.2), (3.0, -1.7, 0.2), (2.0, -2.5, 2.2))
+    if motion == "orbit":
+        for r in room:
+            r.bare = True
+        figure = (_box("pedestal", 0.0, 0.0, 0.45, 0.45, 0.55) + _box("body", 0.0, 0.0, 0.42, 0.3, 0.5, 0.55)
+                  + _box("head", 0.0, 0.0, 0.26, 0.24, 0.24, 1.05))
+        turn = _rot(2, np.radians(30.0))
+        for f in figure:
+            f.origin, f.u, f.v = turn @ f.origin, turn @ f.u, turn @ f.v
+        return room + figure + [panel_a]
+    s = room + [panel_a, _rect("panel_b", (-3.0, 1.6, 0.5), (-2.1, 2.5, 0.5), (-3.0, 1.6, 2.4))]
     s += _box("box1", 2.2, 1.2, 0.8, 1.0, 0.9)
     s += _box("box2", 2.3, -1.3, 0.6, 0.6, 1.4)
     s += _box("box3", -2.0, 1.2, 1.0, 0.8, 0.7)
@@ -110,6 +129,14 @@ def scene_surfaces() -> list[Surface]:
     s += _box("box5", 0.5, 2.0, 1.2, 0.5, 0.8)
     s += _box("box6", 0.2, -2.1, 0.6, 0.4, 1.6)
     return s
+
+
+def bare_texture(h: int, w: int, rng: np.random.Generator) -> np.ndarray:
+    """A plain surface (H, W, 3) uint8: one light colour with a faint, smooth shading (no corners)."""
+    base = rng.uniform(150, 220) * np.array([1.0, 0.98, 0.95], np.float32)
+    grid = rng.standard_normal((h // 200 + 3, w // 200 + 3)).astype(np.float32)
+    shade = cv2.resize(grid, (w, h), interpolation=cv2.INTER_CUBIC)[:, :, None] * 4.0
+    return np.clip(base + shade, 0, 255).astype(np.uint8)
 
 
 def make_texture(h: int, w: int, rng: np.random.Generator) -> np.ndarray:
@@ -181,7 +208,8 @@ class Scene:
         for k, (h, w) in enumerate(shapes):
             sub_rng = np.random.default_rng([seed, k, 104729])
             r0, c0 = self.row_offset[k], self.col_offset[k]
-            atlas[r0 : r0 + h, c0 : c0 + w] = make_texture(h, w, sub_rng)
+            texture = bare_texture if self.surfaces[k].bare else make_texture
+            atlas[r0 : r0 + h, c0 : c0 + w] = texture(h, w, sub_rng)
         self.atlas = atlas
         self._O = np.array([s.origin for s in self.surfaces])
         self._U = np.array([s.u for s in self.surfaces])
@@ -338,6 +366,11 @@ def make_trajectory(motion: str, frames: int, phase: float = 0.0) -> np.ndarray:
     towards wall y=2.5, a view that does not overlap A's), looks around there, comes back, and
     repeats the first visit pose for pose (the last :data:`REVISIT_SHARE` of the frames; 150
     frames: frames 0-21 and 128-149, 128 frames apart); see :func:`revisit_ranges`;
+    orbit: a slow hand-held orbit around the textured figure of the orbit scene
+    (:func:`scene_surfaces`), as TUM fr3/teddy: the camera swings ±50° about the figure at
+    :data:`ORBIT_RADIUS` (period 10 s; 0.3 m/s mean, ~12 mm per frame), bobbing up and down and
+    in and out a little, always looking at the figure; its key points lie 0.6-1.1 m away, the
+    room behind is bare;
     static: no motion.
     """
     return trajectory_at(motion, np.arange(frames, dtype=np.float64), frames, phase)
@@ -437,6 +470,12 @@ def trajectory_at(motion: str, u: np.ndarray, frames: int, phase: float = 0.0) -
             pos = centre + np.array([0.8 * np.sin(th), 0.42 * np.sin(2 * th), 0.08 * np.sin(3 * th)])
             poses[k] = _pose_ypr(pos, th + 0.3 * np.sin(2 * th), np.radians(-8.0 + 8.0 * np.sin(3 * th)),
                                  np.radians(6.0) * np.sin(2 * th))
+        elif motion == "orbit":
+            tt = t[k]
+            th = np.radians(50.0) * np.sin(2 * np.pi * tt / 10.0) - np.pi  # facing the figure from -x
+            r = ORBIT_RADIUS + 0.06 * np.sin(2 * np.pi * tt / 3.7)
+            pos = ORBIT_CENTRE + [r * np.cos(th), r * np.sin(th), 0.3 + 0.05 * np.sin(2 * np.pi * tt / 2.9)]
+            poses[k] = _look(pos, ORBIT_CENTRE + [0.0, 0.03 * np.sin(2 * np.pi * tt / 2.3), 0.0] - pos)
         else:  # revisit (no phase: validate_parameters refuses it)
             poses[k] = _revisit_pose(u[k], frames)
     return poses
@@ -770,7 +809,7 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
         f"width: {cam.width}\nheight: {cam.height}\ndist: [{', '.join(repr(float(d)) for d in cam.dist)}]\n"
         "rolling_shutter: 0.0\n",  # rendered with a global shutter (a named camera's readout does not apply)
     )
-    scene = Scene(seed)
+    scene = Scene(seed, scene_surfaces(params["motion"]))
     rays = Rays(cam)
     rng = np.random.default_rng([seed, 31337])
     stamps = EPOCH + params.get("time_offset", 0.0) + np.arange(frames) / FPS

@@ -50,6 +50,7 @@ class FrameFeatures:
     row_t: np.ndarray | None = None
     uv_observed: np.ndarray | None = None
     readout: float = 0.0  # the readout (s) the rolling shutter was undone with
+    pyramid_scale: float = 1.0  # features.scale_factor: a key point of octave k has pixels pyramid_scale**k wide
     # (N,) bool: the key point sits at a depth discontinuity (matching.depth_edge_radius; all False when off)
     edge: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     # (N,) the depth read at each key point before the [min_depth, max_depth] limits (0 = none): a stereo
@@ -294,6 +295,7 @@ def extract_features(frame: Frame, fc: FeaturesConfig, mc: MatchingConfig,
         uv_raw=det.uv_raw,
         response=det.response,
         octave=det.octave,
+        pyramid_scale=fc.scale_factor,
         depth_noise=frame.depth_noise,
         depth_motion=depth_motion,
     )
@@ -328,9 +330,7 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     features.depth_raw = np.where(np.isfinite(z) & (z > 0), z, 0.0)
     features.edge = np.zeros(n, bool)
     if mc.depth_edge_radius > 0 and n:
-        features.edge = depth_edges(depth, u, v, mc.depth_edge_radius, mc.depth_edge_jump) & valid
-        if mc.depth_edge_use == "all":
-            valid &= ~features.edge
+        features.edge = depth_edges(depth, u, v, edge_radii(features, mc.depth_edge_radius), mc.depth_edge_jump) & valid
     pts = np.full((n, 3), np.nan)
     if valid.any() and features.row_R is not None:  # rolling shutter: each point from its row's pose
         X = camera.backproject(features.uv_observed[valid], z[valid])
@@ -344,23 +344,41 @@ def lift(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: Matchin
     features._tree_index = None
 
 
-def depth_edges(depth: np.ndarray, u: np.ndarray, v: np.ndarray, radius: int, jump: float) -> np.ndarray:
+def depth_edges(depth: np.ndarray, u: np.ndarray, v: np.ndarray, radius, jump: float) -> np.ndarray:
     """(N,) bool: pixel (u, v) lies at a depth discontinuity — some pixel of its (2r+1)² window
-    (``radius`` r; clipped at the image border) has no depth (0 or not finite) or differs from the
-    pixel's own depth z by more than ``jump`` · z. A depth read there may belong to the other
-    surface: a depth image registered a few pixels off the colour image, a late depth image under
-    motion, or the mixed pixels along an outline. A pixel without depth itself is not flagged."""
+    (``radius`` r, one for all or (N,) one per pixel; clipped at the image border) has no depth
+    (0 or not finite) or differs from the pixel's own depth z by more than ``jump`` · z. A depth read
+    there may belong to the other surface: a depth image registered a few pixels off the colour image,
+    a late depth image under motion, the mixed pixels along an outline, or a key point found in a
+    coarse pyramid level, whose position is only good to a few pixels. A pixel without depth itself
+    is not flagged."""
     d = np.asarray(depth)
     h, w = d.shape[:2]
-    z = d[v, u].astype(np.float64)
-    r = np.arange(-radius, radius + 1)
-    vv = np.clip(v[:, None, None] + r[None, :, None], 0, h - 1)
-    uu = np.clip(u[:, None, None] + r[None, None, :], 0, w - 1)
-    nb = d[vv, uu].reshape(len(u), -1).astype(np.float64)
-    with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(nb) | (nb <= 0) | (np.abs(nb - z[:, None]) > jump * z[:, None])
-    has = np.isfinite(z) & (z > 0)
-    return has & bad.any(axis=1)
+    radius = np.broadcast_to(np.asarray(radius, dtype=np.int64), np.shape(u))
+    out = np.zeros(len(u), bool)
+    for r in np.unique(radius):  # one window size at a time (a pyramid level each)
+        if r <= 0:
+            continue
+        m = radius == r
+        uu_, vv_ = u[m], v[m]
+        z = d[vv_, uu_].astype(np.float64)
+        k = np.arange(-r, r + 1)
+        vv = np.clip(vv_[:, None, None] + k[None, :, None], 0, h - 1)
+        uu = np.clip(uu_[:, None, None] + k[None, None, :], 0, w - 1)
+        nb = d[vv, uu].reshape(len(uu_), -1).astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(nb) | (nb <= 0) | (np.abs(nb - z[:, None]) > jump * z[:, None])
+        out[m] = np.isfinite(z) & (z > 0) & bad.any(axis=1)
+    return out
+
+
+def edge_radii(features: FrameFeatures, radius: int) -> np.ndarray:
+    """Window radius of each key point's depth-edge test: ``radius`` pixels at pyramid level 0,
+    scaled with the level's pixel size (``pyramid_scale ** octave``)."""
+    n = len(features.uv)
+    if len(features.octave) != n:
+        return np.full(n, radius, np.int64)
+    return np.ceil(radius * features.pyramid_scale ** features.octave.astype(np.float64) - 1e-9).astype(np.int64)
 
 
 def reshutter(features: FrameFeatures, depth: np.ndarray, camera: Camera, mc: MatchingConfig,

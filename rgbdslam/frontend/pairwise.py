@@ -18,6 +18,10 @@ from rgbdslam.config import Config, MatchingConfig
 from rgbdslam.frontend.features import FrameFeatures
 from rgbdslam.frontend.matching import guided_match, match_pairs, prefilter
 from rgbdslam.frontend.registration import Registration, get_registration
+from rgbdslam.geometry.rigid import fit_rigid
+
+# least share of a registration's inliers off depth edges for its pose to be fitted on them alone
+EDGE_FREE_SHARE = 0.3
 
 
 @dataclass
@@ -71,6 +75,13 @@ class PairRegistration:
         if fit is None:
             return None
         keep = fit.inliers
+        if len(ref.edge) == len(ref.uv) and len(cur.edge) == len(cur.uv):
+            # key points at depth edges (matching.depth_edge_radius) helped choose the
+            # inliers; the pose is fitted without them when enough others are left: their depth may
+            # be the other surface's, which shortens the translation (docs/frontend.md "Scale bias")
+            clean = keep & ~ref.edge[ia] & ~cur.edge[ib]
+            if clean.sum() < keep.sum() and clean.sum() >= max(need, EDGE_FREE_SHARE * keep.sum()):
+                fit.T = fit_rigid(ref.pts[ia[clean]], cur.pts[ib[clean]])
         return RegistrationResult(
             T=fit.T,
             n_matches=n_matches,

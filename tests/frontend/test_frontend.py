@@ -418,18 +418,31 @@ def test_depth_edges_by_hand():
     assert depth_edges(d, np.array([4]), np.array([4]), radius=1, jump=1.01).tolist() == [False]
 
 
+def test_depth_edge_radius_grows_with_the_pyramid_level():
+    """One radius per key point: ceil(r * scale**octave); (6,1) is 2 columns from the outline."""
+    from rgbdslam.frontend.features import FrameFeatures, depth_edges, edge_radii
+
+    d = np.full((10, 10), 2.0)
+    d[:, :4] = 1.0
+    feats = FrameFeatures(0, 0.0, np.zeros((4, 2)), np.zeros((4, 32), np.uint8), np.zeros((4, 3)),
+                          np.ones(4, bool), 4, octave=np.array([0, 1, 4, 7], np.int8), pyramid_scale=1.2)
+    # 1 * 1.2**k rounded up: 1, 2 (1.2), 3 (2.07), 4 (3.58)
+    assert edge_radii(feats, 1).tolist() == [1, 2, 3, 4]
+    assert edge_radii(feats, 2).tolist() == [2, 3, 5, 8]
+    u, v = np.array([6, 6, 6, 6]), np.array([1, 1, 1, 1])
+    assert depth_edges(d, u, v, np.array([1, 2, 3, 4]), 0.05).tolist() == [False, False, True, True]
+    assert depth_edges(d, u, v, 3, 0.05).tolist() == [True] * 4  # one radius for all, as before
+
+
 @pytest.mark.data
-def test_depth_edge_points_lose_depth_or_only_their_landmarks(desk):
+def test_depth_edge_points_keep_their_depth_but_not_their_landmarks(desk):
     _, frames = desk
     cfg = Config()
+    cfg.matching.depth_edge_radius = 0
     plain = extract_features(frames[0], cfg.features, cfg.matching)
     assert not plain.edge.any()
     cfg.matching.depth_edge_radius = 2
     f = extract_features(frames[0], cfg.features, cfg.matching)
     assert 0 < f.edge.sum() < 0.5 * plain.valid.sum()  # a real desk frame has outlines, most points are not on them
-    np.testing.assert_array_equal(f.valid, plain.valid & ~f.edge)
-    np.testing.assert_array_equal(f.map_valid, f.valid)
-    cfg.matching.depth_edge_use = "landmarks"
-    g = extract_features(frames[0], cfg.features, cfg.matching)
-    np.testing.assert_array_equal(g.valid, plain.valid)  # the registration keeps them
-    np.testing.assert_array_equal(g.map_valid, plain.valid & ~g.edge)
+    np.testing.assert_array_equal(f.valid, plain.valid)  # matching and the inlier choice keep them
+    np.testing.assert_array_equal(f.map_valid, plain.valid & ~f.edge)  # the landmark map does not
