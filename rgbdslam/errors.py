@@ -12,6 +12,34 @@ def one_line(text: str) -> str:
     return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
+ECHO_CHARS = 60  # the most characters of a user's value an error message repeats
+
+
+def shorten(value, limit: int = ECHO_CHARS) -> str:
+    """``repr(value)`` cut to about ``limit`` characters (``...`` where cut), so a message echoing a
+    user's value (a long string, a huge or deeply nested list, an expanded YAML alias, a
+    120,000-digit number) stays one short line. Containers are never formatted in full first
+    (:mod:`reprlib`: a few items per level, a few levels)."""
+    import reprlib
+
+    r = reprlib.Repr()
+    r.maxlevel, r.maxdict = 3, 4
+    r.maxtuple = r.maxlist = r.maxarray = r.maxset = r.maxfrozenset = r.maxdeque = 6
+    r.maxstring = r.maxlong = r.maxother = limit
+    try:
+        text = r.repr(value)
+    except (ValueError, RecursionError):  # an int beyond Python's digit limit for str()
+        return f"a {type(value).__name__} too large to show"
+    return text if len(text) <= limit + 20 else text[:limit] + "..."
+
+
+def cut(text, limit: int = ECHO_CHARS) -> str:
+    """``str(text)`` cut to ``limit`` characters (``...`` where cut): a user's key or path echoed
+    as it is written, not quoted."""
+    text = str(text)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 class RgbdslamError(Exception):
     """An error caused by the user's input or environment.
 

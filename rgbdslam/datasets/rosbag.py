@@ -33,6 +33,7 @@ from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CameraSetup, resolve_camera
 from rgbdslam.datasets.tum import select_frames
+from rgbdslam.io import validate
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.depth_registration import DepthRegistration
@@ -221,7 +222,8 @@ def camera_from_info(msg, name: str) -> Camera:
         D = [0.0] * 5
     if K.size != 9 or not (K[0] > 0 and K[4] > 0):
         raise InputError(f"{name}: CameraInfo has no valid camera matrix K; pass --camera FILE")
-    return Camera(K[0], K[4], K[2], K[5], int(msg.width), int(msg.height), tuple(D), "camera_info")
+    return validate.camera(float(K[0]), float(K[4]), float(K[2]), float(K[5]), int(msg.width), int(msg.height),
+                           D, "camera_info", where=f"{name} (CameraInfo)")
 
 
 def _transform(msg) -> np.ndarray:

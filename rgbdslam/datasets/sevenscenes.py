@@ -25,6 +25,8 @@ from rgbdslam.datasets.camera_file import CameraSetup, resolve_camera
 from rgbdslam.datasets.tum import RgbdFileSequence, data_lines, pick_depth_scale, select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
+from rgbdslam.io import validate
+from rgbdslam.io.text import optional_file, require_file
 from rgbdslam.io.trajectory import Trajectory
 
 RATE_HZ = 30.0
@@ -49,19 +51,19 @@ def _is_7scenes(path: Path) -> bool:
 
 
 def read_intrinsics(path: Path) -> Camera:
-    rows = [f for _, f in data_lines(path)]
+    rows = [f for _, f in data_lines(require_file(path, "7-Scenes intrinsics"))]
     try:
         K = np.array(rows, dtype=np.float64)
-        ok = K.shape == (3, 3) and K[0, 0] > 0 and K[1, 1] > 0 and np.isfinite(K).all()
+        ok = K.shape == (3, 3)
     except ValueError:
         ok = False
     if not ok:
         raise InputError(f"{path}: expected a 3x3 camera matrix (three rows 'fx 0 cx', '0 fy cy', '0 0 1')")
-    return Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 640, 480, (0.0,) * 5, "7scenes")
+    return validate.camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 640, 480, name="7scenes", where=str(path))
 
 
 def read_pose(path: Path) -> np.ndarray:
-    rows = [f for _, f in data_lines(path)]
+    rows = [f for _, f in data_lines(require_file(path, "7-Scenes pose"))]
     try:
         T = np.array(rows, dtype=np.float64)
         ok = T.shape == (4, 4)
@@ -69,7 +71,9 @@ def read_pose(path: Path) -> np.ndarray:
         ok = False
     if not ok:
         raise InputError(f"{path}: expected a 4x4 camera-to-world matrix (4 rows of 4 numbers)")
-    return T
+    if not np.isfinite(T).all():  # 7-Scenes marks a pose KinectFusion lost with inf: no pose, not an error
+        return T
+    return validate.poses(T, str(path))[0]
 
 
 @reader("7scenes", _is_7scenes)
@@ -86,7 +90,7 @@ class SevenScenesSequence(RgbdFileSequence):
             raise InputError(f"{root} has no frame-NNNNNN.color.jpg images (7-Scenes layout)")
         keep = select_frames(len(frames), cfg, root)
         numbers = [frames[k][0] for k in keep]
-        if (root / INTRINSICS).is_file():
+        if optional_file(root / INTRINSICS, "7-Scenes intrinsics") is not None:
             own = CameraSetup(read_intrinsics(root / INTRINSICS), f"{INTRINSICS} (7-Scenes; depth camera's, "
                               f"used for colour too: the data set is not registered)", depth_scale=DEPTH_SCALE)
         else:
@@ -113,7 +117,7 @@ class SevenScenesSequence(RgbdFileSequence):
         stamps, poses = [], []
         for n, _ in _color_frames(self.root):
             p = self.root / f"frame-{n:06d}.pose.txt"
-            if p.is_file():
+            if optional_file(p, "7-Scenes pose") is not None:
                 T = read_pose(p)
                 if np.isfinite(T).all() and abs(T[3, 3] - 1) < 1e-6:  # 7-Scenes marks lost poses with inf
                     stamps.append(n / RATE_HZ)

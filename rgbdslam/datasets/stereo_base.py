@@ -20,6 +20,7 @@ from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io.kitti import read_kitti_times
+from rgbdslam.io.text import optional_file
 from rgbdslam.io.trajectory import Trajectory
 
 
@@ -60,7 +61,7 @@ def image_files(folder: Path) -> list[Path]:
 def frame_times(times_file: Path, n: int, hz: float) -> np.ndarray:
     """Time stamps of ``n`` pairs: ``times_file`` (KITTI's times.txt, one per line) when it exists,
     else a constant rate ``hz``."""
-    if not times_file.is_file():
+    if optional_file(times_file, "time stamp file") is None:
         return np.arange(n) / hz
     ts = read_kitti_times(times_file)
     if len(ts) != n:
@@ -68,10 +69,16 @@ def frame_times(times_file: Path, n: int, hz: float) -> np.ndarray:
     return ts
 
 
+MAX_BASELINE = 1e3  # metres
+
+
 def check_baseline(baseline: float, source: Path) -> float:
     if not np.isfinite(baseline) or baseline <= 0:
         raise InputError(f"{source} gives no stereo baseline (got {baseline:g} m); the calibration must give the "
                          f"right camera's offset (e.g. KITTI P1 with -fx*B in its 4th column, or 'baseline:')")
+    if baseline > MAX_BASELINE:
+        raise InputError(f"{source} gives a stereo baseline of {baseline:g} m, more than {MAX_BASELINE:g} m; "
+                         f"the baseline is in metres")
     return float(baseline)
 
 
