@@ -289,9 +289,8 @@ def load_map(path: str | Path, camera: Camera | None = None) -> MapData:
 def check_values(arrays: dict[str, np.ndarray], path: Path) -> None:
     """The numbers a valid checksum does not vouch for (a crafted file can carry one): every
     pose rigid and finite (:func:`rgbdslam.io.validate.poses`), every time stamp and
-    information matrix finite, every index naming an existing keyframe or feature; MapFileError
-    naming the array otherwise."""
-    n_kf, n_feat = len(arrays["kf_frame"]), len(arrays["feat_uv"])
+    information matrix finite (the indices are checked with the shapes); MapFileError naming
+    the array otherwise."""
     try:
         for name in ("kf_pose", "frame_rel", "odo_T", "loop_T"):
             if len(arrays[name]):
@@ -303,13 +302,6 @@ def check_values(arrays: dict[str, np.ndarray], path: Path) -> None:
     for name in ("odo_info", "loop_info", "kf_path", "kf_turn", "loop_residual", "feat_uv", "feat_uv_raw"):
         if not np.isfinite(arrays[name]).all():
             raise MapFileError(f"{path} is corrupt: {name} holds a value that is not a finite number")
-    start = arrays["kf_feature_start"]
-    for name, a, hi in (("odo_ij", arrays["odo_ij"], n_kf), ("loop_ij", arrays["loop_ij"], n_kf),
-                        ("frame_kf", arrays["frame_kf"], n_kf), ("kf_feature_start", start, n_feat + 1)):
-        if a.size and (a.min() < 0 or a.max() >= hi):
-            raise MapFileError(f"{path} is corrupt: {name} names an entry outside 0..{hi - 1}")
-    if len(start) and (start[0] != 0 or start[-1] != n_feat or np.any(np.diff(start) < 0)):
-        raise MapFileError(f"{path} is corrupt: kf_feature_start does not split the features in order")
 
 
 def _check_anchors(lm: dict[str, np.ndarray], n_keyframes: int, where: str) -> None:

@@ -162,3 +162,16 @@ def test_realsense_sdk_recording_equals_folder_run(tmp_path, folder_run):
     est = read_tum(tmp_path / "run" / "trajectory.tum")
     np.testing.assert_allclose(est.timestamps, folder_run.timestamps, atol=1e-6)
     np.testing.assert_allclose(est.poses, folder_run.poses, atol=1e-6)
+
+
+def test_camera_info_values_are_checked_as_read(tmp_path):
+    """A CameraInfo with K = inf, a negative size or absurd distortion is one line naming the topic
+    before any frame is read (it ran and failed per frame)."""
+    from dataclasses import replace
+
+    cam = TumSequence(TUM_DESK9).camera
+    for i, (bad, words) in enumerate(((replace(cam, fx=float("inf")), "fx must be a finite number"),
+                                      (replace(cam, cx=1e200), "cx must be a finite number"),
+                                      (replace(cam, dist=(1e10, 0.0, 0.0, 0.0, 0.0)), "distortion coefficient 1"))):
+        bag = write_bag(TUM_DESK9, tmp_path / f"b{i}", "ros2", frames=2, color_info_camera=bad)
+        _one_error(_cli("info", bag), "/camera/color/camera_info", words)
