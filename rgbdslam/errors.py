@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+
 
 def one_line(text: str) -> str:
     """``text`` with every character that would break or hide a terminal line (newline, carriage
@@ -67,9 +69,10 @@ class TrackingLost(RgbdslamError):
     exit_code = 3
 
 
-# ---------------------------------------------------------------------------- Ctrl-C
+# ---------------------------------------------------------------------------- Ctrl-C and SIGTERM
 
 _interrupted = False
+_signal_name = "SIGINT"  # the signal that stopped the command (SIGTERM: kill, timeout, docker stop)
 
 
 IMPORT_MACHINERY = "<frozen importlib"  # the code name of importlib's own frames
@@ -77,14 +80,17 @@ REDELIVER_S = 0.02  # a Ctrl-C that arrived inside the import machinery is raise
 
 
 def on_sigint(signum, frame) -> None:
-    """SIGINT handler of the command line: remember the interruption, then raise as Python's own.
+    """SIGINT and SIGTERM handler of the command line: remember the interruption, then raise as
+    Python's own Ctrl-C (KeyboardInterrupt), so SIGTERM (``kill``, ``timeout``, a batch scheduler,
+    ``docker stop``) ends a command exactly as Ctrl-C does: run.json says "interrupted", the
+    map's temporary folder is removed, the helper processes are ended, finished work is kept.
 
     Not inside the import machinery: a KeyboardInterrupt raised between importlib's taking of the
     global import lock and its ``try`` (or in its weak-reference callback, whose exceptions Python
     only prints) leaves that lock held, and the next import in any other thread waits forever (a
     run hung after Ctrl-C that way). There the signal is sent again a moment later, when the import
     is done."""
-    global _interrupted
+    global _interrupted, _signal_name
     f = frame
     while f is not None:
         if f.f_code.co_filename.startswith(IMPORT_MACHINERY):
@@ -92,6 +98,8 @@ def on_sigint(signum, frame) -> None:
             return
         f = f.f_back
     _interrupted = True
+    if signum == signal.SIGTERM:
+        _signal_name = "SIGTERM"
     raise KeyboardInterrupt
 
 
@@ -110,12 +118,15 @@ def was_interrupted() -> bool:
 
 
 def exit_interrupted() -> None:
-    """One line on stderr and exit code 130 (what a shell reports for Ctrl-C)."""
+    """One line on stderr and exit code 130 after Ctrl-C, 143 after SIGTERM (what a shell reports
+    for a process those signals ended: 128 + the signal's number)."""
     import sys
 
+    term = _signal_name == "SIGTERM"
     try:
-        sys.stderr.write("interrupted: finished work was saved\n")
+        sys.stderr.write("terminated (SIGTERM): finished work was saved\n" if term
+                         else "interrupted: finished work was saved\n")
         sys.stderr.flush()
     except (OSError, ValueError, KeyboardInterrupt):
         pass
-    sys.exit(130)
+    sys.exit(128 + (signal.SIGTERM if term else signal.SIGINT))

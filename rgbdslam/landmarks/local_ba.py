@@ -291,14 +291,14 @@ class BAWorker:
     def __init__(self, cfg: LandmarksConfig, camera: Camera):
         import weakref
 
-        from rgbdslam.io.worker import end, spawn_context
+        from rgbdslam.io.worker import end, spawn_context, start
 
         ctx = spawn_context()
         self._jobs = ctx.Queue()
         self._results = ctx.Queue()
         self._proc = ctx.Process(target=_serve, name="rgbdslam-local-ba", daemon=True,
                                  args=(cfg, camera, self._jobs, self._results))
-        self._proc.start()
+        start(self._proc)
         self.pending = False
         self._finalizer = weakref.finalize(self, end, self._proc, self._jobs)
 
@@ -321,8 +321,12 @@ class BAWorker:
 
 def _serve(cfg: LandmarksConfig, camera: Camera, jobs, results) -> None:
     """The BA process: one :class:`BAResult` (or None) per problem until ``None`` comes."""
-    from rgbdslam.io.worker import exit_now
+    import signal
 
+    from rgbdslam.io.worker import exit_now, follow_parent
+
+    follow_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle: it stops us
     factors = StereoFactors(cfg, camera)
     while (p := jobs.get()) is not None:
         try:

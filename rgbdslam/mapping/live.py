@@ -490,6 +490,9 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
     at the run's priority and with every core (the user waits for it now)."""
     import signal
 
+    from rgbdslam.io.worker import follow_parent
+
+    follow_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
     try:
         # Open3D's and OpenCV's imports (~1 s of CPU) once the first keyframe is here, i.e. after the run
@@ -760,7 +763,7 @@ class LiveMap:
     frames are tracked."""
 
     def __init__(self, cfg: MappingConfig, camera: Camera, root: str, dataset_cfg, depth_dir: str | None):
-        from rgbdslam.io.worker import spawn_context
+        from rgbdslam.io.worker import spawn_context, start
 
         ctx = spawn_context()
         self.cfg = cfg
@@ -771,7 +774,7 @@ class LiveMap:
         self._proc = ctx.Process(target=_process, name="rgbdslam-map", daemon=True,
                                  args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
                                        self._results, self._applied))
-        self._proc.start()
+        start(self._proc)
         self._cloud = None  # the cloud process: started with the first keyframe (after the first frame)
 
     def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
