@@ -124,6 +124,18 @@ def _open_reader(path: Path):
     return reader
 
 
+def decode_message(reader, raw, msgtype: str, topic: str, where) -> object:
+    """The message ``raw`` of ``topic``; an InputError naming the topic and the bag when it cannot
+    be decoded (a damaged or empty message: rosbags' SerdeError "Invalid or unsupported CDR
+    encapsulation", a struct error for a truncated one)."""
+    try:
+        return reader.deserialize(raw, msgtype)
+    except Exception as e:  # noqa: BLE001 - the third-party decoder's failure, whatever its class
+        why = str(e).strip().splitlines()[0][:100] if str(e).strip() else "no detail"
+        raise InputError(f"{where}: a message on {topic} cannot be decoded ({type(e).__name__}: {why}); the "
+                         f"recording is damaged — record it again or leave that topic out") from None
+
+
 def _stamp(msg, fallback_ns: int) -> float:
     header = getattr(msg, "header", None)
     st = getattr(header, "stamp", None)
@@ -290,7 +302,7 @@ class RosbagSequence(Sequence):
                                  for t, cs in by_topic.items()}
         for conn, t_ns, raw in reader.messages(connections=images):
             d = info[conn.topic]
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg = decode_message(reader, raw, conn.msgtype, conn.topic, self.root)
             if d["kind"] is None:
                 d["kind"], d["enc"] = _kind(conn.msgtype, msg)
                 if conn.msgtype == IMAGE:
@@ -307,7 +319,7 @@ class RosbagSequence(Sequence):
         wanted = [infos[t] for t in {color_info, depth_info} if t is not None]
         first_info: dict[str, object] = {}
         for conn, _, raw in reader.messages(connections=wanted):
-            first_info.setdefault(conn.topic, reader.deserialize(raw, conn.msgtype))
+            first_info.setdefault(conn.topic, decode_message(reader, raw, conn.msgtype, conn.topic, self.root))
         realsense = self.depth.topic.startswith("/device_0/")
         if realsense:
             for stream in (self.color, self.depth):
@@ -414,7 +426,7 @@ class RosbagSequence(Sequence):
                   and c.topic.endswith(("Depth Units/value", "Depth_Units/value"))]
         for conn, _, raw in reader.messages(connections=topics):
             try:
-                v = float(reader.deserialize(raw, conn.msgtype).data)
+                v = float(decode_message(reader, raw, conn.msgtype, conn.topic, self.root).data)
             except (TypeError, ValueError):
                 continue
             if v > 0:
@@ -430,7 +442,7 @@ class RosbagSequence(Sequence):
             base = image_topic.rsplit("/image/", 1)[0] + "/tf/"
             cs = [c for c in conns if c.topic.startswith(base)]
             for conn, _, raw in reader.messages(connections=cs):
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg = decode_message(reader, raw, conn.msgtype, conn.topic, self.root)
                 if hasattr(msg, "rotation"):
                     return _transform(msg)
                 fields = dict(kv.split("=", 1) for kv in str(msg.data).split(";") if "=" in kv)
@@ -455,8 +467,8 @@ class RosbagSequence(Sequence):
         cs = [c for c in conns if c.topic == base]
         stamps = []
         for conn, _, raw in reader.messages(connections=cs):
-            fields = dict(kv.split("=", 1) for kv in str(reader.deserialize(raw, conn.msgtype).data).split(";")
-                          if "=" in kv)
+            text = str(decode_message(reader, raw, conn.msgtype, conn.topic, self.root).data)
+            fields = dict(kv.split("=", 1) for kv in text.split(";") if "=" in kv)
             try:
                 stamps.append(float(fields["timestamp"]) / 1000.0)
             except (KeyError, ValueError):
@@ -491,7 +503,7 @@ class RosbagSequence(Sequence):
             except StopIteration:
                 raise InputError(f"{self.root}: message {k} of {topic} is missing (the bag changed while read?)") from None
             if (t == self.color.topic and n in self._want_c) or (t == self.depth.topic and n in self._want_d):
-                self._pending[(t, n)] = (msgtype, reader.deserialize(raw, msgtype))
+                self._pending[(t, n)] = (msgtype, decode_message(reader, raw, msgtype, t, self.root))
         return self._pending.pop(key)
 
     def load(self, i: int) -> Frame:

@@ -175,3 +175,18 @@ def test_camera_info_values_are_checked_as_read(tmp_path):
                                       (replace(cam, dist=(1e10, 0.0, 0.0, 0.0, 0.0)), "distortion coefficient 1"))):
         bag = write_bag(TUM_DESK9, tmp_path / f"b{i}", "ros2", frames=2, color_info_camera=bad)
         _one_error(_cli("info", bag), "/camera/color/camera_info", words)
+
+
+@pytest.mark.parametrize("data", [b"", b"\x07\x07\x07\x07garbage"])
+def test_an_empty_or_corrupt_message_is_one_line_naming_its_topic(tmp_path, data):
+    """rosbags' SerdeError ("Invalid or unsupported CDR encapsulation") for a damaged message of a
+    ROS 2 bag reached the user as a traceback."""
+    import sqlite3
+
+    bag = write_bag(TUM_DESK9, tmp_path / "r2", "ros2", frames=2)
+    db = next(bag.glob("*.db3"))
+    with sqlite3.connect(db) as con:
+        tid = con.execute("SELECT id FROM topics WHERE name = '/camera/color/image_raw'").fetchone()[0]
+        first = con.execute("SELECT min(id) FROM messages WHERE topic_id = ?", (tid,)).fetchone()[0]
+        con.execute("UPDATE messages SET data = ? WHERE id = ?", (data, first))
+    _one_error(_cli("info", bag), f"{bag}: a message on /camera/color/image_raw cannot be decoded")
