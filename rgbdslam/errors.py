@@ -42,6 +42,18 @@ def cut(text, limit: int = ECHO_CHARS) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+MAX_MESSAGE = 1000  # characters of one error line
+
+
+def bounded(text: str, limit: int = MAX_MESSAGE) -> str:
+    """``text`` when it is at most ``limit`` characters, else its beginning and end with how much
+    was left out: whatever a message echoes (a value, a list of names), the line stays readable."""
+    if len(text) <= limit:
+        return text
+    tail = limit // 5
+    return f"{text[: limit - tail - 40]} ... [{len(text) - limit + 40:,} characters left out] ... {text[-tail:]}"
+
+
 class RgbdslamError(Exception):
     """An error caused by the user's input or environment.
 
@@ -52,7 +64,7 @@ class RgbdslamError(Exception):
     exit_code = 2
 
     def __str__(self) -> str:
-        return one_line(super().__str__())
+        return bounded(one_line(super().__str__()))
 
 
 class InputError(RgbdslamError):

@@ -34,7 +34,7 @@ from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CameraSetup, resolve_camera
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.io import validate
-from rgbdslam.errors import InputError
+from rgbdslam.errors import InputError, cut, shorten
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.depth_registration import DepthRegistration
 from rgbdslam.io.trajectory import Trajectory, read_tum
@@ -168,12 +168,12 @@ def decode_color(msgtype: str, msg, topic: str) -> np.ndarray:
     if msgtype == COMPRESSED:
         img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
         if img is None:
-            raise InputError(f"{topic}: a compressed colour image cannot be decoded (format {msg.format!r})")
+            raise InputError(f"{topic}: a compressed colour image cannot be decoded (format {shorten(msg.format)})")
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     enc = msg.encoding.lower()
     ch = {"rgb8": 3, "bgr8": 3, "8uc3": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8uc1": 1}.get(enc)
     if ch is None:
-        raise InputError(f"{topic}: colour encoding {msg.encoding!r} is not supported; use rgb8, bgr8, rgba8, "
+        raise InputError(f"{topic}: colour encoding {shorten(msg.encoding)} is not supported; use rgb8, bgr8, rgba8, "
                          f"bgra8 or mono8")
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(bytes(msg.data), np.uint8)
@@ -193,7 +193,7 @@ def decode_depth(msgtype: str, msg, topic: str, metres_per_unit: float) -> np.nd
         start = raw.find(b"\x89PNG")  # compressedDepth puts a 12-byte header before the PNG
         img = cv2.imdecode(np.frombuffer(raw[max(start, 0):], np.uint8), cv2.IMREAD_UNCHANGED) if start >= 0 else None
         if img is None or img.ndim != 2 or img.dtype != np.uint16:
-            raise InputError(f"{topic}: compressed depth {msg.format!r} is not a 16-bit PNG; record depth as "
+            raise InputError(f"{topic}: compressed depth {shorten(msg.format)} is not a 16-bit PNG; record depth as "
                              f"16UC1 (compressedDepth png) or raw sensor_msgs/Image")
         if msg.format.lower().startswith("32fc1"):  # inverse-depth quantisation of compressed_depth_image_transport
             a, b = np.frombuffer(raw[4:12], "<f4")
@@ -209,7 +209,7 @@ def decode_depth(msgtype: str, msg, topic: str, metres_per_unit: float) -> np.nd
     elif enc == "32fc1":
         dt, size = np.dtype(">f4" if msg.is_bigendian else "<f4"), 4
     else:
-        raise InputError(f"{topic}: depth encoding {msg.encoding!r} is not supported; use 16UC1 (mm) or 32FC1 (m)")
+        raise InputError(f"{topic}: depth encoding {shorten(msg.encoding)} is not supported; use 16UC1 (mm) or 32FC1 (m)")
     data = np.frombuffer(bytes(msg.data), np.uint8)
     if data.size < h * step or step < w * size:
         raise InputError(f"{topic}: image data holds {data.size} bytes, expected {h}x{step} for {w}x{h} {enc}")
@@ -226,7 +226,7 @@ def camera_from_info(msg, name: str) -> Camera:
     D = [float(x) for x in (getattr(msg, "d", None) if hasattr(msg, "d") else msg.D)]
     model = (msg.distortion_model or "plumb_bob").lower()
     if model not in ("plumb_bob", "rational_polynomial", "brown_conrady", "inverse_brown_conrady", "none", ""):
-        raise InputError(f"{name}: distortion model {msg.distortion_model!r} is not supported (plumb_bob, "
+        raise InputError(f"{name}: distortion model {shorten(msg.distortion_model)} is not supported (plumb_bob, "
                          f"rational_polynomial); pass --camera FILE with undistorted intrinsics")
     # RealSense's "inverse" Brown-Conrady maps the other way than OpenCV's model; its coefficients
     # are small on the SDK's rectified colour stream, so it is read as no distortion (like `live`)
@@ -370,12 +370,12 @@ class RosbagSequence(Sequence):
                 raise InputError(f"dataset.{key} '{chosen}' is not an image topic of {self.root}; image topics: "
                                  f"{', '.join(sorted(info))}")
             if info[chosen]["kind"] == "unknown":
-                raise InputError(f"{chosen}: encoding {info[chosen]['enc']!r} is not supported")
+                raise InputError(f"{chosen}: encoding {shorten(info[chosen]['enc'])} is not supported")
             return chosen
         if len(found) == 1:
             return found[0]
         if not found:
-            extra = (f"; unsupported encodings: " + ", ".join(f"{t} ({e})" for t, e in sorted(unknown.items()))
+            extra = (f"; unsupported encodings: " + ", ".join(f"{cut(t)} ({shorten(e)})" for t, e in sorted(unknown.items())[:5])
                      if unknown else "")
             raise InputError(f"{self.root} has no {what} image topic{extra}; {what} needs "
                              + ("16UC1/mono16 (mm) or 32FC1 (m) depth" if what == "depth" else
