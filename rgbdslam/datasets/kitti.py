@@ -12,13 +12,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 
 from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline, frame_times, image_files
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.io import validate
+from rgbdslam.io.images import read_image
 from rgbdslam.io.text import optional_file
 from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io.kitti import read_kitti_calib, read_kitti_poses
@@ -85,9 +85,9 @@ class KittiSequence(StereoSequence):
         if optional_file(gt_path, "KITTI pose file") is not None:
             gt_all = read_kitti_poses(gt_path)
         keep = select_frames(n, cfg, seq)
-        first = cv2.imread(str(left[0]), cv2.IMREAD_UNCHANGED)
+        first, why = read_image(left[0])
         if first is None:
-            raise InputError(f"left image {left[0]} cannot be decoded; replace it with a valid PNG")
+            raise InputError(f"left image {left[0]} cannot be decoded ({why}); replace it with a valid PNG")
         h, w = first.shape[:2]
         cam = validate.camera(float(fx), float(P0[1, 1]), float(P0[0, 2]), float(P0[1, 2]), w, h,
                               name=f"kitti_{seq.name}", where=f"{seq / 'calib.txt'} ({pa})")

@@ -19,6 +19,7 @@ import numpy as np
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.stereo import StereoRig
+from rgbdslam.io.images import read_image as decode_image
 from rgbdslam.io.kitti import read_kitti_times
 from rgbdslam.io.text import optional_file
 from rgbdslam.io.trajectory import Trajectory
@@ -28,9 +29,9 @@ def read_image(path: Path, what: str) -> np.ndarray:
     """An 8-bit grey (H, W) or colour (H, W, 3, RGB order) image; InputError naming the file."""
     if not path.is_file():
         raise InputError(f"{what} image {path} is missing; restore it or remove it from the sequence")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img, why = decode_image(path)  # a damaged file: our line only, no libpng/libjpeg noise above it
     if img is None:
-        raise InputError(f"{what} image {path} cannot be decoded; replace it with a valid PNG/JPEG")
+        raise InputError(f"{what} image {path} cannot be decoded ({why}); replace it with a valid PNG/JPEG")
     if img.dtype != np.uint8:
         raise InputError(f"{what} image {path} is {img.dtype}, expected 8-bit; convert it to 8-bit grey or colour")
     if img.ndim == 3 and img.shape[2] == 1:

@@ -17,13 +17,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 
 from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline, frame_times, image_files
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError, cut
 from rgbdslam.io import validate
+from rgbdslam.io.images import read_image
 from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io.text import optional_file, read_text
 from rgbdslam.io.trajectory import read_tum
@@ -81,9 +81,9 @@ class StereoFolderSequence(StereoSequence):
             raise InputError(f"{root / 'left'} holds no images")
         n = len(left)
         ts = frame_times(root / "times.txt", n, c["fps"])
-        first = cv2.imread(str(left[0]), cv2.IMREAD_UNCHANGED)
+        first, why = read_image(left[0])
         if first is None:
-            raise InputError(f"left image {left[0]} cannot be decoded; replace it with a valid image")
+            raise InputError(f"left image {left[0]} cannot be decoded ({why}); replace it with a valid image")
         h, w = first.shape[:2]
         cam = validate.camera(c["fx"], c["fy"], c["cx"], c["cy"], c.get("width", w), c.get("height", h),
                               name="stereo", where=str(root / CAMERA_FILE))

@@ -129,3 +129,19 @@ def test_a_folder_where_a_file_is_expected_is_named(layouts, tmp_path):
             target.unlink()
         target.mkdir(parents=True)
         _one_line(cli(["info", root]), f"{target} is a folder")
+
+
+@pytest.mark.parametrize("layout, rel", [("plain", "left/000000.png"), ("kitti", "sequences/00/image_0/000000.png")])
+def test_a_damaged_first_image_is_our_line_alone(layouts, tmp_path, layout, rel):
+    """libpng printed "libpng error: ..." (straight to the process's stderr) above our line."""
+    root = shutil.copytree(layouts[layout], tmp_path / layout)
+    img = root / rel
+    data = bytearray(img.read_bytes())
+    data[60] ^= 0xFF  # a byte of the image data: the chunk's CRC fails
+    img.write_bytes(bytes(data))
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    res = subprocess.run([sys.executable, "-m", "rgbdslam._entry", "info", str(root)], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 2 and res.stdout == "", res.stderr
+    assert res.stderr.count("\n") == 1 and res.stderr.startswith(f"error: left image {img} cannot be decoded ("), \
+        res.stderr
