@@ -753,20 +753,27 @@ def value_range(key: str, kind: type) -> tuple[float, bool, float]:
     return lo, key in POSITIVE and kind is float and key not in BOUNDS, hi
 
 
+def _bound(x: int | float) -> str:
+    """A range bound as written: whole numbers in full (2147483647, not 2.14748e+09)."""
+    if isinstance(x, int) or (math.isfinite(x) and x == int(x) and abs(x) < 1e16):
+        return str(int(x)) if abs(x) < 1e7 or x != 10 ** round(math.log10(abs(x))) else f"{x:g}"
+    return f"{x:g}"
+
+
 def check_range(key: str, v: int | float) -> None:
     """ConfigError naming ``key`` when ``v`` is outside its range (:func:`value_range`)."""
     lo, lo_open, hi = value_range(key, int if isinstance(v, int) else float)
     if key in BOUNDS:
         if not lo <= v <= hi:
-            raise ConfigError(f"config key '{key}' must be between {lo:g} and {hi:g}; got {shorten(v)}")
+            raise ConfigError(f"config key '{key}' must be between {_bound(lo)} and {_bound(hi)}; got {shorten(v)}")
         return
     if lo_open and not v > lo:
         raise ConfigError(f"config key '{key}' must be positive; got {shorten(v)}")
     if not v >= lo:
-        raise ConfigError(f"config key '{key}' must " + (f"be at least {lo:g}" if lo else "not be negative")
+        raise ConfigError(f"config key '{key}' must " + (f"be at least {_bound(lo)}" if lo else "not be negative")
                           + f"; got {shorten(v)}")
     if not v <= hi:
-        raise ConfigError(f"config key '{key}' must be at most {hi:g}; got {shorten(v)}")
+        raise ConfigError(f"config key '{key}' must be at most {_bound(hi)}; got {shorten(v)}")
 
 
 def validate_section(section: str, obj: Any) -> Any:

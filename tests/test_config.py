@@ -386,3 +386,9 @@ def test_every_error_line_is_bounded():
 
     text = str(InputError("x" * 10 ** 6 + " the end"))
     assert len(text) <= MAX_MESSAGE and text.endswith(" the end") and "characters left out" in text
+
+
+def test_bounds_are_printed_as_written():
+    """A C int's bound read "at most 2.14748e+09" (rounded by %g): not the number to type."""
+    with pytest.raises(ConfigError, match=r"'registration.seed' must be at most 2147483647; got 99999999999$"):
+        load_config(None, ["registration.seed=99999999999"])
