@@ -121,7 +121,7 @@ def _finished(cell: Cell) -> dict[str, Any] | None:
     """The row of an earlier run of this very cell, if it finished."""
     try:
         info = json.loads((cell.out_dir / CELL_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # unreadable, not JSON, too deep: run the cell again
         return None
     if not isinstance(info, dict) or info.get("settings") != json.loads(json.dumps(cell.settings())):
         return None
