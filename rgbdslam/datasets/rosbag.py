@@ -371,6 +371,12 @@ class RosbagSequence(Sequence):
                                  f"{', '.join(sorted(info))}")
             if info[chosen]["kind"] == "unknown":
                 raise InputError(f"{chosen}: encoding {shorten(info[chosen]['enc'])} is not supported")
+            kind = "color" if what == "colour" else "depth"
+            if info[chosen]["kind"] != kind:  # checked here, not as every frame fails to decode
+                other = "depth" if kind == "color" else "colour"
+                raise InputError(f"dataset.{key} '{cut(chosen)}' is a {other} topic (encoding "
+                                 f"{shorten(info[chosen]['enc'])}), not {what}; {what} topics of {self.root}: "
+                                 f"{', '.join(found) or 'none'}")
             return chosen
         if len(found) == 1:
             return found[0]

@@ -190,3 +190,13 @@ def test_an_empty_or_corrupt_message_is_one_line_naming_its_topic(tmp_path, data
         first = con.execute("SELECT min(id) FROM messages WHERE topic_id = ?", (tid,)).fetchone()[0]
         con.execute("UPDATE messages SET data = ? WHERE id = ?", (data, first))
     _one_error(_cli("info", bag), f"{bag}: a message on /camera/color/image_raw cannot be decoded")
+
+
+def test_a_topic_of_the_wrong_kind_is_refused_up_front(tmp_path):
+    """A depth topic given as the colour topic failed on every frame (exit 3) instead of once."""
+    bag = write_bag(TUM_DESK9, tmp_path / "r2", "ros2", frames=2)
+    _one_error(_cli("info", bag, "--set", "dataset.rgb_topic=/camera/depth/image_raw"),
+               "dataset.rgb_topic '/camera/depth/image_raw' is a depth topic", "colour topics of",
+               "/camera/color/image_raw")
+    _one_error(_cli("info", bag, "--set", "dataset.depth_topic=/camera/color/image_raw"),
+               "dataset.depth_topic '/camera/color/image_raw' is a colour topic")
