@@ -306,7 +306,6 @@ def test_fuzz_stereo_yaml(tmp_path_factory, data):
 @given(sensor=file_contents(SENSOR_YAML), csv=file_contents(EUROC_CSV), gt=file_contents(EUROC_GT))
 def test_fuzz_euroc_files(tmp_path_factory, sensor, csv, gt):
     from rgbdslam.datasets.euroc import read_camera_csv, read_groundtruth_csv, read_sensor_yaml
-    from rgbdslam.io.validate import camera
 
     d = tmp_path_factory.mktemp("e")
 
@@ -320,7 +319,6 @@ def test_fuzz_euroc_files(tmp_path_factory, sensor, csv, gt):
     clean_parse_or_one_line_error(sensor_then_opencv, _write(d, "sensor.yaml", sensor))
     clean_parse_or_one_line_error(read_camera_csv, _write(d, "data.csv", csv))
     clean_parse_or_one_line_error(read_groundtruth_csv, _write(d, "gt.csv", gt))
-    assert camera  # the shared check the readers use
 
 
 @FUZZ
