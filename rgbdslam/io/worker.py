@@ -87,11 +87,12 @@ def follow_parent() -> None:
     as an orphan. A daemon thread compares the parent's id every :data:`PARENT_POLL_S` s (a
     parent's death re-parents the helper; Linux's PR_SET_PDEATHSIG would fire when the *thread*
     that started it ends, which is not the run's end)."""
-    import threading
+    import multiprocessing
     import time
 
-    parent = os.getppid()
-    if parent == 1:  # already an orphan
+    started_by = multiprocessing.parent_process()  # the run's id, also when the run is PID 1 (a container)
+    parent = started_by.pid if started_by is not None else os.getppid()
+    if os.getppid() != parent:  # the run ended before this helper got here
         os._exit(1)
 
     def watch() -> None:
