@@ -113,8 +113,9 @@ def poses(P, where: str, lines=None, what: str = "pose") -> np.ndarray:
     bottom_ok = np.ones(len(P), bool) if P.shape[1] == 3 else np.all(np.abs(P[:, 3] - [0, 0, 0, 1]) <= 1e-6, axis=1)
     finite = np.isfinite(P).all(axis=(1, 2))
     R = np.where(finite[:, None, None], out[:, :3, :3], np.eye(3))
-    ortho = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2)) <= ROTATION_TOL
-    det_ok = np.linalg.det(R) > 0
+    with np.errstate(over="ignore", invalid="ignore"):  # entries of 1e300: not a rotation, said below
+        ortho = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2)) <= ROTATION_TOL
+        det_ok = np.linalg.det(R) > 0
     t_ok = np.all(np.abs(np.where(finite[:, None], out[:, :3, 3], 0.0)) <= MAX_COORD, axis=1)
     bad = np.flatnonzero(~(finite & ortho & det_ok & t_ok & bottom_ok))
     if len(bad):
