@@ -77,13 +77,19 @@ def _helpers_running(proc: subprocess.Popen, out: Path, count: int = 3) -> set[i
     return _children(proc.pid)
 
 
-def test_sigterm_is_handled_like_ctrl_c(sequence, tmp_path):
+@pytest.mark.parametrize("to", ["run", "group"])
+def test_sigterm_is_handled_like_ctrl_c(sequence, tmp_path, to):
+    """SIGTERM to the run (kill, timeout, docker stop) or to its whole process group (systemd, a
+    batch scheduler): the helpers neither die under the run nor outlive it."""
     out = tmp_path / "run"
     proc = _start(sequence, out)
     kids = _helpers_running(proc, out)
     try:
         assert json.loads((out / "run.json").read_text())["status"] == "running"
-        proc.send_signal(signal.SIGTERM)
+        if to == "run":
+            proc.send_signal(signal.SIGTERM)
+        else:
+            os.killpg(proc.pid, signal.SIGTERM)
         assert _wait_for(lambda: proc.poll() is not None, 60)
         assert proc.returncode == 143
         assert json.loads((out / "run.json").read_text())["status"] == "interrupted"
@@ -91,6 +97,7 @@ def test_sigterm_is_handled_like_ctrl_c(sequence, tmp_path):
         assert _wait_for(lambda: not _alive(kids), 10), _alive(kids)
         _, err = proc.communicate(timeout=10)
         assert err.splitlines()[-1] == "terminated (SIGTERM): finished work was saved" and "Traceback" not in err, err
+        assert "ended unexpectedly" not in err, err
     finally:
         _kill(proc, kids)
 

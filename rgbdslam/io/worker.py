@@ -28,7 +28,7 @@ def spawn_context():
     added = _QUIET not in sys.warnoptions
     if added:
         sys.warnoptions.append(_QUIET)
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})  # as start(): no Ctrl-C while it imports
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})  # as start()
     try:
         resource_tracker.ensure_running()
     finally:
@@ -43,15 +43,18 @@ _STARTING = threading.Lock()  # held while a helper is launched (see settle())
 
 
 def start(proc) -> None:
-    """``proc.start()`` with SIGINT blocked in the calling thread: the new process inherits the
-    block (fork and exec keep the thread's signal mask), so a Ctrl-C, which the terminal sends to
-    every process of the run, reaches only the run itself, from the helper's first instruction (a
-    helper interrupted while it imports printed its own traceback). In the main thread, where
+    """``proc.start()`` with SIGINT and SIGTERM blocked in the calling thread: the new process
+    inherits the block (fork and exec keep the thread's signal mask), so a Ctrl-C, which the
+    terminal sends to every process of the run, or a SIGTERM sent to the whole process group (a
+    batch scheduler, systemd) reaches only the run itself, from the helper's first instruction (a
+    helper interrupted while it imports printed its own traceback; one killed by the group's
+    SIGTERM made the run warn); the run then ends its helpers (:func:`end`, :func:`stop`). In the main thread, where
     Python runs its signal handlers, a Ctrl-C or SIGTERM that arrives during the launch is handled
     right after it (a launch cut short leaves the new interpreter without its instructions: an
     EOFError traceback after the run's last line)."""
     import signal
 
+    _stop_at_exit()
     main = threading.current_thread() is threading.main_thread()
     caught: list = []
     previous = {}
@@ -61,9 +64,10 @@ def start(proc) -> None:
             if callable(handler):
                 previous[sig] = handler
                 signal.signal(sig, lambda signum, frame: caught.append((signum, frame)))
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     try:
         with _STARTING:
+            proc._rgbdslam_helper = True  # noqa: SLF001 - our mark on multiprocessing's object
             proc.start()
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
@@ -71,6 +75,30 @@ def start(proc) -> None:
             signal.signal(sig, handler)
     if caught:
         previous[caught[0][0]](*caught[0])
+
+
+_STARTED: list = []  # the helpers start() launched (weakly: ended ones are not kept alive)
+
+
+def _stop_at_exit() -> None:
+    """Once per process: at exit, :func:`stop` every helper still running, before multiprocessing's
+    own exit handler would ``terminate`` it and wait — a SIGTERM the helper blocks (:func:`start`),
+    so that wait would never end. Registered after multiprocessing's handler, so it runs first."""
+    if _STARTED:
+        return
+    import atexit
+    import multiprocessing.util  # noqa: F401 - its exit handler is registered first, runs last
+
+    _STARTED.append(None)
+
+    def stop_helpers() -> None:
+        import multiprocessing
+
+        for proc in multiprocessing.active_children():
+            if proc.daemon and getattr(proc, "_rgbdslam_helper", False):
+                stop(proc)
+
+    atexit.register(stop_helpers)
 
 
 def settle(timeout: float = 5.0) -> None:
@@ -117,14 +145,20 @@ def receive(results, proc, what: str) -> tuple[str, object]:
 
 
 def end(proc, jobs, timeout: float = 5.0) -> None:
-    """Ask the process to end (``None`` as its next job), wait ``timeout`` s, then terminate it."""
+    """Ask the process to end (``None`` as its next job), wait ``timeout`` s, then :func:`stop` it."""
     if proc.is_alive():
         jobs.put(None)
         proc.join(timeout=timeout)
         if proc.is_alive():
-            proc.terminate()
-            proc.join()
+            stop(proc)
     jobs.cancel_join_thread()  # its reader is gone: exit must not wait to flush the queue
+
+
+def stop(proc) -> None:
+    """End the helper process at once (SIGKILL: it blocks SIGTERM, see :func:`start`; it has no
+    cleanup of its own to do — the run removes what it leaves)."""
+    proc.kill()
+    proc.join()
 
 
 def exit_now(results) -> None:

@@ -39,7 +39,7 @@ import numpy as np
 from rgbdslam.config import MappingConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
-from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive
+from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive, stop
 
 CACHE_MB = 512  # keyframe images kept for re-integration (640x480: ~1.5 MB each); beyond, they are read again
 REBUILD_FRACTION = 0.5  # more keyframes than this share moved: rebuild the map instead of de-/re-integrating
@@ -873,8 +873,7 @@ class LiveMap:
 
     def _stop(self) -> None:
         if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join()
+            stop(self._proc)
         self._jobs.cancel_join_thread()
         self._close_cloud(wait=0.0)
 
