@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from rgbdslam.mapping import fusion
+from rgbdslam.runfolder.read import read_run
 
 
 def cloud_before_outliers(run: Path) -> np.ndarray:
@@ -29,7 +30,7 @@ def cloud_before_outliers(run: Path) -> np.ndarray:
     with its own configuration, outlier removal off (its map/ is rewritten so)."""
     import open3d as o3d
 
-    _, run_cfg, _ = fusion.read_run(run)
+    _, run_cfg, _ = read_run(run)
     cfg = dataclasses.replace(run_cfg.mapping, outlier_method="statistical", outlier_neighbors=0)
     res = fusion.fuse_run(run, cfg, progress=False)
     return np.asarray(o3d.io.read_point_cloud(str(res.cloud_path)).points, dtype=np.float64)
@@ -49,7 +50,7 @@ def map2d_diff(points, keep_a, keep_b, run: Path, cfg) -> str:
     (looked up at the first map's cell centres)."""
     from rgbdslam.mapping.map2d import build_map2d
 
-    info, _, traj = fusion.read_run(run)
+    info, _, traj = read_run(run)
     acc = Path(info["sequence"]) / "accelerometer.txt"
     maps = [build_map2d(points[k].astype(np.float32), traj, cfg, accelerometer=acc if acc.is_file() else None)
             for k in (keep_a, keep_b)]
@@ -82,7 +83,7 @@ def main(argv=None) -> int:
     print(f"load {os.getloadavg()[0]:.1f} (1 min); CPU s are medians of {a.repeat}")
     for run in a.runs:
         points = cloud_before_outliers(run)
-        _, run_cfg, _ = fusion.read_run(run)
+        _, run_cfg, _ = read_run(run)
         cfg = run_cfg.mapping
         n = len(points)
         t_stat = cpu(lambda: fusion.statistical_keep(points, cfg), a.repeat)

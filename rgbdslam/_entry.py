@@ -14,6 +14,7 @@ from rgbdslam import errors
 
 def main() -> None:
     signal.signal(signal.SIGINT, errors.on_sigint)
+    signal.signal(signal.SIGTERM, errors.on_sigint)  # kill, timeout, docker stop: handled as Ctrl-C
     code: int | str | None = 0
     try:
         _command()
@@ -27,6 +28,7 @@ def main() -> None:
         # exit code) or kill the process by the signal (exit -2, after a finished run). There is
         # nothing left to stop: it is ignored, and the process exits with the command's code.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _exit_now(code)
 
 
@@ -45,6 +47,8 @@ def _exit_now(code: int | str | None) -> None:
     elif not isinstance(code, int):  # SystemExit("message"): Python prints it and exits with 1
         sys.stderr.write(f"{code}\n")
         code = 1
+    if "rgbdslam.io.worker" in sys.modules:  # no helper left half-launched by another thread
+        sys.modules["rgbdslam.io.worker"].settle()
     shutdown = getattr(threading, "_shutdown", None)
     if shutdown is not None:
         shutdown()
@@ -60,7 +64,7 @@ def _exit_now(code: int | str | None) -> None:
 def _command() -> None:
     try:
         # a Ctrl-C that arrived while the interpreter started, with SIGINT blocked, is taken now
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
         from rgbdslam.cli import main as cli_main
 
         cli_main()

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import click
 
-from rgbdslam.errors import InputError, RgbdslamError, exit_interrupted, one_line, was_interrupted
+from rgbdslam.errors import InputError, RgbdslamError, bounded, exit_interrupted, one_line, was_interrupted
 
 
 class _Group(click.Group):
@@ -29,15 +29,15 @@ class _Group(click.Group):
             raise
         except click.UsageError as e:  # a bad option or argument: one line, like every other error
             where = e.ctx.command_path if e.ctx is not None else "rgbdslam"
-            click.secho(one_line(f"error: {e.format_message()} (see '{where} --help')"), fg="red", err=True)
+            click.secho(bounded(one_line(f"error: {e.format_message()} (see '{where} --help')")), fg="red", err=True)
             sys.exit(2)
         except RgbdslamError as e:
             click.secho(f"error: {e}", fg="red", err=True)
             sys.exit(e.exit_code)
         except OSError as e:  # an output path that is a file, a folder without write access, a full disk
             what = f"{e.filename}: " if e.filename else ""
-            click.secho(one_line(f"error: {what}{e.strerror or e}; check that the path is a writable folder "
-                                 f"(or readable file) and the disk is not full"), fg="red", err=True)
+            click.secho(bounded(one_line(f"error: {what}{e.strerror or e}; check that the path is a writable folder "
+                                         f"(or readable file) and the disk is not full")), fg="red", err=True)
             sys.exit(2)
         except KeyboardInterrupt:
             exit_interrupted()

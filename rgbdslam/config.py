@@ -21,7 +21,8 @@ from typing import Any, Literal, get_args, get_origin, get_type_hints
 import yaml
 
 from rgbdslam.io.text import read_text
-from rgbdslam.errors import ConfigError
+from rgbdslam.errors import ConfigError, cut, shorten
+from rgbdslam.io.yamlfile import Refused, StrictLoader, load_yaml
 
 
 def preset_files() -> dict[str, Any]:
@@ -500,7 +501,7 @@ def _check_value(key: str, value: Any, hint: Any) -> Any:
         allowed = get_args(hint)
         if value not in allowed:
             raise ConfigError(
-                f"config key '{key}' must be one of {', '.join(map(str, allowed))}; got {value!r}"
+                f"config key '{key}' must be one of {', '.join(map(str, allowed))}; got {shorten(value)}"
             )
         return value
     if origin in (typing.Union, types.UnionType):
@@ -515,7 +516,7 @@ def _check_value(key: str, value: Any, hint: Any) -> Any:
                 return _check_value(key, value, a)
             except ConfigError as e:
                 errors.append(str(e))
-        raise ConfigError(errors[0] if errors else f"config key '{key}' has an invalid value {value!r}")
+        raise ConfigError(errors[0] if errors else f"config key '{key}' has an invalid value {shorten(value)}")
     if hint is bool:
         if isinstance(value, bool):
             return value
@@ -530,7 +531,7 @@ def _check_value(key: str, value: Any, hint: Any) -> Any:
                 pass
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             if not math.isfinite(value):
-                raise ConfigError(f"config key '{key}' must be a finite number; got {value!r}")
+                raise ConfigError(f"config key '{key}' must be a finite number; got {shorten(value)}")
             return float(value)
     elif hint is str:
         if isinstance(value, str):
@@ -538,7 +539,7 @@ def _check_value(key: str, value: Any, hint: Any) -> Any:
     else:  # pragma: no cover - only the types above are used
         return value
     raise ConfigError(
-        f"config key '{key}' expects {getattr(hint, '__name__', hint)}; got {value!r}"
+        f"config key '{key}' expects {getattr(hint, '__name__', hint)}; got {shorten(value)}"
     )
 
 
@@ -699,20 +700,27 @@ def value_range(key: str, kind: type) -> tuple[float, bool, float]:
     return lo, key in POSITIVE and kind is float and key not in BOUNDS, hi
 
 
+def _bound(x: int | float) -> str:
+    """A range bound as written: whole numbers in full (2147483647, not 2.14748e+09)."""
+    if isinstance(x, int) or (math.isfinite(x) and x == int(x) and abs(x) < 1e16):
+        return str(int(x)) if abs(x) < 1e7 or x != 10 ** round(math.log10(abs(x))) else f"{x:g}"
+    return f"{x:g}"
+
+
 def check_range(key: str, v: int | float) -> None:
     """ConfigError naming ``key`` when ``v`` is outside its range (:func:`value_range`)."""
     lo, lo_open, hi = value_range(key, int if isinstance(v, int) else float)
     if key in BOUNDS:
         if not lo <= v <= hi:
-            raise ConfigError(f"config key '{key}' must be between {lo:g} and {hi:g}; got {v!r}")
+            raise ConfigError(f"config key '{key}' must be between {_bound(lo)} and {_bound(hi)}; got {shorten(v)}")
         return
     if lo_open and not v > lo:
-        raise ConfigError(f"config key '{key}' must be positive; got {v!r}")
+        raise ConfigError(f"config key '{key}' must be positive; got {shorten(v)}")
     if not v >= lo:
-        raise ConfigError(f"config key '{key}' must " + (f"be at least {lo:g}" if lo else "not be negative")
-                          + f"; got {v!r}")
+        raise ConfigError(f"config key '{key}' must " + (f"be at least {_bound(lo)}" if lo else "not be negative")
+                          + f"; got {shorten(v)}")
     if not v <= hi:
-        raise ConfigError(f"config key '{key}' must be at most {hi:g}; got {v!r}")
+        raise ConfigError(f"config key '{key}' must be at most {_bound(hi)}; got {shorten(v)}")
 
 
 def validate_section(section: str, obj: Any) -> Any:
@@ -730,7 +738,7 @@ def validate_section(section: str, obj: Any) -> Any:
         if a.split(".")[0] == section:
             va, vb = getattr(obj, a.split(".")[1]), getattr(obj, b.split(".")[1])
             if not va < vb:
-                raise ConfigError(f"config key '{a}' ({va!r}) must be smaller than '{b}' ({vb!r})")
+                raise ConfigError(f"config key '{a}' ({shorten(va)}) must be smaller than '{b}' ({shorten(vb)})")
     if section == "mapping":
         most = (2 * obj.outlier_radius + 1) ** 3 - 1
         if obj.outlier_min_neighbors > most:
@@ -770,7 +778,7 @@ def _apply(section_obj: Any, section: str, values: dict[str, Any], source: str) 
             continue
         if k not in hints:
             known = ", ".join(hints)
-            raise ConfigError(f"unknown config key '{section}.{k}' in {source}; known keys: {known}")
+            raise ConfigError(f"unknown config key '{cut(section)}.{cut(k)}' in {source}; known keys: {known}")
         setattr(section_obj, k, _check_value(f"{section}.{k}", v, hints[k]))
 
 
@@ -784,7 +792,7 @@ def merge(cfg: Config, data: dict[str, Any] | None, source: str = "config") -> C
     for section, values in data.items():
         if section not in sections:
             raise ConfigError(
-                f"unknown config section '{section}' in {source}; known sections: {', '.join(sorted(sections))}"
+                f"unknown config section '{cut(section)}' in {source}; known sections: {', '.join(sorted(sections))}"
             )
         if values is None:
             continue
@@ -807,54 +815,25 @@ def resolve_preset(name_or_path: str | Path):
     raise ConfigError(f"config file {name_or_path} not found; give a YAML path or one of the presets: {names}")
 
 
-class _DuplicateKey(Exception):
-    def __init__(self, key, line: int, problem: str = "is given twice in one section; keep one (YAML would "
-                                                      "silently use the last)"):
-        super().__init__(key, line)
-        self.key, self.line, self.problem = key, line, problem
-
-
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """A YAML loader that refuses a key given twice in one mapping (PyYAML keeps the last one
-    silently, so a second ``registration:`` section would quietly replace the first)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            if key_node.tag == "tag:yaml.org,2002:merge":  # "<<: *anchor": merged keys may be overridden
-                continue
-            key = self.construct_object(key_node, deep=deep)
-            if not isinstance(key, (str, int, float, bool)) and key is not None:
-                raise _DuplicateKey(type(key).__name__, key_node.start_mark.line + 1,
-                                    "is not a plain key name; keys are names like mp or min_votes")
-            if key in seen:
-                raise _DuplicateKey(key, key_node.start_mark.line + 1)
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
-
-
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Defaults, then the YAML file (if any), then ``section.key=value`` overrides."""
     cfg = Config()
     if path is not None:
         p = resolve_preset(path)
-        try:
-            data = yaml.load(read_text(p, "config file"), Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
-        except _DuplicateKey as e:
-            raise ConfigError(f"{p}:{e.line}: '{e.key}' {e.problem}") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"config file {p} is not valid YAML ({e.__class__.__name__}); fix its syntax") from None
+        data = load_yaml(read_text(p, "config file"), str(p), ConfigError)
         merge(cfg, data, str(p))
     for item in overrides:
         if "=" not in item or "." not in item.split("=", 1)[0]:
-            raise ConfigError(f"override '{item}' must look like section.key=value")
+            raise ConfigError(f"override '{cut(item)}' must look like section.key=value")
         key, raw = item.split("=", 1)
         section, name = key.split(".", 1)
         try:
-            value = yaml.safe_load(raw) if raw != "" else None
+            value = yaml.load(raw, Loader=StrictLoader) if raw != "" else None  # noqa: S506 - a SafeLoader
+        except Refused as e:
+            raise ConfigError(f"--set {shorten(item)}: the value {e.problem}") from None
         except yaml.YAMLError:
             value = raw
-        merge(cfg, {section: {name: value}}, f"--set {item}")
+        merge(cfg, {section: {name: value}}, f"--set {cut(item)}")
     return validate(cfg)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+
 
 def one_line(text: str) -> str:
     """``text`` with every character that would break or hide a terminal line (newline, carriage
@@ -10,6 +12,46 @@ def one_line(text: str) -> str:
     if text.isprintable():
         return text
     return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
+ECHO_CHARS = 60  # the most characters of a user's value an error message repeats
+
+
+def shorten(value, limit: int = ECHO_CHARS) -> str:
+    """``repr(value)`` cut to about ``limit`` characters (``...`` where cut), so a message echoing a
+    user's value (a long string, a huge or deeply nested list, an expanded YAML alias, a
+    120,000-digit number) stays one short line. Containers are never formatted in full first
+    (:mod:`reprlib`: a few items per level, a few levels)."""
+    import reprlib
+
+    r = reprlib.Repr()
+    r.maxlevel, r.maxdict = 3, 4
+    r.maxtuple = r.maxlist = r.maxarray = r.maxset = r.maxfrozenset = r.maxdeque = 6
+    r.maxstring = r.maxlong = r.maxother = limit
+    try:
+        text = r.repr(value)
+    except (ValueError, RecursionError):  # an int beyond Python's digit limit for str()
+        return f"a {type(value).__name__} too large to show"
+    return text if len(text) <= limit + 20 else text[:limit] + "..."
+
+
+def cut(text, limit: int = ECHO_CHARS) -> str:
+    """``str(text)`` cut to ``limit`` characters (``...`` where cut): a user's key or path echoed
+    as it is written, not quoted."""
+    text = str(text)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+MAX_MESSAGE = 1000  # characters of one error line
+
+
+def bounded(text: str, limit: int = MAX_MESSAGE) -> str:
+    """``text`` when it is at most ``limit`` characters, else its beginning and end with how much
+    was left out: whatever a message echoes (a value, a list of names), the line stays readable."""
+    if len(text) <= limit:
+        return text
+    tail = limit // 5
+    return f"{text[: limit - tail - 40]} ... [{len(text) - limit + 40:,} characters left out] ... {text[-tail:]}"
 
 
 class RgbdslamError(Exception):
@@ -22,7 +64,7 @@ class RgbdslamError(Exception):
     exit_code = 2
 
     def __str__(self) -> str:
-        return one_line(super().__str__())
+        return bounded(one_line(super().__str__()))
 
 
 class InputError(RgbdslamError):
@@ -39,9 +81,10 @@ class TrackingLost(RgbdslamError):
     exit_code = 3
 
 
-# ---------------------------------------------------------------------------- Ctrl-C
+# ---------------------------------------------------------------------------- Ctrl-C and SIGTERM
 
 _interrupted = False
+_signal_name = "SIGINT"  # the signal that stopped the command (SIGTERM: kill, timeout, docker stop)
 
 
 IMPORT_MACHINERY = "<frozen importlib"  # the code name of importlib's own frames
@@ -49,14 +92,17 @@ REDELIVER_S = 0.02  # a Ctrl-C that arrived inside the import machinery is raise
 
 
 def on_sigint(signum, frame) -> None:
-    """SIGINT handler of the command line: remember the interruption, then raise as Python's own.
+    """SIGINT and SIGTERM handler of the command line: remember the interruption, then raise as
+    Python's own Ctrl-C (KeyboardInterrupt), so SIGTERM (``kill``, ``timeout``, a batch scheduler,
+    ``docker stop``) ends a command exactly as Ctrl-C does: run.json says "interrupted", the
+    map's temporary folder is removed, the helper processes are ended, finished work is kept.
 
     Not inside the import machinery: a KeyboardInterrupt raised between importlib's taking of the
     global import lock and its ``try`` (or in its weak-reference callback, whose exceptions Python
     only prints) leaves that lock held, and the next import in any other thread waits forever (a
     run hung after Ctrl-C that way). There the signal is sent again a moment later, when the import
     is done."""
-    global _interrupted
+    global _interrupted, _signal_name
     f = frame
     while f is not None:
         if f.f_code.co_filename.startswith(IMPORT_MACHINERY):
@@ -64,6 +110,8 @@ def on_sigint(signum, frame) -> None:
             return
         f = f.f_back
     _interrupted = True
+    if signum == signal.SIGTERM:
+        _signal_name = "SIGTERM"
     raise KeyboardInterrupt
 
 
@@ -82,12 +130,15 @@ def was_interrupted() -> bool:
 
 
 def exit_interrupted() -> None:
-    """One line on stderr and exit code 130 (what a shell reports for Ctrl-C)."""
+    """One line on stderr and exit code 130 after Ctrl-C, 143 after SIGTERM (what a shell reports
+    for a process those signals ended: 128 + the signal's number)."""
     import sys
 
+    term = _signal_name == "SIGTERM"
     try:
-        sys.stderr.write("interrupted: finished work was saved\n")
+        sys.stderr.write("terminated (SIGTERM): finished work was saved\n" if term
+                         else "interrupted: finished work was saved\n")
         sys.stderr.flush()
     except (OSError, ValueError, KeyboardInterrupt):
         pass
-    sys.exit(130)
+    sys.exit(128 + (signal.SIGTERM if term else signal.SIGINT))

@@ -150,7 +150,7 @@ def _finished(cell: Cell) -> dict[str, Any] | None:
     """The row of an earlier run of this very cell, if it finished."""
     try:
         info = json.loads((cell.out_dir / CELL_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # unreadable, not JSON, too deep: run the cell again
         return None
     if not isinstance(info, dict) or info.get("settings") != json.loads(json.dumps(cell.settings())):
         return None
@@ -169,9 +169,10 @@ def run_sweep(sequences: list[str | Path], grid_items, out_root: str | Path, con
 
     if not sequences:
         raise InputError("give at least one SEQUENCE to sweep over")
-    missing = [s for s in sequences if not Path(s).is_dir()]
-    if missing:
-        raise InputError(f"sequence folder {missing[0]} does not exist; give TUM or PUT sequence folders")
+    from rgbdslam.datasets import check_sequence_path
+
+    for s in sequences:  # folders and recordings, as `run` takes them
+        check_sequence_path(s)
     grid = parse_grid(grid_items)
     out_root = Path(out_root)
     cells = plan_cells([Path(s) for s in sequences], grid, out_root, config_path, tuple(overrides), mapping)

@@ -317,3 +317,73 @@ def test_landmark_keys_checked_against_each_other():
     load_config(None, ["landmarks.n_features=1500"])
     with pytest.raises(ConfigError, match="landmarks.n_features.*grid"):
         load_config(None, ["landmarks.n_features=1500", "features.grid_rows=2"])
+
+
+# ------------------------------------------------------------------ user YAML: bounded, literal, no aliases
+
+ALIAS_BOMB = ("{a: &a [x, x, x, x, x, x, x, x, x], b: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a], "
+              "c: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b], d: &d [*c, *c, *c, *c, *c, *c, *c, *c, *c], "
+              "e: &e [*d, *d, *d, *d, *d, *d, *d, *d, *d], f: &f [*e, *e, *e, *e, *e, *e, *e, *e, *e], "
+              "g: &g [*f, *f, *f, *f, *f, *f, *f, *f, *f], h: [*g, *g, *g, *g, *g, *g, *g, *g, *g]}")
+
+
+def test_an_alias_bomb_fails_fast_with_a_short_line(tmp_path):
+    """Nine levels of aliases expand to 387 M items: PyYAML built them for seconds and the error
+    echoed them (157 MB). Aliases are refused where they are read."""
+    import time
+
+    start = time.process_time()
+    with pytest.raises(ConfigError) as e:
+        load_config(None, [f"features.n_features={ALIAS_BOMB}"])
+    assert time.process_time() - start < 1.0
+    assert "uses the alias *a; write the value out" in str(e.value) and len(str(e.value)) < 300
+    p = tmp_path / "bomb.yaml"
+    p.write_text(f"features: {{n_features: {ALIAS_BOMB}}}\n")
+    with pytest.raises(ConfigError, match=r"bomb.yaml:1: uses the alias \*a"):
+        load_config(p)
+
+
+@pytest.mark.parametrize("raw, expect", [("010", 10), ("+12", 12), ("1e3", 1000.0)])
+def test_numbers_are_read_as_written(raw, expect):
+    """YAML 1.1 read 010 as 8 (octal) and 1e3 as the text '1e3'."""
+    cfg = load_config(None, [f"features.n_features={raw}" if isinstance(expect, int) else f"dataset.depth_scale={raw}"])
+    assert (cfg.features.n_features if isinstance(expect, int) else cfg.dataset.depth_scale) == expect
+
+
+@pytest.mark.parametrize("raw", ["0x6", "1_0", "1:00", "0o10", "0b11"])
+def test_yaml_1_1_number_spellings_are_text_and_refused(raw):
+    with pytest.raises(ConfigError, match=rf"features.n_features' expects int; got '{raw}'"):
+        load_config(None, [f"features.n_features={raw}"])
+
+
+def test_deep_nesting_and_huge_numbers_are_one_short_line(tmp_path):
+    for value, words in (("[" * 10000 + "]" * 10000, "nests deeper than 64 levels"),
+                         ("9" * 120000, "has a number of 120,000 characters")):
+        with pytest.raises(ConfigError) as e:
+            load_config(None, [f"features.n_features={value}"])
+        assert words in str(e.value) and len(str(e.value)) < 300, str(e.value)[:500]
+    p = tmp_path / "deep.yaml"
+    p.write_text("features:\n" + "".join("  " * (i + 1) + f"k{i}:\n" for i in range(10000)))
+    with pytest.raises(ConfigError, match="deep.yaml:64: nests deeper than 64 levels"):
+        load_config(p)
+
+
+@pytest.mark.parametrize("value", ["'" + "x" * 100000 + "'", str(list(range(100000))),
+                                   "{" + ", ".join(f"k{i}: 1" for i in range(20000)) + "}"])
+def test_an_echoed_value_is_shortened(value):
+    with pytest.raises(ConfigError) as e:
+        load_config(None, [f"features.n_features={value}"])
+    assert len(str(e.value)) < 400, len(str(e.value))
+
+
+def test_every_error_line_is_bounded():
+    from rgbdslam.errors import MAX_MESSAGE, InputError
+
+    text = str(InputError("x" * 10 ** 6 + " the end"))
+    assert len(text) <= MAX_MESSAGE and text.endswith(" the end") and "characters left out" in text
+
+
+def test_bounds_are_printed_as_written():
+    """A C int's bound read "at most 2.14748e+09" (rounded by %g): not the number to type."""
+    with pytest.raises(ConfigError, match=r"'registration.seed' must be at most 2147483647; got 99999999999$"):
+        load_config(None, ["registration.seed=99999999999"])

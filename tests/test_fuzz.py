@@ -20,7 +20,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rgbdslam.errors import RgbdslamError
+from rgbdslam.errors import MAX_MESSAGE, RgbdslamError
 
 FUZZ_EXAMPLES = int(os.environ.get("RGBDSLAM_FUZZ_EXAMPLES", "150"))
 FUZZ = settings(max_examples=FUZZ_EXAMPLES, derandomize=True, database=None, deadline=None,
@@ -116,6 +116,7 @@ def clean_parse_or_one_line_error(call, *args) -> None:
         except RgbdslamError as e:
             text = str(e)
             assert text.strip() and "\n" not in text and "\r" not in text, repr(text)
+            assert len(text) <= MAX_MESSAGE, len(text)
 
 
 # number-ish tokens that hit the checks: huge, tiny, non-finite, C-int edges, negative zero
@@ -234,6 +235,227 @@ def test_fuzz_run_json(tmp_path_factory, data):
     (d / "trajectory.tum").write_text(TUM)
     (d / "config.yaml").write_text("")
     clean_parse_or_one_line_error(read_run, d)
+
+
+STEREO_YAML = """fx: 718.856
+fy: 718.856
+cx: 607.1928
+cy: 185.2157
+baseline: 0.5371
+fps: 10
+width: 1241
+height: 376
+"""
+SENSOR_YAML = """%YAML:1.0
+sensor_type: camera
+T_BS:
+  cols: 4
+  rows: 4
+  data: [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975,
+         0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768,
+         -0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949,
+         0.0, 0.0, 0.0, 1.0]
+rate_hz: 20
+resolution: [752, 480]
+camera_model: pinhole
+intrinsics: [458.654, 457.296, 367.215, 248.375]
+distortion_model: radial-tangential
+distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
+"""
+EUROC_CSV = """#timestamp [ns],filename
+1403636579763555584,1403636579763555584.png
+1403636579813555456,1403636579813555456.png
+1403636579863555584,1403636579863555584.png
+"""
+EUROC_GT = """#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z []
+1403636580838555648,4.688319,-1.786938,0.783338,0.534108,-0.153029,-0.827383,-0.082152
+1403636580843555328,4.688177,-1.786770,0.787350,0.534640,-0.152990,-0.826976,-0.082863
+"""
+KITTI_CALIB = """P0: 7.188560e+02 0.000000e+00 6.071928e+02 0.000000e+00 0.000000e+00 7.188560e+02 1.852157e+02 0.000000e+00 0.000000e+00 0.000000e+00 1.000000e+00 0.000000e+00
+P1: 7.188560e+02 0.000000e+00 6.071928e+02 -3.861448e+02 0.000000e+00 7.188560e+02 1.852157e+02 0.000000e+00 0.000000e+00 0.000000e+00 1.000000e+00 0.000000e+00
+"""
+KITTI_POSES = """1.000000e+00 9.043680e-12 2.326809e-11 5.551115e-17 9.043683e-12 1.000000e+00 2.392370e-10 3.330669e-16 2.326810e-11 2.392370e-10 9.999999e-01 -4.440892e-16
+9.999978e-01 5.272628e-04 -2.066935e-03 -4.690294e-02 -5.296506e-04 9.999992e-01 -1.154865e-03 -2.839928e-02 2.066324e-03 1.155958e-03 9.999971e-01 8.586941e-01
+"""
+KITTI_TIMES = """0.000000e+00
+1.036330e-01
+2.072660e-01
+"""
+SEVEN_K = """585 0 320
+0 585 240
+0 0 1
+"""
+SEVEN_POSE = """9.9935108e-001 -3.2676521e-002 1.5571418e-002 -1.0055915e-001
+3.1311993e-002 9.9643254e-001 7.8383312e-002 -3.4068734e-001
+-1.8085200e-002 -7.7846035e-002 9.9680173e-001 2.0108354e-001
+0.0000000e+000 0.0000000e+000 0.0000000e+000 1.0000000e+000
+"""
+
+# ------------------------------------------------------------------------------- the newer readers
+
+
+@FUZZ
+@given(data=file_contents(STEREO_YAML))
+def test_fuzz_stereo_yaml(tmp_path_factory, data):
+    from rgbdslam.datasets.stereo_folder import read_stereo_yaml
+
+    clean_parse_or_one_line_error(read_stereo_yaml, _write(tmp_path_factory.mktemp("s"), "stereo.yaml", data))
+
+
+@FUZZ
+@given(sensor=file_contents(SENSOR_YAML), csv=file_contents(EUROC_CSV), gt=file_contents(EUROC_GT))
+def test_fuzz_euroc_files(tmp_path_factory, sensor, csv, gt):
+    from rgbdslam.datasets.euroc import read_camera_csv, read_groundtruth_csv, read_sensor_yaml
+
+    d = tmp_path_factory.mktemp("e")
+
+    def sensor_then_opencv(path):  # what the reader gives OpenCV must not crash it
+        import cv2
+        import numpy as np
+
+        s = read_sensor_yaml(path)
+        cv2.initUndistortRectifyMap(s["K"], s["dist"], np.eye(3), s["K"], s["size"], cv2.CV_32FC1)
+
+    clean_parse_or_one_line_error(sensor_then_opencv, _write(d, "sensor.yaml", sensor))
+    clean_parse_or_one_line_error(read_camera_csv, _write(d, "data.csv", csv))
+    clean_parse_or_one_line_error(read_groundtruth_csv, _write(d, "gt.csv", gt))
+
+
+@FUZZ
+@given(calib=file_contents(KITTI_CALIB), poses=file_contents(KITTI_POSES), times=file_contents(KITTI_TIMES))
+def test_fuzz_kitti_files(tmp_path_factory, calib, poses, times):
+    from rgbdslam.io.kitti import read_kitti_calib, read_kitti_poses, read_kitti_times
+    from rgbdslam.io.validate import camera
+
+    d = tmp_path_factory.mktemp("k")
+
+    def calib_camera(path):  # the reader's check of P0 (KittiSequence)
+        P = read_kitti_calib(path).get("P0")
+        if P is not None:
+            camera(P[0, 0], P[1, 1], P[0, 2], P[1, 2], 1, 1, where=str(path))
+
+    clean_parse_or_one_line_error(calib_camera, _write(d, "calib.txt", calib))
+    clean_parse_or_one_line_error(read_kitti_poses, _write(d, "00.txt", poses))
+    clean_parse_or_one_line_error(read_kitti_times, _write(d, "times.txt", times))
+
+
+@FUZZ
+@given(k=file_contents(SEVEN_K), pose=file_contents(SEVEN_POSE))
+def test_fuzz_7scenes_files(tmp_path_factory, k, pose):
+    from rgbdslam.datasets.sevenscenes import read_intrinsics, read_pose
+
+    d = tmp_path_factory.mktemp("7")
+    clean_parse_or_one_line_error(read_intrinsics, _write(d, "camera-intrinsics.txt", k))
+    clean_parse_or_one_line_error(read_pose, _write(d, "frame-000000.pose.txt", pose))
+
+
+NUMBERS = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from([0.0, -1.0, 1e300, -1e300, 1e-300]),
+                    st.integers(-2 ** 40, 2 ** 40))
+
+
+@FUZZ
+@given(k=st.lists(NUMBERS, min_size=0, max_size=12), d=st.lists(NUMBERS, max_size=9),
+       width=st.integers(-2 ** 33, 2 ** 33), height=st.integers(-2 ** 33, 2 ** 33),
+       model=st.sampled_from(["plumb_bob", "rational_polynomial", "equidistant", "", "x" * 5000]))
+def test_fuzz_bag_camera_info(k, d, width, height, model):
+    """A bag's CameraInfo with any K, D, size and model: a camera or one line (rosbags' own
+    message class, as the reader gets it)."""
+    import numpy as np
+    from rosbags.typesys import Stores, get_typestore
+
+    from rgbdslam.datasets.rosbag import camera_from_info
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    msg = T["sensor_msgs/msg/CameraInfo"](
+        header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="c"),
+        height=height % 2 ** 32, width=width % 2 ** 32, distortion_model=model, d=np.array(d, dtype=np.float64),
+        k=np.array(k, dtype=np.float64), r=np.eye(3).ravel(), p=np.zeros(12), binning_x=0, binning_y=0,
+        roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+    clean_parse_or_one_line_error(camera_from_info, msg, "/camera/color/camera_info")
+
+
+@FUZZ
+@given(raw=st.one_of(st.binary(max_size=200), st.binary(min_size=4, max_size=200).map(lambda b: b"\x00\x01\x00\x00" + b)),
+       msgtype=st.sampled_from(["sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage",
+                                "sensor_msgs/msg/CameraInfo"]))
+def test_fuzz_bag_messages(raw, msgtype):
+    """Any bytes as a ROS 2 message (empty, damaged, a valid header with garbage): a message or one
+    line naming the topic (decode_message, what every read of a bag message goes through)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from rgbdslam.datasets.rosbag import decode_message
+
+    class Reader:  # rosbags' decoder, as both bag readers call it
+        typestore = get_typestore(Stores.ROS2_HUMBLE)
+
+        def deserialize(self, data, kind):
+            return self.typestore.deserialize_cdr(data, kind)
+
+    clean_parse_or_one_line_error(decode_message, Reader(), raw, msgtype, "/camera/color/image_raw", "bag")
+
+
+def _small_map(path: Path):
+    """A valid two-keyframe map file (every array of the format, consistent shapes)."""
+    import numpy as np
+
+    from rgbdslam.geometry.camera import CAMERAS
+    from rgbdslam.session.mapfile import ARRAYS, MapData, save_map
+
+    sizes = {"K": 2, "K+1": 3, "N": 4, "F": 2, "E": 1, "L": 1}
+    out = {}
+    for name, (dtype, shape) in ARRAYS.items():
+        dims = tuple(sizes.get(d, d) if isinstance(d, str) else d for d in shape)
+        out[name] = np.zeros(dims, dtype=dtype)
+    for name in ("kf_pose", "frame_rel", "odo_T", "loop_T"):
+        out[name][:] = np.eye(4)
+    for name in ("odo_info", "loop_info"):
+        out[name][:] = np.eye(6)
+    out["kf_feature_start"][:] = [0, 2, 4]
+    out["odo_ij"][:] = [0, 1]
+    out["loop_ij"][:] = [0, 1]
+    out["frame_kf"][:] = [0, 1]
+    out["kf_frame"][:] = [0, 1]
+    out["frame_index"][:] = [0, 1]
+    out["kf_timestamp"][:] = out["frame_timestamp"][:] = [0.0, 0.1]
+    return save_map(path, MapData(out, CAMERAS["fr1"]))
+
+
+@FUZZ
+@given(name=st.sampled_from(["kf_pose", "frame_rel", "odo_T", "loop_T", "odo_info", "loop_info", "kf_timestamp",
+                             "frame_timestamp", "odo_ij", "frame_kf", "kf_feature_start", "feat_uv"]),
+       index=st.integers(0, 10 ** 6), value=NUMBERS, cut=st.one_of(st.none(), st.integers(0, 4000)),
+       flip=st.one_of(st.none(), st.tuples(st.integers(0, 10 ** 6), st.integers(1, 255))))
+def test_fuzz_map_file(tmp_path_factory, name, index, value, cut, flip):
+    """A saved map with any value in any array (written with a valid checksum, as a crafted file
+    would be), then cut short or with a byte changed: a map or one line."""
+    import numpy as np
+
+    from rgbdslam.session.mapfile import ARRAYS, checksum, load_map, read_header
+
+    d = tmp_path_factory.mktemp("m")
+    base = _small_map(d / "map.npz")
+    with np.load(base) as z:
+        arrays = {n: z[n].copy() for n in ARRAYS}
+    a = arrays[name]
+    flat = a.reshape(-1)
+    if flat.size:
+        with np.errstate(all="ignore"):
+            try:
+                flat[index % flat.size] = value
+            except (OverflowError, ValueError):
+                flat[index % flat.size] = 0
+    header = read_header(base)
+    header["sha256"] = checksum(arrays)  # a crafted file: its checksum matches
+    path = d / "crafted.npz"
+    np.savez(path, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
+    data = bytearray(path.read_bytes())
+    if flip is not None:
+        data[flip[0] % len(data)] ^= flip[1]
+    if cut is not None:
+        data = data[:cut]
+    path.write_bytes(bytes(data))
+    clean_parse_or_one_line_error(load_map, path)
 
 
 def _config_keys() -> list[str]:

@@ -236,3 +236,16 @@ def test_a_killed_fusion_leaves_no_temporary_folder_behind(desk9, tmp_path):
     (run / "map" / ".fusing-legacy").mkdir()
     assert CliRunner().invoke(main, ["fuse", str(run), "-q"]).exit_code == 0
     assert not [p for p in (run / "map").iterdir() if p.name.startswith(".fusing-")]
+
+
+@pytest.mark.parametrize("text", ["[" * 100000 + "]" * 100000, '{"frames": ' + "9" * 120000 + "}"])
+def test_a_run_json_nested_too_deeply_or_with_a_huge_number_is_one_line(tmp_path, text):
+    from tests.conftest import cli
+
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "run.json").write_text(text)
+    res = cli(["fuse", tmp_path / "run"])
+    assert res.exit_code == 2 and res.stderr == (f"error: {tmp_path / 'run' / 'run.json'} is not a run file rgbdslam "
+                                                 f"wrote (nested too deeply or a number too long); re-run `rgbdslam "
+                                                 f"run` to rewrite it\n"), res.output[-500:]
+

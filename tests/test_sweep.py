@@ -67,7 +67,8 @@ def test_sweep_cli_prints_the_table_and_refuses_bad_grids(tmp_path, desk9):
     assert res.exit_code == 2 and res.stderr.startswith("error:") and "nonsense" in res.stderr
     assert not (tmp_path / "d").exists()
     assert_cli_error(cli(["sweep", tmp_path / "missing", "--grid", "loop.enabled=true", "--out", tmp_path / "e"]),
-                     f"sequence folder {tmp_path / 'missing'} does not exist; give TUM or PUT sequence folders")
+                     f"sequence folder {tmp_path / 'missing'} does not exist; check the path (TUM data sets live "
+                     f"under ../shared/data/tum)")
 
 
 def test_cells_whose_names_would_collide_get_folders_of_their_own(tmp_path):
@@ -96,3 +97,15 @@ def test_a_grid_beyond_the_bound_is_refused_before_any_cell_is_planned(tmp_path)
                                           r"most 1000 are allowed: split it into several sweeps"):
         plan_cells([tmp_path / "seq"], grid, tmp_path / "out")
     assert len(plan_cells([tmp_path / "seq"], grid[:1], tmp_path / "out")) == 40
+
+
+@pytest.mark.data
+def test_sweep_takes_the_recordings_run_takes(tmp_path, desk9):
+    """`sweep` refused a ROS bag file ("sequence folder ... does not exist") that `run` reads."""
+    from rgbdslam.datasets.testing import write_bag
+
+    bag = write_bag(desk9, tmp_path / "desk.bag", "ros1", frames=4)
+    res = cli(["sweep", bag, "--grid", "loop.enabled=true", "--set", "dataset.depth_scale=5000",
+               "--out", tmp_path / "s", "-q"])
+    assert res.exit_code == 0, res.output
+    assert "1 cell(s) run, 0 kept" in res.stdout

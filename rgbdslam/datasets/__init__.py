@@ -44,6 +44,19 @@ def detect_kind(path: Path, cfg) -> str | None:
     return next((n for n, (detect, _) in READERS.items() if detect(Path(path))), None)
 
 
+def check_sequence_path(path: str | Path) -> Path:
+    """``path`` when it is a folder or a recording a reader takes (.bag, .db3, .mcap); InputError
+    otherwise. Every command that takes sequences (run, info, sweep) checks them this one way."""
+    _load_builtin()
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"sequence folder {path} does not exist; check the path (TUM data sets live under ../shared/data/tum)")
+    if not path.is_dir() and not any(detect(path) for detect, _ in READERS.values()):
+        raise InputError(f"{path} is not a folder or a known recording (.bag, .db3, .mcap); give the sequence's "
+                         f"folder (the one with rgb.txt or matched) or a bag")
+    return path
+
+
 def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequence:
     """Open the sequence in ``path`` with the reader named by ``cfg.kind`` (or detected).
 
@@ -54,12 +67,7 @@ def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequenc
     _load_builtin()
     full = cfg if isinstance(cfg, Config) else None
     cfg = full.dataset if full is not None else (cfg or DatasetConfig())
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"sequence folder {path} does not exist; check the path (TUM data sets live under ../shared/data/tum)")
-    if not path.is_dir() and not any(detect(path) for detect, _ in READERS.values()):
-        raise InputError(f"{path} is not a folder or a known recording (.bag, .db3, .mcap); give the sequence's "
-                         f"folder (the one with rgb.txt or matched) or a bag")
+    path = check_sequence_path(path)
     kind = detect_kind(path, cfg)
     if kind is None:
         raise InputError(

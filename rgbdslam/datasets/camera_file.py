@@ -32,9 +32,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from rgbdslam.errors import InputError
+from rgbdslam.errors import InputError, cut, shorten
+from rgbdslam.io import validate
+from rgbdslam.io.yamlfile import load_yaml
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.io.text import read_text
 
@@ -74,11 +75,6 @@ class CameraSetup:
                 f"depth_scale), a preset such as -c tum_fr1, or put a camera.yaml in the sequence folder")
 
 
-MAX_IMAGE_SIDE = 65535  # pixels (16-bit image sizes)
-MAX_PIXELS = 1e6  # focal lengths and principal point (pixels)
-MAX_DIST = 1e3  # distortion coefficients (finite but absurd values are refused as read, issue 16)
-
-
 def _camera(data: dict, where: str, base: Camera | None, name: str) -> Camera:
     """A Camera from the intrinsic keys of ``data`` over ``base``; InputError naming ``where``."""
     vals: dict = {}
@@ -91,36 +87,24 @@ def _camera(data: dict, where: str, base: Camera | None, name: str) -> Camera:
     if "size" in data:
         size = data["size"]
         if not (isinstance(size, (list, tuple)) and len(size) == 2):
-            raise InputError(f"{where}: size must be [width, height]; got {size!r}")
+            raise InputError(f"{where}: size must be [width, height]; got {shorten(size)}")
         vals["width"], vals["height"] = size
     if "dist" in data or "distortion" in data:
         vals["dist"] = data.get("distortion", data.get("dist"))
     missing = [k for k in ("fx", "fy", "cx", "cy") if k not in vals]
     if missing:
         raise InputError(f"{where}: missing {', '.join(missing)}; give 'camera: <name>' or all of fx, fy, cx, cy")
-    try:
-        dist = tuple(float(x) for x in (vals.get("dist") if vals.get("dist") is not None else (0.0,) * 5))
-        cam = Camera(float(vals["fx"]), float(vals["fy"]), float(vals["cx"]), float(vals["cy"]),
-                     int(vals.get("width", 640)), int(vals.get("height", 480)), dist, name,
-                     _readout(data.get("rolling_shutter", vals.get("readout", 0.0)), where))
-    except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{where}: intrinsics must be numbers (dist a list of 5 numbers)") from None
-    if len(dist) not in (4, 5, 8):
-        raise InputError(f"{where}: dist must have 4, 5 or 8 coefficients (k1 k2 p1 p2 [k3 ...]); got {len(dist)}")
-    if not (np.isfinite([cam.fx, cam.fy, cam.cx, cam.cy, *dist]).all() and cam.fx > 0 and cam.fy > 0
-            and 0 < cam.width <= MAX_IMAGE_SIDE and 0 < cam.height <= MAX_IMAGE_SIDE
-            and max(cam.fx, cam.fy, abs(cam.cx), abs(cam.cy)) <= MAX_PIXELS and max(map(abs, dist)) <= MAX_DIST):
-        raise InputError(f"{where}: fx and fy must be positive, width and height from 1 to {MAX_IMAGE_SIDE}, fx fy cx "
-                         f"cy within ±{MAX_PIXELS:g} pixels, dist within ±{MAX_DIST:g}, every value finite; got "
-                         f"fx {cam.fx}, fy {cam.fy}, cx {cam.cx}, cy {cam.cy}, {cam.width}x{cam.height}")
-    return cam
+    dist = vals.get("dist")
+    return validate.camera(vals["fx"], vals["fy"], vals["cx"], vals["cy"], vals.get("width", 640),
+                           vals.get("height", 480), (0.0,) * 5 if dist is None else dist, name,
+                           _readout(data.get("rolling_shutter", vals.get("readout", 0.0)), where), where=where)
 
 
 def _readout(value, where: str) -> float:
     """The ``rolling_shutter`` key: the readout time in seconds, 0 to :data:`MAX_READOUT`."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= MAX_READOUT:
         raise InputError(f"{where}: rolling_shutter must be the readout time in seconds from 0 (global shutter) "
-                         f"to {MAX_READOUT:g}; got {value!r}")
+                         f"to {MAX_READOUT:g}; got {shorten(value)}")
     return float(value)
 
 
@@ -147,21 +131,20 @@ def read_camera_file(path: str | Path, source: str | None = None) -> CameraSetup
     path = Path(path)
     if not path.is_file():
         raise InputError(f"camera file {path} does not exist; give a YAML file with fx, fy, cx, cy (and size)")
-    try:
-        data = yaml.safe_load(read_text(path, "camera file"))
-    except yaml.YAMLError:
-        raise InputError(f"{path} is not valid YAML; fix it or delete it to use the default camera") from None
+    data = load_yaml(read_text(path, "camera file"), str(path), what="YAML (a camera file)")
     if not isinstance(data, dict):
         raise InputError(f"{path} must be a mapping with 'camera: <name>' or fx, fy, cx, cy, width, height, dist")
     unknown = set(data) - KNOWN_KEYS
     if unknown:
-        raise InputError(f"{path}: unknown key(s) {', '.join(sorted(map(str, unknown)))}; "
-                         f"allowed: {', '.join(sorted(KNOWN_KEYS))}")
+        names = sorted(map(str, unknown))
+        shown = ", ".join(cut(k, 30) for k in names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+        raise InputError(f"{path}: unknown key(s) {shown}; allowed: {', '.join(sorted(KNOWN_KEYS))}")
     name = data.get("camera")
     base = None
     if name is not None:
-        if name not in CAMERAS:
-            raise InputError(f"{path}: unknown camera '{name}'; choose one of {', '.join(CAMERAS)} or give fx, fy, cx, cy")
+        if not isinstance(name, str) or name not in CAMERAS:
+            raise InputError(f"{path}: unknown camera {shorten(name)}; choose one of {', '.join(CAMERAS)} or give "
+                             f"fx, fy, cx, cy")
         base = CAMERAS[name]
     cam = _camera(data, str(path), base, str(name or "custom"))
     scale = data.get("depth_scale")
@@ -169,7 +152,7 @@ def read_camera_file(path: str | Path, source: str | None = None) -> CameraSetup
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not np.isfinite(scale) \
                 or not 1e-3 <= scale <= 1e6:  # the range of the config key dataset.depth_scale
             raise InputError(f"{path}: depth_scale must be a number of raw units per metre from 0.001 to 1e6; "
-                             f"got {scale!r}")
+                             f"got {shorten(scale)}")
         scale = float(scale)
     depth_cam = T = None
     if data.get("depth_camera") is not None or data.get("depth_to_color") is not None:

@@ -22,18 +22,19 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline
 from rgbdslam.datasets.tum import select_frames
-from rgbdslam.errors import InputError
+from rgbdslam.errors import InputError, shorten
 from rgbdslam.geometry.camera import Camera
+from rgbdslam.io import validate
 from rgbdslam.io.numbers import unit_quaternions
 from rgbdslam.geometry.se3 import inv, pose_from_tum
 from rgbdslam.geometry.stereo import StereoRig
-from rgbdslam.io.text import read_lines, read_text
+from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
 from rgbdslam.io.trajectory import Trajectory
+from rgbdslam.io.yamlfile import load_yaml
 
 
 def _mav(path: Path) -> Path | None:
@@ -49,61 +50,57 @@ def _is_euroc(path: Path) -> bool:
 
 def read_sensor_yaml(path: Path) -> dict:
     """The fields of a EuRoC camera ``sensor.yaml`` we use: K, distortion, size and T_BS."""
-    if not path.is_file():
-        raise InputError(f"{path} is missing; every EuRoC camera folder needs its sensor.yaml (intrinsics, "
-                         f"distortion, T_BS)")
+    require_file(path, "EuRoC camera calibration", "every EuRoC camera folder needs its sensor.yaml (intrinsics, "
+                 "distortion, T_BS)")
     text = "\n".join(line for line in read_text(path, "camera calibration").splitlines()
                      if not line.startswith("%YAML"))
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError:
-        raise InputError(f"{path} is not valid YAML; fix its syntax") from None
+    data = load_yaml(text, str(path))
     if not isinstance(data, dict):
         raise InputError(f"{path} must be a mapping (EuRoC sensor.yaml)")
-    try:
-        fu, fv, cu, cv = (float(x) for x in data["intrinsics"])
-        w, h = (int(x) for x in data["resolution"])
-        dist = tuple(float(x) for x in data.get("distortion_coefficients") or (0.0,) * 4)
-        if len(dist) not in (4, 5):
-            raise InputError(f"{path}: distortion_coefficients has {len(dist)} values; radial-tangential takes 4 "
-                             f"(k1, k2, p1, p2) or 5 (OpenCV's k1, k2, p1, p2, k3)")
-        T = data.get("T_BS")
-        if T is None:
-            raise InputError(f"{path} has no T_BS (the camera's pose on the rig); without it the stereo baseline "
-                             f"is unknown")
-        T_BS = np.array(T["data"] if isinstance(T, dict) else T, dtype=np.float64).reshape(4, 4)
-    except InputError:
-        raise
-    except (KeyError, TypeError, ValueError):
-        raise InputError(f"{path}: expected intrinsics [fu, fv, cu, cv], resolution [w, h], "
-                         f"distortion_coefficients [k1, k2, p1, p2] and T_BS (4x4 data)") from None
+    for key in ("intrinsics", "resolution"):
+        if key not in data:
+            raise InputError(f"{path}: expected intrinsics [fu, fv, cu, cv], resolution [w, h], "
+                             f"distortion_coefficients [k1, k2, p1, p2] and T_BS (4x4 data); {key} is missing")
+    fu, fv, cu, cv = validate.numbers(data["intrinsics"], str(path), "intrinsics [fu, fv, cu, cv]", (4,))
+    w, h = validate.numbers(data["resolution"], str(path), "resolution [w, h]", (2,))
+    dist = data.get("distortion_coefficients")
+    dist = validate.numbers(dist if dist else [0.0] * 4, str(path), "distortion_coefficients", None)
+    if len(dist) not in (4, 5):
+        raise InputError(f"{path}: distortion_coefficients has {len(dist)} values; radial-tangential takes 4 "
+                         f"(k1, k2, p1, p2) or 5 (OpenCV's k1, k2, p1, p2, k3)")
+    cam = validate.camera(fu, fv, cu, cv, w, h, dist, where=str(path))  # before OpenCV sees any of it
+    T = data.get("T_BS")
+    if T is None:
+        raise InputError(f"{path} has no T_BS (the camera's pose on the rig); without it the stereo baseline "
+                         f"is unknown")
+    T = T.get("data") if isinstance(T, dict) else T
+    if isinstance(T, list) and all(isinstance(row, list) for row in T):  # written as 4 rows
+        T = [v for row in T for v in row]
+    flat = validate.numbers(T, str(path), "T_BS data", (16,))
+    T_BS = validate.poses(np.array(flat).reshape(4, 4), str(path), what="T_BS")[0]
     model = data.get("distortion_model", "radial-tangential")
     if model not in ("radial-tangential", "radtan", "none"):
-        raise InputError(f"{path}: distortion model '{model}' is not supported; use radial-tangential")
-    if not np.isfinite(T_BS).all() or not (fu > 0 and fv > 0):
-        raise InputError(f"{path}: focal lengths must be positive and T_BS finite")
-    K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
-    return {"K": K, "dist": np.array(dist), "size": (w, h), "T_BS": T_BS}
+        raise InputError(f"{path}: distortion model {shorten(model)} is not supported; use radial-tangential")
+    return {"K": cam.K, "dist": np.array(dist), "size": (cam.width, cam.height), "T_BS": T_BS}
 
 
 def read_camera_csv(path: Path) -> tuple[np.ndarray, list[str]]:
     """Time stamps (int ns) and file names of a EuRoC ``data.csv``."""
-    if not path.is_file():
-        raise InputError(f"{path} is missing; a EuRoC camera folder lists its images in data.csv")
-    stamps, names = [], []
+    require_file(path, "EuRoC image list", "a EuRoC camera folder lists its images in data.csv")
+    stamps, names, lines = [], [], []
     for lineno, line in enumerate(read_lines(path, "EuRoC image list"), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
         parts = [p.strip() for p in s.split(",")]
-        try:
-            stamps.append(int(parts[0]))
-        except ValueError:
-            raise InputError(f"{path}:{lineno}: expected 'timestamp_ns,filename'; got {s[:60]!r}") from None
-        if len(parts) < 2:
-            raise InputError(f"{path}:{lineno}: expected 'timestamp_ns,filename'; got {s[:60]!r}")
+        if len(parts) < 2 or not parts[0].lstrip("+-").isdigit():
+            raise InputError(f"{path}:{lineno}: expected 'timestamp_ns,filename'; got {shorten(s)}")
+        stamps.append(validate.stamp_ns(parts[0], f"{path}:{lineno}"))
         names.append(parts[1])
-    return np.array(stamps, dtype=np.int64), names
+        lines.append(lineno)
+    t = np.array(stamps, dtype=np.int64)
+    validate.stamps(t * 1e-9, str(path), lines)
+    return t, names
 
 
 def read_groundtruth_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -119,7 +116,7 @@ def read_groundtruth_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise InputError(f"{path}:{lineno}: expected 'timestamp, px, py, pz, qw, qx, qy, qz, ...'") from None
         if len(vals) < 8:
             raise InputError(f"{path}:{lineno}: expected at least 8 numbers (timestamp, position, quaternion w x y z)")
-        stamps.append(int(s.split(",")[0]) * 1e-9)
+        stamps.append(validate.stamp_ns(s.split(",")[0], f"{path}:{lineno}") * 1e-9)
         rows.append(vals[1:8])
         lines.append(lineno)
     if not rows:
@@ -128,7 +125,8 @@ def read_groundtruth_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(a).all():
         raise InputError(f"{path}:{lines[int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])]}: a value is not a finite number")
     q = unit_quaternions(a[:, [4, 5, 6, 3]], path, lines, order="qw qx qy qz")
-    return np.array(stamps), pose_from_tum(a[:, :3], q)
+    P = validate.poses(pose_from_tum(a[:, :3], q), str(path), lines)
+    return validate.stamps(stamps, str(path), lines), P
 
 
 @reader("euroc", _is_euroc)
@@ -171,7 +169,7 @@ class EurocSequence(StereoSequence):
         right = [mav / "cam1" / "data" / n1[i] for i in i1[keep]]
         gt = None
         gt_path = mav / "state_groundtruth_estimate0" / "data.csv"
-        if gt_path.is_file():
+        if optional_file(gt_path, "EuRoC ground truth") is not None:
             g_ts, T_WB = read_groundtruth_csv(gt_path)
             rect = np.eye(4)
             rect[:3, :3] = R1.T  # rectified-left points -> cam0 points

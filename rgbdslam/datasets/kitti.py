@@ -12,13 +12,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 
 from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline, frame_times, image_files
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
-from rgbdslam.geometry.camera import Camera
+from rgbdslam.io import validate
+from rgbdslam.io.images import read_image
+from rgbdslam.io.text import optional_file
 from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io.kitti import read_kitti_calib, read_kitti_poses
 from rgbdslam.io.trajectory import Trajectory
@@ -28,7 +29,7 @@ PAIRS = (("image_0", "image_1", "P0", "P1"), ("image_2", "image_3", "P2", "P3"))
 
 
 def _sequence_dir(path: Path) -> Path | None:
-    if (path / "calib.txt").is_file() and any((path / a).is_dir() for a, *_ in PAIRS):
+    if (path / "calib.txt").exists() and any((path / a).is_dir() for a, *_ in PAIRS):
         return path
     seqs = path / "sequences"
     if seqs.is_dir():
@@ -39,7 +40,7 @@ def _sequence_dir(path: Path) -> Path | None:
 
 
 def _sequence_dir_direct(p: Path) -> bool:
-    return p.is_dir() and (p / "calib.txt").is_file() and any((p / a).is_dir() for a, *_ in PAIRS)
+    return p.is_dir() and (p / "calib.txt").exists() and any((p / a).is_dir() for a, *_ in PAIRS)
 
 
 def _is_kitti(path: Path) -> bool:
@@ -68,8 +69,8 @@ class KittiSequence(StereoSequence):
                                  f"(3x4 projection matrices)")
         P0, P1 = calib[pa], calib[pb]
         fx = P0[0, 0]
-        if not fx > 0:
-            raise InputError(f"{seq / 'calib.txt'}: {pa} has fx = {fx:g}; expected a positive focal length")
+        for k, P in ((pa, P0), (pb, P1)):  # the rectified pair's pinhole cameras, before any image is read
+            validate.camera(P[0, 0], P[1, 1], P[0, 2], P[1, 2], 1, 1, where=f"{seq / 'calib.txt'} ({k})")
         baseline = check_baseline(-(P1[0, 3] - P0[0, 3]) / P1[0, 0], seq / "calib.txt")
         left, right = image_files(seq / a), image_files(seq / b)
         if len(left) != len(right):
@@ -81,15 +82,15 @@ class KittiSequence(StereoSequence):
         ts = frame_times(seq / "times.txt", n, KITTI_HZ)
         gt_all = None
         gt_path = seq.parent.parent / "poses" / f"{seq.name}.txt"
-        if gt_path.is_file():
+        if optional_file(gt_path, "KITTI pose file") is not None:
             gt_all = read_kitti_poses(gt_path)
         keep = select_frames(n, cfg, seq)
-        first = cv2.imread(str(left[0]), cv2.IMREAD_UNCHANGED)
+        first, why = read_image(left[0])
         if first is None:
-            raise InputError(f"left image {left[0]} cannot be decoded; replace it with a valid PNG")
+            raise InputError(f"left image {left[0]} cannot be decoded ({why}); replace it with a valid PNG")
         h, w = first.shape[:2]
-        cam = Camera(float(fx), float(P0[1, 1]), float(P0[0, 2]), float(P0[1, 2]), w, h, (0.0,) * 5,
-                     f"kitti_{seq.name}")
+        cam = validate.camera(float(fx), float(P0[1, 1]), float(P0[0, 2]), float(P0[1, 2]), w, h,
+                              name=f"kitti_{seq.name}", where=f"{seq / 'calib.txt'} ({pa})")
         gt = None
         if gt_all is not None:
             m = min(len(gt_all), n)

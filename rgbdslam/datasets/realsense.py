@@ -29,6 +29,7 @@ import yaml
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CameraSetup
 from rgbdslam.errors import InputError
+from rgbdslam.io import validate
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.io.atomic import atomic_path, atomic_write_text
 
@@ -126,8 +127,10 @@ class RealSenseSequence(Sequence):
         dist = tuple(float(c) for c in intr.coeffs)
         if intr.model not in (rs.distortion.none, rs.distortion.brown_conrady) and any(dist):
             dist = (0.0,) * 5  # the SDK's rectified colour stream: its "inverse" models are close to none
-        self.camera = Camera(float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy), int(intr.width),
-                             int(intr.height), dist if len(dist) in (4, 5, 8) else (0.0,) * 5, "realsense")
+        self.camera = validate.camera(float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy),
+                                      int(intr.width), int(intr.height), dist if len(dist) in (4, 5, 8) else (0.0,) * 5,
+                                      "realsense", where=f"the {'recording ' + str(playback) if playback else 'camera'}"
+                                                         f"'s colour intrinsics")
         units = float(depth_sensor.get_depth_scale())  # metres per z16 unit
         self.depth_scale = 1.0 / units  # raw units per metre, as a camera file says it
         source = f"the {'recording ' + str(playback) if playback else 'RealSense device'}'s colour stream"

@@ -33,7 +33,8 @@ from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CameraSetup, resolve_camera
 from rgbdslam.datasets.tum import select_frames
-from rgbdslam.errors import InputError
+from rgbdslam.io import validate
+from rgbdslam.errors import InputError, cut, shorten
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.depth_registration import DepthRegistration
 from rgbdslam.io.trajectory import Trajectory, read_tum
@@ -123,6 +124,18 @@ def _open_reader(path: Path):
     return reader
 
 
+def decode_message(reader, raw, msgtype: str, topic: str, where) -> object:
+    """The message ``raw`` of ``topic``; an InputError naming the topic and the bag when it cannot
+    be decoded (a damaged or empty message: rosbags' SerdeError "Invalid or unsupported CDR
+    encapsulation", a struct error for a truncated one)."""
+    try:
+        return reader.deserialize(raw, msgtype)
+    except Exception as e:  # noqa: BLE001 - the third-party decoder's failure, whatever its class
+        why = str(e).strip().splitlines()[0][:100] if str(e).strip() else "no detail"
+        raise InputError(f"{where}: a message on {topic} cannot be decoded ({type(e).__name__}: {why}); the "
+                         f"recording is damaged — record it again or leave that topic out") from None
+
+
 def _stamp(msg, fallback_ns: int) -> float:
     header = getattr(msg, "header", None)
     st = getattr(header, "stamp", None)
@@ -155,12 +168,12 @@ def decode_color(msgtype: str, msg, topic: str) -> np.ndarray:
     if msgtype == COMPRESSED:
         img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
         if img is None:
-            raise InputError(f"{topic}: a compressed colour image cannot be decoded (format {msg.format!r})")
+            raise InputError(f"{topic}: a compressed colour image cannot be decoded (format {shorten(msg.format)})")
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     enc = msg.encoding.lower()
     ch = {"rgb8": 3, "bgr8": 3, "8uc3": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8uc1": 1}.get(enc)
     if ch is None:
-        raise InputError(f"{topic}: colour encoding {msg.encoding!r} is not supported; use rgb8, bgr8, rgba8, "
+        raise InputError(f"{topic}: colour encoding {shorten(msg.encoding)} is not supported; use rgb8, bgr8, rgba8, "
                          f"bgra8 or mono8")
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(bytes(msg.data), np.uint8)
@@ -180,7 +193,7 @@ def decode_depth(msgtype: str, msg, topic: str, metres_per_unit: float) -> np.nd
         start = raw.find(b"\x89PNG")  # compressedDepth puts a 12-byte header before the PNG
         img = cv2.imdecode(np.frombuffer(raw[max(start, 0):], np.uint8), cv2.IMREAD_UNCHANGED) if start >= 0 else None
         if img is None or img.ndim != 2 or img.dtype != np.uint16:
-            raise InputError(f"{topic}: compressed depth {msg.format!r} is not a 16-bit PNG; record depth as "
+            raise InputError(f"{topic}: compressed depth {shorten(msg.format)} is not a 16-bit PNG; record depth as "
                              f"16UC1 (compressedDepth png) or raw sensor_msgs/Image")
         if msg.format.lower().startswith("32fc1"):  # inverse-depth quantisation of compressed_depth_image_transport
             a, b = np.frombuffer(raw[4:12], "<f4")
@@ -196,7 +209,7 @@ def decode_depth(msgtype: str, msg, topic: str, metres_per_unit: float) -> np.nd
     elif enc == "32fc1":
         dt, size = np.dtype(">f4" if msg.is_bigendian else "<f4"), 4
     else:
-        raise InputError(f"{topic}: depth encoding {msg.encoding!r} is not supported; use 16UC1 (mm) or 32FC1 (m)")
+        raise InputError(f"{topic}: depth encoding {shorten(msg.encoding)} is not supported; use 16UC1 (mm) or 32FC1 (m)")
     data = np.frombuffer(bytes(msg.data), np.uint8)
     if data.size < h * step or step < w * size:
         raise InputError(f"{topic}: image data holds {data.size} bytes, expected {h}x{step} for {w}x{h} {enc}")
@@ -213,7 +226,7 @@ def camera_from_info(msg, name: str) -> Camera:
     D = [float(x) for x in (getattr(msg, "d", None) if hasattr(msg, "d") else msg.D)]
     model = (msg.distortion_model or "plumb_bob").lower()
     if model not in ("plumb_bob", "rational_polynomial", "brown_conrady", "inverse_brown_conrady", "none", ""):
-        raise InputError(f"{name}: distortion model {msg.distortion_model!r} is not supported (plumb_bob, "
+        raise InputError(f"{name}: distortion model {shorten(msg.distortion_model)} is not supported (plumb_bob, "
                          f"rational_polynomial); pass --camera FILE with undistorted intrinsics")
     # RealSense's "inverse" Brown-Conrady maps the other way than OpenCV's model; its coefficients
     # are small on the SDK's rectified colour stream, so it is read as no distortion (like `live`)
@@ -221,7 +234,8 @@ def camera_from_info(msg, name: str) -> Camera:
         D = [0.0] * 5
     if K.size != 9 or not (K[0] > 0 and K[4] > 0):
         raise InputError(f"{name}: CameraInfo has no valid camera matrix K; pass --camera FILE")
-    return Camera(K[0], K[4], K[2], K[5], int(msg.width), int(msg.height), tuple(D), "camera_info")
+    return validate.camera(float(K[0]), float(K[4]), float(K[2]), float(K[5]), int(msg.width), int(msg.height),
+                           D, "camera_info", where=f"{name} (CameraInfo)")
 
 
 def _transform(msg) -> np.ndarray:
@@ -288,7 +302,7 @@ class RosbagSequence(Sequence):
                                  for t, cs in by_topic.items()}
         for conn, t_ns, raw in reader.messages(connections=images):
             d = info[conn.topic]
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg = decode_message(reader, raw, conn.msgtype, conn.topic, self.root)
             if d["kind"] is None:
                 d["kind"], d["enc"] = _kind(conn.msgtype, msg)
                 if conn.msgtype == IMAGE:
@@ -305,7 +319,7 @@ class RosbagSequence(Sequence):
         wanted = [infos[t] for t in {color_info, depth_info} if t is not None]
         first_info: dict[str, object] = {}
         for conn, _, raw in reader.messages(connections=wanted):
-            first_info.setdefault(conn.topic, reader.deserialize(raw, conn.msgtype))
+            first_info.setdefault(conn.topic, decode_message(reader, raw, conn.msgtype, conn.topic, self.root))
         realsense = self.depth.topic.startswith("/device_0/")
         if realsense:
             for stream in (self.color, self.depth):
@@ -356,12 +370,18 @@ class RosbagSequence(Sequence):
                 raise InputError(f"dataset.{key} '{chosen}' is not an image topic of {self.root}; image topics: "
                                  f"{', '.join(sorted(info))}")
             if info[chosen]["kind"] == "unknown":
-                raise InputError(f"{chosen}: encoding {info[chosen]['enc']!r} is not supported")
+                raise InputError(f"{chosen}: encoding {shorten(info[chosen]['enc'])} is not supported")
+            kind = "color" if what == "colour" else "depth"
+            if info[chosen]["kind"] != kind:  # checked here, not as every frame fails to decode
+                other = "depth" if kind == "color" else "colour"
+                raise InputError(f"dataset.{key} '{cut(chosen)}' is a {other} topic (encoding "
+                                 f"{shorten(info[chosen]['enc'])}), not {what}; {what} topics of {self.root}: "
+                                 f"{', '.join(found) or 'none'}")
             return chosen
         if len(found) == 1:
             return found[0]
         if not found:
-            extra = (f"; unsupported encodings: " + ", ".join(f"{t} ({e})" for t, e in sorted(unknown.items()))
+            extra = (f"; unsupported encodings: " + ", ".join(f"{cut(t)} ({shorten(e)})" for t, e in sorted(unknown.items())[:5])
                      if unknown else "")
             raise InputError(f"{self.root} has no {what} image topic{extra}; {what} needs "
                              + ("16UC1/mono16 (mm) or 32FC1 (m) depth" if what == "depth" else
@@ -412,7 +432,7 @@ class RosbagSequence(Sequence):
                   and c.topic.endswith(("Depth Units/value", "Depth_Units/value"))]
         for conn, _, raw in reader.messages(connections=topics):
             try:
-                v = float(reader.deserialize(raw, conn.msgtype).data)
+                v = float(decode_message(reader, raw, conn.msgtype, conn.topic, self.root).data)
             except (TypeError, ValueError):
                 continue
             if v > 0:
@@ -428,7 +448,7 @@ class RosbagSequence(Sequence):
             base = image_topic.rsplit("/image/", 1)[0] + "/tf/"
             cs = [c for c in conns if c.topic.startswith(base)]
             for conn, _, raw in reader.messages(connections=cs):
-                msg = reader.deserialize(raw, conn.msgtype)
+                msg = decode_message(reader, raw, conn.msgtype, conn.topic, self.root)
                 if hasattr(msg, "rotation"):
                     return _transform(msg)
                 fields = dict(kv.split("=", 1) for kv in str(msg.data).split(";") if "=" in kv)
@@ -453,8 +473,8 @@ class RosbagSequence(Sequence):
         cs = [c for c in conns if c.topic == base]
         stamps = []
         for conn, _, raw in reader.messages(connections=cs):
-            fields = dict(kv.split("=", 1) for kv in str(reader.deserialize(raw, conn.msgtype).data).split(";")
-                          if "=" in kv)
+            text = str(decode_message(reader, raw, conn.msgtype, conn.topic, self.root).data)
+            fields = dict(kv.split("=", 1) for kv in text.split(";") if "=" in kv)
             try:
                 stamps.append(float(fields["timestamp"]) / 1000.0)
             except (KeyError, ValueError):
@@ -489,7 +509,7 @@ class RosbagSequence(Sequence):
             except StopIteration:
                 raise InputError(f"{self.root}: message {k} of {topic} is missing (the bag changed while read?)") from None
             if (t == self.color.topic and n in self._want_c) or (t == self.depth.topic and n in self._want_d):
-                self._pending[(t, n)] = (msgtype, reader.deserialize(raw, msgtype))
+                self._pending[(t, n)] = (msgtype, decode_message(reader, raw, msgtype, t, self.root))
         return self._pending.pop(key)
 
     def load(self, i: int) -> Frame:

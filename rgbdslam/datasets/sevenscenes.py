@@ -29,6 +29,8 @@ from rgbdslam.datasets.camera_file import CameraSetup, read_shipped_camera, reso
 from rgbdslam.datasets.tum import RgbdFileSequence, data_lines, pick_depth_scale, select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
+from rgbdslam.io import validate
+from rgbdslam.io.text import optional_file, require_file
 from rgbdslam.io.trajectory import Trajectory
 
 RATE_HZ = 30.0
@@ -53,19 +55,19 @@ def _is_7scenes(path: Path) -> bool:
 
 
 def read_intrinsics(path: Path) -> Camera:
-    rows = [f for _, f in data_lines(path)]
+    rows = [f for _, f in data_lines(require_file(path, "7-Scenes intrinsics"))]
     try:
         K = np.array(rows, dtype=np.float64)
-        ok = K.shape == (3, 3) and K[0, 0] > 0 and K[1, 1] > 0 and np.isfinite(K).all()
+        ok = K.shape == (3, 3)
     except ValueError:
         ok = False
     if not ok:
         raise InputError(f"{path}: expected a 3x3 camera matrix (three rows 'fx 0 cx', '0 fy cy', '0 0 1')")
-    return Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 640, 480, (0.0,) * 5, "7scenes")
+    return validate.camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 640, 480, name="7scenes", where=str(path))
 
 
 def read_pose(path: Path) -> np.ndarray:
-    rows = [f for _, f in data_lines(path)]
+    rows = [f for _, f in data_lines(require_file(path, "7-Scenes pose"))]
     try:
         T = np.array(rows, dtype=np.float64)
         ok = T.shape == (4, 4)
@@ -73,7 +75,9 @@ def read_pose(path: Path) -> np.ndarray:
         ok = False
     if not ok:
         raise InputError(f"{path}: expected a 4x4 camera-to-world matrix (4 rows of 4 numbers)")
-    return T
+    if not np.isfinite(T).all():  # 7-Scenes marks a pose KinectFusion lost with inf: no pose, not an error
+        return T
+    return validate.poses(T, str(path))[0]
 
 
 def shipped_setup(root: Path) -> CameraSetup:
@@ -81,7 +85,7 @@ def shipped_setup(root: Path) -> CameraSetup:
     ``camera-intrinsics.txt`` where there is one (the published intrinsics otherwise)."""
     setup = read_shipped_camera("7scenes", f"the 7-Scenes camera shipped with rgbdslam ({SHIPPED_CAMERA})")
     setup = dataclasses.replace(setup, camera=dataclasses.replace(setup.camera, name="7scenes"))
-    if not (root / INTRINSICS).is_file():
+    if optional_file(root / INTRINSICS, "7-Scenes intrinsics") is None:  # a folder there is refused
         return setup
     depth = read_intrinsics(root / INTRINSICS)
     if (depth.fx, depth.fy, depth.cx, depth.cy) == (setup.depth_camera.fx, setup.depth_camera.fy,
@@ -126,7 +130,7 @@ class SevenScenesSequence(RgbdFileSequence):
         stamps, poses = [], []
         for n, _ in _color_frames(self.root):
             p = self.root / f"frame-{n:06d}.pose.txt"
-            if p.is_file():
+            if optional_file(p, "7-Scenes pose") is not None:
                 T = read_pose(p)
                 if np.isfinite(T).all() and abs(T[3, 3] - 1) < 1e-6:  # 7-Scenes marks lost poses with inf
                     stamps.append(n / RATE_HZ)

@@ -19,7 +19,9 @@ import numpy as np
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.stereo import StereoRig
+from rgbdslam.io.images import read_image as decode_image
 from rgbdslam.io.kitti import read_kitti_times
+from rgbdslam.io.text import optional_file
 from rgbdslam.io.trajectory import Trajectory
 
 
@@ -27,9 +29,9 @@ def read_image(path: Path, what: str) -> np.ndarray:
     """An 8-bit grey (H, W) or colour (H, W, 3, RGB order) image; InputError naming the file."""
     if not path.is_file():
         raise InputError(f"{what} image {path} is missing; restore it or remove it from the sequence")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img, why = decode_image(path)  # a damaged file: our line only, no libpng/libjpeg noise above it
     if img is None:
-        raise InputError(f"{what} image {path} cannot be decoded; replace it with a valid PNG/JPEG")
+        raise InputError(f"{what} image {path} cannot be decoded ({why}); replace it with a valid PNG/JPEG")
     if img.dtype != np.uint8:
         raise InputError(f"{what} image {path} is {img.dtype}, expected 8-bit; convert it to 8-bit grey or colour")
     if img.ndim == 3 and img.shape[2] == 1:
@@ -60,7 +62,7 @@ def image_files(folder: Path) -> list[Path]:
 def frame_times(times_file: Path, n: int, hz: float) -> np.ndarray:
     """Time stamps of ``n`` pairs: ``times_file`` (KITTI's times.txt, one per line) when it exists,
     else a constant rate ``hz``."""
-    if not times_file.is_file():
+    if optional_file(times_file, "time stamp file") is None:
         return np.arange(n) / hz
     ts = read_kitti_times(times_file)
     if len(ts) != n:
@@ -68,10 +70,16 @@ def frame_times(times_file: Path, n: int, hz: float) -> np.ndarray:
     return ts
 
 
+MAX_BASELINE = 1e3  # metres
+
+
 def check_baseline(baseline: float, source: Path) -> float:
     if not np.isfinite(baseline) or baseline <= 0:
         raise InputError(f"{source} gives no stereo baseline (got {baseline:g} m); the calibration must give the "
                          f"right camera's offset (e.g. KITTI P1 with -fx*B in its 4th column, or 'baseline:')")
+    if baseline > MAX_BASELINE:
+        raise InputError(f"{source} gives a stereo baseline of {baseline:g} m, more than {MAX_BASELINE:g} m; "
+                         f"the baseline is in metres")
     return float(baseline)
 
 

@@ -17,19 +17,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
-import yaml
 
 from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline, frame_times, image_files
 from rgbdslam.datasets.tum import select_frames
-from rgbdslam.errors import InputError
-from rgbdslam.geometry.camera import Camera
+from rgbdslam.errors import InputError, cut
+from rgbdslam.io import validate
+from rgbdslam.io.images import read_image
 from rgbdslam.geometry.stereo import StereoRig
-from rgbdslam.io.text import read_text
+from rgbdslam.io.text import optional_file, read_text
 from rgbdslam.io.trajectory import read_tum
+from rgbdslam.io.yamlfile import load_yaml
 
 CAMERA_FILE = "stereo.yaml"
+DEFAULT_FPS = 30.0
 
 
 def _is_stereo_folder(path: Path) -> bool:
@@ -40,26 +41,26 @@ def read_stereo_yaml(path: Path) -> dict:
     if not path.is_file():
         raise InputError(f"{path} is missing: a stereo folder needs a camera file with fx, fy, cx, cy and "
                          f"baseline (metres)")
-    try:
-        data = yaml.safe_load(read_text(path, "camera file"))
-    except yaml.YAMLError:
-        raise InputError(f"{path} is not valid YAML; fix its syntax") from None
+    data = load_yaml(read_text(path, "camera file"), str(path))
     if not isinstance(data, dict):
         raise InputError(f"{path} must be a mapping with fx, fy, cx, cy and baseline")
     known = {"fx", "fy", "cx", "cy", "baseline", "fps", "width", "height"}
-    unknown = set(map(str, data)) - known
+    unknown = sorted(set(map(str, data)) - known)
     if unknown:
-        raise InputError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(known))}")
+        shown = ", ".join(cut(k, 30) for k in unknown[:5]) + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else "")
+        raise InputError(f"{path}: unknown key(s) {shown}; allowed: {', '.join(sorted(known))}")
     missing = [k for k in ("fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise InputError(f"{path}: missing {', '.join(missing)}; give the rectified left camera's fx, fy, cx, cy")
     if "baseline" not in data:
         raise InputError(f"{path} gives no stereo baseline; add 'baseline: <metres>' (the distance between the "
                          f"two camera centres)")
-    try:
-        out = {k: float(v) for k, v in data.items()}
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: every value must be a number") from None
+    where = str(path)
+    out = {k: validate.number(v, where, k) for k, v in data.items() if k in ("fx", "fy", "cx", "cy", "baseline")}
+    out["fps"] = validate.rate(data.get("fps", DEFAULT_FPS), where)
+    for k in ("width", "height"):
+        if k in data:
+            out[k] = validate.number(data[k], where, k, 1, validate.MAX_IMAGE_SIDE, integer=True)
     return out
 
 
@@ -79,14 +80,14 @@ class StereoFolderSequence(StereoSequence):
         if not left:
             raise InputError(f"{root / 'left'} holds no images")
         n = len(left)
-        ts = frame_times(root / "times.txt", n, c.get("fps", 30.0))
-        first = cv2.imread(str(left[0]), cv2.IMREAD_UNCHANGED)
+        ts = frame_times(root / "times.txt", n, c["fps"])
+        first, why = read_image(left[0])
         if first is None:
-            raise InputError(f"left image {left[0]} cannot be decoded; replace it with a valid image")
+            raise InputError(f"left image {left[0]} cannot be decoded ({why}); replace it with a valid image")
         h, w = first.shape[:2]
-        cam = Camera(c["fx"], c["fy"], c["cx"], c["cy"], int(c.get("width", w)), int(c.get("height", h)),
-                     (0.0,) * 5, "stereo")
+        cam = validate.camera(c["fx"], c["fy"], c["cx"], c["cy"], c.get("width", w), c.get("height", h),
+                              name="stereo", where=str(root / CAMERA_FILE))
         keep = select_frames(n, cfg, root)
-        gt = read_tum(root / "groundtruth.txt") if (root / "groundtruth.txt").is_file() else None
+        gt = read_tum(root / "groundtruth.txt") if optional_file(root / "groundtruth.txt", "ground truth") else None
         super().__init__(root, root.resolve().name, StereoRig(cam, baseline), ts[keep], [left[k] for k in keep],
                          [right[k] for k in keep], gt)

@@ -63,7 +63,7 @@ def _info(ts, t, frame, cam, ros1: bool):
 
 def write_bag(src: Path, out: Path, kind: str = "ros1", color: str = "rgb8", depth: str = "16UC1",
               frames: int | None = None, camera_info: bool = True, extra_color_topic: bool = False,
-              depth_info_camera=None, depth_to_color: np.ndarray | None = None) -> Path:
+              depth_info_camera=None, depth_to_color: np.ndarray | None = None, color_info_camera=None) -> Path:
     """Write the first ``frames`` colour/depth pairs of the TUM folder ``src`` into a bag at ``out``.
 
     kind: ``ros1`` (.bag), ``ros2`` (sqlite3 folder), ``mcap`` (ROS 2 mcap folder), ``realsense``
@@ -126,7 +126,8 @@ def write_bag(src: Path, out: Path, kind: str = "ros1", color: str = "rgb8", dep
             msgs.append((t_depth, "sensor_msgs/msg/Image", t_d, _image(ts, t_d, "depth", img, enc, ros1)))
     first = min(m[2] for m in msgs)
     if camera_info:
-        msgs.append((i_color, "sensor_msgs/msg/CameraInfo", first, _info(ts, first, "color", cam, ros1)))
+        msgs.append((i_color, "sensor_msgs/msg/CameraInfo", first,
+                     _info(ts, first, "color", color_info_camera or cam, ros1)))
         msgs.append((i_depth, "sensor_msgs/msg/CameraInfo", first,
                      _info(ts, first, "depth", depth_info_camera or cam, ros1)))
     if kind == "realsense":

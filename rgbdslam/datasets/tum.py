@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rgbdslam.io import validate
 from rgbdslam.io.images import read_image
 from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
 from rgbdslam.datasets.registry import reader
@@ -155,7 +156,7 @@ class RgbdFileSequence(Sequence):
         say so before it starts (a first image that cannot be read is left to the frame loop)."""
         if not self.rgb_files or not self.rgb_files[0].is_file():
             return
-        img = cv2.imread(str(self.rgb_files[0]), cv2.IMREAD_UNCHANGED)
+        img, _ = read_image(self.rgb_files[0])  # no decoder noise for a damaged file (the frame loop names it)
         if img is not None:
             _check_size(self.rgb_files[0], img, self.camera)
 
@@ -297,12 +298,12 @@ def _eth3d_camera(root: Path) -> CameraSetup | None:
     w, h = 640, 480
     try:
         first = root / _image_list(root, "rgb")[1][0]
-        img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+        img, _ = read_image(first)
         if img is not None:
             h, w = img.shape[:2]
     except InputError:
         pass
-    return CameraSetup(Camera(fx, fy, cx, cy, w, h, (0.0,) * 5, "eth3d"), f"{p.name} (ETH3D SLAM)",
+    return CameraSetup(validate.camera(fx, fy, cx, cy, w, h, name="eth3d", where=str(p)), f"{p.name} (ETH3D SLAM)",
                        depth_scale=TUM_DEPTH_SCALE)
 
 

@@ -7,12 +7,15 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterable, Iterator
 
 from rgbdslam.engine.base import DEFAULT_RETRIES, Engine, EngineError
-from rgbdslam.io.worker import spawn_context
+from rgbdslam.io.worker import follow_parent, spawn_context
 
 _SHARED: dict[str, Any] = {}
 
 
-def _init_worker(shared: Any) -> None:
+def _init_worker(shared: Any = None) -> None:
+    """A pool worker's start: it ends with the driver (:func:`follow_parent`); ``shared`` is kept
+    for the jobs."""
+    follow_parent()
     _SHARED["value"] = shared
 
 
@@ -45,8 +48,7 @@ class LocalEngine(Engine):
         ctx = spawn_context()
         while todo:
             pool = ProcessPoolExecutor(min(self.workers, len(todo)), mp_context=ctx,
-                                       initializer=_init_worker if shared is not None else None,
-                                       initargs=(shared,) if shared is not None else ())
+                                       initializer=_init_worker, initargs=(shared,))
             try:
                 futures = {}
                 for k, args in todo.items():

@@ -68,6 +68,42 @@ def _refused_for_token(e: BaseException) -> bool:
     return False
 
 
+CONNECT_TIMEOUT_S = 3.0  # seconds to reach the cluster's port before Ray is asked to (it waits ~60 s)
+
+
+def check_address(address: str) -> None:
+    """A cluster address Ray can use, checked before ``ray.init``: ``auto`` (Ray looks it up), or
+    ``HOST:PORT`` / ``ray://HOST:PORT`` where HOST resolves and something accepts a connection at
+    PORT within :data:`CONNECT_TIMEOUT_S` s. EngineError with one line otherwise — Ray itself
+    waits a minute printing its C++ log lines for a closed port or an unknown host, and raises a
+    traceback for an empty or ``http://`` address."""
+    import socket
+
+    from rgbdslam.errors import cut
+
+    fix = "give auto, HOST:6379 or ray://HOST:10001 (a cluster started with `ray start --head`)"
+    if address == "auto":
+        return
+    text = address.strip()
+    scheme, _, rest = text.rpartition("://")
+    if not text or scheme not in ("", "ray"):
+        raise EngineError(f"--address '{cut(address)}' is not a Ray cluster address; {fix}")
+    host, _, port = rest.rpartition(":")
+    host = host.strip("[]")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise EngineError(f"--address '{cut(address)}' has no HOST:PORT; {fix}")
+    try:
+        socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError):
+        raise EngineError(f"--address '{cut(address)}': the host {cut(host)} is unknown; {fix}") from None
+    try:
+        socket.create_connection((host, int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as e:
+        why = "nothing answered" if isinstance(e, TimeoutError) else (e.strerror or type(e).__name__).lower()
+        raise EngineError(f"no Ray cluster at {cut(address)} ({why} within {CONNECT_TIMEOUT_S:g} s); start one "
+                          f"with `ray start --head` or leave out --address for a local cluster") from None
+
+
 def _call(fn: Callable, shared: Any, args: tuple) -> Any:
     return fn(shared, *args) if shared is not None else fn(*args)
 
@@ -89,8 +125,12 @@ class RayEngine(Engine):
                 if address is None:
                     ray.init(num_cpus=workers, **kw)
                 else:
+                    check_address(address)
                     _token_auth_for_address()
                     ray.init(address=address, **kw)
+            except ValueError as e:  # Ray's own refusal of the address, e.g. ray:// without `ray[client]`
+                text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                raise EngineError(f"Ray cannot use the address {address}: {text[:200]}") from None
             except ConnectionError as e:
                 if _refused_for_token(e):
                     raise EngineError(

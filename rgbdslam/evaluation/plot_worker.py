@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive, spawn_context
+from rgbdslam.io.worker import end, exit_now, follow_parent, in_niced_thread, receive, spawn_context, start
 
 
 class PlotWorker:
@@ -25,7 +25,7 @@ class PlotWorker:
         self._jobs = ctx.Queue()
         self._results = ctx.Queue()
         self._proc = ctx.Process(target=_serve, name="rgbdslam-plots", daemon=True, args=(self._jobs, self._results, nice))
-        self._proc.start()
+        start(self._proc)
         self.submitted = False
 
     def submit(self, report, plot_dir: str | Path, prefix: str = "") -> None:
@@ -69,6 +69,7 @@ def _serve(jobs, results, nice: int) -> None:
     without the interpreter's teardown (the run does not wait for it)."""
     import signal
 
+    follow_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle: it stops us
     try:
         in_niced_thread(nice, _warm_up)  # while tracking: niced; the plots after it at the run's priority

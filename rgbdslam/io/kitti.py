@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.errors import InputError
+from rgbdslam.errors import InputError, shorten
+from rgbdslam.io import validate
 from rgbdslam.io.atomic import atomic_write_text
-from rgbdslam.io.text import read_lines
+from rgbdslam.io.text import read_lines, require_file
 from rgbdslam.io.trajectory import Trajectory
 
 
@@ -22,7 +23,7 @@ def _numbers(path: Path, lineno: int, text: str, n: int, what: str) -> list[floa
     try:
         vals = [float(x) for x in text.split()]
     except ValueError:
-        raise InputError(f"{path}:{lineno}: expected {n} numbers ({what}); got {text[:60]!r}") from None
+        raise InputError(f"{path}:{lineno}: expected {n} numbers ({what}); got {shorten(text)}") from None
     if len(vals) != n or not np.isfinite(vals).all():
         raise InputError(f"{path}:{lineno}: expected {n} finite numbers ({what}); got {len(vals)}")
     return vals
@@ -30,20 +31,17 @@ def _numbers(path: Path, lineno: int, text: str, n: int, what: str) -> list[floa
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:
     """Poses (N, 4, 4) from a KITTI pose file; errors name file and line."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"KITTI pose file {path} does not exist; check the path")
-    rows = []
+    path = require_file(path, "KITTI pose file")
+    rows, lines = [], []
     for lineno, line in enumerate(read_lines(path, "KITTI pose file"), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
         rows.append(_numbers(path, lineno, s, 12, "a row-major 3x4 camera-to-world matrix"))
+        lines.append(lineno)
     if not rows:
         raise InputError(f"KITTI pose file {path} holds no poses; it needs one line of 12 numbers per frame")
-    P = np.tile(np.eye(4), (len(rows), 1, 1))
-    P[:, :3, :] = np.array(rows).reshape(-1, 3, 4)
-    return P
+    return validate.poses(np.array(rows).reshape(-1, 3, 4), str(path), lines)
 
 
 def format_kitti_poses(poses: np.ndarray) -> str:
@@ -59,20 +57,18 @@ def write_kitti_poses(traj: Trajectory | np.ndarray, path: str | Path) -> None:
 
 def read_kitti_times(path: str | Path) -> np.ndarray:
     path = Path(path)
-    out = []
+    out, lines = [], []
     for lineno, line in enumerate(read_lines(path, "KITTI times file"), 1):
         s = line.strip()
         if s and not s.startswith("#"):
             out.append(_numbers(path, lineno, s, 1, "seconds")[0])
-    return np.array(out)
+            lines.append(lineno)
+    return validate.stamps(out, str(path), lines)
 
 
 def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
     """The ``NAME: v1 ... v12`` matrices of a KITTI ``calib.txt`` as 3x4 arrays."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"KITTI calibration {path} does not exist; the sequence folder needs calib.txt "
-                         f"(P0: and P1: lines)")
+    path = require_file(path, "KITTI calibration", "the sequence folder needs calib.txt (P0: and P1: lines)")
     out = {}
     for lineno, line in enumerate(read_lines(path, "KITTI calibration"), 1):
         s = line.strip()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import queue
+import threading
 
 _QUIET = "ignore:resource_tracker:UserWarning"
 
@@ -22,15 +23,112 @@ def spawn_context():
     import sys
     from multiprocessing import resource_tracker
 
+    import signal
+
     added = _QUIET not in sys.warnoptions
     if added:
         sys.warnoptions.append(_QUIET)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})  # as start()
     try:
         resource_tracker.ensure_running()
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
         if added:
             sys.warnoptions.remove(_QUIET)
     return mp.get_context("spawn")
+
+
+PARENT_POLL_S = 0.2  # how often a helper looks whether its parent is still there
+_STARTING = threading.Lock()  # held while a helper is launched (see settle())
+
+
+def start(proc) -> None:
+    """``proc.start()`` with SIGINT and SIGTERM blocked in the calling thread: the new process
+    inherits the block (fork and exec keep the thread's signal mask), so a Ctrl-C, which the
+    terminal sends to every process of the run, or a SIGTERM sent to the whole process group (a
+    batch scheduler, systemd) reaches only the run itself, from the helper's first instruction (a
+    helper interrupted while it imports printed its own traceback; one killed by the group's
+    SIGTERM made the run warn); the run then ends its helpers (:func:`end`, :func:`stop`). In the main thread, where
+    Python runs its signal handlers, a Ctrl-C or SIGTERM that arrives during the launch is handled
+    right after it (a launch cut short leaves the new interpreter without its instructions: an
+    EOFError traceback after the run's last line)."""
+    import signal
+
+    _stop_at_exit()
+    main = threading.current_thread() is threading.main_thread()
+    caught: list = []
+    previous = {}
+    if main:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            handler = signal.getsignal(sig)
+            if callable(handler):
+                previous[sig] = handler
+                signal.signal(sig, lambda signum, frame: caught.append((signum, frame)))
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        with _STARTING:
+            proc._rgbdslam_helper = True  # noqa: SLF001 - our mark on multiprocessing's object
+            proc.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if caught:
+        previous[caught[0][0]](*caught[0])
+
+
+_STARTED: list = []  # the helpers start() launched (weakly: ended ones are not kept alive)
+
+
+def _stop_at_exit() -> None:
+    """Once per process: at exit, :func:`stop` every helper still running, before multiprocessing's
+    own exit handler would ``terminate`` it and wait — a SIGTERM the helper blocks (:func:`start`),
+    so that wait would never end. Registered after multiprocessing's handler, so it runs first."""
+    if _STARTED:
+        return
+    import atexit
+    import multiprocessing.util  # noqa: F401 - its exit handler is registered first, runs last
+
+    _STARTED.append(None)
+
+    def stop_helpers() -> None:
+        import multiprocessing
+
+        for proc in multiprocessing.active_children():
+            if proc.daemon and getattr(proc, "_rgbdslam_helper", False):
+                stop(proc)
+
+    atexit.register(stop_helpers)
+
+
+def settle(timeout: float = 5.0) -> None:
+    """Wait (at most ``timeout`` s) until no helper is being launched by another thread: a process
+    that ends while it launches one leaves the new interpreter without its instructions, and that
+    prints a traceback (EOFError) after the run's last line."""
+    if _STARTING.acquire(timeout=timeout):
+        _STARTING.release()
+
+
+def follow_parent() -> None:
+    """In a helper process, first: end it (``os._exit``) as soon as the process that started it is
+    gone (killed with SIGKILL, crashed), so no helper — some hold hundreds of MB — outlives its run
+    as an orphan. A daemon thread compares the parent's id every :data:`PARENT_POLL_S` s (a
+    parent's death re-parents the helper; Linux's PR_SET_PDEATHSIG would fire when the *thread*
+    that started it ends, which is not the run's end)."""
+    import multiprocessing
+    import time
+
+    started_by = multiprocessing.parent_process()  # the run's id, also when the run is PID 1 (a container)
+    parent = started_by.pid if started_by is not None else os.getppid()
+    if os.getppid() != parent:  # the run ended before this helper got here
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="follow-parent", daemon=True).start()
 
 
 def receive(results, proc, what: str) -> tuple[str, object]:
@@ -47,14 +145,20 @@ def receive(results, proc, what: str) -> tuple[str, object]:
 
 
 def end(proc, jobs, timeout: float = 5.0) -> None:
-    """Ask the process to end (``None`` as its next job), wait ``timeout`` s, then terminate it."""
+    """Ask the process to end (``None`` as its next job), wait ``timeout`` s, then :func:`stop` it."""
     if proc.is_alive():
         jobs.put(None)
         proc.join(timeout=timeout)
         if proc.is_alive():
-            proc.terminate()
-            proc.join()
+            stop(proc)
     jobs.cancel_join_thread()  # its reader is gone: exit must not wait to flush the queue
+
+
+def stop(proc) -> None:
+    """End the helper process at once (SIGKILL: it blocks SIGTERM, see :func:`start`; it has no
+    cleanup of its own to do — the run removes what it leaves)."""
+    proc.kill()
+    proc.join()
 
 
 def exit_now(results) -> None:
@@ -133,7 +237,7 @@ class Helper:
         self._warm = ctx.Event()
         self._proc = ctx.Process(target=_helper, name=name, daemon=True,
                                  args=(self._jobs, self._results, warm, nice, self._warm))
-        self._proc.start()
+        start(self._proc)
 
     def ready(self) -> bool:
         """True when the warm-up is done (a job sent earlier would wait for its niced imports)."""
@@ -165,6 +269,7 @@ def _helper(jobs, results, warm: str, nice: int, warmed) -> None:
     """The helper process's body (:class:`Helper`)."""
     import signal
 
+    follow_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle: it stops us
     try:
         in_niced_thread(nice, lambda: _call(warm))

@@ -39,7 +39,7 @@ import numpy as np
 from rgbdslam.config import MappingConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
-from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive
+from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive, stop
 
 CACHE_MB = 512  # keyframe images kept for re-integration (640x480: ~1.5 MB each); beyond, they are read again
 REBUILD_FRACTION = 0.5  # more keyframes than this share moved: rebuild the map instead of de-/re-integrating
@@ -489,6 +489,9 @@ def _serve(cfg: MappingConfig, camera: Camera, load, jobs, results, applied=None
     at the run's priority and with every core (the user waits for it now)."""
     import signal
 
+    from rgbdslam.io.worker import follow_parent
+
+    follow_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops us
     try:
         # Open3D's and OpenCV's imports (~1 s of CPU) once the first keyframe is here, i.e. after the run
@@ -759,7 +762,7 @@ class LiveMap:
     frames are tracked."""
 
     def __init__(self, cfg: MappingConfig, camera: Camera, root: str, dataset_cfg, depth_dir: str | None):
-        from rgbdslam.io.worker import spawn_context
+        from rgbdslam.io.worker import spawn_context, start
 
         ctx = spawn_context()
         self.cfg = cfg
@@ -770,7 +773,7 @@ class LiveMap:
         self._proc = ctx.Process(target=_process, name="rgbdslam-map", daemon=True,
                                  args=(cfg, camera, _SequenceImages(root, dataset_cfg, depth_dir), self._jobs,
                                        self._results, self._applied))
-        self._proc.start()
+        start(self._proc)
         self._cloud = None  # the cloud process: started with the first keyframe (after the first frame)
 
     def add(self, index: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray) -> None:
@@ -869,8 +872,7 @@ class LiveMap:
 
     def _stop(self) -> None:
         if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join()
+            stop(self._proc)
         self._jobs.cancel_join_thread()
         self._close_cloud(wait=0.0)
 

@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.posegraph.graph import PoseGraphData, empty_poses, wrap_angle
-from rgbdslam.errors import InputError
+from rgbdslam.errors import InputError, shorten
 from rgbdslam.io.atomic import atomic_write_text
 from rgbdslam.io.numbers import check_magnitude
 from rgbdslam.io.text import read_lines, require_file
@@ -230,6 +230,20 @@ def _sym_from_upper(vals: np.ndarray, d: int) -> np.ndarray:
     return M
 
 
+def _check_fix(path: Path, text_lines: list[str], vertex_ids: np.ndarray) -> None:
+    """A ``FIX id ...`` record (ignored: the first vertex is the gauge) must still name vertices
+    of the file: a FIX of a missing vertex is a mistake in the file, not a no-op."""
+    have = set(vertex_ids.tolist())
+    for lineno, line in enumerate(text_lines, 1):
+        p = line.split()
+        if not p or p[0] != "FIX":
+            continue
+        for token in p[1:]:
+            if not (token.isascii() and token.isdigit() and len(token) <= 16) or int(token) not in have:
+                raise InputError(f"{path}:{lineno}: FIX names vertex {shorten(token)}, which is not a vertex id of the "
+                                 f"file; fix or remove the line")
+
+
 def _read_g2o(path: Path, text_lines: list[str]) -> PoseGraphData:
     rows, lines, notes = _scan(path, text_lines, _G2O, _IGNORED["g2o"])
     has2 = "EDGE_SE2" in rows or "VERTEX_SE2" in rows
@@ -249,6 +263,7 @@ def _read_g2o(path: Path, text_lines: list[str]) -> PoseGraphData:
         info = _sym_from_upper(e[:, 5:11], 3) if len(e) else np.zeros((0, 3, 3))
         info, note = _check_info(path, "EDGE_SE2", info, lines["EDGE_SE2"])
         notes = notes + [note] if note else notes
+        _check_fix(path, text_lines, vid)
         return _assemble(path, 2, vid, vposes, ei, ej, meas, info, lines["EDGE_SE2"], "g2o", notes)
     v = _numbers(path, "VERTEX_SE3:QUAT", rows["VERTEX_SE3:QUAT"], lines["VERTEX_SE3:QUAT"])
     e = _numbers(path, "EDGE_SE3:QUAT", rows["EDGE_SE3:QUAT"], lines["EDGE_SE3:QUAT"])
@@ -261,6 +276,7 @@ def _read_g2o(path: Path, text_lines: list[str]) -> PoseGraphData:
                 raise InputError(f"{path}:{lines[tag][bad[0]]}: {tag} quaternion is not unit length; fix the line")
     vid = _int_ids(path, "VERTEX_SE3:QUAT", v[:, 0], lines["VERTEX_SE3:QUAT"]) if len(v) else np.zeros(0, np.int64)
     vposes = pose_from_tum(v[:, 1:4], v[:, 4:8]) if len(v) else np.zeros((0, 4, 4))
+    _check_fix(path, text_lines, vid)
     if len(e) == 0:
         raise InputError(f"{path}: the file has no pose-graph edges; give a graph with EDGE records")
     ei = _int_ids(path, "EDGE_SE3:QUAT", e[:, 0], lines["EDGE_SE3:QUAT"])

@@ -77,6 +77,9 @@ def read_run(run_dir: str | Path) -> tuple[dict[str, Any], Config, Trajectory]:
         info = json.loads(read_text(info_path, "run file"))
     except json.JSONDecodeError as e:
         raise InputError(f"{info_path} is not valid JSON (line {e.lineno}); re-run `rgbdslam run` to rewrite it") from None
+    except (ValueError, RecursionError):  # a number of thousands of digits; nesting deeper than Python recurses
+        raise InputError(f"{info_path} is not a run file rgbdslam wrote (nested too deeply or a number too long); "
+                         f"re-run `rgbdslam run` to rewrite it") from None
     info = check_run_info(info, info_path)
     cfg_path = run_dir / "config.yaml"
     if cfg_path.is_file():

@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from rgbdslam.errors import InputError
+from rgbdslam.errors import InputError, shorten
 from rgbdslam.geometry.camera import Camera
+from rgbdslam.io import validate
 from rgbdslam.io.atomic import atomic_path
 
 FORMAT = "rgbdslam-map"
@@ -204,6 +205,7 @@ def save_map(path: str | Path, data: MapData) -> Path:
 def read_header(path: str | Path) -> dict[str, Any]:
     """The JSON header alone (cheap: one member of the zip)."""
     path = Path(path)
+    _regular(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             return _header(z, path)
@@ -211,6 +213,20 @@ def read_header(path: str | Path) -> dict[str, Any]:
         raise
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
         raise _corrupt(path, e) from None
+
+
+def _regular(path: Path) -> None:
+    """Nothing but a regular file is opened (a FIFO named map.npz would block the read for ever)."""
+    import os
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return  # missing or unreadable: np.load names it (_corrupt)
+    if not stat.S_ISREG(mode):
+        raise MapFileError(f"{path} is not a regular file (a folder, FIFO or device); --map takes the folder of "
+                           f"a finished `rgbdslam run` (it saves map.npz)")
 
 
 def _corrupt(path: Path, e: Exception) -> MapFileError:
@@ -239,6 +255,7 @@ def load_map(path: str | Path, camera: Camera | None = None) -> MapData:
     (when given: a map serves only the camera it was made with). Every failure is one
     :class:`MapFileError` line; nothing is written."""
     path = Path(path)
+    _regular(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             header = _header(z, path)
@@ -253,10 +270,13 @@ def load_map(path: str | Path, camera: Camera | None = None) -> MapData:
                            f"damaged after it was written); re-run `rgbdslam run` to make it again")
     try:
         c = header["camera"]
-        cam = Camera(float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]), int(c["width"]),
-                     int(c["height"]), tuple(float(d) for d in c["dist"]), str(c.get("name", "")))
-    except (KeyError, TypeError, ValueError) as e:
-        raise MapFileError(f"{path} is corrupt: its camera entry is unreadable ({e})") from None
+        cam = validate.camera(c["fx"], c["fy"], c["cx"], c["cy"], c["width"], c["height"], c["dist"],
+                              str(c.get("name", "")), where=f"{path} (camera)")
+    except (KeyError, TypeError, AttributeError) as e:
+        raise MapFileError(f"{path} is corrupt: its camera entry is unreadable ({shorten(e)})") from None
+    except InputError as e:
+        raise MapFileError(f"{e}; the map is corrupt: re-run `rgbdslam run` to make it again") from None
+    check_values(arrays, path)
     if camera is not None and not same_camera(cam, camera):
         raise MapFileError(f"{path} was made with camera {_camera_text(cam)}, this sequence's camera is "
                            f"{_camera_text(camera)}: a map serves only the camera it was made with "
@@ -264,6 +284,24 @@ def load_map(path: str | Path, camera: Camera | None = None) -> MapData:
     landmarks = _load_landmarks(arrays, header.get("landmarks"), len(arrays["kf_frame"]), path)
     return MapData({n: arrays[n] for n in ARRAYS}, cam, header.get("config") or {}, header.get("sessions") or [],
                    landmarks, header.get("created_by", ""))
+
+
+def check_values(arrays: dict[str, np.ndarray], path: Path) -> None:
+    """The numbers a valid checksum does not vouch for (a crafted file can carry one): every
+    pose rigid and finite (:func:`rgbdslam.io.validate.poses`), every time stamp and
+    information matrix finite (the indices are checked with the shapes); MapFileError naming
+    the array otherwise."""
+    try:
+        for name in ("kf_pose", "frame_rel", "odo_T", "loop_T"):
+            if len(arrays[name]):
+                validate.poses(arrays[name], f"{path} ({name})")
+        for name in ("kf_timestamp", "frame_timestamp"):
+            validate.stamps(arrays[name], f"{path} ({name})", strict=False)
+    except InputError as e:
+        raise MapFileError(f"{e}; the map is corrupt: re-run `rgbdslam run` to make it again") from None
+    for name in ("odo_info", "loop_info", "kf_path", "kf_turn", "loop_residual", "feat_uv", "feat_uv_raw"):
+        if not np.isfinite(arrays[name]).all():
+            raise MapFileError(f"{path} is corrupt: {name} holds a value that is not a finite number")
 
 
 def _check_anchors(lm: dict[str, np.ndarray], n_keyframes: int, where: str) -> None:

@@ -423,6 +423,9 @@ def _log_saved_landmarks(log: RerunLogger, run_dir: Path, last: int) -> None:
     log.log_landmarks(last, lm["lm_pos"], age, None)
 
 
+MAX_SERVE_S = 3.2e7  # seconds (a year); --serve-for takes a finite time above 0
+
+
 def view(path: str | Path, save: str | Path | None = None, progress: bool = True, web: bool = False,
          bind: str = "127.0.0.1", web_port: int = 9090, grpc_port: int = 9876,
          serve_for: float | None = None) -> Path:
@@ -431,8 +434,11 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
     A run folder is recorded first (to ``save``, else RUN_DIR/recording.rrd unless that exists).
     Without a display the viewer is not started: one line says so and names the file.
     ``web``: serve Rerun's web viewer instead (:func:`serve_web`), for a machine without a display."""
+    from rgbdslam.io.validate import number
     from rgbdslam.ui import console
 
+    if serve_for is not None:  # nan compared false with every time out: it served for ever
+        number(serve_for, "--serve-for", "the time to serve", 0.0, MAX_SERVE_S, lo_open=True)
     path = Path(path)
     if path.is_dir():
         rrd = Path(save) if save is not None else path / "recording.rrd"

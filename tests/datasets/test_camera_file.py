@@ -90,3 +90,29 @@ def test_eth3d_layout(tmp_path):
     with pytest.raises(InputError, match="expected one line 'fx fy cx cy'"):
         open_sequence(eth)
     # ICL-NUIM's layout has a reader of its own: tests/datasets/test_icl.py
+
+
+@pytest.mark.parametrize("text, words", [
+    ("fx: 500\nfy: 500\ncx: 320\ncy: 240\ndistortion: '12345'\n", "distortion must be a list of numbers; got '12345'"),
+    ("fx: true\nfy: 500\ncx: 320\ncy: 240\n", "fx must be a number; got True"),
+    ("fx: 500\nfy: 500\ncx: 320\ncy: 240\nsize: [640.7, 480]\n", "width must be a whole number; got 640.7"),
+    ("fx: 500\nfy: 500\nfx: 501\ncx: 320\ncy: 240\n", ":3: 'fx' is given twice in one section"),
+    ("camera: [fr1]\n", "unknown camera ['fr1']"),
+    ("fx: 500\nfy: 500\ncx: 0x10\ncy: 240\n", "cx must be a number; got '0x10'"),
+    ("fx: 500\nfy: 500\ncx: 320\ncy: 240\nwidth: 0640\nheight: 480\n", None),  # 640, not octal 416
+    ("fx: '" + "9" * 100000 + "'\nfy: 500\ncx: 320\ncy: 240\n", "fx must be a number; got '9999"),
+    ("fx: 500\nfy: 500\ncx: 320\ncy: 240\ndist: " + str([0.0] * 100000) + "\n", "distortion must have 4 or 5 or 8"),
+    ("".join(f"k{i}: 1\n" for i in range(100000)), "unknown key(s) k0, k1, k10, k100, k1000 and 99995 more"),
+    ("a: &a [1, 2]\nfx: *a\n", ":2: uses the alias *a"),
+])
+def test_camera_file_values_are_taken_as_written(tmp_path, text, words):
+    """No silent coercion (a string of digits as a list, true as 1, a size truncated, a repeated
+    key's last value, YAML 1.1's octal) and every echoed value shortened."""
+    p = tmp_path / "cam.yaml"
+    p.write_text(text)
+    if words is None:
+        assert read_camera_file(p).camera.width == 640
+        return
+    with pytest.raises(InputError) as e:
+        read_camera_file(p)
+    assert words in str(e.value) and len(str(e.value)) < 400, str(e.value)[:600]

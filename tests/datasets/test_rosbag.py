@@ -162,3 +162,41 @@ def test_realsense_sdk_recording_equals_folder_run(tmp_path, folder_run):
     est = read_tum(tmp_path / "run" / "trajectory.tum")
     np.testing.assert_allclose(est.timestamps, folder_run.timestamps, atol=1e-6)
     np.testing.assert_allclose(est.poses, folder_run.poses, atol=1e-6)
+
+
+def test_camera_info_values_are_checked_as_read(tmp_path):
+    """A CameraInfo with K = inf, a negative size or absurd distortion is one line naming the topic
+    before any frame is read (it ran and failed per frame)."""
+    from dataclasses import replace
+
+    cam = TumSequence(TUM_DESK9).camera
+    for i, (bad, words) in enumerate(((replace(cam, fx=float("inf")), "fx must be a finite number"),
+                                      (replace(cam, cx=1e200), "cx must be a finite number"),
+                                      (replace(cam, dist=(1e10, 0.0, 0.0, 0.0, 0.0)), "distortion coefficient 1"))):
+        bag = write_bag(TUM_DESK9, tmp_path / f"b{i}", "ros2", frames=2, color_info_camera=bad)
+        _one_error(_cli("info", bag), "/camera/color/camera_info", words)
+
+
+@pytest.mark.parametrize("data", [b"", b"\x07\x07\x07\x07garbage"])
+def test_an_empty_or_corrupt_message_is_one_line_naming_its_topic(tmp_path, data):
+    """rosbags' SerdeError ("Invalid or unsupported CDR encapsulation") for a damaged message of a
+    ROS 2 bag reached the user as a traceback."""
+    import sqlite3
+
+    bag = write_bag(TUM_DESK9, tmp_path / "r2", "ros2", frames=2)
+    db = next(bag.glob("*.db3"))
+    with sqlite3.connect(db) as con:
+        tid = con.execute("SELECT id FROM topics WHERE name = '/camera/color/image_raw'").fetchone()[0]
+        first = con.execute("SELECT min(id) FROM messages WHERE topic_id = ?", (tid,)).fetchone()[0]
+        con.execute("UPDATE messages SET data = ? WHERE id = ?", (data, first))
+    _one_error(_cli("info", bag), f"{bag}: a message on /camera/color/image_raw cannot be decoded")
+
+
+def test_a_topic_of_the_wrong_kind_is_refused_up_front(tmp_path):
+    """A depth topic given as the colour topic failed on every frame (exit 3) instead of once."""
+    bag = write_bag(TUM_DESK9, tmp_path / "r2", "ros2", frames=2)
+    _one_error(_cli("info", bag, "--set", "dataset.rgb_topic=/camera/depth/image_raw"),
+               "dataset.rgb_topic '/camera/depth/image_raw' is a depth topic", "colour topics of",
+               "/camera/color/image_raw")
+    _one_error(_cli("info", bag, "--set", "dataset.depth_topic=/camera/color/image_raw"),
+               "dataset.depth_topic '/camera/color/image_raw' is a colour topic")

@@ -359,3 +359,16 @@ def test_real_cubicle_is_read_with_its_indefinite_edges_projected():
     assert g.dim == 3 and g.n_edges == 16869
     assert np.linalg.eigvalsh(g.info).min() > -1e-6 * np.abs(g.info).max()
     assert any(n.startswith("5021 EDGE_SE3:QUAT information matrix(s) are indefinite") for n in g.notes)
+
+
+@pytest.mark.parametrize("fix", ["FIX 7", "FIX 0 1 9", "FIX x"])
+def test_fix_of_a_missing_vertex_is_refused(tmp_path, fix):
+    from rgbdslam.errors import InputError
+    from rgbdslam.posegraph.graph_io import read_graph
+
+    p = tmp_path / "g.g2o"
+    p.write_text(f"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n{fix}\n")
+    with pytest.raises(InputError, match=r"g.g2o:4: FIX names vertex '(7|9|x)', which is not a vertex id"):
+        read_graph(p)
+    p.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nFIX 0\n")
+    read_graph(p)  # FIX of a vertex of the file: still read (and ignored: the first vertex is the gauge)

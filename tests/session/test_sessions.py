@@ -332,3 +332,58 @@ def test_map_tracker_picks_the_nearest_map_keyframes():
     # another segment of the map (its own coordinates) is never a neighbour of this one's
     lc.keyframes[3].segment = mt.segments[3] = 1
     assert mt.neighbours(pred, set(), segment=0) == [2, 1, 4] and mt.neighbours(pred, set(), segment=1) == [3]
+
+
+@pytest.mark.parametrize("array, value, message", [
+    ("kf_pose", np.nan, "(kf_pose) (pose 1): the pose holds a value that is not a finite number"),
+    ("kf_pose", 1e300, "(kf_pose) (pose 1): the pose has a translation beyond ±1e+09 m"),
+    ("odo_T", 2.0, "(odo_T) (pose 1): the pose has no rotation matrix"),
+    ("odo_info", np.nan, "is corrupt: odo_info holds a value that is not a finite number"),
+    ("kf_timestamp", np.inf, "(kf_timestamp) (time stamp 1): time stamp inf is not a finite number"),
+])
+def test_a_crafted_map_with_a_valid_checksum_is_checked_too(session1, tmp_path, array, value, message):
+    """A checksum vouches only that the file is the one written: a crafted file carries a valid
+    one. Its numbers are checked as any reader's are (rgbdslam.io.validate): one line, exit 2."""
+    from rgbdslam.session.mapfile import ARRAYS, checksum
+
+    src = session1 / "map.npz"
+    with np.load(src) as z:
+        arrays = {n: z[n].copy() for n in ARRAYS}
+    a = arrays[array]
+    if array in ("odo_T", "odo_info"):
+        a[1, 0, 0] = value  # a scaled rotation, an information matrix with NaN
+    elif a.ndim == 3:
+        a[1, 0, 3] = value
+    else:
+        a[1] = value
+    h = read_header(src)
+    h["sha256"] = checksum(arrays)
+    bad = tmp_path / "crafted"
+    bad.mkdir()
+    _rewrite(src, bad / "map.npz", header=h, arrays={array: a})
+    res = cli(["run", TUM_RPY200, *FR1, "--map", bad, "--localize", "--out", tmp_path / "out", "-q", "--no-map"])
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1, res.output
+    assert res.stderr.startswith(f"error: {bad / 'map.npz'}") and message in res.stderr, res.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_fifo_named_map_npz_is_refused_not_waited_on(tmp_path):
+    import os
+    import signal
+
+    (tmp_path / "m").mkdir()
+    os.mkfifo(tmp_path / "m" / "map.npz")
+
+    def hang(signum, frame):
+        raise TimeoutError("opening the FIFO blocked")
+
+    previous = signal.signal(signal.SIGALRM, hang)
+    signal.alarm(5)
+    try:
+        with pytest.raises(MapFileError, match="is not a regular file"):
+            read_header(tmp_path / "m" / "map.npz")
+        with pytest.raises(MapFileError, match="is not a regular file"):
+            load_map(tmp_path / "m" / "map.npz")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)

@@ -226,3 +226,15 @@ def test_view_hand_edited_run_json_is_one_line(tmp_path, monkeypatch, edit, mess
     assert res.stderr.strip() == (f"error: {run / 'run.json'}: {message}; re-run `rgbdslam run` to rewrite it, "
                                   f"or correct the field")
     assert not (run / "recording.rrd").exists() and _hidden(run) == []
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-1", "0"])
+def test_serve_for_must_be_a_finite_time(tmp_path, value):
+    """`view --web --serve-for nan` served for ever (every time-out comparison with NaN is false)."""
+    from tests.conftest import assert_cli_error, cli
+
+    rrd = tmp_path / "x.rrd"
+    rrd.write_bytes(b"")
+    assert_cli_error(cli(["view", rrd, "--web", "--serve-for", value]),
+                     f"--serve-for: the time to serve must be a finite number above 0 and at most 3.2e+07; "
+                     f"got {float(value)!r}")
