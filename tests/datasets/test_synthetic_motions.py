@@ -44,7 +44,9 @@ def _sharpness(img) -> float:
 
 def test_cli_offers_every_motion():
     choices = next(p for p in main.commands["synth"].params if p.name == "motion").type.choices
-    assert tuple(choices) == MOTIONS[:5] + ("figure8", "revisit", "orbit") and set(choices) == set(MOTIONS)
+    # every RGB-D motion, and the stereo-only highway (rgbdslam.datasets.synthetic_highway)
+    assert tuple(choices) == MOTIONS[:5] + ("figure8", "revisit", "orbit", "highway")
+    assert set(choices) == set(MOTIONS) | {"highway"}
 
 
 @pytest.mark.parametrize("frames, laps", [(150, 1), (300, 2), (1500, 10)])

@@ -97,5 +97,5 @@ def test_other_readers_refuse_absurd_numbers(tmp_path):
 def test_depth_scale_1e_300_is_bad_input_not_lost_tracking(desk9, tmp_path):
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(tmp_path / "r"), "-q",
                                     "--set", "dataset.depth_scale=1e-300"])
-    assert "config key 'dataset.depth_scale' must be between 0.001 and 1e+06" in _one_line(res)
+    assert "config key 'dataset.depth_scale' must be between 0.001 and 1000000" in _one_line(res)
     assert not (tmp_path / "r").exists()

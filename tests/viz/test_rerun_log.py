@@ -114,10 +114,12 @@ def test_view_run_folder_without_display_writes_recording(tmp_path, monkeypatch)
 
 
 def _hidden(folder: Path) -> list[str]:
-    """Hidden (temporary) files; a run folder's lock file (rgbdslam.runfolder.folder) is not one."""
+    """Hidden (temporary) files; a run folder's lock file (rgbdslam.runfolder.folder) and an output
+    folder's manifest (rgbdslam.runfolder.manifest) are not."""
     from rgbdslam.runfolder.folder import LOCK_NAME
+    from rgbdslam.runfolder.manifest import MANIFEST
 
-    return sorted(p.name for p in folder.iterdir() if p.name.startswith(".") and p.name != LOCK_NAME)
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith(".") and p.name not in (LOCK_NAME, MANIFEST))
 
 
 def test_logger_replaces_the_file_only_when_closed(tmp_path):
