@@ -14,7 +14,7 @@ from rgbdslam.config import Config
 from rgbdslam.errors import RgbdslamError
 from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.pipeline import run_sequence
-from rgbdslam.runfolder.manifest import record_tables, tables_ready
+from rgbdslam.io.manifest import record_tables, tables_ready
 
 
 def _run_dirs(sequences: list[Path], out_root: Path) -> list[Path]:

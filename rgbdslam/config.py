@@ -768,6 +768,31 @@ def validate(cfg: Config) -> Config:
 # keys that earlier versions had: still accepted (run folders keep their config.yaml) and ignored
 RETIRED = {
     "loop.sigma_floor",  # loop edges carry their registration's information (one noise floor, in the front end)
+    # options that measured no gain, removed with their code (docs/slam.md "Removed options", docs/frontend.md
+    # "Scale bias"); an earlier run folder's config.yaml still names them and must load
+    "landmarks.anchor_age",
+    "landmarks.anchor_edges",
+    "landmarks.anchor_info_scale",
+    "landmarks.anchor_min_landmarks",
+    "landmarks.ba_every",
+    "landmarks.ba_handover",
+    "landmarks.ba_noise_scale",
+    "landmarks.ba_worker",
+    "landmarks.consistency_floor",
+    "landmarks.drift_sigma",
+    "landmarks.global_ba",
+    "landmarks.global_ba_frames",
+    "landmarks.global_ba_iterations",
+    "landmarks.global_ba_odometry",
+    "landmarks.graph_information",
+    "landmarks.loop_correct",
+    "landmarks.match_old_bonus",
+    "landmarks.observe",
+    "landmarks.ransac_confidence",
+    "landmarks.revisit_min_inliers",
+    "landmarks.revisit_radius",
+    "landmarks.sigma_px_scale",
+    "matching.depth_edge_use",
 }
 
 

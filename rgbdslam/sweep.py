@@ -26,7 +26,7 @@ from typing import Any
 from rgbdslam.config import Config, load_config
 from rgbdslam.errors import ConfigError, InputError, RgbdslamError
 from rgbdslam.io.atomic import atomic_path, atomic_write_text, make_dirs
-from rgbdslam.runfolder.manifest import record_tables, tables_ready
+from rgbdslam.io.manifest import record_tables, tables_ready
 
 CELL_FILE = "cell.json"
 MAX_CELLS = 1000  # sequences x settings: a sweep beyond this is refused before any cell is planned

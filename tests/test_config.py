@@ -387,3 +387,20 @@ def test_bounds_are_printed_as_written():
     """A C int's bound read "at most 2.14748e+09" (rounded by %g): not the number to type."""
     with pytest.raises(ConfigError, match=r"'registration.seed' must be at most 2147483647; got 99999999999$"):
         load_config(None, ["registration.seed=99999999999"])
+
+
+def test_an_earlier_runs_config_with_retired_keys_still_loads(tmp_path):
+    """A run folder's config.yaml names every key of the version that wrote it; keys removed since
+    (RETIRED) are skipped, so `fuse`, `export`, `view` and `--map` still read earlier runs."""
+    import yaml
+
+    from rgbdslam.config import RETIRED, Config, load_config
+
+    sections: dict = {}
+    for key in sorted(RETIRED):
+        section, name = key.split(".")
+        sections.setdefault(section, {})[name] = 1
+    p = tmp_path / "config.yaml"
+    p.write_text(yaml.safe_dump(sections))
+    assert load_config(p) == Config()
+    assert {"matching.depth_edge_use", "landmarks.global_ba", "landmarks.ba_worker"} <= RETIRED

@@ -30,7 +30,7 @@ from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.geometry.se3 import make_pose
 from rgbdslam.io.atomic import atomic_write_text, in_final_place, interrupts_deferred, plain_permissions
 from rgbdslam.io.images import write_png
-from rgbdslam.runfolder.manifest import SEQUENCE, Manifest
+from rgbdslam.io.manifest import SEQUENCE, Manifest
 from rgbdslam.io.trajectory import Trajectory, write_tum
 from rgbdslam.ui import console, frame_progress
 

@@ -22,7 +22,7 @@ from typing import Callable
 
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import make_dirs
-from rgbdslam.runfolder.manifest import EXPORT, Manifest
+from rgbdslam.io.manifest import EXPORT, Manifest
 
 # name -> (module, function, one-line description, what it writes into --out); modules are imported when used
 FORMATS: dict[str, tuple[str, str, str, tuple[str, ...]]] = {
@@ -91,7 +91,7 @@ def export_run(run_dir: str | Path, formats: list[str], out_dir: str | Path | No
 
     The run folder is locked for the export (a run still writing there is one error line) and
     must hold a finished run. The export never writes into or over its own run, and replaces only
-    what an earlier export listed in the folder's manifest (:mod:`rgbdslam.runfolder.manifest`):
+    what an earlier export listed in the folder's manifest (:mod:`rgbdslam.io.manifest`):
     anything else where it would write is an InputError naming it, before any file is written."""
     from rgbdslam.export.run import RunExport
     from rgbdslam.runfolder.folder import folder_lock

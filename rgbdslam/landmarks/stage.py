@@ -128,7 +128,8 @@ class LandmarkTracker:
     def on_tracked(self, frame, result, pose: np.ndarray) -> dict[int, np.ndarray]:
         """After the front end: the frame's map pose (fused with the registration's ``pose``) as a
         correction ``{frame: pose}``; empty when the map cannot place the frame or tracking restarted."""
-        if result.reset:
+        if result.reset:  # nothing of the last tracked frame may reach this one's keyframe (add_keyframe)
+            self._last = self._last_matches = None
             return {}
         info = result.information
         if info is not None and result.n_fused > 1:  # the references share this frame's noise:

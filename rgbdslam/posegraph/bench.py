@@ -37,7 +37,7 @@ from rgbdslam.posegraph.convergence import check_iteration_options, chi2_floor, 
 from rgbdslam.posegraph.factors import degrees_of_freedom
 from rgbdslam.posegraph.optimize import OPTIMIZERS, gauss_newton, run_gauss_newton
 from rgbdslam.io.atomic import atomic_write_text
-from rgbdslam.runfolder.manifest import record_tables, tables_ready
+from rgbdslam.io.manifest import record_tables, tables_ready
 from rgbdslam.io.text import read_text
 
 DATASETS = ("m3500", "city10k", "m10000")

@@ -5,7 +5,7 @@
                     (:class:`~.folder.RunRecord`), the trajectories and the closing summary
 - :mod:`.read`      reading one: run.json with its fields checked, the config used, the trajectory
 - :mod:`.depth`     the keyframe depth images (``keyframes/depth_*.png``) and their scale
-- :mod:`.manifest`  what rgbdslam wrote into an output folder, so what it may replace there
 
-Import from the modules (``from rgbdslam.runfolder.read import read_run``).
+What rgbdslam wrote into an output folder, so what it may replace there, is the manifest
+(:mod:`rgbdslam.io.manifest`, used by every writing command). Import from the modules (``from rgbdslam.runfolder.read import read_run``).
 """

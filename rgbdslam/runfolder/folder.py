@@ -35,7 +35,7 @@ from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_write_text, interrupts_deferred
 from rgbdslam.io.kitti import write_kitti_poses
 from rgbdslam.io.trajectory import Trajectory, write_tum
-from rgbdslam.runfolder.manifest import EXPORT, KINDS, MANIFEST, RUN, Manifest, remove_path
+from rgbdslam.io.manifest import EXPORT, KINDS, MANIFEST, RUN, Manifest, remove_path
 from rgbdslam.runfolder.read import finished_run
 
 # what a run writes into its folder; a new run into the same folder first moves these to previous/

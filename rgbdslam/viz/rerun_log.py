@@ -447,7 +447,7 @@ def view(path: str | Path, save: str | Path | None = None, progress: bool = True
         if save is not None or not rrd.exists():
             record_run(path, rrd, progress=progress)
             if save is None:  # the run folder's own recording: listed as the run's (docs/outputs.md)
-                from rgbdslam.runfolder.manifest import RUN, Manifest
+                from rgbdslam.io.manifest import RUN, Manifest
 
                 Manifest(path).record(["recording.rrd"], RUN)
     elif path.is_file():

@@ -304,7 +304,7 @@ def test_an_interrupted_export_keeps_the_earlier_one(run_dir, tmp_path, monkeypa
 def test_a_new_run_moves_the_earlier_export_with_the_earlier_run(tmp_path):
     """An export belongs to its run: a new run into the folder moves it to previous/ with the rest."""
     from rgbdslam.runfolder.folder import make_way_for_run
-    from rgbdslam.runfolder.manifest import EXPORT, RUN, Manifest
+    from rgbdslam.io.manifest import EXPORT, RUN, Manifest
 
     (tmp_path / "run.json").write_text(json.dumps({"status": "finished"}))
     (tmp_path / "export").mkdir()

@@ -372,7 +372,7 @@ def test_failure_part_way_leaves_the_earlier_map_whole(plane_run):
 
 def test_a_finished_fusion_leaves_no_files_of_an_earlier_one(plane_run):
     seq_dir, run = plane_run
-    from rgbdslam.runfolder.manifest import RUN, Manifest
+    from rgbdslam.io.manifest import RUN, Manifest
 
     fuse_run(run, _cfg(), progress=False)
     (run / "map" / "map2d.png").write_bytes(b"from an older fusion")

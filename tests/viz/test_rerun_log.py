@@ -115,9 +115,9 @@ def test_view_run_folder_without_display_writes_recording(tmp_path, monkeypatch)
 
 def _hidden(folder: Path) -> list[str]:
     """Hidden (temporary) files; a run folder's lock file (rgbdslam.runfolder.folder) and an output
-    folder's manifest (rgbdslam.runfolder.manifest) are not."""
+    folder's manifest (rgbdslam.io.manifest) are not."""
     from rgbdslam.runfolder.folder import LOCK_NAME
-    from rgbdslam.runfolder.manifest import MANIFEST
+    from rgbdslam.io.manifest import MANIFEST
 
     return sorted(p.name for p in folder.iterdir() if p.name.startswith(".") and p.name not in (LOCK_NAME, MANIFEST))
 
