@@ -24,28 +24,6 @@ def _count_inliers(Ts: np.ndarray, S: np.ndarray, D: np.ndarray, th2: float) -> 
     return (_errors2(Ts, S, D) < th2).sum(axis=1)
 
 
-def _early_stop(Ss: np.ndarray, Ds: np.ndarray, T0, S: np.ndarray, D: np.ndarray, th2: float, confidence: float,
-                batch: int) -> tuple[np.ndarray, np.ndarray]:
-    """The hypotheses (the prediction ``T0`` first, then the minimal samples ``Ss`` -> ``Ds`` fitted
-    ``batch`` at a time) and their inlier counts on the subset pairs ``S``, ``D``, up to the batch
-    after which 1 - (1 - w³)^k ≥ ``confidence`` (k samples fitted, w the best inlier share so far)."""
-    Ts = [np.asarray(T0, dtype=np.float64)[None]] if T0 is not None else []
-    counts = [_count_inliers(Ts[0], S, D, th2)] if T0 is not None else []
-    best = int(counts[0][0]) if counts else 0
-    log_miss = np.log(1.0 - confidence) if confidence < 1.0 else -np.inf
-    for k in range(0, len(Ss), batch):
-        T = fit_rigid_batch(Ss[k:k + batch], Ds[k:k + batch])
-        c = _count_inliers(T, S, D, th2)
-        Ts.append(T)
-        counts.append(c)
-        best = max(best, int(c.max()))
-        w3 = (best / len(S)) ** 3
-        done = k + len(T)
-        if w3 >= 1.0 or (w3 > 0.0 and done * np.log1p(-w3) <= log_miss):
-            break
-    return np.concatenate(Ts), np.concatenate(counts)
-
-
 def ransac_rigid(
     S: np.ndarray,
     D: np.ndarray,
@@ -57,8 +35,6 @@ def ransac_rigid(
     subset: int = 64,
     keep_best: int = 8,
     sample_from: int | None = None,
-    confidence: float = 0.0,
-    batch: int = 20,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Robust ``T`` with ``D ~ T * S`` and the inlier mask, or None if no consensus.
 
@@ -67,11 +43,6 @@ def ransac_rigid(
     subset/keep_best: preemptive scoring (all hypotheses on ``subset`` pairs, the best
     ``keep_best`` on all pairs); sample_from: draw the minimal samples from the first
     ``sample_from`` pairs only (the caller orders them, e.g. oldest landmarks first), score on all.
-    confidence: > 0 stops early: the hypotheses are fitted and scored on the subset ``batch`` at a
-    time (the prediction first), and no more are fitted once the ones so far are enough to have
-    drawn an all-inlier sample with this probability at the best inlier share seen on the subset
-    (1 - (1 - w³)^k ≥ confidence). The random numbers drawn are the same as without (every sample
-    and the subset are drawn first), so the generator's stream does not depend on where it stopped.
     """
     n_all = len(S)
     if n_all < max(3, min_inliers):
@@ -96,13 +67,10 @@ def ransac_rigid(
     # Preemptive scoring: every hypothesis on a fixed random subset, the best few on all pairs.
     n = n_all
     sub = rng.choice(n, size=min(n, subset), replace=False) if n > subset else np.arange(n)
-    if confidence > 0.0:
-        Ts, counts_sub = _early_stop(Ss[good], Ds[good], T0, S[sub], D[sub], th2, confidence, batch)
-    else:
-        Ts = fit_rigid_batch(Ss[good], Ds[good])
-        if T0 is not None:
-            Ts = np.concatenate([np.asarray(T0, dtype=np.float64)[None], Ts])
-        counts_sub = _count_inliers(Ts, S[sub], D[sub], th2)
+    Ts = fit_rigid_batch(Ss[good], Ds[good])
+    if T0 is not None:
+        Ts = np.concatenate([np.asarray(T0, dtype=np.float64)[None], Ts])
+    counts_sub = _count_inliers(Ts, S[sub], D[sub], th2)
     top = np.argsort(-counts_sub, kind="stable")[:keep_best]
     Ts = Ts[top]
     err2 = _errors2(Ts, S, D)  # (B, N)

@@ -74,13 +74,11 @@ def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin:
 
 
 def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, max_hamming: int,
-                 max_depth: float, k: int = 6, first_before: int | None = None, old_before: int | None = None,
-                 old_bonus: int = 0, first_after: int | None = None) -> MapMatch:
+                 max_depth: float, k: int = 6, first_before: int | None = None,
+                 first_after: int | None = None) -> MapMatch:
     """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px
-    (``first_before``: only landmarks first seen before that frame — the revisit search;
-    ``first_after``: only those first seen at or after that frame — a loop's older end;
-    ``old_bonus``: landmarks first seen before frame ``old_before`` compete for a feature with their
-    Hamming distance lowered by this much — an old landmark wins over a younger copy of itself)."""
+    (``first_before``: only landmarks first seen before that frame, ``first_after``: only those first
+    seen at or after that frame — together a loop's older end, ``landmarks.loop_refine``)."""
     ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
     if first_before is not None or first_after is not None:
         f = lmap.first[ids]
@@ -102,11 +100,7 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     # Hamming distances of every feature to its k candidates (F, k): word by word, gathered with 1-D takes
     ham = pair_hamming(feats.words, lmap.words(ids), fi[:, None], nn_safe).astype(np.int32)
     ham = np.where(has, ham, 1 << 20)
-    if old_bonus and old_before is not None:  # among the candidates within the gate, old landmarks preferred
-        pref = np.where(ham <= max_hamming, ham - old_bonus * (lmap.first[ids] < old_before)[nn_safe], 1 << 20)
-        best = np.where(pref.min(axis=1) < (1 << 20), pref.argmin(axis=1), ham.argmin(axis=1))
-    else:
-        best = ham.argmin(axis=1)
+    best = ham.argmin(axis=1)
     hb = ham[np.arange(len(fi)), best]
     ok = hb <= max_hamming
     f_idx, l_idx, hb = fi[ok], nn_safe[np.arange(len(fi)), best][ok], hb[ok]
@@ -121,7 +115,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
                   iterations: int, min_inliers: int, sampling: str, old_fraction: float,
                   rng: np.random.Generator, refine: str = "rigid", camera=None, sigma_px=1.0,
                   chi2_gate: float = 3.0, full_cov: bool = True, adaptive: bool = False,
-                  confidence: float = 0.0, refine_iterations: int = 5) -> MapPose | None:
+                  refine_iterations: int = 5) -> MapPose | None:
     """Pose from the matches: RANSAC (old landmarks first) + weighted refit on the inliers.
 
     ``sigma_obs`` (M,) is each frame point's depth noise (m); the landmark's own is sqrt(trace(P)/3)
@@ -129,8 +123,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     isotropic sigma). ``sigma_px``: key point noise (px), a scalar or one per frame feature.
     ``adaptive``: after the refine, the key point and depth noise are rescaled by the robust scale
     (1.4826 · median |r|, clipped to [0.25, 4]) of the inliers' whitened residuals and the refine is
-    run once more: the frame's own noise level sets the weights and the information. ``confidence``:
-    the RANSAC's early stop (:func:`rgbdslam.geometry.ransac.ransac_rigid`; 0 = every sample).
+    run once more: the frame's own noise level sets the weights and the information.
     ``refine_iterations``: Gauss–Newton iterations of each reprojection refine pass.
     ``iterations`` 0: no RANSAC — the prediction's inliers start the refits
     (:func:`rgbdslam.geometry.ransac.seeded_rigid`; for a prediction that is another estimate of the pose).
@@ -148,8 +141,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
         feat, lm, sig = match.feat, match.lm, sigma_obs
         n_sample = m
     if iterations > 0:
-        out = ransac_rigid(S, D, threshold, iterations, rng, min_inliers, T0=pred, sample_from=n_sample,
-                           confidence=confidence)
+        out = ransac_rigid(S, D, threshold, iterations, rng, min_inliers, T0=pred, sample_from=n_sample)
     else:
         out = seeded_rigid(S, D, threshold, pred, min_inliers)
     if out is None:
