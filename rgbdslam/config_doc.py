@@ -1,50 +1,21 @@
 """``rgbdslam config --explain``: every config key with its type, range, default and description.
 
-The description of a key is the comment written next to its field in ``rgbdslam/config.py``
-(the trailing ``# ...`` on the field's line, else the comment lines right above it), so the
-documentation lives beside the field and its range beside the rules (``SIGNED``, ``POSITIVE``,
-``BOUNDS``, ``MAXIMA``, ``ORDERED``) that :func:`rgbdslam.config.validate_section` enforces: nothing is
-written twice. A test checks that every key has a description.
+The range and the description of a key are what its field declares (``Annotated[..., Range(lo, hi,
+"description")]``, :mod:`rgbdslam.configspec`) in its stage's ``config.py``: the text printed is the
+rule :func:`rgbdslam.config.validate_section` enforces, and nothing is written twice. A test checks
+that every key has a description.
 """
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import inspect
-import io
 import textwrap
-import tokenize
 import types
 import typing
-from functools import lru_cache
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 from rgbdslam import config as C
-
-
-@lru_cache(maxsize=None)
-def field_comments(cls: type) -> dict[str, str]:
-    """``{field: description}`` from the comments next to the fields of dataclass ``cls``."""
-    src = textwrap.dedent(inspect.getsource(cls))
-    comments: dict[int, str] = {}
-    for tok in tokenize.generate_tokens(io.StringIO(src).readline):
-        if tok.type == tokenize.COMMENT:
-            comments[tok.start[0]] = tok.string.lstrip("#").strip()
-    lines = src.splitlines()
-    out: dict[str, str] = {}
-    for node in ast.parse(src).body[0].body:
-        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
-            continue
-        text = comments.get(node.end_lineno, "") if lines[node.end_lineno - 1].split("#")[0].strip() else ""
-        if not text:  # the comment block right above the field
-            block, k = [], node.lineno - 1
-            while k >= 1 and k in comments and lines[k - 1].lstrip().startswith("#"):
-                block.insert(0, comments[k])
-                k -= 1
-            text = " ".join(block)
-        out[node.target.id] = text
-    return out
+from rgbdslam.configspec import field_specs
 
 
 def _type_name(hint: Any) -> str:
@@ -101,13 +72,13 @@ def explain_rows(cfg: C.Config | None = None) -> list[dict[str, str]]:
     for section in dataclasses.fields(C.Config):
         cls = type(getattr(defaults, section.name))
         hints = get_type_hints(cls)
-        notes = field_comments(cls)
+        specs = field_specs(cls)
         for f in dataclasses.fields(cls):
             key = f"{section.name}.{f.name}"
             rows.append({"key": key, "type": _type_name(hints[f.name]), "range": key_range(key, hints[f.name]),
                          "default": _value(getattr(getattr(defaults, section.name), f.name)),
                          "value": _value(getattr(getattr(cfg, section.name), f.name)),
-                         "description": notes.get(f.name, "")})
+                         "description": specs[f.name].doc if specs[f.name] else ""})
     return rows
 
 

@@ -1,0 +1,28 @@
+"""The ``backend`` config section: the keyframe pose graph (:mod:`rgbdslam.configspec`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+from rgbdslam.configspec import AtMost, Key, Positive
+
+
+@dataclass
+class BackendConfig:
+    """GTSAM pose graph over keyframes (docs/slam.md)."""
+
+    enabled: Annotated[bool, Key("a graph of odometry edges only; loop.enabled (the default) builds it anyway")] = False
+    init: Annotated[Literal["masat", "weighted_masat", "odometry", "spanning_tree", "isam2"], Key(
+        "initial guess")] = "masat"
+    robust_kernel: Annotated[Literal["none", "huber", "cauchy"], Key("applied to loop edges")] = "cauchy"
+    kernel_width: Annotated[float, Positive(1e6, "in whitened units (sigmas)")] = 1.0
+    kernel_chain_scaling: Annotated[bool, Key(
+        "widen each loop's kernel by the odometry drift expected between its ends")] = True
+    isam2: Annotated[bool, Key("incremental update whenever a loop edge arrives")] = True
+    isam2_extra_updates: Annotated[int, AtMost(1000, "extra iSAM2 relinearisation steps after each loop")] = 4
+    optimizer: Annotated[Literal["lm", "gn"], Key("final batch optimisation")] = "lm"
+    max_iterations: Annotated[int, Positive(100_000, "iterations of the final batch optimisation")] = 100
+    relative_error_tol: Annotated[float, Positive(1.0,
+        "the batch optimisation stops when the error changes less than this (relative)")] = 1e-6
+    prior_sigma: Annotated[float, Positive(1000.0, "first keyframe's prior (rad and metres)")] = 1e-4
