@@ -99,6 +99,51 @@ def test_layers_run_one_way():
             assert all(d.startswith(("rgbdslam.geometry", "rgbdslam.errors")) for d in deps), (m, deps)
 
 
+STAGES = ("datasets", "frontend", "stereo", "landmarks", "loop", "backend", "mapping", "viz")
+# stage modules that load a run folder's whole configuration (``rgbdslam fuse``)
+LOADS_A_RUN_CONFIG = {"rgbdslam.mapping.fusion"}
+
+
+def runtime_imports_of_config(source: str) -> list[int]:
+    """Lines of ``source`` that import ``rgbdslam.config`` when the module runs (an import under
+    ``if TYPE_CHECKING:`` names a type for type checkers only and does not count)."""
+    tree = ast.parse(source)
+    typing_only = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+                   and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
+                   for stmt in node.body for n in ast.walk(stmt)}
+    out = []
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module == "rgbdslam.config" or \
+                isinstance(node, ast.ImportFrom) and node.module == "rgbdslam" and any(a.name == "config" for a in node.names) or \
+                isinstance(node, ast.Import) and any(a.name == "rgbdslam.config" for a in node.names):
+            out.append(node.lineno)
+    return out
+
+
+def test_the_config_import_check_sees_runtime_imports_only():
+    src = ("from typing import TYPE_CHECKING\nfrom rgbdslam.loop.config import LoopConfig\n"
+           "if TYPE_CHECKING:\n    from rgbdslam.config import Config\n"
+           "def f():\n    from rgbdslam.config import load_config\n    import rgbdslam.config\n"
+           "from rgbdslam import config\n")
+    assert sorted(runtime_imports_of_config(src)) == [6, 7, 8]
+
+
+def test_stages_own_their_config_sections():
+    """A stage's modules take their section from the stage's own ``config.py``; ``rgbdslam.config``
+    (which composes the sections) is above them and never imported by them at run time."""
+    bad = {}
+    for name, path in _modules().items():
+        parts = name.split(".")
+        if len(parts) > 2 and parts[1] in STAGES and name not in LOADS_A_RUN_CONFIG:
+            if lines := runtime_imports_of_config(path.read_text(encoding="utf-8")):
+                bad[name] = lines
+    assert not bad, f"import the section from the stage's config.py instead (lines): {bad}"
+    graph = import_graph()
+    for stage in STAGES:  # each section's module is a leaf: it imports only the declaration markers
+        assert graph[f"rgbdslam.{stage}.config"] <= {"rgbdslam.configspec"}, stage
+
 # ----------------------------------------------------------------------------- benchmarks/
 BENCHMARKS = PACKAGE.parent / "benchmarks"
 TESTS = PACKAGE.parent / "tests"

@@ -20,7 +20,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from rgbdslam.config import BackendConfig
+from rgbdslam.backend.config import BackendConfig
 from rgbdslam.errors import InputError, RgbdslamError
 from rgbdslam.geometry.graph import components
 from rgbdslam.geometry.se3 import inv, project_to_so3

@@ -62,10 +62,10 @@ def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequenc
 
     ``cfg`` is the dataset section, or the whole config: stereo readers then also take their
     depth method from it (``stereo.depth``; ``stereo.map_depth`` with ``purpose="map"``)."""
-    from rgbdslam.config import Config, DatasetConfig
+    from rgbdslam.datasets.config import DatasetConfig
 
     _load_builtin()
-    full = cfg if isinstance(cfg, Config) else None
+    full = cfg if hasattr(cfg, "dataset") else None  # the whole config (its sections), not the dataset section
     cfg = full.dataset if full is not None else (cfg or DatasetConfig())
     path = check_sequence_path(path)
     kind = detect_kind(path, cfg)

@@ -124,7 +124,7 @@ class IclSequence(RgbdFileSequence):
     """An ICL-NUIM TUM-compatible folder; see the module docstring."""
 
     def __init__(self, root: str | Path, cfg=None) -> None:
-        from rgbdslam.config import DatasetConfig
+        from rgbdslam.datasets.config import DatasetConfig
 
         cfg = cfg or DatasetConfig()
         root = Path(root)

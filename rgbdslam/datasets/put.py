@@ -17,17 +17,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdslam.io.text import optional_file, read_text
-from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.camera_file import CAMERA_FILE, CameraSetup, resolve_camera
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.tum import RgbdFileSequence, TumSequence, data_lines, pick_depth_scale, select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.io.images import read_image
-from rgbdslam.io.trajectory import Trajectory, read_tum
 from rgbdslam.io.numbers import MAX_COORD, check_magnitude, check_stamps, unit_quaternions
+from rgbdslam.io.text import optional_file, read_text
+from rgbdslam.io.trajectory import Trajectory, read_tum
 
 PUT_DEPTH_SCALE = 1000.0
 MATCHED = "matched"
@@ -73,7 +73,7 @@ class PutSequence(RgbdFileSequence):
     """A PUT Kinect folder; see the module docstring."""
 
     def __init__(self, root: str | Path, cfg=None) -> None:
-        from rgbdslam.config import DatasetConfig
+        from rgbdslam.datasets.config import DatasetConfig
 
         cfg = cfg or DatasetConfig()
         root = Path(root)
@@ -135,7 +135,7 @@ def convert_tum_to_put(src: str | Path, dst: str | Path, max_frames: int | None 
     ground-truth pose nearest in time to frame 0. The camera is named in ``camera.yaml``
     (the source's), since a TUM camera is not the PUT Kinect.
     """
-    from rgbdslam.config import DatasetConfig
+    from rgbdslam.datasets.config import DatasetConfig
 
     src, dst = Path(src), Path(dst)
     seq = TumSequence(src, DatasetConfig(max_frames=max_frames))

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.camera_file import CameraSetup, read_shipped_camera, resolve_camera
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.tum import RgbdFileSequence, data_lines, pick_depth_scale, select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
@@ -99,7 +99,7 @@ class SevenScenesSequence(RgbdFileSequence):
     """A 7-Scenes sequence folder; see the module docstring."""
 
     def __init__(self, root: str | Path, cfg=None) -> None:
-        from rgbdslam.config import DatasetConfig
+        from rgbdslam.datasets.config import DatasetConfig
 
         cfg = cfg or DatasetConfig()
         root = Path(root)

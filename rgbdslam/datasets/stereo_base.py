@@ -100,26 +100,31 @@ class StereoSequence(Sequence):
         self.right_files = list(right)
         self._gt = gt
         self._maps = rectify_maps  # (left (m1, m2), right (m1, m2)) or None when already rectified
-        from rgbdslam.config import Config
+        from rgbdslam.frontend.config import FeaturesConfig
+        from rgbdslam.stereo.config import StereoConfig
 
-        self.configure(Config())
+        self.use_sections(FeaturesConfig(), StereoConfig())
         self._check_first_pair()
 
     # ------------------------------------------------------------------ configuration
     def configure(self, cfg, purpose: str = "track") -> None:
-        """Take the depth method and its settings from ``cfg`` (a full :class:`Config`):
+        """Take the depth method and its settings from ``cfg`` (a full :class:`rgbdslam.config.Config`):
         ``stereo.depth`` for tracking, ``stereo.map_depth`` when the frames are read for the map."""
-        self.features_cfg = cfg.features
-        self.stereo_cfg = cfg.stereo
-        method = cfg.stereo.depth
-        if purpose == "map" and cfg.stereo.map_depth != "same":
-            method = cfg.stereo.map_depth
+        self.use_sections(cfg.features, cfg.stereo, purpose)
+
+    def use_sections(self, features_cfg, stereo_cfg, purpose: str = "track") -> None:
+        """:meth:`configure` from the two sections it reads (``features`` and ``stereo``)."""
+        self.features_cfg = features_cfg
+        self.stereo_cfg = stereo_cfg
+        method = stereo_cfg.depth
+        if purpose == "map" and stereo_cfg.map_depth != "same":
+            method = stereo_cfg.map_depth
         self.method = method
         self.own_key_points = method == "sparse"
         from rgbdslam.stereo.depth import check_row_search, depth_noise
 
-        if method == "sparse" and cfg.stereo.sparse_search == "row":
-            check_row_search(cfg.stereo, self.camera.width, self.camera.height)  # before any frame is read
+        if method == "sparse" and stereo_cfg.sparse_search == "row":
+            check_row_search(stereo_cfg, self.camera.width, self.camera.height)  # before any frame is read
 
         self.depth_noise = depth_noise(self.rig, self.stereo_cfg, method)
 

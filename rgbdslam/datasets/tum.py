@@ -26,17 +26,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdslam.io import validate
-from rgbdslam.io.images import read_image
-from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
-from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CAMERA_FILE, CameraSetup, read_camera_file, resolve_camera
+from rgbdslam.datasets.registry import reader
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.geometry.depth_registration import DepthRegistration
-from rgbdslam.io.trajectory import Trajectory, read_tum
+from rgbdslam.io import validate
+from rgbdslam.io.images import read_image
 from rgbdslam.io.numbers import MAX_STAMP, check_stamps
+from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
+from rgbdslam.io.trajectory import Trajectory, read_tum
 
 TUM_DEPTH_SCALE = 5000.0
 
@@ -327,7 +327,7 @@ def tum_camera_setup(root: Path, cfg) -> CameraSetup:
 
 def choose_camera(root: Path, camera: str = "auto") -> Camera:
     """The camera for a TUM-layout folder chosen by name (``camera``) or found in the folder."""
-    from rgbdslam.config import DatasetConfig
+    from rgbdslam.datasets.config import DatasetConfig
 
     return tum_camera_setup(Path(root), DatasetConfig(camera=camera)).camera
 
@@ -347,7 +347,7 @@ class TumSequence(RgbdFileSequence):
     """A TUM RGB-D folder; see the module docstring."""
 
     def __init__(self, root: str | Path, cfg=None) -> None:
-        from rgbdslam.config import DatasetConfig
+        from rgbdslam.datasets.config import DatasetConfig
         from rgbdslam.evaluation.associate import associate
 
         cfg = cfg or DatasetConfig()

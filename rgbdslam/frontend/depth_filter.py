@@ -29,8 +29,8 @@ from collections import deque
 import cv2
 import numpy as np
 
-from rgbdslam.config import DepthFilterConfig
 from rgbdslam.errors import ConfigError
+from rgbdslam.frontend.config import DepthFilterConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbdslam.config import KeyframeConfig
+from rgbdslam.frontend.config import KeyframeConfig
 from rgbdslam.geometry.se3 import motion_between
 
 

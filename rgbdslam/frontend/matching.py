@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from rgbdslam.config import MatchingConfig
+from rgbdslam.frontend.config import MatchingConfig
 from rgbdslam.frontend.features import FrameFeatures, descriptor_words
 from rgbdslam.geometry.ransac import ransac_rigid
 from rgbdslam.geometry.se3 import transform_points

@@ -23,17 +23,21 @@ import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rgbdslam.config import Config, FeaturesConfig, MatchingConfig, RegistrationConfig
 from rgbdslam.datasets.base import Frame
+from rgbdslam.frontend.config import FeaturesConfig, MatchingConfig, RegistrationConfig
 from rgbdslam.frontend.features import Detections, FrameFeatures, extract_features, lift, reshutter, strongest, subset
 from rgbdslam.frontend.pairwise import PairRegistration, RegistrationResult, build_pair_registration
 from rgbdslam.frontend.pose_fusion import fuse_candidates
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.rigid import fit_rigid, residuals
 from rgbdslam.geometry.se3 import inv, rotation_angle, scale_motion, transform_points
+
+if TYPE_CHECKING:
+    from rgbdslam.config import Config
 
 
 @dataclass

@@ -11,14 +11,18 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rgbdslam.config import Config, MatchingConfig
+from rgbdslam.frontend.config import MatchingConfig
 from rgbdslam.frontend.features import FrameFeatures
 from rgbdslam.frontend.matching import guided_match, match_pairs, prefilter
 from rgbdslam.frontend.registration import Registration, get_registration
 from rgbdslam.geometry.rigid import fit_rigid
+
+if TYPE_CHECKING:
+    from rgbdslam.config import Config
 
 # least share of a registration's inliers off depth edges for its pose to be fitted on them alone
 EDGE_FREE_SHARE = 0.3

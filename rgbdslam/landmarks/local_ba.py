@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import gtsam
-from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.camera import Camera
+from rgbdslam.landmarks.config import LandmarksConfig
 
 X = lambda i: gtsam.symbol("x", int(i))  # noqa: E731
 L = lambda i: gtsam.symbol("l", int(i))  # noqa: E731

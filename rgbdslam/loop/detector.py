@@ -26,15 +26,18 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rgbdslam.config import Config, LoopConfig
 from rgbdslam.frontend.pairwise import PairRegistration, build_pair_registration
 from rgbdslam.geometry.se3 import inv, motion_between
+from rgbdslam.loop.config import LoopConfig
 from rgbdslam.loop.gate import SharpnessGate
 from rgbdslam.loop.index import make_index
+
+if TYPE_CHECKING:
+    from rgbdslam.config import Config
 
 
 @dataclass

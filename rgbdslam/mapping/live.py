@@ -36,10 +36,10 @@ from typing import Callable
 
 import numpy as np
 
-from rgbdslam.config import MappingConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 from rgbdslam.io.worker import end, exit_now, in_niced_thread, receive, stop
+from rgbdslam.mapping.config import MappingConfig
 
 CACHE_MB = 512  # keyframe images kept for re-integration (640x480: ~1.5 MB each); beyond, they are read again
 REBUILD_FRACTION = 0.5  # more keyframes than this share moved: rebuild the map instead of de-/re-integrating

@@ -31,12 +31,12 @@ import cv2
 import numpy as np
 import yaml
 
-from rgbdslam.config import MappingConfig
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_path, atomic_write_text, interrupts_deferred, make_dirs
-from rgbdslam.io.text import read_lines
 from rgbdslam.io.numbers import check_magnitude, check_stamps
+from rgbdslam.io.text import read_lines
 from rgbdslam.io.trajectory import Trajectory
+from rgbdslam.mapping.config import MappingConfig
 
 
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205

@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.config import Config, DatasetConfig
+from rgbdslam.config import Config
 from rgbdslam.datasets import open_sequence
 from rgbdslam.datasets.base import Frame, Sequence
+from rgbdslam.datasets.config import DatasetConfig
 from rgbdslam.errors import InputError
 from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.session.mapfile import MapData, load_map

@@ -23,9 +23,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from rgbdslam.config import FeaturesConfig, StereoConfig
 from rgbdslam.errors import ConfigError
+from rgbdslam.frontend.config import FeaturesConfig
 from rgbdslam.geometry.stereo import DepthNoise, StereoRig, midpoint_triangulate
+from rgbdslam.stereo.config import StereoConfig
 
 
 def to_gray(img: np.ndarray) -> np.ndarray:
@@ -379,7 +380,7 @@ def rectification_warning(left: np.ndarray, right: np.ndarray, fc: FeaturesConfi
 def stereo_warning(frame) -> str | None:
     """The stereo counterpart of ``datasets.base.depth_warning``: an unrectified-looking pair,
     or a pair that gave (almost) no depth."""
-    from rgbdslam.config import FeaturesConfig
+    from rgbdslam.frontend.config import FeaturesConfig
 
     where = f"frame {frame.index}" + (f" ({frame.name})" if frame.name else "")
     warning = rectification_warning(frame.rgb, frame.right, FeaturesConfig(), where)

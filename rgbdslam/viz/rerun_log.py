@@ -32,16 +32,19 @@ import tempfile
 import weakref
 from pathlib import Path
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
-from rgbdslam.config import Config
 from rgbdslam.errors import InputError, RgbdslamError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv
 from rgbdslam.io.atomic import atomic_path, commit, make_dirs, write_target
 from rgbdslam.io.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from rgbdslam.config import Config
 
 APPLICATION_ID = "rgbdslam"
 RECORDING_ID = "rgbdslam-run"  # fixed, so re-recording a run replaces it in an open viewer

@@ -4,14 +4,14 @@ One interface (:class:`~rgbdslam.frontend.registration.base.Registration`, ``fit
 -> :class:`~rgbdslam.frontend.registration.base.RigidFit`), one class per strategy, chosen by
 ``registration.method`` through :func:`get_registration`. A new strategy is a subclass in its
 own module here, listed in :data:`STRATEGIES` (and its name in the ``method`` choices of
-:class:`rgbdslam.config.RegistrationConfig`); the front end and the loop closer use whatever
+:class:`rgbdslam.frontend.config.RegistrationConfig`); the front end and the loop closer use whatever
 this factory returns.
 """
 
 from __future__ import annotations
 
-from rgbdslam.config import RegistrationConfig
 from rgbdslam.errors import ConfigError
+from rgbdslam.frontend.config import RegistrationConfig
 from rgbdslam.frontend.registration.base import Registration, RigidFit, fit_information, point_information
 from rgbdslam.frontend.registration.islam import IslamRegistration
 from rgbdslam.frontend.registration.isvd import IsvdRegistration

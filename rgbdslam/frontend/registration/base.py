@@ -24,7 +24,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from rgbdslam.config import RegistrationConfig
+from rgbdslam.frontend.config import RegistrationConfig
 from rgbdslam.geometry.rigid import fit_with_stats, residuals, row_norms
 
 # Lower bound (metres) of the per-axis point noise behind the information of a rigid fit: a fit
