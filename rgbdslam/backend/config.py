@@ -12,6 +12,7 @@ from rgbdslam.configspec import AtMost, Key, Positive
 class BackendConfig:
     """GTSAM pose graph over keyframes (docs/slam.md)."""
 
+    # upper bounds: GTSAM takes C ints for iteration counts
     enabled: Annotated[bool, Key("a graph of odometry edges only; loop.enabled (the default) builds it anyway")] = False
     init: Annotated[Literal["masat", "weighted_masat", "odometry", "spanning_tree", "isam2"], Key(
         "initial guess")] = "masat"

@@ -10,11 +10,13 @@ from rgbdslam.configspec import AtMost, Key, Positive, Range
 
 @dataclass
 class DatasetConfig:
+    # upper bounds: frame counts and indices fit a C int; prefetched frames are held in memory
     kind: Annotated[Literal["auto", "tum", "icl", "put", "synthetic", "7scenes", "rosbag", "kitti", "euroc", "stereo"], Key(
         "reader; auto: by the folder's files")] = "auto"
     # TUM association (semantics of TUM's associate.py)
     max_difference: Annotated[float, Positive(10000.0,
         "seconds: colour and depth images closer in time than this are paired")] = 0.02
+    # range: Unix time stamps are ~1.8e9 s (2026)
     offset: Annotated[float, Range(-2e9, 2e9, "seconds added to the depth time stamps before pairing")] = 0.0
     associations: Annotated[str | None, Key("optional existing associations file")] = None
     camera_file: Annotated[str | None, Key(
@@ -24,6 +26,7 @@ class DatasetConfig:
         "Camera: \"auto\" = camera.yaml in the folder, else what the source says (bag CameraInfo, 7-Scenes/ETH3D "
         "calibration, freiburg1/2/3 in a TUM folder name, kinect1 for PUT), else ros_default with a warning; or the "
         "named model")] = "auto"
+    # raw depth units per metre: below 1e-3 a 16-bit depth image would reach past 65 km
     depth_scale: Annotated[float | None, Range(0.001, 1e6,
         "raw units per metre; None = camera file, else source default (TUM 5000, PUT 1000)")] = None
     depth_correction: Annotated[float, Range(0.1, 10.0, "multiply metric depth (off = 1.0)")] = 1.0

@@ -11,6 +11,7 @@ from rgbdslam.configspec import AtMost, C_INT_MAX, Key, Positive, Range
 
 @dataclass
 class FeaturesConfig:
+    # upper bounds: OpenCV's ORB takes C ints; n_features x n_features Hamming matrices (~1 GB at 10000)
     n_features: Annotated[int, Positive(10_000, "ORB key points kept per frame (the strongest)")] = 1000
     scale_factor: Annotated[float, Range(1.0 + 1e-6, 4.0, "ORB pyramid scale step between levels")] = 1.2
     n_levels: Annotated[int, Range(1, 16, "ORB pyramid levels")] = 8
@@ -39,6 +40,7 @@ class FeaturesConfig:
 
 @dataclass
 class MatchingConfig:
+    # upper bounds: RANSAC hypotheses are drawn and scored at once (~3 kB each); cv2 gets 10x as maxIters
     cross_check: Annotated[bool, Key("keep a match only when each descriptor is the other's nearest neighbour")] = True
     ratio: Annotated[float | None, Range(0.0, 1.0, "Lowe ratio test (None = off)")] = None
     max_hamming: Annotated[int, Range(0, 256, "largest descriptor Hamming distance of a match (bits)")] = 64
@@ -120,6 +122,7 @@ class RegistrationConfig:
     max_jump_translation: Annotated[float, Positive(1000.0,
         "m per frame: candidates further from the prediction are rejected")] = 0.15
     max_jump_rotation_deg: Annotated[float, Positive(360.0, "deg per frame, likewise")] = 15.0
+    # cv2.setRNGSeed takes a C int
     seed: Annotated[int, AtMost(C_INT_MAX, "seed of RANSAC's random choices")] = 0
 
 
@@ -127,6 +130,7 @@ class RegistrationConfig:
 class DepthFilterConfig:
     """DIF, the conditional averaging depth filter (docs/references.md §3, docs/slam.md)."""
 
+    # upper bounds: each of the window's frames is warped into the current one
     enabled: Annotated[bool, Key("run DIF on every frame (off by default: no gain measured, docs/slam.md)")] = False
     window: Annotated[int, AtMost(32, "K previous filtered frames warped into the current one (0 = spatial only)")] = 2
     spatial_radius: Annotated[int, AtMost(32, "window half-size of the spatial averaging (0 = temporal only)")] = 1

@@ -12,6 +12,7 @@ from rgbdslam.configspec import AtMost, C_INT_MAX, Key, Positive, Range
 class LoopConfig:
     """Sharpness-gated loop closure (docs/references.md §4, docs/slam.md)."""
 
+    # upper bounds: every LSH table indexes every keyframe descriptor (memory grows with lsh_tables)
     enabled: Annotated[bool, Key("detect loops and optimise the pose graph")] = True
     sharpness_measure: Annotated[Literal["n_detected", "response"], Key(
         "sharpness gate: measure > factor * median(measure of the previous window frames). \"n_detected\" is the thesis' "
@@ -30,6 +31,7 @@ class LoopConfig:
     index: Annotated[Literal["lsh", "brute"], Key(
         "keyframe descriptor index for the candidate search (lsh or brute force)")] = "lsh"
     lsh_tables: Annotated[int, Positive(64, "hash tables, each keyed on lsh_bits random descriptor bits")] = 8
+    # LSH bucket keys hold the table id above lsh_bits key bits in an int64
     lsh_bits: Annotated[int, Range(1, 40, "descriptor bits per LSH key")] = 24
     min_votes: Annotated[int, Positive(10**6,
         "query descriptors colliding with a keyframe before it is a candidate")] = 20

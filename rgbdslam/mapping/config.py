@@ -10,6 +10,7 @@ from rgbdslam.configspec import AtMost, C_INT_MAX, Key, Positive, Range
 
 @dataclass
 class MappingConfig:
+    # upper bounds: Open3D takes C ints; a TSDF block (8^3 voxels) holds ~10 kB before the hash map grows
     enabled: Annotated[bool, Key("fuse the map at the end of a run")] = True
     keyframes_only: Annotated[bool, Key(
         "which frames are fused: run.json keyframes (else frames chosen by motion) or every tracked frame")] = True
@@ -42,6 +43,7 @@ class MappingConfig:
     depth_min: Annotated[float, AtMost(1000.0, "metres; depth outside [depth_min, depth_max] is ignored")] = 0.3
     depth_max: Annotated[float, Positive(1000.0, "metres: see depth_min")] = 3.0
     # coloured point cloud
+    # voxel keys have 21 bits per axis (+-1 km at 1 mm): finer grids are not sane (also tsdf_voxel, grid_resolution)
     voxel_size: Annotated[float, Range(0.001, 10.0, "voxel-grid downsampling of the merged cloud (m)")] = 0.01
     cloud_pixel_stride: Annotated[int, Positive(1024,
         "back-project every n-th pixel (a 1 cm voxel holds several anyway)")] = 2
@@ -52,6 +54,7 @@ class MappingConfig:
         "the cloud's outlier removal: \"statistical\" (Open3D's, outlier_neighbors / outlier_std) or \"voxel\" (a point is "
         "kept when at least outlier_min_neighbors of the voxels within outlier_radius voxels of its own are occupied: "
         "a few gathers from a dense occupancy grid, ~10x cheaper)")] = "statistical"
+    # range: voxel outlier removal makes (2 r + 1)^3 - 1 gathers; r = 3 is already 342 of them
     outlier_min_neighbors: Annotated[int, Range(0, 342,
         "voxel outlier removal: occupied voxels around a kept point (0 = off)")] = 4
     outlier_radius: Annotated[int, Range(1, 3, "voxel outlier removal: the neighbourhood is (2 r + 1)^3 voxels")] = 1
@@ -72,4 +75,5 @@ class MappingConfig:
         "points between these heights above the floor occupy a cell")] = 0.10
     obstacle_max_height: Annotated[float, Range(-1000.0, 1000.0, "metres: see obstacle_min_height")] = 1.80
     obstacle_min_points: Annotated[int, Positive(10**6, "points needed to mark a cell occupied")] = 3
+    # Open3D's random seed is a C int
     seed: Annotated[int, AtMost(C_INT_MAX, "seed of the floor RANSAC")] = 0

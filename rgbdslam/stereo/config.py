@@ -12,6 +12,7 @@ from rgbdslam.configspec import AtMost, Key, Positive, Range
 class StereoConfig:
     """Depth from a rectified stereo pair (KITTI, EuRoC, stereo folders; docs/stereo.md)."""
 
+    # upper bounds: disparities and noise in pixels, ORB budgets of the right image as a multiple of the left's
     depth: Annotated[Literal["sparse", "sgbm"], Key("tracking: row-matched ORB key points, or OpenCV SGBM")] = "sparse"
     map_depth: Annotated[Literal["same", "sparse", "sgbm"], Key(
         "what `fuse` re-reads for the map (\"same\" = depth)")] = "sgbm"
