@@ -28,10 +28,10 @@ from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError, shorten
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.se3 import inv, pose_from_tum
-from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io import validate
 from rgbdslam.io.numbers import unit_quaternions
+from rgbdslam.geometry.se3 import inv, pose_from_tum
+from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
 from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.io.yamlfile import load_yaml

@@ -17,11 +17,11 @@ from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline, frame_times, image_files
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError
-from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io import validate
 from rgbdslam.io.images import read_image
-from rgbdslam.io.kitti import read_kitti_calib, read_kitti_poses
 from rgbdslam.io.text import optional_file
+from rgbdslam.geometry.stereo import StereoRig
+from rgbdslam.io.kitti import read_kitti_calib, read_kitti_poses
 from rgbdslam.io.trajectory import Trajectory
 
 KITTI_HZ = 10.0

@@ -17,17 +17,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgbdslam.datasets.camera_file import CAMERA_FILE, CameraSetup, resolve_camera
+from rgbdslam.io.text import optional_file, read_text
 from rgbdslam.datasets.registry import reader
+from rgbdslam.datasets.camera_file import CAMERA_FILE, CameraSetup, resolve_camera
 from rgbdslam.datasets.tum import RgbdFileSequence, TumSequence, data_lines, pick_depth_scale, select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS
 from rgbdslam.geometry.se3 import pose_from_tum, pose_to_tum
 from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.io.images import read_image
-from rgbdslam.io.numbers import MAX_COORD, check_magnitude, check_stamps, unit_quaternions
-from rgbdslam.io.text import optional_file, read_text
 from rgbdslam.io.trajectory import Trajectory, read_tum
+from rgbdslam.io.numbers import MAX_COORD, check_magnitude, check_stamps, unit_quaternions
 
 PUT_DEPTH_SCALE = 1000.0
 MATCHED = "matched"

@@ -29,14 +29,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CameraSetup, resolve_camera
-from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.tum import select_frames
+from rgbdslam.io import validate
 from rgbdslam.errors import InputError, cut, shorten
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.depth_registration import DepthRegistration
-from rgbdslam.io import validate
 from rgbdslam.io.trajectory import Trajectory, read_tum
 
 IMAGE = "sensor_msgs/msg/Image"

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rgbdslam.datasets.camera_file import CameraSetup, read_shipped_camera, resolve_camera
 from rgbdslam.datasets.registry import reader
+from rgbdslam.datasets.camera_file import CameraSetup, read_shipped_camera, resolve_camera
 from rgbdslam.datasets.tum import RgbdFileSequence, data_lines, pick_depth_scale, select_frames
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera

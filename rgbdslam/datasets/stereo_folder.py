@@ -22,9 +22,9 @@ from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.stereo_base import StereoSequence, check_baseline, frame_times, image_files
 from rgbdslam.datasets.tum import select_frames
 from rgbdslam.errors import InputError, cut
-from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io import validate
 from rgbdslam.io.images import read_image
+from rgbdslam.geometry.stereo import StereoRig
 from rgbdslam.io.text import optional_file, read_text
 from rgbdslam.io.trajectory import read_tum
 from rgbdslam.io.yamlfile import load_yaml

@@ -26,17 +26,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rgbdslam.io import validate
+from rgbdslam.io.images import read_image
+from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
+from rgbdslam.datasets.registry import reader
 from rgbdslam.datasets.base import Frame, Sequence
 from rgbdslam.datasets.camera_file import CAMERA_FILE, CameraSetup, read_camera_file, resolve_camera
-from rgbdslam.datasets.registry import reader
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
 from rgbdslam.geometry.depth_registration import DepthRegistration
-from rgbdslam.io import validate
-from rgbdslam.io.images import read_image
-from rgbdslam.io.numbers import MAX_STAMP, check_stamps
-from rgbdslam.io.text import optional_file, read_lines, read_text, require_file
 from rgbdslam.io.trajectory import Trajectory, read_tum
+from rgbdslam.io.numbers import MAX_STAMP, check_stamps
 
 TUM_DEPTH_SCALE = 5000.0
 

@@ -19,12 +19,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from rgbdslam.frontend.features import map_valid
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 from rgbdslam.landmarks.config import LandmarksConfig
 from rgbdslam.landmarks.kalman import observation_covariance
 from rgbdslam.landmarks.map import LandmarkMap
+from rgbdslam.frontend.features import map_valid
 from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
 
 

@@ -33,11 +33,11 @@ from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
 from rgbdslam.io.atomic import interrupts_deferred
-from rgbdslam.io.manifest import RUN, Manifest
 from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.mapping.config import MappingConfig
 from rgbdslam.mapping.staging import MAP_FILES, FuseResult, remove_stale_stages, staged
 from rgbdslam.runfolder.depth import DEPTH_SCALE, keyframe_depth_path, read_keyframe_depth
+from rgbdslam.io.manifest import RUN, Manifest
 from rgbdslam.runfolder.read import check_run_frames, read_run
 
 with interrupts_deferred():  # Ctrl-C during Open3D's start-up leaves its C++ state half made (exit 1

@@ -33,8 +33,8 @@ import yaml
 
 from rgbdslam.errors import InputError
 from rgbdslam.io.atomic import atomic_path, atomic_write_text, interrupts_deferred, make_dirs
-from rgbdslam.io.numbers import check_magnitude, check_stamps
 from rgbdslam.io.text import read_lines
+from rgbdslam.io.numbers import check_magnitude, check_stamps
 from rgbdslam.io.trajectory import Trajectory
 from rgbdslam.mapping.config import MappingConfig
 

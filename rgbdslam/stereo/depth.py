@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from rgbdslam.errors import ConfigError
 from rgbdslam.frontend.config import FeaturesConfig
+from rgbdslam.errors import ConfigError
 from rgbdslam.geometry.stereo import DepthNoise, StereoRig, midpoint_triangulate
 from rgbdslam.stereo.config import StereoConfig
 
