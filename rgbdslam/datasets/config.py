@@ -1,4 +1,5 @@
-"""The ``dataset`` config section: which reader, camera and frames a run uses (declared per key, :mod:`rgbdslam.configspec`)."""
+"""The ``dataset`` config section: which reader, camera and frames a run uses
+(each key declared once with its range and description, :mod:`rgbdslam.configspec`)."""
 
 from __future__ import annotations
 

@@ -44,7 +44,8 @@ class MatchingConfig:
     cross_check: Annotated[bool, Key("keep a match only when each descriptor is the other's nearest neighbour")] = True
     ratio: Annotated[float | None, Range(0.0, 1.0, "Lowe ratio test (None = off)")] = None
     max_hamming: Annotated[int, Range(0, 256, "largest descriptor Hamming distance of a match (bits)")] = 64
-    prefilter: Annotated[Literal["none", "homography", "fundamental", "rigid3d"], Key("outlier pre-filter")] = "rigid3d"
+    prefilter: Annotated[Literal["none", "homography", "fundamental", "rigid3d"], Key(
+        "RANSAC outlier pre-filter of the matches (2-D or 3-D model)")] = "rigid3d"
     prefilter_threshold: Annotated[float, Positive(1000.0, "metres for rigid3d, pixels for 2-D models")] = 0.03
     prefilter_iterations: Annotated[int, Positive(20_000, "RANSAC iterations of the pre-filter")] = 200
     min_depth: Annotated[float, AtMost(1000.0,
@@ -121,7 +122,8 @@ class RegistrationConfig:
         "consecutive lost frames before tracking restarts from the last pose (0 = never)")] = 15
     max_jump_translation: Annotated[float, Positive(1000.0,
         "m per frame: candidates further from the prediction are rejected")] = 0.15
-    max_jump_rotation_deg: Annotated[float, Positive(360.0, "deg per frame, likewise")] = 15.0
+    max_jump_rotation_deg: Annotated[float, Positive(360.0,
+        "degrees per frame: candidates turned further from the prediction are rejected")] = 15.0
     # cv2.setRNGSeed takes a C int
     seed: Annotated[int, AtMost(C_INT_MAX, "seed of RANSAC's random choices")] = 0
 

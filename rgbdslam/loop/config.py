@@ -35,7 +35,8 @@ class LoopConfig:
     lsh_bits: Annotated[int, Range(1, 40, "descriptor bits per LSH key")] = 24
     min_votes: Annotated[int, Positive(10**6,
         "query descriptors colliding with a keyframe before it is a candidate")] = 20
-    skip_recent: Annotated[int, AtMost(10**6, "keyframes")] = 20
+    skip_recent: Annotated[int, AtMost(10**6,
+        "the last this many keyframes of the current segment are no loop candidates")] = 20
     max_candidates: Annotated[int, Positive(100, "keyframes verified per query")] = 3
     seed: Annotated[int, AtMost(C_INT_MAX, "seed of the LSH bit choice")] = 0
     # verification
