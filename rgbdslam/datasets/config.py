@@ -39,9 +39,7 @@ class DatasetConfig:
     # ROS bags: topics (None = found automatically when unambiguous; the error lists the candidates)
     rgb_topic: Annotated[str | None, Key("ROS bags: colour image topic (None: found when unambiguous)")] = None
     depth_topic: Annotated[str | None, Key("ROS bags: depth image topic (None: found when unambiguous)")] = None
-    camera_info_topic: Annotated[str | None, Key(
-        "ROS bags: CameraInfo topic of the colour camera (None: found)")] = None
-    prefetch: Annotated[int, AtMost(64,
-        "frames read ahead by a background thread during `run` (0 = read in the loop)")] = 4
+    camera_info_topic: Annotated[str | None, Key("ROS bags: CameraInfo topic of the colour camera (None: found)")] = None
+    prefetch: Annotated[int, AtMost(64, "frames read ahead by a background thread during `run` (0 = read in the loop)")] = 4
     reader_threads: Annotated[int, Positive(64,
         "threads preparing frames ahead at once where the reader allows it (stereo pairs)")] = 2

@@ -20,8 +20,7 @@ class FeaturesConfig:
     patch_size: Annotated[int, Range(2, 255, "ORB descriptor patch size (pixels)")] = 31
     grid_rows: Annotated[int, Positive(64, ">1 enables bucketing: features spread over a grid")] = 1
     grid_cols: Annotated[int, Positive(64, "columns of the bucketing grid (see grid_rows)")] = 1
-    undistort: Annotated[bool, Key(
-        "undistort key point positions with the camera's distortion before registration")] = True
+    undistort: Annotated[bool, Key("undistort key point positions with the camera's distortion before registration")] = True
     depth_delay: Annotated[Literal["ignore", "predict"], Key(
         "colour and depth images taken at different moments (Frame.depth_delay; TUM freiburg1: 0-14 ms): ignore = each "
         "key point's depth read at its own pixel; predict = read where its scene point was at the depth time, the "
@@ -76,15 +75,13 @@ class RegistrationConfig:
     # ISLAM (docs/references.md §2)
     mp: Annotated[int, Positive(64, "ISLAM: registered against the last mp frames (MP of the thesis)")] = 4
     alpha: Annotated[float, Positive(100.0, "ISLAM gate of iteration j: alpha * j**beta (m)")] = 0.2
-    beta: Annotated[float, Range(-100.0, 100.0,
-        "ISLAM gate exponent (negative: the gate shrinks each iteration)")] = -1.0
+    beta: Annotated[float, Range(-100.0, 100.0, "ISLAM gate exponent (negative: the gate shrinks each iteration)")] = -1.0
     min_error: Annotated[float, AtMost(100.0, "ISLAM stops once its gate falls below this (m)")] = 0.01
     min_points: Annotated[int, Range(3, 10**9, "ISLAM: a reference needs this many surviving pairs")] = 12
     fusion: Annotated[Literal["thesis", "chordal"], Key("ISLAM's fusion of its references' poses")] = "chordal"
     reject_translation: Annotated[float, Positive(100.0, "candidate disagreement gates (m, rad)")] = 0.05
     reject_rotation: Annotated[float, Positive(100.0, "radians: see reject_translation")] = 0.05
-    min_agreement: Annotated[float, Range(0.0, 1.0,
-        "lost if the agreeing candidates hold less of the total weight")] = 0.5
+    min_agreement: Annotated[float, Range(0.0, 1.0, "lost if the agreeing candidates hold less of the total weight")] = 0.5
     pregate: Annotated[float | None, Positive(100.0,
         "drop pairs this far (m) from the constant-velocity prediction first")] = None
     guided_gate: Annotated[float | None, Positive(100.0,
@@ -96,8 +93,7 @@ class RegistrationConfig:
         "force; docs/frontend.md)")] = 0.05
     predicted_min_inliers: Annotated[int, Range(3, 10**9,
         "inliers the guided match needs before falling back to brute force")] = 60
-    joint_refit: Annotated[bool, Key(
-        "after fusion: one weighted SVD fit on the inliers of all kept references")] = False
+    joint_refit: Annotated[bool, Key("after fusion: one weighted SVD fit on the inliers of all kept references")] = False
     joint_gate: Annotated[float, Positive(100.0,
         "metres, pairs further from the fused pose are left out of the joint refit")] = 0.02
     depth_weighting: Annotated[bool, Key("weight pairs by 1/z^2 in the joint refit")] = False
@@ -106,10 +102,8 @@ class RegistrationConfig:
         "weighted by their covariances (geometry.mahalanobis; docs/stereo.md). Off by default: on a short indoor "
         "baseline (synthetic 0.12 m) it costs accuracy (circle 1.5-2.0x RGB-D with it, 0.4-1.1x without); the kitti "
         "preset turns it on (far points: ATE 0.29 m without it)")] = False
-    noise_refit_all: Annotated[bool, Key(
-        "refit on every descriptor match (robust kernel), not only the inliers")] = True
-    noise_refit_huber: Annotated[float, Positive(100.0,
-        "Huber threshold of the refit (Mahalanobis distance, sigmas)")] = 3.0
+    noise_refit_all: Annotated[bool, Key("refit on every descriptor match (robust kernel), not only the inliers")] = True
+    noise_refit_huber: Annotated[float, Positive(100.0, "Huber threshold of the refit (Mahalanobis distance, sigmas)")] = 3.0
     far_baselines: Annotated[float, AtMost(10000.0,
         "stereo fallback (below): matched points deeper than this many baselines (ORB-SLAM's ThDepth, 40) are far: "
         "bearing-only (reprojection) residuals, their depth unused (docs/stereo.md); 0 = every depth-valid one 3-D")] = 0.0
@@ -138,8 +132,7 @@ class DepthFilterConfig:
     spatial_radius: Annotated[int, AtMost(32, "window half-size of the spatial averaging (0 = temporal only)")] = 1
     tolerance_a: Annotated[float, AtMost(10.0, "agreement tolerance = a + b * z^2 (metres)")] = 0.01
     tolerance_b: Annotated[float, AtMost(10.0, "see tolerance_a (1/m)")] = 0.0035
-    min_support: Annotated[int, AtMost(10_000,
-        "agreeing samples (besides the pixel itself) needed to keep a pixel")] = 3
+    min_support: Annotated[int, AtMost(10_000, "agreeing samples (besides the pixel itself) needed to keep a pixel")] = 3
     min_depth: Annotated[float, AtMost(1000.0, "metres: depth outside [min_depth, max_depth] is dropped")] = 0.3
     max_depth: Annotated[float, Positive(1000.0, "metres: see min_depth")] = 5.0
 

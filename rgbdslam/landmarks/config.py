@@ -21,8 +21,7 @@ class LandmarksConfig:
         "reprojection refine); 'filter' = as fuse, the registration's covariance plus the last output's (carried from "
         "frame to frame) as the prediction's")] = "fuse"
     search_radius: Annotated[float, Positive(1000.0, "pixels around a landmark's projection")] = 10.0
-    max_hamming: Annotated[int, Range(0, 256,
-        "largest Hamming distance of a landmark-to-feature descriptor match")] = 50
+    max_hamming: Annotated[int, Range(0, 256, "largest Hamming distance of a landmark-to-feature descriptor match")] = 50
     max_depth: Annotated[float, Positive(1000.0,
         "metres: landmarks further from the camera are not searched, features not mapped")] = 5.0
     ransac_threshold: Annotated[float, Positive(10.0, "metres: inlier distance of the map pose RANSAC")] = 0.03
@@ -62,14 +61,12 @@ class LandmarksConfig:
     depth_noise_a: Annotated[float, AtMost(10.0, "metres: constant term of the depth noise along the ray")] = 0.001
     depth_noise_b: Annotated[float, AtMost(10.0, "per metre: z^2 term of the depth noise along the ray")] = 0.002
     sigma_px: Annotated[float, Positive(100.0, "pixels: key point noise across the ray")] = 1.0
-    process_noise: Annotated[float, AtMost(10.0,
-        "metres per step: Kalman process noise of a landmark position")] = 0.0002
+    process_noise: Annotated[float, AtMost(10.0, "metres per step: Kalman process noise of a landmark position")] = 0.0002
     min_seen: Annotated[int, Positive(10**6,
         "landmarks seen fewer times cull_after frames after they were made are culled")] = 3
     cull_after: Annotated[int, AtMost(10**6,
         "frames after its creation a rarely seen landmark is culled (see min_seen)")] = 30
-    store: Annotated[Literal["single", "multi"], Key(
-        "landmark store: one k-d tree or the logarithmic method")] = "multi"
+    store: Annotated[Literal["single", "multi"], Key("landmark store: one k-d tree or the logarithmic method")] = "multi"
     store_n1: Annotated[int, Positive(10**7, "multi-tree store: size of the smallest tree")] = 3500
     store_q: Annotated[float, Range(1.0 + 1e-6, 100.0, "multi-tree store: size ratio of consecutive trees")] = 5.5
     new_min_distance: Annotated[float, AtMost(1000.0,
@@ -113,12 +110,10 @@ class LandmarksConfig:
     ba_solver: Annotated[Literal["schur", "gtsam"], Key(
         "the local BA's solver: 'schur' = NumPy Levenberg-Marquardt with the landmarks eliminated in closed form (the "
         "Schur complement; GTSAM's LM step for step, ~10x faster at this size); 'gtsam' = GTSAM's graph")] = "schur"
-    ba_max_landmarks: Annotated[int, Positive(100_000,
-        "landmarks in one local BA (those seen by most keyframes)")] = 1000
+    ba_max_landmarks: Annotated[int, Positive(100_000, "landmarks in one local BA (those seen by most keyframes)")] = 1000
     ba_baseline: Annotated[float, Positive(10.0, "virtual stereo baseline (m) turning depth into a disparity")] = 0.08
     ba_huber: Annotated[float, Positive(100.0, "robust kernel width (whitened)")] = 1.345
-    ba_landmark_prior: Annotated[bool, Key(
-        "each landmark's Kalman position and covariance as a prior in local BA")] = True
+    ba_landmark_prior: Annotated[bool, Key("each landmark's Kalman position and covariance as a prior in local BA")] = True
     ba_prior_floor: Annotated[float, AtMost(10.0,
         "metres added (in quadrature, every direction) to the prior's Kalman sigma: the filter counts every frame's "
         "observation as independent, but they share the frames' pose errors")] = 0.004

@@ -33,16 +33,14 @@ class LoopConfig:
     lsh_tables: Annotated[int, Positive(64, "hash tables, each keyed on lsh_bits random descriptor bits")] = 8
     # LSH bucket keys hold the table id above lsh_bits key bits in an int64
     lsh_bits: Annotated[int, Range(1, 40, "descriptor bits per LSH key")] = 24
-    min_votes: Annotated[int, Positive(10**6,
-        "query descriptors colliding with a keyframe before it is a candidate")] = 20
+    min_votes: Annotated[int, Positive(10**6, "query descriptors colliding with a keyframe before it is a candidate")] = 20
     skip_recent: Annotated[int, AtMost(10**6,
         "the last this many keyframes of the current segment are no loop candidates")] = 20
     max_candidates: Annotated[int, Positive(100, "keyframes verified per query")] = 3
     seed: Annotated[int, AtMost(C_INT_MAX, "seed of the LSH bit choice")] = 0
     # verification
     min_inliers: Annotated[int, Range(3, 10**9, "inliers a loop's registration needs")] = 40
-    max_residual: Annotated[float, Positive(10.0,
-        "metres: largest mean residual of an accepted loop registration")] = 0.02
+    max_residual: Annotated[float, Positive(10.0, "metres: largest mean residual of an accepted loop registration")] = 0.02
     max_loops_per_frame: Annotated[int, Positive(100, "loop edges added per query frame")] = 1
     stop_at_first: Annotated[bool, Key("verify candidates in vote order and stop at max_loops_per_frame loops")] = False
     # agreement with the current estimate: |T_loop - T_est| < bound + drift_ratio * travelled
@@ -51,16 +49,14 @@ class LoopConfig:
     consistency_rotation_deg: Annotated[float, Positive(360.0, "degrees: see consistency_translation")] = 15.0
     drift_ratio_translation: Annotated[float, AtMost(100.0,
         "extra metres allowed per metre travelled since the keyframe")] = 0.1
-    drift_ratio_rotation: Annotated[float, AtMost(100.0,
-        "extra degrees allowed per degree turned since the keyframe")] = 0.1
+    drift_ratio_rotation: Annotated[float, AtMost(100.0, "extra degrees allowed per degree turned since the keyframe")] = 0.1
     relocalize_confirm: Annotated[int, Positive(100,
         "relocalisation after a tracking loss (no estimate to agree with): a match into an older segment links the "
         "segments only once relocalize_confirm matches (distinct frames or distinct keyframes, within "
         "relocalize_window frames) put the camera at the same place in that segment, within relocalize_translation / "
         "relocalize_rotation_deg; 1 = the first sound match links")] = 2
     relocalize_window: Annotated[int, Positive(100_000, "frames a match waits for its confirmation")] = 15
-    relocalize_translation: Annotated[float, Positive(10000.0,
-        "metres: two relocalisation matches agree within this")] = 0.1
+    relocalize_translation: Annotated[float, Positive(10000.0, "metres: two relocalisation matches agree within this")] = 0.1
     relocalize_rotation_deg: Annotated[float, Positive(360.0, "degrees: see relocalize_translation")] = 5.0
     map_track_every: Annotated[int, AtMost(10**6,
         "tracking against a fixed map (--localize; rgbdslam/session/tracking.py): once relocalised, every "

@@ -36,8 +36,7 @@ class MappingConfig:
         "at its newest pose) is made and kept: at the end a waiting keyframe whose final pose is within live_tolerance "
         "of it goes into the cloud (and the TSDF) at that pose with no cloud work, so the cloud's outlier removal "
         "starts sooner; one that moves further is made again when idle")] = False
-    select_translation: Annotated[float, AtMost(10000.0,
-        "motion-based choice when run.json has no keyframes (m)")] = 0.05
+    select_translation: Annotated[float, AtMost(10000.0, "motion-based choice when run.json has no keyframes (m)")] = 0.05
     select_rotation_deg: Annotated[float, AtMost(360.0, "degrees: see select_translation")] = 5.0
     undistort: Annotated[bool, Key("remap colour and depth to the ideal pinhole before fusing")] = True
     depth_min: Annotated[float, AtMost(1000.0, "metres; depth outside [depth_min, depth_max] is ignored")] = 0.3

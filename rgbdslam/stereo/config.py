@@ -22,8 +22,7 @@ class StereoConfig:
     sigma_disparity_sgbm: Annotated[float, Positive(100.0,
         "disparity noise (px) of SGBM depth, for the depth noise model")] = 0.5
     max_disparity: Annotated[int, Range(1, 1024, "search range (pixels); SGBM rounds it up to a multiple of 16")] = 128
-    min_disparity: Annotated[float, Positive(1000.0,
-        "smaller disparities (farther than fx * B / this) give no depth")] = 0.5
+    min_disparity: Annotated[float, Positive(1000.0, "smaller disparities (farther than fx * B / this) give no depth")] = 0.5
     row_tolerance: Annotated[float, Positive(100.0, "sparse: |v_left - v_right| allowed for a match (pixels)")] = 2.0
     max_hamming: Annotated[int, Range(0, 256, "sparse: descriptor distance cap")] = 50
     ratio: Annotated[float, Range(0.0, 1.0, "sparse: best / second-best Hamming distance along the row band")] = 0.9
@@ -42,7 +41,5 @@ class StereoConfig:
         "sparse: sub-pixel refinement: \"zsad_v\" = zero-mean SAD + equiangular fit; \"centre_parabola\" = the method "
         "before (patch minus its centre pixel, parabola): biased toward whole pixels (docs/stereo.md)")] = "zsad_v"
     sgbm_block_size: Annotated[int, Range(1, 31, "SGBM matching block size (odd, pixels)")] = 5
-    sgbm_uniqueness: Annotated[int, AtMost(100,
-        "SGBM uniqueness ratio (%): the best match must win by this margin")] = 10
-    sgbm_scale: Annotated[float, Range(0.1, 1.0,
-        "SGBM on an image resized by this factor (0.5: ~4x faster, coarser)")] = 1.0
+    sgbm_uniqueness: Annotated[int, AtMost(100, "SGBM uniqueness ratio (%): the best match must win by this margin")] = 10
+    sgbm_scale: Annotated[float, Range(0.1, 1.0, "SGBM on an image resized by this factor (0.5: ~4x faster, coarser)")] = 1.0
