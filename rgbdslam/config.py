@@ -215,6 +215,7 @@ RETIRED = {
     "landmarks.revisit_radius",
     "landmarks.sigma_px_scale",
     "matching.depth_edge_use",
+    "registration.far_baselines",  # docs/stereo.md "Near and far points"
 }
 
 

@@ -104,9 +104,6 @@ class RegistrationConfig:
         "preset turns it on (far points: ATE 0.29 m without it)")] = False
     noise_refit_all: Annotated[bool, Key("refit on every descriptor match (robust kernel), not only the inliers")] = True
     noise_refit_huber: Annotated[float, Positive(100.0, "Huber threshold of the refit (Mahalanobis distance, sigmas)")] = 3.0
-    far_baselines: Annotated[float, AtMost(10000.0,
-        "stereo fallback (below): matched points deeper than this many baselines (ORB-SLAM's ThDepth, 40) are far: "
-        "bearing-only (reprojection) residuals, their depth unused (docs/stereo.md); 0 = every depth-valid one 3-D")] = 0.0
     stereo_fallback: Annotated[bool, Key(
         "a stereo frame whose registration fails is not lost: constant-velocity pose, its rotation refit on the "
         "bearings of the newest reference's descriptor matches, then a near + far refit if enough pairs agree")] = False

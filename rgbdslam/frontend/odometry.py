@@ -370,10 +370,10 @@ class Frontend:
         reprojection under ``pred`` is within :data:`FALLBACK_GATE_PX`: (C, SC, W, SW, far, UV).
         A reference point with stereo depth (any, also beyond ``matching.max_depth``) is that 3-D
         point, one without is its viewing ray at :data:`FAR_AWAY` m (a direction: its parallax is
-        nil); a pair is near (3-D) when both points are depth-valid and the current one lies within
-        ``far_baselines`` baselines (any depth-valid one with ``far_baselines`` 0), otherwise a bearing. None = too few matches."""
+        nil); a pair is near (3-D) when both points are depth-valid, otherwise far (a bearing). None =
+        too few matches."""
         from rgbdslam.frontend.matching import match_descriptors
-        from rgbdslam.geometry.mahalanobis import bearing_residuals, split_near_far
+        from rgbdslam.geometry.mahalanobis import bearing_residuals
 
         rf, dn = ref.features, feats.depth_noise
         if rf.depth_noise is None or len(rf.depth_raw) != len(rf.uv) or len(feats.depth_raw) != len(feats.uv):
@@ -393,7 +393,7 @@ class Frontend:
         r, _, _ = bearing_residuals(pred, W, np.zeros_like(SW), UV, intr, dn.sigma_pixel)
         keep = np.linalg.norm(r, axis=1) <= FALLBACK_GATE_PX
         C = np.where(feats.valid[ib][:, None], feats.pts[ib], [0.0, 0.0, 1.0])
-        far = ~feats.valid[ib] | ~rf.valid[ia] | split_near_far(feats.depth_raw[ib], dn.baseline, self.rc.far_baselines)
+        far = ~feats.valid[ib] | ~rf.valid[ia]
         SC = dn.covariance(C)
         return C[keep], SC[keep], W[keep], SW[keep], far[keep], UV[keep]
 

@@ -62,17 +62,6 @@ def refine_pose_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarray, W: 
     return X, H, m <= 2.0 * huber
 
 
-def split_near_far(z: np.ndarray, baseline: float, far_baselines: float) -> np.ndarray:
-    """(N,) bool: True for the **far** points of a stereo frame, those deeper than ``far_baselines``
-    baselines (ORB-SLAM's ``ThDepth``, 40): their disparity (below fx / far_baselines, ~18 px on
-    KITTI) is too small to trust their depth, but their bearing still holds. ``far_baselines``
-    <= 0: no point is far."""
-    z = np.asarray(z, dtype=np.float64)
-    if far_baselines <= 0:
-        return np.zeros(z.shape, bool)
-    return z > far_baselines * baseline
-
-
 def project_jacobian(q: np.ndarray, fx: float, fy: float) -> np.ndarray:
     """(N, 2, 3) Jacobians of the pinhole projection ``(fx x/z + cx, fy y/z + cy)`` at camera points ``q``."""
     x, y, z = q[:, 0], q[:, 1], q[:, 2]
@@ -113,9 +102,9 @@ def refine_pose_near_far(X: np.ndarray, C: np.ndarray, cov_c: np.ndarray, W: np.
                          far: np.ndarray, uv: np.ndarray, intrinsics: tuple, sigma_pixel: float,
                          iterations: int = 8, huber: float = 3.0,
                          rotation_only: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`refine_pose_mahalanobis` for a stereo frame whose points are split by
-    :func:`split_near_far`: the near pairs (``~far``) as 3-D residuals with the stereo covariances,
-    the far pairs as bearing-only residuals (:func:`bearing_residuals` of their world partner at the
+    """:func:`refine_pose_mahalanobis` for a stereo frame whose points are split into near and far
+    (the stereo fallback: far = a pair without depth in the tracking range): the near pairs (``~far``)
+    as 3-D residuals with the stereo covariances, the far pairs as bearing-only residuals (:func:`bearing_residuals` of their world partner at the
     current frame's pixel ``uv``; the current point's own depth is not used). Huber on each pair's
     Mahalanobis distance (2 dof for a bearing, 3 for a 3-D pair).
 
