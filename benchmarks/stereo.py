@@ -4,8 +4,9 @@ stereo with exact ground truth.
 Usage::
 
     python -m benchmarks.stereo [--seeds 0,1,2] [--frames 150] [--motions loop,circle]
-        [--work DIR] [--json FILE] [--parts depth,disparity,kitti,synthetic,oracle,speed] [--repeats 3]
+        [--work DIR] [--json FILE] [--parts depth,disparity,kitti,synthetic,oracle,orb,speed] [--repeats 3]
         [--methods sparse,...] [--set KEY=VALUE ...] [--tag NAME] [--reuse-rgbd] [--oracle-modes ...]
+        [--orb-rounds 2] [--highway-seeds 0,1,2,3,4]
 
 1. Depth accuracy: synthetic stereo pairs (0.12 m baseline, 640x480, image noise) against the
    exact rendered depth: disparity error (median = bias, 1.4826 * MAD = sigma, share > 1 px) and
@@ -18,7 +19,7 @@ Usage::
    default config: ATE of each and the ratio stereo / RGB-D (target <= 1.5), for each stereo
    variant of ``--methods`` (sparse with the ORB or the row search, SGBM).
    ``--set`` adds config settings to every stereo run (``--tag`` keeps their run folders apart).
-   Parts 1-3 are run by default; ``disparity`` and ``oracle`` only when asked for:
+   Parts 1-5 are run by default; ``disparity`` and ``oracle`` only when asked for:
    * ``disparity``: per-point sparse disparity error against the exact rendered depth for each
      ``stereo.subpixel`` method (bias, spread, mean error by the true sub-pixel fraction, by depth, by
      image column), and on KITTI the consistency of consecutive frames' disparities moved by the
@@ -26,7 +27,15 @@ Usage::
    * ``oracle``: the synthetic stereo runs again with the depth at the stereo key points replaced by
      the exact depth, the exact depth + Kinect noise, or the exact disparity + Gaussian noise, with
      and without ``registration.noise_refit``: what the depth errors cost, and what the rest does.
-4. Speed: the whole pipeline on KITTI-sized pairs (1226x370) with each depth method, next to the
+4. ``orb``: ORB-SLAM3 stereo (../shared/peers/orbslam3/run_orb_stereo.py, its own venv) and rgbdslam's
+   ``kitti`` preset on the same pairs in the same run, interleaved for ``--orb-rounds`` rounds: KITTI 06 0-50
+   and the synthetic highway (``rgbdslam synth --stereo 0.54 --motion highway --size 1241 376 -n 51 --noise``,
+   ``--highway-seeds``; ORB-SLAM3 gets the KITTI 04-12 settings with the folder's calib.txt). ATE, lost frames,
+   ATE / distance driven, and the ratios: ATE rgbdslam / ORB-SLAM3 (median of its rounds; < 1 better) and CPU
+   time per pair ORB-SLAM3 / rgbdslam (> 1: rgbdslam cheaper). CPU time is of the whole process, every
+   thread; ORB-SLAM3's start-up (vocabulary) is taken out by a run on the first two pairs. Skipped with a
+   message when the peer is not installed.
+5. Speed: the whole pipeline on KITTI-sized pairs (1226x370) with each depth method, next to the
    RGB-D pipeline on TUM fr1/rpy (640x480) in the same process, so that a ratio survives a
    shared machine: frames/s are quoted with the fr1/rpy frames/s measured in the same run.
    The ``speed`` part interleaves KITTI (sparse) with one and two reader threads and fr1/rpy for
@@ -309,6 +318,96 @@ def reader_breakdown(frames: int = 51) -> dict:
     return out
 
 
+def orb_stereo_settings(seq_dir: Path, out: Path) -> Path:
+    """ORB-SLAM3 stereo settings for a KITTI-layout sequence folder (``sequences/NN``): the peer's KITTI
+    04-12 file with the folder's ``calib.txt`` (fx, fy, cx, cy, baseline) and image size, written to ``out``."""
+    import re
+
+    import cv2
+
+    from benchmarks.common import orb_settings
+    from rgbdslam.io.kitti import read_kitti_calib
+
+    P = read_kitti_calib(seq_dir / "calib.txt")
+    P0, P1 = P["P0"], P["P1"]
+    b = -(P1[0, 3] - P0[0, 3]) / P1[0, 0]
+    h, w = cv2.imread(str(sorted((seq_dir / "image_0").glob("*.png"))[0]), cv2.IMREAD_GRAYSCALE).shape
+    text = orb_settings("kitti").read_text()
+    for key, v in {"fx": P0[0, 0], "fy": P0[1, 1], "cx": P0[0, 2], "cy": P0[1, 2]}.items():
+        text = re.sub(rf"^(Camera[12]\.{key}): .*$", rf"\g<1>: {v:.6f}", text, flags=re.M)
+    text = re.sub(r"^Camera\.width: .*$", f"Camera.width: {w}", text, flags=re.M)
+    text = re.sub(r"^Camera\.height: .*$", f"Camera.height: {h}", text, flags=re.M)
+    text = re.sub(r"^Stereo\.b: .*$", f"Stereo.b: {b:.6f}", text, flags=re.M)
+    text = re.sub(r"(data: \[1\.0, 0\.0, 0\.0, )[-0-9.e]+,", rf"\g<1>{b:.6f},", text)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    return out
+
+
+def orb_stereo_run(seq_dir: Path, settings: Path, out: Path, gt) -> dict:
+    """One ORB-SLAM3 stereo run on ``seq_dir`` (``sequences/NN``): ATE, lost frames, median
+    ``track_stereo`` ms, and the CPU seconds of its process (every thread, start-up included)."""
+    import resource
+
+    from benchmarks.common import run_orbslam3
+
+    def children_cpu() -> float:
+        r = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return r.ru_utime + r.ru_stime
+
+    c0 = children_cpu()
+    m = run_orbslam3(seq_dir, settings, out, gt, stereo=True)
+    return {"ate": m.ate, "lost": m.lost, "frames": m.frames, "track_ms": m.ms, "cpu_s": children_cpu() - c0}
+
+
+def orb_startup_cpu(seq_dir: Path, settings: Path, work: Path, gt) -> float:
+    """CPU seconds of an ORB-SLAM3 stereo run on the first two pairs of ``seq_dir`` (its start-up:
+    vocabulary, threads; subtracted from a whole run to get its CPU time per pair)."""
+    short = work / "orb_startup" / f"{seq_dir.parent.parent.name}_{seq_dir.name}"
+    for cam in ("image_0", "image_1"):
+        (short / cam).mkdir(parents=True, exist_ok=True)
+        for f in sorted((seq_dir / cam).glob("*.png"))[:2]:
+            if not (short / cam / f.name).exists():
+                (short / cam / f.name).symlink_to(f.resolve())
+    return orb_stereo_run(short, settings, short.with_name(short.name + "_run"), gt)["cpu_s"]
+
+
+def orb_comparison(work: Path, rounds: int, seeds: list[int]) -> dict:
+    """rgbdslam (``kitti`` preset) and ORB-SLAM3 stereo on KITTI 06 0-50 and the synthetic highway seeds,
+    the same pairs, interleaved rounds (rgbdslam is deterministic: its rounds agree; ORB-SLAM3's vary)."""
+    from benchmarks.common import orbslam3_missing
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
+
+    why = orbslam3_missing()
+    if why:
+        print(why, flush=True)
+        return {"skipped": why}
+    cases = [("KITTI 06 0-50", KITTI)]
+    for s in seeds:
+        path = work / f"highway_s{s}"
+        if not (path / "synthetic.yaml").exists():
+            generate_stereo_sequence(path, 0.54, "kitti", frames=51, motion="highway", width=1241, height=376,
+                                     noise=True, seed=s)
+        cases.append((f"highway seed {s}", path))
+    out = {}
+    for name, path in cases:
+        seq = open_sequence(path, load_config("kitti", []))
+        seq_dir = sorted((path / "sequences").iterdir())[0]  # KITTI layout: sequences/NN
+        gt = seq.groundtruth()
+        settings = orb_stereo_settings(seq_dir, work / "orb_settings" / f"{name.replace(' ', '_')}.yaml")
+        startup = orb_startup_cpu(seq_dir, settings, work, gt)
+        row = {"rgbdslam": [], "orb": [], "orb_startup_cpu_s": startup,
+               "distance_m": float(np.linalg.norm(np.diff(gt.positions, axis=0), axis=1).sum())}
+        for k in range(rounds):
+            row["rgbdslam"].append(run(path, "kitti", [], work / f"orbcmp_{name.replace(' ', '_')}_{k}"))
+            row["orb"].append(orb_stereo_run(seq_dir, settings, work / f"orb_{name.replace(' ', '_')}_{k}", gt))
+            print("orb comparison", name, k, json.dumps(row["rgbdslam"][-1]), json.dumps(row["orb"][-1]), flush=True)
+        out[name] = row
+    return out
+
+
 def speed(work: Path, repeats: int) -> dict:
     """Whole pipeline (mapping off) on KITTI 06 0-50 with sparse depth, one and two reader threads,
     and fr1/rpy 200 (RGB-D, tum_fr1) as the machine's reference, interleaved ``repeats`` times so
@@ -335,11 +434,13 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--skip-synthetic", action="store_true")
-    ap.add_argument("--parts", default="depth,kitti,synthetic,speed",
+    ap.add_argument("--parts", default="depth,kitti,orb,synthetic,speed",
                     help="comma list of the parts to run: depth (accuracy), disparity (per-point sparse disparity "
                          "errors by sub-pixel method, synthetic exact and KITTI consistency), kitti (+ fr1/rpy), "
                          "synthetic, oracle (synthetic stereo with exact / noisy true depth), speed")
     ap.add_argument("--repeats", type=int, default=3, help="rounds of the speed part")
+    ap.add_argument("--orb-rounds", type=int, default=2, help="rounds of the orb part (ORB-SLAM3 varies per run)")
+    ap.add_argument("--highway-seeds", default="0,1,2,3,4", help="synthetic highway seeds of the orb part")
     ap.add_argument("--methods", default="sparse,row,sgbm", help="stereo depth variants of the synthetic part: "
                     + ", ".join(f"{k} ({' '.join(v)})" for k, v in METHODS.items()))
     ap.add_argument("--set", action="append", default=[], dest="sets", metavar="KEY=VALUE",
@@ -378,6 +479,8 @@ def main() -> None:
         kitti["rgbd_fr1_rpy"] = run(RPY, "tum_fr1", [], work / "rpy")
         print("fr1/rpy", kitti["rgbd_fr1_rpy"], flush=True)
     report["kitti"] = kitti
+    if "orb" in parts:
+        report["orb"] = orb_comparison(work, args.orb_rounds, [int(s) for s in args.highway_seeds.split(",")])
 
     synth = []
     if "synthetic" in parts:
@@ -446,6 +549,8 @@ def print_markdown(r: dict) -> None:
         print_disparity(r["disparity"], r["kitti_disparity"])
     if r["kitti"]:
         print_kitti(r["kitti"])
+    if r.get("orb") and "skipped" not in r["orb"]:
+        print_orb(r["orb"])
     if r["synthetic"]:
         print_synthetic(r["synthetic"])
     if r.get("oracle"):
@@ -519,6 +624,24 @@ def print_kitti(kitti: dict) -> None:
               f"{d['lost']} | {d['fps']:.1f} | {d['fps'] / ref:.2f} |")
     d = kitti["rgbd_fr1_rpy"]
     print(f"| (RGB-D fr1/rpy 200, tum_fr1) | {d['ate']:.4f} | | | | {d['lost']} | {d['fps']:.1f} | 1.00 |")
+
+
+def print_orb(orb: dict) -> None:
+    print("\n| sequence (distance) | rgbdslam ATE (m), lost | ATE / distance | ORB-SLAM3 stereo ATE (m), lost, per round | "
+          "ATE ratio rgbdslam / ORB-SLAM3 | CPU ms per pair rgbdslam / ORB-SLAM3 | CPU ratio ORB-SLAM3 / rgbdslam | "
+          "wall ms per frame rgbdslam / ORB-SLAM3 track_stereo (medians) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, row in orb.items():
+        a, o = row["rgbdslam"], row["orb"]
+        ate = a[0]["ate"]
+        orb_ate = float(np.median([x["ate"] for x in o]))
+        ours_cpu = float(np.median([x["cpu_ms_per_frame"] for x in a]))
+        orb_cpu = float(np.median([1e3 * (x["cpu_s"] - row["orb_startup_cpu_s"]) / max(1, x["frames"] - 2) for x in o]))
+        wall = float(np.median([1e3 / x["fps"] for x in a]))
+        print(f"| {name} ({row['distance_m']:.1f} m) | {ate:.4f}, {a[0]['lost']} | {100 * ate / row['distance_m']:.2f} % | "
+              + " / ".join(f"{x['ate']:.4f}, {x['lost']}" for x in o)
+              + f" | {ate / orb_ate:.2f} | {ours_cpu:.0f} / {orb_cpu:.0f} | {orb_cpu / ours_cpu:.2f} | "
+              f"{wall:.0f} / {np.median([x['track_ms'] for x in o]):.0f} |")
 
 
 def print_synthetic(synth: list[dict]) -> None:
