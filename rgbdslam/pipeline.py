@@ -139,7 +139,6 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     summary["first_frame_s"] = run.first_frame_s
     if run.interrupted:
         summary["stopped_during"] = "tracking"
-    record.stage = "writing the trajectory"
     record.stage = "saving the map"
     final = save_map_of_run(out_dir, slam, seq, cfg, session, summary, final, console)
     record.stage = "writing the trajectory"
@@ -185,7 +184,7 @@ def announce_camera(seq: Sequence, console) -> None:
     ground truth, when it does); warn when the camera is only a guess."""
     if seq.groundtruth_convention:
         console.print(f"ground truth: {seq.groundtruth_convention}", highlight=False)
-    setup = getattr(seq, "camera_setup", None)
+    setup = seq.camera_setup
     if setup is None:
         console.print(f"camera {seq.camera.name or 'custom'}: fx {seq.camera.fx:g} fy {seq.camera.fy:g} "
                       f"cx {seq.camera.cx:g} cy {seq.camera.cy:g}", highlight=False)
@@ -217,7 +216,7 @@ def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
     """The map fused while tracking (:mod:`rgbdslam.mapping.live`) when the map is made of the
     keyframes and ``mapping.live``; None otherwise (the map is fused after the run)."""
     m = cfg.mapping
-    if not (m.enabled and m.live and m.keyframes_only) or getattr(seq, "streaming", False):
+    if not (m.enabled and m.live and m.keyframes_only) or seq.streaming:
         return None  # a stream's frames cannot be read again for re-integration
     if getattr(seq, "rig", None) is not None and cfg.stereo.map_depth not in ("same", cfg.stereo.depth):
         return None  # stereo: the map wants other depth than tracking (stereo.map_depth): fused after the run

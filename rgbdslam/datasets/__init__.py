@@ -92,7 +92,7 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
     cam = seq.camera
     gt = seq.groundtruth()
     span = float(ts[-1] - ts[0]) if len(ts) else 0.0
-    setup = getattr(seq, "camera_setup", None)
+    setup = seq.camera_setup
     lines = [
         f"sequence    {seq.root}",
         f"reader      {type(seq).__name__}",

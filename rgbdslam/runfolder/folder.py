@@ -91,7 +91,8 @@ def make_way_for_run(out_dir: Path) -> bool:
     anything else at those names — a user's file, also inside ``map/`` or ``plots/``, a link,
     an export's folder written with ``--out`` — is an InputError naming it, before anything moves;
     so is anything in ``previous/`` its own manifest does not list. The moves are renames (no
-    disk space needed) with Ctrl-C deferred; the manifest goes along with the files it lists."""
+    disk space needed) with Ctrl-C deferred; the manifest entries go along with the files they list
+    (other entries, such as a batch's tables written here, stay)."""
     m = Manifest(out_dir)
     fix = "move it away or choose another --out (a new run replaces only what rgbdslam wrote there)"
     m.check_way([name for name in RUN_ARTEFACTS if name != EXPORT_DIR], [RUN], fix)
@@ -112,10 +113,14 @@ def make_way_for_run(out_dir: Path) -> bool:
         if os.path.lexists(prev):
             shutil.rmtree(prev)
         prev.mkdir()
-        if m.exists:
-            os.replace(m.path, prev / MANIFEST)  # first: whatever follows, previous/ says what is ours
+        if m.exists:  # first: whatever follows, previous/ says what is ours
+            moved = Manifest(prev)
+            moved.entries = {k: v for k, v in m.entries.items() if k.split("/", 1)[0] in present}
+            moved.complete = m.complete
+            moved.save()
         for name in present:
             os.replace(out_dir / name, prev / name)
+        m.forget(present)  # what stays (a batch's or a sweep's tables written here) stays listed
     return True
 
 
@@ -172,7 +177,7 @@ def run_summary(seq: Sequence, slam, n_frames: int, wall: float, load_time: floa
         "sequence": str(Path(seq.root).resolve()),
         "dataset_kind": type(seq).__name__,
         "camera": seq.camera.name,
-        "camera_source": seq.camera_setup.source if getattr(seq, "camera_setup", None) is not None else "",
+        "camera_source": seq.camera_setup.source if seq.camera_setup is not None else "",
         "frames": n_frames,
         "tracked": tracked,
         "lost": len(st.lost),
