@@ -170,7 +170,7 @@ def mostly_lost(seq: Sequence, summary: dict[str, Any]) -> str | None:
     lost, tracked = summary["lost"], summary["tracked"]
     if lost <= tracked:
         return None
-    if getattr(seq, "rig", None) is not None:  # stereo: depth from the pair, no depth scale
+    if seq.rig is not None:  # stereo: depth from the pair, no depth scale
         fix = "a wrong preset (--config kitti for a car-mounted rig) or stereo calibration"
     else:
         fix = ("a wrong preset (--config, e.g. tum_fr1 for TUM freiburg1), camera (--camera FILE) or depth scale "
@@ -218,7 +218,7 @@ def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
     m = cfg.mapping
     if not (m.enabled and m.live and m.keyframes_only) or seq.streaming:
         return None  # a stream's frames cannot be read again for re-integration
-    if getattr(seq, "rig", None) is not None and cfg.stereo.map_depth not in ("same", cfg.stereo.depth):
+    if seq.rig is not None and cfg.stereo.map_depth not in ("same", cfg.stereo.depth):
         return None  # stereo: the map wants other depth than tracking (stereo.map_depth): fused after the run
     from rgbdslam.mapping.live import LiveMap
 

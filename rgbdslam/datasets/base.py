@@ -46,6 +46,7 @@ class Sequence(ABC):
     # the reader finds the key points itself (features.n_features of them) and its depth holds only
     # theirs (sparse stereo): the landmark map cannot be given more (landmarks.n_features is ignored)
     own_key_points: bool = False
+    rig: Any = None  # stereo sources: the rectified geometry.stereo.StereoRig (depth from the pair); None for RGB-D
 
     @property
     @abstractmethod
@@ -55,6 +56,11 @@ class Sequence(ABC):
     @abstractmethod
     def load(self, i: int) -> Frame:
         """Read frame ``i`` from disk (raises InputError naming the file if unreadable)."""
+
+    def configure(self, cfg, purpose: str = "track") -> None:
+        """Take what the reader needs from the whole config (``cfg``, a :class:`Config`) besides its
+        dataset section; ``purpose``: "track" or "map". Nothing for most readers (a stereo reader takes
+        its depth method)."""
 
     def groundtruth(self) -> Trajectory | None:
         """The ground-truth trajectory if the sequence has one."""
