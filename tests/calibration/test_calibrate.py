@@ -84,3 +84,16 @@ def test_rolling_shutter_finds_fr1s_readout_from_its_loop_closures(tmp_path):
     assert all(len(d) >= 10 for d in at.values())  # the runs closed loops to judge by
     med = {v: float(np.median(d[:, 1])) for v, d in at.items()}
     assert med["0.0175"] < 0.5 * med["0"] and med["0.0175"] < med["0.035"]
+
+
+def test_a_camera_file_varied_per_value_keeps_its_other_keys(tmp_path):
+    """--camera-key fx,fy: each value's run reads a copy of the camera file with those keys set."""
+    from rgbdslam.calibration.rolling_shutter import camera_variant
+
+    copy = camera_variant(SHIPPED, ["fx", "fy"], 525.0, tmp_path)
+    setup, shipped = read_camera_file(copy), read_camera_file(SHIPPED)
+    assert (setup.camera.fx, setup.camera.fy) == (525.0, 525.0)
+    assert (setup.camera.cx, setup.depth_camera, setup.depth_scale) == (shipped.camera.cx, shipped.depth_camera,
+                                                                         shipped.depth_scale)
+    res = cli(["calibrate", "rolling-shutter", tmp_path, "--camera-key", "fx", "--values", "500"])
+    assert res.exit_code == 2 and "--camera-key needs --set dataset.camera_file=FILE" in res.stderr
