@@ -403,7 +403,7 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
 
 def groundtruth_name(seq: Sequence) -> str:
     """The ground-truth file's path, as `rgbdslam evaluate --json` names it."""
-    path = seq.groundtruth_path() if hasattr(seq, "groundtruth_path") else Path(seq.root) / "groundtruth.txt"
+    path = seq.groundtruth_path()
     return str(path) if path is not None else "ground truth"
 
 

@@ -66,6 +66,11 @@ class Sequence(ABC):
         """The ground-truth trajectory if the sequence has one."""
         return None
 
+    def groundtruth_path(self) -> Path | None:
+        """The file the ground truth comes from, as `evaluate --json` names it (default: the folder's
+        groundtruth.txt; a reader whose ground truth is elsewhere says where)."""
+        return Path(self.root) / "groundtruth.txt"
+
     def __len__(self) -> int:
         return len(self.timestamps)
 

@@ -113,14 +113,16 @@ def make_way_for_run(out_dir: Path) -> bool:
         if os.path.lexists(prev):
             shutil.rmtree(prev)
         prev.mkdir()
-        if m.exists:  # first: whatever follows, previous/ says what is ours
-            moved = Manifest(prev)
-            moved.entries = {k: v for k, v in m.entries.items() if k.split("/", 1)[0] in present}
-            moved.complete = m.complete
-            moved.save()
+        if m.exists:
+            os.replace(m.path, prev / MANIFEST)  # first (a rename: no disk space): previous/ says what is ours
         for name in present:
             os.replace(out_dir / name, prev / name)
-        m.forget(present)  # what stays (a batch's or a sweep's tables written here) stays listed
+        stay = {k: v for k, v in m.entries.items() if k.split("/", 1)[0] not in present}
+        if stay:  # what stays here (a batch's or a sweep's tables) stays listed here, and only here
+            here = Manifest(out_dir)
+            here.entries, here.complete = stay, m.complete
+            here.save()
+            Manifest(prev).forget(stay)
     return True
 
 
