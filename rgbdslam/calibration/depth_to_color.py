@@ -92,7 +92,7 @@ def open_as_recorded(path, work) -> Sequence:
     recording, not from an earlier calibration."""
     from pathlib import Path
 
-    from rgbdslam.config import DatasetConfig
+    from rgbdslam.datasets.config import DatasetConfig
 
     seq = open_sequence(path)
     setup = seq.camera_setup
