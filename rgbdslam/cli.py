@@ -361,6 +361,87 @@ def info(sequence, config_path, overrides, camera_file, first_frame, stride, max
         click.echo(f"preset      {choice.name}: {choice.reason} (what `run` uses without --config)")
 
 
+@main.group()
+def calibrate() -> None:
+    """Measure a camera's calibration from a recording, without ground truth."""
+
+
+@calibrate.command("depth-to-color")
+@click.argument("sequence", type=PATH)
+@click.option("--frames", type=click.IntRange(min=1), default=15, show_default=True,
+              help="Frames sampled evenly over the sequence.")
+@click.option("--focal", default="500:600:5", show_default=True, help="Colour focal lengths lo:hi:step (pixels).")
+@click.option("--tx", default="-0.06:0.06:0.005", show_default=True,
+              help="Depth-to-colour x translations lo:hi:step (m).")
+@click.option("--ty", default="-0.03:0.03:0.005", show_default=True,
+              help="Depth-to-colour y translations lo:hi:step (m).")
+@click.option("--out", "out_file", type=click.Path(path_type=Path), default=None,
+              help="Write a camera file (for run --camera) with the best values.")
+@click.option("--check", multiple=True, type=PATH, metavar="CAMERA_FILE",
+              help="Also score this camera file (e.g. a published calibration) on the same frames; repeatable.")
+def calibrate_depth_to_color(sequence, frames, focal, tx, ty, out_file, check):
+    """The colour focal length and depth-to-colour offset of SEQUENCE's unregistered depth: the
+    grid setting that puts the depth images' outlines onto colour edges (docs/formats.md "7-Scenes")."""
+    import tempfile
+
+    from rgbdslam.calibration import depth_to_color as d2c
+
+    grids = [d2c.grid(text, name) for text, name in ((focal, "--focal"), (tx, "--tx"), (ty, "--ty"))]
+    with tempfile.TemporaryDirectory(prefix="rgbdslam_calibrate_") as tmp:
+        seq = d2c.open_as_recorded(sequence, tmp)
+        samples = d2c.samples_of(seq, frames)
+    ranked = d2c.search(samples, seq.camera, *grids)
+    recorded = d2c.score(samples, seq.camera.fx, seq.camera.cx, seq.camera.cy)
+    click.echo(f"{len(ranked)} settings, {len(samples)} frames")
+    click.echo(f"as recorded (colour = depth camera, no offset): score {recorded:.2f}")
+    for s in ranked[:5]:
+        click.echo(f"score {s.score:.2f}: colour focal {s.focal:g}, depth-to-colour t = ({s.tx:+.3f}, {s.ty:+.3f}, 0) m")
+    for path in check:
+        value, what = d2c.score_camera_file(samples, path)
+        click.echo(f"score {value:.2f}: {path} ({what})")
+    if out_file is not None:
+        command = f"rgbdslam calibrate depth-to-color {sequence} --frames {frames} --focal {focal} --tx {tx} --ty {ty}"
+        d2c.write_camera_file(out_file, seq, ranked[0], recorded, command)
+        click.echo(f"wrote {out_file}")
+
+
+@calibrate.command("rolling-shutter")
+@click.argument("sequence", type=PATH)
+@click.option("--values", "--readouts", "values", default="0,0.005,0.01,0.015,0.02,0.025,0.03", show_default=True,
+              help="Candidate values, comma-separated (readout times in seconds).")
+@click.option("--key", default="features.rolling_shutter", show_default=True,
+              help="The config key the values are for.")
+@click.option("--camera-key", default=None, metavar="KEY[,KEY]",
+              help="Camera-file keys the values are for instead (e.g. fx,fy), with --set dataset.camera_file=FILE.")
+@click.option("--work", type=click.Path(path_type=Path), default=None,
+              help="Folder for the runs (one per value; default a new temporary folder, kept).")
+@config_option
+@set_option
+def calibrate_rolling_shutter(sequence, values, key, camera_key, work, config_path, overrides):
+    """The rolling-shutter readout (or another value) at which SEQUENCE's odometry agrees best with
+    its loop closures: one full run per value, no ground truth used (docs/slam.md "Rolling shutter")."""
+    import tempfile
+
+    from rgbdslam.calibration import rolling_shutter as rs
+
+    try:
+        candidates = [float(v) for v in values.split(",")]
+    except ValueError:
+        raise click.BadParameter(f"'{values}' is not comma-separated numbers", param_hint="--values") from None
+    what = camera_key or key
+    work = work or Path(tempfile.mkdtemp(prefix="rgbdslam_calibrate_rs_"))
+    click.echo(f"runs in {work}")
+    found = rs.calibrate(sequence, candidates, work, list(overrides), key=key,
+                         camera_keys=camera_key.split(",") if camera_key else None,
+                         config=lambda sets: sequence_config(sequence, config_path, sets)[0],
+                         report=lambda c: click.echo(c.line(what)))
+    best = rs.best(found)
+    if best is None:
+        click.echo("no run closed a loop: nothing to judge the values by")
+    else:
+        click.echo(f"smallest loop/odometry rotation discrepancy at {what} = {best.value:g}")
+
+
 # ------------------------------------------------------------------ commands added by stages
 
 @main.command()
@@ -603,8 +684,9 @@ def fuse(run_dir, overrides, render, quiet):
 
     Uses the run's config.yaml; --set mapping.KEY=VALUE changes it for this fusion."""
     from rgbdslam.mapping.fusion import fuse_command
+    from rgbdslam.viz.render import render_run
 
-    fuse_command(run_dir, overrides, progress=not quiet, render=render)
+    fuse_command(run_dir, overrides, progress=not quiet, render=render_run if render else None)
 
 
 def _export_help() -> str:

@@ -139,7 +139,6 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     summary["first_frame_s"] = run.first_frame_s
     if run.interrupted:
         summary["stopped_during"] = "tracking"
-    record.stage = "writing the trajectory"
     record.stage = "saving the map"
     final = save_map_of_run(out_dir, slam, seq, cfg, session, summary, final, console)
     record.stage = "writing the trajectory"
@@ -171,7 +170,7 @@ def mostly_lost(seq: Sequence, summary: dict[str, Any]) -> str | None:
     lost, tracked = summary["lost"], summary["tracked"]
     if lost <= tracked:
         return None
-    if getattr(seq, "rig", None) is not None:  # stereo: depth from the pair, no depth scale
+    if seq.rig is not None:  # stereo: depth from the pair, no depth scale
         fix = "a wrong preset (--config kitti for a car-mounted rig) or stereo calibration"
     else:
         fix = ("a wrong preset (--config, e.g. tum_fr1 for TUM freiburg1), camera (--camera FILE) or depth scale "
@@ -185,7 +184,7 @@ def announce_camera(seq: Sequence, console) -> None:
     ground truth, when it does); warn when the camera is only a guess."""
     if seq.groundtruth_convention:
         console.print(f"ground truth: {seq.groundtruth_convention}", highlight=False)
-    setup = getattr(seq, "camera_setup", None)
+    setup = seq.camera_setup
     if setup is None:
         console.print(f"camera {seq.camera.name or 'custom'}: fx {seq.camera.fx:g} fy {seq.camera.fy:g} "
                       f"cx {seq.camera.cx:g} cy {seq.camera.cy:g}", highlight=False)
@@ -217,9 +216,9 @@ def start_live_map(cfg: Config, seq: Sequence, out_dir: Path):
     """The map fused while tracking (:mod:`rgbdslam.mapping.live`) when the map is made of the
     keyframes and ``mapping.live``; None otherwise (the map is fused after the run)."""
     m = cfg.mapping
-    if not (m.enabled and m.live and m.keyframes_only) or getattr(seq, "streaming", False):
+    if not (m.enabled and m.live and m.keyframes_only) or seq.streaming:
         return None  # a stream's frames cannot be read again for re-integration
-    if getattr(seq, "rig", None) is not None and cfg.stereo.map_depth not in ("same", cfg.stereo.depth):
+    if seq.rig is not None and cfg.stereo.map_depth not in ("same", cfg.stereo.depth):
         return None  # stereo: the map wants other depth than tracking (stereo.map_depth): fused after the run
     from rgbdslam.mapping.live import LiveMap
 
@@ -404,7 +403,7 @@ def post_process(summary: dict[str, Any], slam: SLAM, final: Trajectory, gt: Tra
 
 def groundtruth_name(seq: Sequence) -> str:
     """The ground-truth file's path, as `rgbdslam evaluate --json` names it."""
-    path = seq.groundtruth_path() if hasattr(seq, "groundtruth_path") else Path(seq.root) / "groundtruth.txt"
+    path = seq.groundtruth_path()
     return str(path) if path is not None else "ground truth"
 
 

@@ -86,6 +86,35 @@ def test_no_import_cycle_in_the_package():
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
+def folder_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """The module graph seen by folder: ``rgbdslam.frontend.features`` is ``frontend``, a top-level
+    module (``rgbdslam.slam``) its own node; edges inside one folder are dropped. A stage's config
+    section (``rgbdslam.frontend.config``: a dataclass that imports only ``configspec``) belongs to
+    the config layer, ``config``, which composes the sections and which the stages import."""
+    def folder(m: str) -> str:
+        parts = m.split(".")
+        if len(parts) == 3 and parts[2] == "config":
+            return "config"
+        return parts[1] if len(parts) > 1 else parts[0]
+
+    out: dict[str, set[str]] = {}
+    for m, deps in graph.items():
+        out.setdefault(folder(m), set()).update(folder(d) for d in deps if folder(d) != folder(m))
+    return out
+
+
+def test_folders_import_one_way():
+    """No two folders import each other, through any chain: a module may not reach up into a folder
+    that imports its own (say ``datasets`` -> ``frontend`` -> ``datasets``), even inside a
+    function. The lower folder owns what both need, or the higher one passes a callable in."""
+    assert folder_graph({"rgbdslam.a.x": {"rgbdslam.b.y"}, "rgbdslam.b.y": {"rgbdslam.b.z"},
+                         "rgbdslam.b.z": {"rgbdslam.a.w"}, "rgbdslam.a.w": set()}) == {"a": {"b"}, "b": {"a"}}
+    assert folder_graph({"rgbdslam.config": {"rgbdslam.a.config"}, "rgbdslam.a.config": set(),
+                         "rgbdslam.a.x": {"rgbdslam.config"}}) == {"config": set(), "a": {"config"}}
+    cycle = find_cycle(folder_graph(import_graph()))
+    assert cycle is None, "folder import cycle: " + " -> ".join(cycle)
+
+
 def test_layers_run_one_way():
     """The offline pose-graph tool never imports the SLAM back end or the front end; the
     evaluation imports neither; pure geometry imports nothing of the stages."""

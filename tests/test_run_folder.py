@@ -161,6 +161,31 @@ def test_previous_is_only_replaced_when_it_holds_nothing_but_ours(desk9, tmp_pat
     assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
 
 
+def test_tables_written_into_a_run_folder_stay_listed_when_the_run_moves_to_previous(desk9, tmp_path):
+    """A batch's (or sweep's) results tables written beside a single run's files: the next run moves
+    only the run's files and their manifest entries to previous/; the tables stay listed as ours
+    in the folder, so the batch may write them again."""
+    from rgbdslam.batch import SUMMARY_FILES
+    from rgbdslam.io.manifest import record_tables, tables_ready
+
+    run = tmp_path / "run"
+    assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK]).exit_code == 0
+    tables_ready(run, SUMMARY_FILES)  # what a batch does around writing its tables
+    for name in SUMMARY_FILES:
+        (run / name).write_text("first tables\n")
+    record_tables(run, SUMMARY_FILES)
+    for _ in range(2):  # the second time previous/ (the first run) is replaced as well
+        res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK])
+        assert res.exit_code == 0, res.output
+        tables_ready(run, SUMMARY_FILES)  # no InputError: still the batch's own tables
+        here = json.loads((run / ".rgbdslam-manifest.json").read_text())["entries"]
+        before = json.loads((run / "previous" / ".rgbdslam-manifest.json").read_text())["entries"]
+        assert all(here[name] == "table" and name not in before for name in SUMMARY_FILES)
+        assert before["trajectory.tum"] == "run" and here["trajectory.tum"] == "run"
+        assert not any(k.startswith("previous") for k in before)
+    assert (run / "summary.csv").read_text() == "first tables\n"
+
+
 # ----------------------------------------------------------------------------- class 7: disk full
 
 

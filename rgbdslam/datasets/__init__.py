@@ -80,7 +80,7 @@ def open_sequence(path: str | Path, cfg=None, purpose: str = "track") -> Sequenc
     if kind not in READERS:
         raise InputError(f"unknown dataset kind '{kind}'; choose one of {', '.join(available())}")
     seq = READERS[kind][1](path, cfg)
-    if full is not None and hasattr(seq, "configure"):
+    if full is not None:
         seq.configure(full, purpose)
     return seq
 
@@ -92,7 +92,7 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
     cam = seq.camera
     gt = seq.groundtruth()
     span = float(ts[-1] - ts[0]) if len(ts) else 0.0
-    setup = getattr(seq, "camera_setup", None)
+    setup = seq.camera_setup
     lines = [
         f"sequence    {seq.root}",
         f"reader      {type(seq).__name__}",
@@ -109,7 +109,7 @@ def describe_sequence(path: str | Path, cfg=None) -> str:
 
         first = seq.load(0)
         valid = first.depth[first.depth > 0]
-        if getattr(seq, "rig", None) is not None:  # stereo: the pair's geometry and the depth method
+        if seq.rig is not None:  # stereo: the pair's geometry and the depth method
             lines.append(f"stereo      baseline {seq.rig.baseline:.4f} m, depth from the pair: {seq.method} "
                          f"(sigma {first.depth_noise.sigma(10.0):.3f} m at 10 m)")
             lines.append(f"depth       frame 0: {valid.size} pixels, median "

@@ -5,65 +5,14 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from rgbdslam.frame import Frame, as_rgb, depth_warning  # noqa: F401  (the readers' record, here for them)
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.io.trajectory import Trajectory
-
-
-@dataclass
-class Frame:
-    """One RGB-D frame as every stage sees it (a stereo pair arrives as one too: the left image
-    and the depth computed from the pair, see datasets/stereo_base.py)."""
-
-    index: int  # position in the sequence (after stride/first_frame)
-    timestamp: float  # seconds (the colour image's time stamp)
-    rgb: np.ndarray  # (H, W, 3) uint8, RGB order, or (H, W) uint8 for a grey camera (see as_rgb)
-    depth: np.ndarray  # (H, W) float32 metres, 0 = no measurement
-    camera: Camera
-    name: str = ""  # e.g. the colour file's relative path, for messages
-    # seconds from the colour image's time to the depth image's (TUM freiburg1: 0-14 ms; 0 = taken
-    # together); features.depth_delay compensates the camera's motion over it
-    depth_delay: float = 0.0
-    # key points found ahead of time (frontend.features.detect, run in the reader thread), or None
-    detections: Any = field(default=None, repr=False, compare=False)
-    # stereo sources only: the rectified right image, and the depth noise model of the depth
-    # (geometry.stereo.DepthNoise: depth_noise.sigma(z) in metres, depth_noise.covariance(points));
-    # None for RGB-D cameras
-    right: np.ndarray | None = field(default=None, repr=False, compare=False)
-    depth_noise: Any = field(default=None, repr=False, compare=False)
-
-
-def as_rgb(image: np.ndarray) -> np.ndarray:
-    """A (H, W, 3) view of a colour image, or the grey image repeated in three channels."""
-    image = np.asarray(image)
-    return image if image.ndim == 3 else np.repeat(image[:, :, None], 3, axis=2)
-
-
-def depth_warning(frame: Frame) -> str | None:
-    """A sentence when the frame's metric depth does not look like an RGB-D camera's (wrong
-    ``dataset.depth_scale`` or an empty depth stream), else None. RGB-D cameras measure about
-    0.3-8 m, so a median of the valid pixels above 8 m or below 0.25 m is suspect. A heuristic:
-    it catches a scale off by 5 (TUM's 5000 per metre read as millimetres, or back) in most
-    indoor scenes, not every wrong scale."""
-    d = np.asarray(frame.depth)
-    valid = d[d > 0]
-    where = f"the depth of frame {frame.index}" + (f" ({frame.name})" if frame.name else "")
-    if valid.size < 0.01 * d.size:
-        return (f"{where} is almost empty ({valid.size} of {d.size} pixels); check the depth images "
-                f"and depth.txt pairing (tracking needs depth)")
-    med = float(np.median(valid))
-    if med > 8.0:
-        return (f"{where} has a median of {med:.1f} m, more than an RGB-D camera sees; if the images store "
-                f"millimetres set --set dataset.depth_scale=1000 (TUM uses 5000 per metre)")
-    if med < 0.25:
-        return (f"{where} has a median of {med * 100:.1f} cm, less than an RGB-D camera sees; check "
-                f"dataset.depth_scale (raw units per metre: TUM 5000, PUT/Kinect mm 1000)")
-    return None
 
 
 class _Deferred:
@@ -97,6 +46,7 @@ class Sequence(ABC):
     # the reader finds the key points itself (features.n_features of them) and its depth holds only
     # theirs (sparse stereo): the landmark map cannot be given more (landmarks.n_features is ignored)
     own_key_points: bool = False
+    rig: Any = None  # stereo sources: the rectified geometry.stereo.StereoRig (depth from the pair); None for RGB-D
 
     @property
     @abstractmethod
@@ -107,9 +57,19 @@ class Sequence(ABC):
     def load(self, i: int) -> Frame:
         """Read frame ``i`` from disk (raises InputError naming the file if unreadable)."""
 
+    def configure(self, cfg, purpose: str = "track") -> None:
+        """Take what the reader needs from the whole config (``cfg``, a :class:`Config`) besides its
+        dataset section; ``purpose``: "track" or "map". Nothing for most readers (a stereo reader takes
+        its depth method)."""
+
     def groundtruth(self) -> Trajectory | None:
         """The ground-truth trajectory if the sequence has one."""
         return None
+
+    def groundtruth_path(self) -> Path | None:
+        """The file the ground truth comes from, as `evaluate --json` names it (default: the folder's
+        groundtruth.txt; a reader whose ground truth is elsewhere says where)."""
+        return Path(self.root) / "groundtruth.txt"
 
     def __len__(self) -> int:
         return len(self.timestamps)

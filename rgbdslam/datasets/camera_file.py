@@ -12,7 +12,7 @@ sequence folder) gives the colour camera and, optionally, how the depth images r
     distortion: [0, 0, 0, 0, 0]   # OpenCV k1 k2 p1 p2 [k3] (alias: dist)
     depth_scale: 1000      # raw depth units per metre (TUM 5000, millimetres 1000)
     rolling_shutter: 0.0175  # seconds from the first row read to the last (0 = global shutter;
-                           # scripts/calibrate_rolling_shutter.py measures it from a recording)
+                           # `rgbdslam calibrate rolling-shutter` measures it from a recording)
     # depth images not registered to colour (two sensors): the depth camera and the pose of the
     # depth camera in the colour camera's frame; the reader then re-projects every depth image
     # into the colour image (DepthRegistration)

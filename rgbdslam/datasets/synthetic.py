@@ -27,7 +27,7 @@ import yaml
 
 from rgbdslam.errors import InputError
 from rgbdslam.geometry.camera import CAMERAS, Camera
-from rgbdslam.geometry.se3 import make_pose
+from rgbdslam.geometry.se3 import look_along
 from rgbdslam.io.atomic import atomic_write_text, in_final_place, interrupts_deferred, plain_permissions
 from rgbdslam.io.images import write_png
 from rgbdslam.io.manifest import SEQUENCE, Manifest
@@ -319,15 +319,6 @@ def scaled_camera(name: str, width: int, height: int) -> Camera:
 # ----------------------------------------------------------------------------- motion
 
 
-def _look(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
-    """Camera-to-world pose at ``position`` looking along ``forward`` (world z up, no roll)."""
-    z = forward / np.linalg.norm(forward)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return make_pose(np.stack([x, y, z], axis=1), position)
-
-
 def _rot(axis: int, angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     i, j = [(1, 2), (2, 0), (0, 1)][axis]
@@ -389,7 +380,7 @@ def _pose_ypr(position, yaw: float, pitch: float, roll: float = 0.0) -> np.ndarr
     """Camera at ``position`` looking along heading ``yaw`` (about world z, 0 = +x), ``pitch``
     (up positive) and rolled by ``roll`` about its optical axis."""
     fwd = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
-    P = _look(np.asarray(position, dtype=np.float64), fwd)
+    P = look_along(np.asarray(position, dtype=np.float64), fwd)
     if roll:
         P[:3, :3] = P[:3, :3] @ _rot(2, roll)
     return P
@@ -444,27 +435,27 @@ def trajectory_at(motion: str, u: np.ndarray, frames: int, phase: float = 0.0) -
     laps = max(1, int(round(last / FPS / FIGURE8_PERIOD)))
     for k in range(len(u)):
         if motion == "static":
-            poses[k] = _look(centre, ahead)
+            poses[k] = look_along(centre, ahead)
         elif motion == "xyz":
             w = 2 * np.pi * t[k]
             d = 0.3 * np.array([np.sin(w / 4.0), np.sin(w / 5.0), 0.6 * np.sin(w / 6.0)])
-            poses[k] = _look(centre + d, ahead)
+            poses[k] = look_along(centre + d, ahead)
         elif motion == "rpy":
             w = 2 * np.pi * t[k]
             roll, pitch, yaw = np.radians(20.0) * np.array([np.sin(w / 6.0), np.sin(w / 5.0), np.sin(w / 4.0)])
-            P = _look(centre, ahead)
+            P = look_along(centre, ahead)
             P[:3, :3] = P[:3, :3] @ _rot(1, yaw) @ _rot(0, pitch) @ _rot(2, roll)
             poses[k] = P
         elif motion == "loop":
             th = 2 * np.pi * s[k]
             radial = np.array([np.cos(th), np.sin(th), 0.0])
             pos = centre + 0.7 * radial + [0.0, 0.0, 0.1 * np.sin(2 * th)]
-            P = _look(pos, radial + [0.0, 0.0, -0.1 + 0.1 * np.cos(2 * th)])
+            P = look_along(pos, radial + [0.0, 0.0, -0.1 + 0.1 * np.cos(2 * th)])
             poses[k] = P
         elif motion == "circle":
             th = 2 * np.pi * s[k]
             pos = centre + 0.4 * np.array([0.0, np.sin(th), np.cos(th)])
-            poses[k] = _look(pos, np.array([3.0, 0.0, 1.2]) - pos)
+            poses[k] = look_along(pos, np.array([3.0, 0.0, 1.2]) - pos)
         elif motion == "figure8":
             th = 2 * np.pi * laps * s[k]
             pos = centre + np.array([0.8 * np.sin(th), 0.42 * np.sin(2 * th), 0.08 * np.sin(3 * th)])
@@ -475,7 +466,7 @@ def trajectory_at(motion: str, u: np.ndarray, frames: int, phase: float = 0.0) -
             th = np.radians(50.0) * np.sin(2 * np.pi * tt / 10.0) - np.pi  # facing the figure from -x
             r = ORBIT_RADIUS + 0.06 * np.sin(2 * np.pi * tt / 3.7)
             pos = ORBIT_CENTRE + [r * np.cos(th), r * np.sin(th), 0.3 + 0.05 * np.sin(2 * np.pi * tt / 2.9)]
-            poses[k] = _look(pos, ORBIT_CENTRE + [0.0, 0.03 * np.sin(2 * np.pi * tt / 2.3), 0.0] - pos)
+            poses[k] = look_along(pos, ORBIT_CENTRE + [0.0, 0.03 * np.sin(2 * np.pi * tt / 2.3), 0.0] - pos)
         else:  # revisit (no phase: validate_parameters refuses it)
             poses[k] = _revisit_pose(u[k], frames)
     return poses

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from rgbdslam.datasets.synthetic import Surface, _look
+from rgbdslam.datasets.synthetic import Surface
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.se3 import make_pose
+from rgbdslam.geometry.se3 import look_along, make_pose
 
 FPS = 10.0
 SPEED = 27.5  # m/s mean (25-30)
@@ -107,7 +107,7 @@ def highway_poses(u: np.ndarray, seed: int, path: RoadPath) -> np.ndarray:
         pos = c + LANE_OFFSET * left + np.array([0.0, 0.0, CAMERA_HEIGHT])
         pitch = np.radians(0.4) * np.sin(2 * np.pi * t[k] / 1.3 + ph)
         roll = np.radians(0.3) * np.sin(2 * np.pi * t[k] / 1.9 + 2 * ph)
-        P = _look(pos, fwd + np.array([0.0, 0.0, np.tan(pitch)]))
+        P = look_along(pos, fwd + np.array([0.0, 0.0, np.tan(pitch)]))
         c_r, s_r = np.cos(roll), np.sin(roll)
         Rz = np.array([[c_r, -s_r, 0.0], [s_r, c_r, 0.0], [0.0, 0.0, 1.0]])
         poses[k] = make_pose(P[:3, :3] @ Rz, P[:3, 3])

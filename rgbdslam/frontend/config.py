@@ -30,7 +30,7 @@ class FeaturesConfig:
         "rolling shutter: seconds from reading the first image row to the last (0 = global shutter); each key point is "
         "moved to the frame's time (the middle row's) with the constant-velocity model (geometry/depth_time.py "
         "row_motions, docs/slam.md \"Rolling shutter\"); None = the camera's own (Camera.readout: fr1 and the 7-Scenes "
-        "camera file 0.0175 s, measured without ground truth by scripts/calibrate_rolling_shutter.py; others 0)")] = None
+        "camera file 0.0175 s, measured without ground truth by `rgbdslam calibrate rolling-shutter`; others 0)")] = None
     shutter_velocity: Annotated[Literal["predict", "own"], Key(
         "the motion the rolling shutter is undone with: predict = the constant-velocity model (before the frame is "
         "registered); own = then again with the frame's own motion once it is tracked (for the later frames, the "

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from rgbdslam.datasets.base import Frame
+from rgbdslam.frame import Frame
 from rgbdslam.frontend.config import FeaturesConfig, MatchingConfig
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.depth_time import depth_at_colour_time, row_motions, shutter_corrected_pixels

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rgbdslam.datasets.base import Frame
+from rgbdslam.frame import Frame
 from rgbdslam.frontend.config import FeaturesConfig, MatchingConfig, RegistrationConfig
 from rgbdslam.frontend.features import Detections, FrameFeatures, extract_features, lift, reshutter, strongest, subset
 from rgbdslam.frontend.pairwise import PairRegistration, RegistrationResult, build_pair_registration

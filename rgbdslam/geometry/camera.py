@@ -67,7 +67,7 @@ class Camera:
 # readout only where measured (fr1); 0 = not compensated
 CAMERAS: dict[str, Camera] = {
     # fr1's rolling shutter readout (17.5 ms): the readout that makes fr1/rpy's odometry agree best with its
-    # loop closures, measured without ground truth (scripts/calibrate_rolling_shutter.py, docs/slam.md)
+    # loop closures, measured without ground truth (`rgbdslam calibrate rolling-shutter`, docs/slam.md)
     "fr1": Camera(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633), "fr1", 0.0175),
     "fr2": Camera(520.9, 521.0, 325.1, 249.7, 640, 480, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172), "fr2"),
     "fr3": Camera(535.4, 539.2, 320.1, 247.6, 640, 480, (0.0, 0.0, 0.0, 0.0, 0.0), "fr3"),

@@ -26,6 +26,17 @@ def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def look_along(position: np.ndarray, forward: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world pose (OpenCV axes: x right, y down, z forward) at ``position`` looking along
+    ``forward``, no roll about it: x is ``forward x up`` (``up`` must not be parallel to ``forward``)."""
+    z = np.asarray(forward, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_pose(np.stack([x, y, z], axis=1), position)
+
+
 def inv(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform (or a stack of them, shape (..., 4, 4))."""
     R = T[..., :3, :3]

@@ -21,7 +21,7 @@ import contextlib
 import resource
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -716,9 +716,10 @@ def map_paths() -> list[str]:
 
 
 def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (), progress: bool = True,
-                 render: bool = False) -> FuseResult:
+                 render: Callable[[Path, Path], list[Path]] | None = None) -> FuseResult:
     """``rgbdslam fuse``: the run's config with ``mapping.key=value`` overrides, fuse, print a
-    summary; ``render``: also PNG previews of the cloud and the mesh (:mod:`rgbdslam.viz.render`)."""
+    summary; ``render(run_dir, map_dir)``: also write images of the map while the folder is held
+    and print the paths it returns (the CLI's ``--render`` passes :func:`rgbdslam.viz.render.render_run`)."""
     from rgbdslam.ui import console
 
     from rgbdslam.runfolder.folder import folder_lock
@@ -742,10 +743,8 @@ def fuse_command(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (
             f"{res.n_points} cloud points, {res.n_triangles} mesh triangles -> {res.out_dir}",
             soft_wrap=True,
         )
-        if render:
-            from rgbdslam.viz.render import render_run
-
+        if render is not None:
             with map_of(run_dir):
-                for p in render_run(run_dir, res.out_dir):
+                for p in render(run_dir, res.out_dir):
                     console.print(f"rendered {p}", soft_wrap=True, highlight=False)
     return res

@@ -91,7 +91,8 @@ def make_way_for_run(out_dir: Path) -> bool:
     anything else at those names — a user's file, also inside ``map/`` or ``plots/``, a link,
     an export's folder written with ``--out`` — is an InputError naming it, before anything moves;
     so is anything in ``previous/`` its own manifest does not list. The moves are renames (no
-    disk space needed) with Ctrl-C deferred; the manifest goes along with the files it lists."""
+    disk space needed) with Ctrl-C deferred; the manifest entries go along with the files they list
+    (other entries, such as a batch's tables written here, stay)."""
     m = Manifest(out_dir)
     fix = "move it away or choose another --out (a new run replaces only what rgbdslam wrote there)"
     m.check_way([name for name in RUN_ARTEFACTS if name != EXPORT_DIR], [RUN], fix)
@@ -113,9 +114,15 @@ def make_way_for_run(out_dir: Path) -> bool:
             shutil.rmtree(prev)
         prev.mkdir()
         if m.exists:
-            os.replace(m.path, prev / MANIFEST)  # first: whatever follows, previous/ says what is ours
+            os.replace(m.path, prev / MANIFEST)  # first (a rename: no disk space): previous/ says what is ours
         for name in present:
             os.replace(out_dir / name, prev / name)
+        stay = {k: v for k, v in m.entries.items() if k.split("/", 1)[0] not in present}
+        if stay:  # what stays here (a batch's or a sweep's tables) stays listed here, and only here
+            here = Manifest(out_dir)
+            here.entries, here.complete = stay, m.complete
+            here.save()
+            Manifest(prev).forget(stay)
     return True
 
 
@@ -172,7 +179,7 @@ def run_summary(seq: Sequence, slam, n_frames: int, wall: float, load_time: floa
         "sequence": str(Path(seq.root).resolve()),
         "dataset_kind": type(seq).__name__,
         "camera": seq.camera.name,
-        "camera_source": seq.camera_setup.source if getattr(seq, "camera_setup", None) is not None else "",
+        "camera_source": seq.camera_setup.source if seq.camera_setup is not None else "",
         "frames": n_frames,
         "tracked": tracked,
         "lost": len(st.lost),

@@ -397,6 +397,6 @@ def frame_warning(frame) -> str | None:
     """The first frame's sanity check for any source: :func:`stereo_warning` for a stereo frame
     (its depth ranges are the rig's, the pair must be rectified), else the RGB-D depth check
     ``datasets.base.depth_warning``."""
-    from rgbdslam.datasets.base import depth_warning
+    from rgbdslam.frame import depth_warning
 
     return stereo_warning(frame) if frame.right is not None else depth_warning(frame)

@@ -22,6 +22,7 @@ import open3d as o3d
 import yaml
 
 from rgbdslam.errors import InputError
+from rgbdslam.geometry.se3 import inv, look_along
 from rgbdslam.io.atomic import atomic_path
 from rgbdslam.io.trajectory import read_tum
 
@@ -38,15 +39,7 @@ def up_vector(run_dir: Path, poses: np.ndarray) -> np.ndarray:
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     """World-to-camera (OpenCV axes: x right, y down, z forward) looking from eye at target."""
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)  # right = forward x up
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z])
-    T[:3, 3] = -T[:3, :3] @ eye
-    return T
+    return inv(look_along(eye, target - eye, up))
 
 
 def default_view(points: np.ndarray, poses: np.ndarray, up: np.ndarray,

@@ -415,3 +415,50 @@ def test_error_line_numbers_count_newlines_only(tmp_path):
     p.write_text("# exported\x0cby a tool\r\n1.0 0 0 0 0 0 0 1\r\nnot a pose\r\n")
     with pytest.raises(InputError, match=r"t.tum:3: expected 8 numbers"):
         read_tum(p)
+
+
+def test_a_new_reader_is_one_class_declared_with_reader(tmp_path):
+    """A reader is a Sequence subclass declared with @reader(name, detect): open_sequence then picks
+    it for its layout (kind auto) and every stage reads its frames, with no other change."""
+    from rgbdslam.datasets import READERS, detect_kind
+    from rgbdslam.datasets.base import Frame, Sequence
+    from rgbdslam.datasets.registry import reader
+    from rgbdslam.pipeline import run_sequence
+    from rgbdslam.config import load_config
+    from rgbdslam.datasets.synthetic import generate_sequence
+
+    synth = tmp_path / "synth"
+    generate_sequence(synth, frames=12, motion="xyz", seed=3, width=320, height=240)
+    tum = open_sequence(synth)
+
+    def is_npz_layout(path: Path) -> bool:
+        return (path / "frames.npz").is_file()
+
+    @reader("npz_test", is_npz_layout)
+    class NpzSequence(Sequence):  # all frames in one .npz: rgb (N,H,W,3), depth (N,H,W) metres, t (N)
+        def __init__(self, root, cfg=None):
+            self.root, self.name, self.camera = Path(root), "npz", tum.camera
+            self._data = np.load(self.root / "frames.npz")
+
+        @property
+        def timestamps(self):
+            return self._data["t"]
+
+        def groundtruth(self):
+            return tum.groundtruth()
+
+        def load(self, i):
+            return Frame(i, float(self._data["t"][i]), self._data["rgb"][i], self._data["depth"][i], self.camera)
+
+    try:
+        frames = [tum.load(i) for i in range(len(tum))]
+        folder = tmp_path / "npz"
+        folder.mkdir()
+        np.savez(folder / "frames.npz", rgb=np.stack([f.rgb for f in frames]),
+                 depth=np.stack([f.depth for f in frames]), t=tum.timestamps)
+        assert detect_kind(folder, DatasetConfig()) == "npz_test"
+        summary = run_sequence(folder, tmp_path / "run", load_config(None, ["mapping.enabled=false",
+                                                                             "output.plots=false"]), progress=False)
+        assert summary["tracked"] == 12 and summary["evaluation"]["ate"]["rmse"] < 0.01
+    finally:
+        READERS.pop("npz_test", None)
