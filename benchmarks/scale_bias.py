@@ -45,13 +45,14 @@ def poses_at(gt, stamps: np.ndarray) -> np.ndarray:
     return out
 
 
-def edge_flags(feats, depth, radius_of_level) -> np.ndarray:
-    """Depth-edge flags (5 % jump) of every key point, the window radius a function of its ORB level."""
+def edge_flags(feats, depth, radius_of_level, jump: float = 0.05) -> np.ndarray:
+    """Depth-edge flags of every key point (a ``jump`` relative depth step), the window radius a function of its
+    ORB level."""
     h, w = depth.shape
     u = np.clip(np.rint(feats.uv_raw[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.rint(feats.uv_raw[:, 1]).astype(int), 0, h - 1)
     radius = np.array([radius_of_level(o) for o in feats.octave], np.int64)
-    return depth_edges(depth, u, v, radius, 0.05)
+    return depth_edges(depth, u, v, radius, jump)
 
 
 def near_depth(depth: np.ndarray, u: np.ndarray, v: np.ndarray, radius: np.ndarray, jump: float) -> np.ndarray:
@@ -107,6 +108,9 @@ def measure(path: Path, frames: int) -> dict[str, tuple[float, float, float]]:
     rules[f"no depth edge, r = 1·{s}^level at levels 0-2, 3·{s}^level above"] = lambda o: level_radius(1 if o < 3 else 3)(o)
     rules[f"no depth edge, r = 3·{s}^level at levels 0-2, 1·{s}^level above"] = lambda o: level_radius(3 if o < 3 else 1)(o)
     flags = {k: [edge_flags(f, fr.depth, rule) for f, fr in zip(feats, loaded)] for k, rule in rules.items()}
+    mc = cfg.matching  # the default's window and jump
+    flags[f"no depth edge, r = {mc.depth_edge_radius}·{s}^level, {mc.depth_edge_jump:.0%} jump (the default)"] = [
+        edge_flags(f, fr.depth, level_radius(mc.depth_edge_radius), mc.depth_edge_jump) for f, fr in zip(feats, loaded)]
     # edge points on the far surface only (r = 2·s^level), and all points with those given the near depth
     sides = [far_side(f, fr.depth, level_radius(2)) for f, fr in zip(feats, loaded)]
     far_only = f"no far-side depth edge, r = 2·{s}^level"
