@@ -6,8 +6,8 @@ the landmark stage), which must not move a single pose.
 the (N, 4, 4) float64 array in C order, little-endian bytes) and the frame count. They were written by
 ``python -m tests.test_chain_poses`` (``RGBDSLAM_DATA`` pointing at the shared data), and the same
 computation on the code before the stage protocol and the removal of 22 landmark keys (main
-``0dc35c1``) gave the same three digests; they were regenerated once since, for the depth-edge
-refit of the registration (a change meant to move poses). A change that is *meant* to move poses
+``0dc35c1``) gave the same three digests; they were regenerated since for the depth-edge refit
+of the registration and for its default window (radius 2, 15 % jump). A change that is *meant* to move poses
 regenerates them with the same command and says so in its commit."""
 
 from __future__ import annotations
@@ -25,12 +25,12 @@ CONFIGS = {
 }
 
 GOLDEN = {
-    "default": (200, "0c85fbe19899feaa73e8537c591debd78ef9631e735ef1c83564baf8e220b553",
-               "dc72abf89445f0c3fed9371406a906c67f0688b43ff6a3695de40328a8147e78"),
-    "landmarks": (200, "fcb5a6b3118510d1e69404da96dbc55b877f6f73d742d094a83271563c3cd9a6",
-                 "57a87a23d660dd9fd05699273869f9352c501a1d971c858259c9e64309fbe774"),
-    "landmarks_ba": (200, "eb2de59c071cabec37b0c376f71561ca574b09b5216e5f11a9bc8a6a4939a503",
-                    "09746c250f2d2095ebb2ac3702ae317c2d0a8ba7f9530189a0e93f213b82a808"),
+    "default": (200, "b7978602fc262b19680ae9b6ef56afd1b1f36b02a3938e9bd92b0cbf78299ac1",
+               "826d96f3a514db8da78286b41928cabd6fba164f03afde41be6ca280681ad9ba"),
+    "landmarks": (200, "e24f91636da9d587d928d152af91345cdb369cb823dd8378223aec9d2ffeb4a5",
+                 "f09852dfad4744564c500d2500aecf559f08b328211dbe5b62b66ba4deb012db"),
+    "landmarks_ba": (200, "864cc39e9a35247790f52003ca7f3a866cb3baebfc79d03207e74c3531467fb7",
+                    "327911a1119c67ba05f7750e80d8e8f7ecbe3d154f0e9bafdbcb6baca2238a4a"),
 }
 
 

@@ -57,8 +57,8 @@ class MatchingConfig:
         "position is good to its level's pixel size); 0 = off. Its depth may be the other surface's (mixed or "
         "misregistered pixels along an outline): flagged points help match and choose the inliers, but each "
         "registration's pose is fitted without them and the landmark map leaves them out (docs/frontend.md \"Scale "
-        "bias\")")] = 1
-    depth_edge_jump: Annotated[float, Positive(10.0, "relative depth jump that makes a depth edge")] = 0.05
+        "bias\")")] = 2
+    depth_edge_jump: Annotated[float, Positive(10.0, "relative depth jump that makes a depth edge")] = 0.15
 
 
 @dataclass
