@@ -6,8 +6,9 @@ the landmark stage), which must not move a single pose.
 the (N, 4, 4) float64 array in C order, little-endian bytes) and the frame count. They were written by
 ``python -m tests.test_chain_poses`` (``RGBDSLAM_DATA`` pointing at the shared data), and the same
 computation on the code before the stage protocol and the removal of 22 landmark keys (main
-``0dc35c1``) gave the same three digests; they were regenerated once since, for the depth-edge
-refit of the registration (a change meant to move poses). A change that is *meant* to move poses
+``0dc35c1``) gave the same three digests; they were regenerated since for the depth-edge
+refit of the registration and for the landmark map's covisibility local map (changes meant to move
+poses; the default's digests stayed). A change that is *meant* to move poses
 regenerates them with the same command and says so in its commit."""
 
 from __future__ import annotations
@@ -27,10 +28,10 @@ CONFIGS = {
 GOLDEN = {
     "default": (200, "0c85fbe19899feaa73e8537c591debd78ef9631e735ef1c83564baf8e220b553",
                "dc72abf89445f0c3fed9371406a906c67f0688b43ff6a3695de40328a8147e78"),
-    "landmarks": (200, "fcb5a6b3118510d1e69404da96dbc55b877f6f73d742d094a83271563c3cd9a6",
-                 "57a87a23d660dd9fd05699273869f9352c501a1d971c858259c9e64309fbe774"),
-    "landmarks_ba": (200, "eb2de59c071cabec37b0c376f71561ca574b09b5216e5f11a9bc8a6a4939a503",
-                    "09746c250f2d2095ebb2ac3702ae317c2d0a8ba7f9530189a0e93f213b82a808"),
+    "landmarks": (200, "68d856f644aa0af51b8f3ef62292b304965e1ae203a39f855ff274b4c11eb955",
+                 "8f52c303d2741b406d505d4adb88df7f290291a62ef3b98db4026e86329a5c4f"),
+    "landmarks_ba": (200, "9b86bc0c54c925056e740a991c60dd4633224215091903ad6707c6577274502e",
+                    "3c273e9b097845734f635feabb03b8d40cc1e77c09cd0a7eb9fda9c834b69271"),
 }
 
 
