@@ -7,10 +7,8 @@ import numpy as np
 
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.landmarks.stage import LandmarkTracker
-from tests.landmarks.scenes import CAM
-from tests.landmarks.scenes import frame_features as _frame
+from tests.landmarks.scenes import CAM, drifted_revisit
 from tests.landmarks.scenes import pose as _pose
-from tests.landmarks.scenes import scene as _scene
 
 
 def test_local_map_is_the_reference_keyframe_and_its_covisible_keyframes():
@@ -29,12 +27,7 @@ def test_landmarks_of_keyframes_outside_the_local_map_do_not_pull_the_map_pose()
     the other half by keyframes 95 and 96, which share them. The frame at ``truth`` (reference keyframe 96)
     sees both halves: without the local map the pose is pulled towards the shifted half, with it the pose
     rests on keyframe 95/96's landmarks alone (the stale rule off in both, so only the local map decides)."""
-    rng = np.random.default_rng(5)
-    X = _scene(600, 7)
-    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
-    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
-    shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
-    feats = _frame(truth, X, desc)
+    X, desc, truth, shift, feats = drifted_revisit()
     h = len(X) // 2
 
     def tracker(shared):
