@@ -8,7 +8,6 @@ import numpy as np
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.landmarks.stage import LandmarkTracker
 from tests.landmarks.scenes import CAM, drifted_revisit
-from tests.landmarks.scenes import pose as _pose
 
 
 def test_local_map_is_the_reference_keyframe_and_its_covisible_keyframes():
