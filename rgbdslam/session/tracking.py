@@ -17,6 +17,11 @@ keyframe anyway (``loop.map_track_keyframe_every``): the pose graph then holds t
 the map wherever the map sees it, and odometry carries the pose between (frames with no
 agreeing neighbour, parts of the scene the map does not cover).
 
+When the map carries a landmark map (made with ``landmarks.enabled``), each tracked frame is also
+posed against the map's landmarks (:meth:`MapTracker.landmark_edge`: projection matching at the
+predicted map pose, RANSAC and the reprojection refine of the landmark stage); within the same
+prediction gates that pose is one more edge, from the nearest map keyframe.
+
 The prediction is the odometry pose mapped by the latest anchoring (the best edge into the map
 of the last frame that had one, relocalisation included): between anchorings it drifts as
 odometry does. After a tracking loss the new segment relocalises first.
