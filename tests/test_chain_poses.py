@@ -6,8 +6,9 @@ the landmark stage), which must not move a single pose.
 the (N, 4, 4) float64 array in C order, little-endian bytes) and the frame count. They were written by
 ``python -m tests.test_chain_poses`` (``RGBDSLAM_DATA`` pointing at the shared data), and the same
 computation on the code before the stage protocol and the removal of 22 landmark keys (main
-``0dc35c1``) gave the same three digests; they were regenerated since for the depth-edge refit
-of the registration and for its default window (radius 2, 15 % jump). A change that is *meant* to move poses
+``0dc35c1``) gave the same three digests; they were regenerated since for the depth-edge
+refit of the registration, for its default window (radius 2, 15 % jump) and for the landmark
+map's covisibility local map (changes meant to move poses). A change that is *meant* to move poses
 regenerates them with the same command and says so in its commit."""
 
 from __future__ import annotations
@@ -27,10 +28,10 @@ CONFIGS = {
 GOLDEN = {
     "default": (200, "b7978602fc262b19680ae9b6ef56afd1b1f36b02a3938e9bd92b0cbf78299ac1",
                "826d96f3a514db8da78286b41928cabd6fba164f03afde41be6ca280681ad9ba"),
-    "landmarks": (200, "e24f91636da9d587d928d152af91345cdb369cb823dd8378223aec9d2ffeb4a5",
-                 "f09852dfad4744564c500d2500aecf559f08b328211dbe5b62b66ba4deb012db"),
-    "landmarks_ba": (200, "864cc39e9a35247790f52003ca7f3a866cb3baebfc79d03207e74c3531467fb7",
-                    "327911a1119c67ba05f7750e80d8e8f7ecbe3d154f0e9bafdbcb6baca2238a4a"),
+    "landmarks": (200, "6ae5f7c40e19f013980433b2ab507564680846f8ce8bc495a008a06657141518",
+                 "bdc48d516aba7f1207b32ebda59cff74fb3ecea327d94c28699a430dfd50ca9e"),
+    "landmarks_ba": (200, "f4d5f36f737b362a51ba7fed2b8a3f92ddec68ae2fad8b359193cbb9f9d1bea7",
+                    "0a90ff1f63b226863376c03f956569a76fabd762777757e3c45b6038f913dfb1"),
 }
 
 

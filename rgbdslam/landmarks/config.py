@@ -81,6 +81,10 @@ class LandmarksConfig:
         "between visits, so it carries other drift than the landmarks made since) and is left out of the frame's map "
         "pose (0 = never); with stale_check it joins when its own pose agrees with the current landmarks' within the "
         "chi-square gate stale_gate (6 dof) of their joint covariance")] = 30
+    local_map_shared: Annotated[int, AtMost(10**6,
+        "covisibility local map (ORB-SLAM's): a frame is matched only against the landmarks observed by its reference "
+        "keyframe (the newest) and by the keyframes sharing at least this many landmarks with it (ORB-SLAM's "
+        "covisibility edge threshold; 0 = every landmark the store returns near the camera)")] = 15
     stale_check: Annotated[bool, Key("stale landmarks join the map pose when they agree (see stale_after)")] = True
     stale_gate: Annotated[float, AtMost(1e6,
         "chi-square (6 dof, 95 %) of the stale-only against the current map pose")] = 12.59

@@ -112,6 +112,8 @@ class LandmarkTracker:
         self.stats = LandmarkStats()
         self.keyframes: list[_KeyframeObs] = []  # the last ones (bounded: what local BA can use)
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
+        self.kf_obs: dict[int, np.ndarray] = {}  # every keyframe's observed landmark ids (the covisibility graph)
+        self._local: np.ndarray | None = None  # the local map's landmark mask for the newest keyframe (local_map_shared)
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
@@ -182,7 +184,8 @@ class LandmarkTracker:
         self._last_matches = None
         if self.map.size == 0:
             return pose
-        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth)
+        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth,
+                         allowed=self.local_map())
         res, tried = None, False
         if c.stale_after > 0:
             m, res, tried = self._without_stale(index, feats, m, pose)
@@ -208,6 +211,25 @@ class LandmarkTracker:
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
         return self._accept(index, feats, res)
+
+    def local_map(self) -> np.ndarray | None:
+        """The covisibility local map (``local_map_shared`` > 0; else None: every landmark): a mask over
+        landmark ids of those observed by the newest keyframe (the frame's reference) and by every keyframe
+        sharing at least ``local_map_shared`` landmarks with it — the edge weights of ORB-SLAM's covisibility
+        graph. Computed once per keyframe."""
+        c = self.cfg
+        if c.local_map_shared <= 0 or not self.kf_obs:
+            return None
+        if self._local is None or len(self._local) < self.map.n:
+            ref = self.kf_obs[max(self.kf_obs)]
+            in_ref = np.zeros(self.map.n, bool)
+            in_ref[ref] = True
+            local = in_ref.copy()
+            for obs in self.kf_obs.values():
+                if np.count_nonzero(in_ref[obs]) >= c.local_map_shared:
+                    local[obs] = True
+            self._local = local
+        return self._local
 
     def _estimate(self, feats, m, pose: np.ndarray, seeded: bool = False):
         """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails.
@@ -360,6 +382,8 @@ class LandmarkTracker:
             lm_idx = np.concatenate([lm_idx, new])
             lm_ids = np.concatenate([lm_ids, ids])
         self.kf_pose[index] = pose.copy()
+        self.kf_obs[index] = lm_ids.copy()
+        self._local = None
         self.keyframes.append(_KeyframeObs(index, lm_ids, feats.uv[lm_idx].copy(), feats.pts[lm_idx, 2].copy()))
         keep = max(3 * c.ba_window, 10)
         if len(self.keyframes) > keep:

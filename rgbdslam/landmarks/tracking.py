@@ -75,11 +75,15 @@ def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin:
 
 def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, max_hamming: int,
                  max_depth: float, k: int = 6, first_before: int | None = None,
-                 first_after: int | None = None) -> MapMatch:
+                 first_after: int | None = None, allowed: np.ndarray | None = None) -> MapMatch:
     """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px
     (``first_before``: only landmarks first seen before that frame, ``first_after``: only those first
-    seen at or after that frame — together a loop's older end, ``landmarks.loop_refine``)."""
+    seen at or after that frame — together a loop's older end, ``landmarks.loop_refine``;
+    ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map``)."""
     ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
+    if allowed is not None:
+        keep = allowed[ids]
+        ids, uv = ids[keep], uv[keep]
     if first_before is not None or first_after is not None:
         f = lmap.first[ids]
         old = (f < (first_before if first_before is not None else np.inf)) & \

@@ -91,7 +91,8 @@ class MapSession:
             if slam.cfg.loop.map_track_every > 0:  # tracked against the map between relocalisations
                 from rgbdslam.session.tracking import MapTracker
 
-                slam.map_tracker = MapTracker(lc, slam.cfg.loop)
+                slam.map_tracker = MapTracker(lc, slam.cfg.loop, landmark_map(self.data, slam.cfg), slam.cfg.landmarks,
+                                              self.data.camera)
             return
         # extending: the map's edges; loops get chain-aware kernels (slam_graph.kernel_scale) from the map's
         # covariance chains (each starts at a keyframe without an incoming odometry edge), this session's

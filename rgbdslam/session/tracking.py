@@ -17,6 +17,11 @@ keyframe anyway (``loop.map_track_keyframe_every``): the pose graph then holds t
 the map wherever the map sees it, and odometry carries the pose between (frames with no
 agreeing neighbour, parts of the scene the map does not cover).
 
+When the map carries a landmark map (made with ``landmarks.enabled``), each tracked frame is also
+posed against the map's landmarks (:meth:`MapTracker.landmark_edge`: projection matching at the
+predicted map pose, RANSAC and the reprojection refine of the landmark stage); within the same
+prediction gates that pose is one more edge, from the nearest map keyframe.
+
 The prediction is the odometry pose mapped by the latest anchoring (the best edge into the map
 of the last frame that had one, relocalisation included): between anchorings it drifts as
 odometry does. After a tracking loss the new segment relocalises first.
@@ -32,9 +37,13 @@ from rgbdslam.geometry.se3 import inv, motion_between
 class MapTracker:
     """Registers frames against the nearest keyframes of the loop closer's fixed map."""
 
-    def __init__(self, loop, cfg):
+    def __init__(self, loop, cfg, landmarks=None, lm_cfg=None, camera=None):
         self.loop = loop  # rgbdslam.loop.detector.LoopCloser with the map's keyframes first
         self.cfg = cfg  # the loop section
+        # the map's landmark map (rgbdslam.landmarks.map.LandmarkMap, None: the map has none), the landmarks
+        # config section and the camera: each anchored frame's pose against the saved landmarks is one more edge
+        self.landmarks, self.lm_cfg, self.camera = landmarks, lm_cfg, camera
+        self.rng = np.random.default_rng(0 if lm_cfg is None else lm_cfg.seed)
         n = loop.searchable if loop.searchable is not None else len(loop.keyframes)
         self.map_kfs = loop.keyframes[:n]
         poses = np.array([kf.pose for kf in self.map_kfs]).reshape(-1, 4, 4)
@@ -50,7 +59,7 @@ class MapTracker:
         self._anchor_travel = (0.0, 0.0)  # (m, deg) of the segment at the last anchoring
         self.stats = {"frames_tried": 0, "frames_anchored": 0, "registrations": 0, "edges": 0,
                       "guided": 0, "unguided": 0,
-                      "rejected_geometry": 0, "rejected_prediction": 0, "no_neighbour": 0}
+                      "rejected_geometry": 0, "rejected_prediction": 0, "no_neighbour": 0, "landmark_edges": 0}
 
     def predicted(self, pose: np.ndarray) -> np.ndarray | None:
         return None if self.to_map is None else self.to_map @ pose
@@ -88,6 +97,30 @@ class MapTracker:
             return None
         return LoopEdge(kf.index, int(features.index), T_ij, np.asarray(res.information, dtype=np.float64),
                         int(res.n_inliers), float(res.residual_l2), 0, et, er)
+
+    def landmark_edge(self, kf, features, pred: np.ndarray, drift_t: float, drift_r: float):
+        """A LoopEdge from map keyframe ``kf`` to the frame from the frame's pose against the saved landmark
+        map (matched by projection at the predicted map pose, RANSAC + reprojection refine, as the landmark
+        stage's map pose), or None (too few inliers, no information, or too far from the prediction)."""
+        from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
+        from rgbdslam.loop.detector import LoopEdge
+
+        c, lc = self.lm_cfg, self.cfg
+        m = match_to_map(self.landmarks, features, pred, self.camera, c.search_radius, c.max_hamming, c.max_depth)
+        if len(m.lm) < c.min_inliers:
+            return None
+        z = features.pts[m.feat, 2]
+        res = estimate_pose(self.landmarks, features, m, pred, c.depth_noise_a + c.depth_noise_b * z * z,
+                            c.ransac_threshold, c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction,
+                            self.rng, "reprojection", self.camera, c.sigma_px, c.chi_gate, c.landmark_cov == "full",
+                            c.adaptive_noise, refine_iterations=c.refine_iterations)
+        if res is None or res.information is None:
+            return None
+        et, er = motion_between(pred, res.pose)
+        if et > lc.relocalize_translation + drift_t or er > lc.relocalize_rotation_deg + drift_r:
+            return None
+        T_ij = inv(kf.pose) @ res.pose
+        return LoopEdge(kf.index, int(features.index), T_ij, res.information, int(len(res.lm)), res.rms, 0, et, er)
 
     def _anchor(self, edges: list, pose: np.ndarray) -> None:
         """The best map edge of this frame (most inliers) sets the prediction's offset."""
@@ -128,6 +161,11 @@ class MapTracker:
             e = self._register(self.map_kfs[cand[0]], features, pred, None, drift_t, drift_r)
             if e is not None:
                 out.append(e)
+        if self.landmarks is not None and self.landmarks.size:
+            e = self.landmark_edge(self.map_kfs[cand[0]], features, pred, drift_t, drift_r)
+            if e is not None:
+                out.append(e)
+                self.stats["landmark_edges"] += 1
         if out:
             self.stats["frames_anchored"] += 1
             self.stats["edges"] += len(out)

@@ -8,7 +8,7 @@ import numpy as np
 from rgbdslam.config import LandmarksConfig
 from rgbdslam.geometry.se3 import inv
 from rgbdslam.landmarks.stage import LandmarkTracker, pose_chi2
-from tests.landmarks.scenes import CAM
+from tests.landmarks.scenes import CAM, drifted_revisit
 from tests.landmarks.scenes import frame_features as _frame
 from tests.landmarks.scenes import pose as _pose
 from tests.landmarks.scenes import scene as _scene
@@ -42,12 +42,7 @@ def test_stale_landmarks_with_other_drift_are_left_out_of_the_map_pose():
     coordinates). Mixed, the pose is a compromise between the two; with stale_after the pose is the
     current landmarks' (the truth), the stale matches are counted as left out, and their features
     may make new landmarks (their candidates no longer block them)."""
-    rng = np.random.default_rng(5)
-    X = _scene(600, 7)
-    desc = rng.integers(0, 256, size=(len(X), 32), dtype=np.uint8)
-    truth = _pose([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
-    shift = _pose([0.0, 0.0, np.radians(0.3)], [0.015, 0.0, 0.0])
-    feats = _frame(truth, X, desc)
+    X, desc, truth, shift, feats = drifted_revisit()
     mixed = LandmarkTracker.track(_tracker(X, desc, shift, stale_after=0), 100, feats, truth)
     assert np.linalg.norm(mixed[:3, 3] - truth[:3, 3]) > 2e-3  # pulled towards the stale copy
     tr = _tracker(X, desc, shift, stale_after=30, stale_check=True)
