@@ -151,8 +151,8 @@ def pairs_within(words_a: np.ndarray, words_b: np.ndarray, i: np.ndarray, j: np.
     ``k = flatnonzero(pair_hamming(...) <= max_hamming)`` and its distances, the same integers.
     All words but the last are counted for every pair, the last only for the pairs still within
     the cap (a partial count never exceeds the whole): at the 3-D gate's ~19,000 candidates per
-    reference and a cap of 64 bits, three words of unrelated descriptors already differ in ~96
-    bits, so the last word is counted for ~15 % of them."""
+    reference and a cap of 64 bits, three words of unrelated descriptors mostly differ in more than
+    64 bits already, so the last word is counted for about a third of them (fr1/rpy)."""
     A, B = np.ascontiguousarray(words_a.T), np.ascontiguousarray(words_b.T)
     ham = np.bitwise_count(A[0].take(i) ^ B[0].take(j)).astype(np.int64)
     for w in range(1, len(A) - 1):
