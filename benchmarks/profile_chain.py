@@ -2,8 +2,11 @@
 
 Usage::
 
-    python -m benchmarks.profile_chain [--sequence DIR] [--chain default|landmarks ...]
+    python -m benchmarks.profile_chain [--sequence DIR] [--config NAME|FILE] [--chain default|landmarks ...]
         [--max-frames N] [--top N] [--json FILE]
+
+``--config`` as ``rgbdslam run --config`` (a preset name or a YAML file), e.g. ``--config kitti`` for
+the stereo chain on KITTI; without it the defaults.
 
 Both threads of ``rgbdslam run`` are measured, here one after the other in one thread per frame:
 the reader's work (``Sequence.load``: decoding the images; ``features.with_detections``: the key
@@ -116,8 +119,8 @@ def orb_floor(gray: np.ndarray, orb) -> float:
     return time.thread_time() - t0
 
 
-def run_chain(seq_dir: Path, sets: list[str], max_frames: int | None, profile: bool) -> dict:
-    cfg = load_config(None, BASE + sets)
+def run_chain(seq_dir: Path, sets: list[str], max_frames: int | None, profile: bool, config: str | None = None) -> dict:
+    cfg = load_config(config, BASE + sets)
     seq = open_sequence(seq_dir, cfg)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     fc = detection_features(cfg.features, cfg.landmarks.n_features if cfg.landmarks.enabled and not seq.own_key_points else 0)
@@ -185,6 +188,7 @@ def report(name: str, plain: dict, prof: dict, top: int) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sequence", type=Path, default=SEQUENCE)
+    ap.add_argument("--config", help="a preset name or YAML file, as rgbdslam run --config (default: the defaults)")
     ap.add_argument("--chain", action="append", choices=sorted(CHAINS), help="default: default and landmarks")
     ap.add_argument("--max-frames", type=int)
     ap.add_argument("--top", type=int, default=12)
@@ -197,8 +201,8 @@ def main(argv: list[str] | None = None) -> None:
              f"load {os.getloadavg()[0]:.1f}; CPU time (time.thread_time), not wall time.", ""]
     results = {}
     for name in a.chain or ["default", "landmarks"]:
-        plain = run_chain(a.sequence, CHAINS[name], a.max_frames, profile=False)
-        prof = run_chain(a.sequence, CHAINS[name], a.max_frames, profile=True)
+        plain = run_chain(a.sequence, CHAINS[name], a.max_frames, profile=False, config=a.config)
+        prof = run_chain(a.sequence, CHAINS[name], a.max_frames, profile=True, config=a.config)
         results[name] = {"plain": plain, "profiled": {k: v for k, v in prof.items() if k != "own"}}
         lines += report(name, plain, prof, a.top)
     print("\n".join(lines))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from benchmarks.profile_chain import CHAINS, run_chain
-from tests.conftest import TUM_DESK9, need
+from tests.conftest import DATA, TUM_DESK9, need
 
 
 @pytest.mark.data
@@ -26,3 +26,12 @@ def test_profile_splits_the_tracking_time_into_the_stages_it_calls():
     # the slowest function by own time is one of ours or NumPy's, with its calls counted
     own = prof["own"]
     assert own == sorted(own, reverse=True) and own[0][1] > 0
+
+
+@pytest.mark.data
+def test_a_preset_profiles_the_stereo_chain():
+    seq = need(DATA / "kitti" / "odometry_06_head51")
+    with_preset = run_chain(seq, CHAINS["default"], 6, profile=False, config="kitti")
+    assert with_preset["frames"] == with_preset["tracked"] == 6 and with_preset["track_ms"] > 0
+    # the defaults (an RGB-D camera's) do not track this stereo sequence: the preset is what is profiled
+    assert run_chain(seq, CHAINS["default"], 6, profile=False)["tracked"] < 6

@@ -80,6 +80,24 @@ def fit_rigid(S: np.ndarray, D: np.ndarray, weights: np.ndarray | None = None) -
     return T
 
 
+def fit_rigid_stacked(SD: np.ndarray) -> np.ndarray:
+    """:func:`fit_rigid` (unweighted) of the pairs stacked as rows ``[s | d]`` of ``SD`` (N, 6), the
+    same bits: both means from one sum down the rows (NumPy adds the rows of a C-ordered array one by
+    one, column by column, whatever their width), the centred source and destination as column views
+    of one difference into the same covariance product. For loops that refit subsets of the same
+    pairs (ISLAM): one ``compress`` and one sum per fit instead of two each."""
+    n = len(SD)
+    if n < 3:
+        raise ValueError("fit_rigid needs at least 3 point pairs")
+    m = np.add.reduce(SD, axis=0) / n
+    C = SD - m
+    R = _rotation_from_cov3(C[:, :3].T @ C[:, 3:])
+    T = _EYE4.copy()
+    T[:3, :3] = R
+    T[:3, 3] = m[3:] - R @ m[:3]
+    return T
+
+
 def fit_rigid_batch(S: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Unweighted fits for a batch: S, D of shape (B, k, 3) -> T of shape (B, 4, 4)."""
     S = np.asarray(S, dtype=np.float64)

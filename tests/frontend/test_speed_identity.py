@@ -1,6 +1,7 @@
 """Speed-ups of the per-frame chain that must not change a single bit of the poses.
 
-The kernels (blocked Hamming matrix, pair Hamming distances, the 3x3 rigid fit, row norms) are
+The kernels (blocked Hamming matrix, pair Hamming distances, the 3x3 rigid fit and its stacked
+form in the ISLAM loop, row norms, the guided matcher's Hamming cap) are
 checked against the expressions they replaced, written out here; the whole chain's poses on fr1/rpy
 head200 are held bit for bit by ``tests/test_chain_poses.py``.
 """
@@ -9,10 +10,12 @@ from __future__ import annotations
 
 
 import numpy as np
+import pytest
 
 from rgbdslam.frontend.features import descriptor_words
-from rgbdslam.frontend.matching import column_argmin, hamming_matrix, pair_hamming
-from rgbdslam.geometry.rigid import fit_rigid, row_norms
+from rgbdslam.frontend.matching import column_argmin, guided_match, hamming_matrix, pair_hamming, pairs_within
+from rgbdslam.frontend.registration.islam import gate_threshold, inverse_mean_l1, islam_pair
+from rgbdslam.geometry.rigid import fit_rigid, fit_rigid_stacked, residuals, row_norms
 
 def _fit_rigid_before(S, D, weights=None):
     """fit_rigid as it was written before (mean, LAPACK determinant, diag product)."""
@@ -85,3 +88,133 @@ def test_row_norms_are_numpys_norms():
     for n in (1, 3, 17, 500):
         r = rng.normal(size=(n, 3)) * 10.0 ** rng.uniform(-4, 2, (n, 1))
         assert np.array_equal(row_norms(r), np.linalg.norm(r, axis=1))
+
+
+def _islam_pair_before(S, D, keep, max_it, alpha, beta, min_error, min_points):
+    """islam_pair as it was written before: S and D compressed apart and fitted by fit_rigid."""
+    need = max(3, min_points)
+    W, it = 0.0, 0
+    for j in range(1, max_it + 1):
+        it = j
+        T = fit_rigid(S[keep], D[keep])
+        th = gate_threshold(alpha, beta, j)
+        r = residuals(T, S, D)
+        W = inverse_mean_l1(r[keep])
+        keep = keep & (np.linalg.norm(r, axis=1) <= th)
+        if th < min_error or keep.sum() < need:
+            break
+    if keep.sum() < need:
+        return None
+    return keep, W, it
+
+
+def test_stacked_fit_gives_fit_rigids_bits():
+    rng = np.random.default_rng(7)
+    for k in range(2000):
+        n = int(rng.integers(3, 3000 if k % 50 == 0 else 400))
+        S = rng.normal(size=(n, 3)) * rng.uniform(0.01, 5.0) + rng.normal(size=3) * 3.0
+        if k % 3 == 0:
+            S[:, 2] = 0.7
+        sign = np.array([1.0, -1.0, 1.0]) if k % 5 == 0 else 1.0  # mirrored: the reflection branch
+        D = S * sign + rng.normal(size=3) + rng.normal(scale=0.01, size=S.shape)
+        assert np.array_equal(fit_rigid_stacked(np.concatenate((S, D), axis=1)), fit_rigid(S, D)), k
+
+
+@pytest.fixture(scope="module")
+def rpy_pairs():
+    """Depth-valid matched 3-D points of real fr1/rpy frame pairs (1 to 4 frames apart)."""
+    from rgbdslam.config import Config
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.frontend.features import extract_features
+    from rgbdslam.frontend.matching import match_pairs
+    from tests.conftest import TUM_RPY200, need
+
+    cfg = Config()
+    seq = open_sequence(need(TUM_RPY200))
+    feats = [extract_features(seq.load(i), cfg.features, cfg.matching) for i in range(0, 40, 4)]
+    out = []
+    for a in range(len(feats)):
+        for b in range(a + 1, min(len(feats), a + 3)):
+            ia, ib = match_pairs(feats[a], feats[b], cfg.matching)
+            out.append((feats[a].pts[ia], feats[b].pts[ib]))
+    return cfg, out, feats
+
+
+@pytest.mark.data
+def test_islam_loop_on_real_frames_gives_the_same_bits_as_before(rpy_pairs):
+    cfg, pairs, _ = rpy_pairs
+    rc = cfg.registration
+    n_fitted = 0
+    for S, D in pairs:
+        keep = np.ones(len(S), bool)
+        for alpha in (rc.alpha, 0.5 * rc.alpha, 2.0 * rc.alpha):  # different gates: different survivors
+            new = islam_pair(S, D, keep, rc.max_iterations, alpha, rc.beta, rc.min_error, rc.min_points)
+            old = _islam_pair_before(S, D, keep, rc.max_iterations, alpha, rc.beta, rc.min_error, rc.min_points)
+            assert (new is None) == (old is None)
+            if new is not None:
+                assert np.array_equal(new[0], old[0]) and new[1] == old[1] and new[2] == old[2]
+                n_fitted += 1
+    assert n_fitted >= 20
+
+
+def test_pairs_within_the_cap_are_the_capped_pair_distances():
+    rng = np.random.default_rng(8)
+    for n_words in (1, 2, 4):
+        wa = rng.integers(0, 2**63, (300, n_words), dtype=np.uint64)
+        wb = wa[rng.permutation(300)] ^ (rng.integers(0, 2**63, (300, n_words), dtype=np.uint64)
+                                         & rng.integers(0, 2**63, (300, n_words), dtype=np.uint64)
+                                         & rng.integers(0, 2**63, (300, n_words), dtype=np.uint64))
+        i, j = rng.integers(0, 300, 20000), rng.integers(0, 300, 20000)
+        full = pair_hamming(wa, wb, i, j)
+        for cap in (0, 8 * n_words, 16 * n_words, 64 * n_words):
+            k, ham = pairs_within(wa, wb, i, j, cap)
+            assert np.array_equal(k, np.flatnonzero(full <= cap)) and np.array_equal(ham, full[full <= cap])
+            assert ham.dtype == np.int64 and (0 < len(k) < len(i) or cap in (0, 64 * n_words))
+
+
+def _guided_match_before(ref, cur, T0, radius, mc):
+    """guided_match as it was written before: every candidate pair's full Hamming distance, then the cap."""
+    from scipy.spatial import cKDTree
+
+    from rgbdslam.geometry.se3 import transform_points
+
+    def first_per_group(group, dist):  # the smallest distance per group, ties: the first in input order
+        order = np.argsort(group * 1024 + dist, kind="stable")
+        first = np.r_[True, group[order][1:] != group[order][:-1]]
+        mask = np.zeros(len(group), bool)
+        mask[order[first]] = True
+        return mask
+
+    va = np.flatnonzero(ref.valid)
+    pairs = cKDTree(transform_points(T0, ref.pts[va])).sparse_distance_matrix(cur.tree, radius, output_type="ndarray")
+    ia, ib = va[pairs["i"].astype(int)], cur.tree_index[pairs["j"].astype(int)]
+    ham = pair_hamming(ref.words, cur.words, ia, ib)
+    close = ham <= mc.max_hamming
+    ia, ib, ham = ia[close], ib[close], ham[close]
+    keep = first_per_group(ia, ham) & first_per_group(ib, ham)
+    ia, ib = ia[keep], ib[keep]
+    order = np.argsort(ia, kind="stable")
+    return ia[order], ib[order]
+
+
+@pytest.mark.data
+def test_guided_matching_on_real_frames_gives_the_same_matches_as_before(rpy_pairs):
+    from dataclasses import replace
+
+    from rgbdslam.frontend.pairwise import build_pair_registration
+
+    cfg, _, feats = rpy_pairs
+    register = build_pair_registration(cfg)
+    n_matches = []
+    for a in range(len(feats) - 1):
+        for b in range(a + 1, min(len(feats), a + 3)):
+            res = register(feats[a], feats[b])
+            if res is None:
+                continue
+            for gate in (0.02, 0.05, 0.10):
+                for mc in (cfg.matching, replace(cfg.matching, max_hamming=40)):
+                    new = guided_match(feats[a], feats[b], res.T, gate, mc)
+                    old = _guided_match_before(feats[a], feats[b], res.T, gate, mc)
+                    assert all(np.array_equal(x, y) and x.dtype == y.dtype for x, y in zip(new, old))
+                    n_matches.append(len(new[0]))
+    assert len(n_matches) >= 60 and min(n_matches) > 20

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from rgbdslam.frontend.registration.base import Registration
-from rgbdslam.geometry.rigid import fit_rigid, residuals, row_norms
+from rgbdslam.geometry.rigid import fit_rigid_stacked, residuals, row_norms
 
 
 def gate_threshold(alpha: float, beta: float, j: int) -> float:
@@ -36,9 +36,10 @@ def islam_pair(S: np.ndarray, D: np.ndarray, keep: np.ndarray, max_it: int, alph
     need = max(3, min_points)
     W = 0.0
     it = 0
+    SD = np.concatenate((S, D), axis=1)  # the pairs as rows [s | d]: one compress and one sum per refit
     for j in range(1, max_it + 1):  # compress / count_nonzero: boolean indexing's and sum's numbers, faster
         it = j
-        T = fit_rigid(S.compress(keep, axis=0), D.compress(keep, axis=0))
+        T = fit_rigid_stacked(SD.compress(keep, axis=0))
         th = gate_threshold(alpha, beta, j)
         r = residuals(T, S, D)
         W = inverse_mean_l1(r.compress(keep, axis=0))
