@@ -41,7 +41,6 @@ def variants() -> dict[str, dict]:
         "islam MP=4 newest reference by brute force always": {"registration": {"predicted_gate": None}},
         "islam MP=4 no guided matching (RANSAC per reference)": {"registration": {"guided_gate": None,
                                                                                  "predicted_gate": None}},
-        "islam MP=4 + joint refit": {"registration": {"joint_refit": True}},
         "islam MP=4 prefilter=homography": {"matching": {"prefilter": "homography", "prefilter_threshold": 3.0}},
         "islam MP=4 prefilter=fundamental": {"matching": {"prefilter": "fundamental", "prefilter_threshold": 1.0}},
         "islam MP=4 prefilter=none": {"matching": {"prefilter": "none"}},

@@ -216,6 +216,10 @@ RETIRED = {
     "landmarks.sigma_px_scale",
     "matching.depth_edge_use",
     "registration.far_baselines",  # docs/stereo.md "Near and far points"
+    "registration.depth_weighting",  # docs/frontend.md "Options that measured no gain"
+    "registration.joint_gate",
+    "registration.joint_refit",
+    "registration.pregate",
 }
 
 

@@ -82,8 +82,6 @@ class RegistrationConfig:
     reject_translation: Annotated[float, Positive(100.0, "candidate disagreement gates (m, rad)")] = 0.05
     reject_rotation: Annotated[float, Positive(100.0, "radians: see reject_translation")] = 0.05
     min_agreement: Annotated[float, Range(0.0, 1.0, "lost if the agreeing candidates hold less of the total weight")] = 0.5
-    pregate: Annotated[float | None, Positive(100.0,
-        "drop pairs this far (m) from the constant-velocity prediction first")] = None
     guided_gate: Annotated[float | None, Positive(100.0,
         "older ISLAM references: gate (m) around the newest one's pose, no RANSAC")] = 0.05
     predicted_gate: Annotated[float | None, Positive(100.0,
@@ -93,10 +91,6 @@ class RegistrationConfig:
         "force; docs/frontend.md)")] = 0.05
     predicted_min_inliers: Annotated[int, Range(3, 10**9,
         "inliers the guided match needs before falling back to brute force")] = 60
-    joint_refit: Annotated[bool, Key("after fusion: one weighted SVD fit on the inliers of all kept references")] = False
-    joint_gate: Annotated[float, Positive(100.0,
-        "metres, pairs further from the fused pose are left out of the joint refit")] = 0.02
-    depth_weighting: Annotated[bool, Key("weight pairs by 1/z^2 in the joint refit")] = False
     noise_refit: Annotated[bool, Key(
         "after fusion (frames with a depth noise model, i.e. stereo): Gauss-Newton refit on the kept inlier pairs "
         "weighted by their covariances (geometry.mahalanobis; docs/stereo.md). Off by default: on a short indoor "

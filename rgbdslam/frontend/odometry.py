@@ -33,7 +33,6 @@ from rgbdslam.frontend.features import Detections, FrameFeatures, extract_featur
 from rgbdslam.frontend.pairwise import PairRegistration, RegistrationResult, build_pair_registration
 from rgbdslam.frontend.pose_fusion import fuse_candidates
 from rgbdslam.geometry.camera import Camera
-from rgbdslam.geometry.rigid import fit_rigid, residuals
 from rgbdslam.geometry.se3 import inv, rotation_angle, scale_motion, transform_points
 
 if TYPE_CHECKING:
@@ -196,8 +195,6 @@ class Frontend:
                 or self._lost(frame, feats, timings, n_matches, len(ok))
         kept = [res for (_, res), k in zip(ok, keep) if k]
         kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
-        if rc.joint_refit and len(kept) > 1:
-            pose = self._joint_refit(pose, kept_pairs, feats)
         if rc.noise_refit and feats.depth_noise is not None:
             pose = self._noise_refit(pose, kept_pairs, feats)
         info = sum(res.information for res in kept)
@@ -267,28 +264,6 @@ class Frontend:
             return None
         self.n_newest_guided += 1
         return res
-
-    def _joint_refit(self, pose: np.ndarray, pairs: list, feats: FrameFeatures) -> np.ndarray:
-        """One weighted SVD fit of the current pose on the inlier pairs of all kept references.
-
-        Reference points are taken to the world with their poses; each pair is weighted by its
-        registration's ISLAM weight / its pair count (every reference counts in proportion to
-        its weight, as in the fusion) and, optionally, by 1/z^2 (Kinect noise grows with z^2).
-        Pairs further than ``joint_gate`` from the fused pose are dropped first.
-        """
-        rc = self.rc
-        W, C, w = [], [], []
-        for r, res in pairs:
-            W.append(transform_points(r.pose, r.features.pts[res.pairs[:, 0]]))
-            C.append(feats.pts[res.pairs[:, 1]])
-            w.append(np.full(len(res.pairs), res.weight / len(res.pairs)))
-        W, C, w = np.concatenate(W), np.concatenate(C), np.concatenate(w)
-        if rc.depth_weighting:
-            w = w / C[:, 2] ** 2
-        ok = np.linalg.norm(residuals(pose, C, W), axis=1) <= rc.joint_gate
-        if ok.sum() < max(3, rc.min_points):
-            return pose
-        return fit_rigid(C[ok], W[ok], w[ok])
 
     def _noise_refit(self, pose: np.ndarray, pairs: list, feats: FrameFeatures) -> np.ndarray:
         """Gauss-Newton refit of the current pose on the descriptor matches (``noise_refit_all``)

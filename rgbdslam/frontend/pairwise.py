@@ -75,7 +75,7 @@ class PairRegistration:
             if len(ia) < need:
                 return None
         t1 = time.perf_counter()
-        fit = self.strategy.fit(ref.pts[ia], cur.pts[ib], T0)
+        fit = self.strategy.fit(ref.pts[ia], cur.pts[ib])
         if fit is None:
             return None
         keep = fit.inliers

@@ -1,6 +1,6 @@
 """Registration strategies: matched 3-D points -> rigid pose + inliers + information.
 
-One interface (:class:`~rgbdslam.frontend.registration.base.Registration`, ``fit(S, D, T0)``
+One interface (:class:`~rgbdslam.frontend.registration.base.Registration`, ``fit(S, D)``
 -> :class:`~rgbdslam.frontend.registration.base.RigidFit`), one class per strategy, chosen by
 ``registration.method`` through :func:`get_registration`. A new strategy is a subclass in its
 own module here, listed in :data:`STRATEGIES` (and its name in the ``method`` choices of

@@ -5,11 +5,8 @@ subclass of :class:`Registration` that implements one step, :meth:`Registration.
 which of the matched pairs are inliers (and, optionally, the pair set's weight). The shared
 parts run around it in :meth:`Registration.fit`, the same for every strategy:
 
-1. pre-gate: with a predicted transform ``T0``, pairs further than
-   :attr:`Registration.pregate_radius` from the prediction are dropped first (kept all when
-   that would leave fewer than ``min_points``);
-2. ``select`` (the strategy);
-3. refit: one least-squares fit on the inliers (:func:`rgbdslam.geometry.rigid.fit_with_stats`),
+1. ``select`` (the strategy);
+2. refit: one least-squares fit on the inliers (:func:`rgbdslam.geometry.rigid.fit_with_stats`),
    its residuals, and the information of the pose from the inlier points
    (:func:`fit_information`: one formula and one noise floor, also for loop edges).
 
@@ -73,22 +70,11 @@ def fit_information(points: np.ndarray, residual_l2: float, sigma_floor: float =
     return point_information(points, max(residual_l2 / np.sqrt(3.0), sigma_floor))
 
 
-def pregate(S: np.ndarray, D: np.ndarray, T0: np.ndarray | None, radius: float | None, need: int) -> np.ndarray:
-    """Pairs within ``radius`` (m) of the prediction ``T0``; all pairs without a prediction or
-    radius, or when fewer than ``need`` would be left."""
-    keep = np.ones(len(D), bool)
-    if radius is not None and T0 is not None:
-        gated = row_norms(residuals(T0, S, D)) <= radius
-        if gated.sum() >= need:
-            keep = gated
-    return keep
-
-
 class Registration:
     """A registration strategy, built from the ``registration`` config section.
 
     Subclasses set :attr:`name` (the ``registration.method`` that selects them), implement
-    :meth:`select` and may override :attr:`pregate_radius`, :attr:`multi_reference` and
+    :meth:`select` and may override :attr:`multi_reference` and
     :attr:`replaces_prefilter`; :func:`rgbdslam.frontend.registration.get_registration` builds them.
     """
 
@@ -102,25 +88,19 @@ class Registration:
         self.rc = rc
         self.min_points = max(3, rc.min_points)
 
-    @property
-    def pregate_radius(self) -> float | None:
-        """Radius (m) of the pre-gate around ``T0`` (None: no pre-gate)."""
-        return None
-
     def select(self, S: np.ndarray, D: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, float | None] | None:
-        """The strategy: inlier mask over all pairs (starting from the pre-gated ``keep``) and the
+        """The strategy: inlier mask over all pairs (starting from ``keep``, every pair) and the
         pair set's weight (None: the inverse mean L1 residual of the refit); None = no fit."""
         raise NotImplementedError
 
-    def fit(self, S: np.ndarray, D: np.ndarray, T0: np.ndarray | None = None) -> RigidFit | None:
-        """Rigid fit of the matched points ``S`` (reference) onto ``D`` (current), ``D ~ T @ S``;
-        ``T0`` a prediction of ``T``. None when fewer than ``registration.min_points`` pairs remain."""
+    def fit(self, S: np.ndarray, D: np.ndarray) -> RigidFit | None:
+        """Rigid fit of the matched points ``S`` (reference) onto ``D`` (current), ``D ~ T @ S``.
+        None when fewer than ``registration.min_points`` pairs are given."""
         S = np.asarray(S, dtype=np.float64)
         D = np.asarray(D, dtype=np.float64)
-        keep = pregate(S, D, T0, self.pregate_radius, self.min_points)
-        if keep.sum() < self.min_points:
+        if len(D) < self.min_points:
             return None
-        out = self.select(S, D, keep)
+        out = self.select(S, D, np.ones(len(D), bool))
         if out is None:
             return None
         inliers, weight = out

@@ -5,8 +5,7 @@
 (shrinking for beta < 0), weight ``W = 1 / (mean L1 residual)``, stop when ``th < minError``
 or fewer than ``minPoint`` pairs survive. The front end registers against the last
 ``registration.mp`` tracked frames (:attr:`IslamRegistration.multi_reference`) and fuses the
-candidates (:mod:`rgbdslam.frontend.pose_fusion`). The pre-gate (``registration.pregate``
-metres around the constant-velocity prediction) and the refit on the survivors are shared
+candidates (:mod:`rgbdslam.frontend.pose_fusion`). The refit on the survivors is shared
 with every strategy (:class:`~rgbdslam.frontend.registration.base.Registration`).
 """
 
@@ -56,10 +55,6 @@ class IslamRegistration(Registration):
 
     name = "islam"
     multi_reference = True
-
-    @property
-    def pregate_radius(self) -> float | None:
-        return self.rc.pregate
 
     def select(self, S, D, keep):
         rc = self.rc

@@ -9,12 +9,10 @@ for j = 0 .. maxIt:
     else: e = e / 2
 ```
 
-Additions, both documented in docs/frontend.md and shared by every strategy
-(:class:`~rgbdslam.frontend.registration.base.Registration`): an optional pre-gate with ``T0``
-(with ``registration.pregate`` set, pairs further than ``e_start`` from the prediction are
-dropped before the first fit, which is how ``T0`` can matter at all, since the first fit
-overwrites it), and a final refit on the surviving pairs (the thesis' last fit was made before
-the last removal).
+One addition, shared by every strategy
+(:class:`~rgbdslam.frontend.registration.base.Registration`): a final refit on the surviving
+pairs (the thesis' last fit was made before the last removal). The thesis' ``T = T0`` is
+overwritten by the first fit, so the prediction is not used here.
 """
 
 from __future__ import annotations
@@ -50,10 +48,6 @@ class IsvdRegistration(Registration):
     """``registration.method = isvd``: against the previous frame only."""
 
     name = "isvd"
-
-    @property
-    def pregate_radius(self) -> float | None:
-        return self.rc.e_start if self.rc.pregate is not None else None  # ISVD's first gate
 
     def select(self, S, D, keep):
         rc = self.rc
