@@ -98,12 +98,6 @@ RUN_VARIANTS = {  # --variants: key -> (row name, extra arguments of `rgbdslam r
               ["--set", "mapping.live_nice=0"]),
     "nobacklog": ("map fused while tracking, never at tracking's priority (mapping.live_backlog=10000: before 2026-12-02 06:00)",
                   ["--set", "mapping.live_backlog=10000"]),
-    "early": ("map fused while tracking, waiting keyframes put in early while idle (mapping.live_early=true)",
-              ["--set", "mapping.live_early=true"]),
-    "ahead": ("map fused while tracking, waiting keyframes' cloud parts made ahead (mapping.live_cloud_ahead=true)",
-              ["--set", "mapping.live_cloud_ahead=true"]),
-    "earlyahead": ("map fused while tracking, idle time: waiting keyframes put in early, else their cloud parts made (mapping.live_early=true, mapping.live_cloud_ahead=true)",
-                   ["--set", "mapping.live_early=true", "--set", "mapping.live_cloud_ahead=true"]),
     "voxel": ("map fused while tracking, voxel outlier removal of the cloud (mapping.outlier_method=voxel)",
               ["--set", "mapping.outlier_method=voxel"]),
     "lag0": ("map fused while tracking, every keyframe into the map at once (mapping.live_lag=0)",
@@ -145,7 +139,7 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
               f"{t.get('mesh', float('nan')):.2f} | {t.get('map2d', float('nan')):.2f} | {t.get('final_waiting', '-')} | "
               f"{a.get('cpu', float('nan')):.2f} | {t.get('final_cpu_s', float('nan')):.2f} |")
     cmps = [(RUN_VARIANTS[k][0], _compare_maps(runs[RUN_VARIANTS[k][0]], work)) for k in dict.fromkeys(keys)
-            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "early", "ahead", "earlyahead", "voxel")]
+            if k in ("default", "nice0", "lag0", "tol1", "nobacklog", "voxel")]
     live_lines = []
     for name, out in runs.items():  # what the map process did, in the runs with a live map
         info = json.loads((out / "run.json").read_text())
@@ -159,10 +153,7 @@ def part_run(work: Path, keys: list[str]) -> list[str]:
                 f"{t.get('busy_s', 0):.1f} s ({t.get('busy_cpu_s', float('nan')):.1f} s of CPU) during "
                 f"{info['wall_time_s']:.1f} s of tracking, of which {t.get('catch_up_s', 0):.1f} s "
                 f"({t.get('catch_up_cpu_s', 0):.1f} s of CPU) at tracking's priority in {t.get('catch_ups', 0)} "
-                f"catch-ups (mapping.live_backlog) while tracking; {t.get('early', 0)} keyframes put in early "
-                f"(mapping.live_early), {t.get('early_undone', 0)} of them taken out again; "
-                f"{t.get('ahead_made', 0)} cloud parts made ahead, {t.get('ahead_used', 0)} of them used, "
-                f"{t.get('final_ahead', 0)} at the end (mapping.live_cloud_ahead); "
+                f"catch-ups (mapping.live_backlog) while tracking; "
                 f"the cloud process's CPU after the last frame: outlier removal {t.get('cloud_cpu_s', float('nan')):.2f} s, "
                 f"2-D map {t.get('map2d_cpu_s', float('nan')):.2f} s; "
                 f"keyframes moved more than the tolerance at the end (mm): "

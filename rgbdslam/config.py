@@ -214,6 +214,8 @@ RETIRED = {
     "landmarks.revisit_min_inliers",
     "landmarks.revisit_radius",
     "landmarks.sigma_px_scale",
+    "mapping.live_cloud_ahead",  # measured no gain (docs/mapping.md "Removed options")
+    "mapping.live_early",  # measured no gain (docs/mapping.md "Removed options")
     "matching.depth_edge_use",
     "registration.far_baselines",  # docs/stereo.md "Near and far points"
     "registration.depth_weighting",  # docs/frontend.md "Options that measured no gain"

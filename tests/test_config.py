@@ -428,4 +428,5 @@ def test_an_earlier_runs_config_with_retired_keys_still_loads(tmp_path):
     p = tmp_path / "config.yaml"
     p.write_text(yaml.safe_dump(sections))
     assert load_config(p) == Config()
-    assert {"matching.depth_edge_use", "landmarks.global_ba", "landmarks.ba_worker"} <= RETIRED
+    assert {"matching.depth_edge_use", "landmarks.global_ba", "landmarks.ba_worker", "mapping.live_early",
+            "mapping.live_cloud_ahead"} <= RETIRED

@@ -27,15 +27,6 @@ class MappingConfig:
     live_backlog: Annotated[int, Range(0, 10_000,
         "a map process more than this many keyframes behind (beyond live_lag) works at tracking's priority until it "
         "has caught up: what is left for after the last frame stays bounded on a busy machine")] = 4
-    live_early: Annotated[bool, Key(
-        "while the map has nothing else to do, the keyframes waiting within live_lag go into the map early (one that "
-        "then moves beyond live_tolerance is taken out again and waits): less is left for the end, but the final poses "
-        "often move the newest keyframes, which are then redone; off: not measured better")] = False
-    live_cloud_ahead: Annotated[bool, Key(
-        "while the map has nothing else to do, a waiting keyframe's cloud part (its points reduced to the voxel grid "
-        "at its newest pose) is made and kept: at the end a waiting keyframe whose final pose is within live_tolerance "
-        "of it goes into the cloud (and the TSDF) at that pose with no cloud work, so the cloud's outlier removal "
-        "starts sooner; one that moves further is made again when idle")] = False
     select_translation: Annotated[float, AtMost(10000.0, "motion-based choice when run.json has no keyframes (m)")] = 0.05
     select_rotation_deg: Annotated[float, AtMost(360.0, "degrees: see select_translation")] = 5.0
     undistort: Annotated[bool, Key("remap colour and depth to the ideal pinhole before fusing")] = True

@@ -159,11 +159,7 @@ class VoxelCloud:
         if len(points) == 0:
             return
         sums = np.hstack([np.asarray(points, np.float64), np.asarray(colors, np.float64)])
-        self.add_part(_reduce(voxel_keys(points, self.voxel), sums, np.ones(len(points))))
-
-    def add_part(self, part: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
-        """Points already reduced to this grid (``keys, sums, counts``, e.g. another cloud's
-        ``pending[0]``): the same as :meth:`add` of the points they were reduced from."""
+        part = _reduce(voxel_keys(points, self.voxel), sums, np.ones(len(points)))
         self.pending.append(part)
         self.pending_n += len(part[0])
         if self.pending_n >= max(len(self.keys), 200_000):

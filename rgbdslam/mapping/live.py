@@ -110,15 +110,6 @@ class MapState:
         self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
         self.lag = cfg.live_lag
         self.waiting: dict[int, np.ndarray] = {}  # the newest keyframes, not in the map yet -> their latest pose
-        # keyframes among the newest live_lag put into the map early (:meth:`speculate`): one that moves
-        # beyond the tolerance is taken out again and waits (:meth:`refresh`), not re-integrated
-        self.early: set[int] = set()
-        # mapping.live_cloud_ahead: waiting keyframe -> (pose, its cloud part at that pose: keys, sums,
-        # counts, or None when it has no point), made while the map is idle (:meth:`make_ahead`)
-        self.ahead: dict[int, tuple[np.ndarray, tuple | None]] = {}
-        # the _PartMaker making a part now: kept here so that it outlives a _track call (a catch-up, a
-        # niced thread handing over) and no second one starts for the same keyframe meanwhile
-        self.part_maker: _PartMaker | None = None
         # keyframes' prepared images for re-integration, up to cache_mb (then read again with load)
         self.cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.cache_bytes = 0
@@ -126,7 +117,7 @@ class MapState:
         self.n_depth: dict[int, int] = {}
         self.box: dict[int, np.ndarray | None] = {}  # keyframe -> its points' camera-frame box (shift_m)
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
-                      "pose_updates_skipped": 0, "reloaded": 0, "early": 0, "early_undone": 0, "ahead_made": 0, "ahead_used": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
+                      "pose_updates_skipped": 0, "reloaded": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
                       "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0,
                       "busy_cpu_s": 0.0, "catch_ups": 0, "catch_up_s": 0.0, "catch_up_cpu_s": 0.0}
 
@@ -208,90 +199,21 @@ class MapState:
         waits: the map process integrates (:meth:`settle`) when no pose update is queued."""
         prepared = self._prepared(index, rgb, depth)
         self.waiting[index] = pose
-        newest = set(sorted(self.early | set(self.waiting))[-self.lag:]) if self.lag else set()
-        self.early &= newest  # older than the newest live_lag: in the map like any other keyframe now
         while settle and self.unsettled():
             self.settle(prepared if min(self.waiting) == index else None)
 
     def unsettled(self) -> bool:
-        """True when more keyframes wait than ``mapping.live_lag`` (less those put in early)."""
+        """True when more keyframes wait than ``mapping.live_lag``."""
         return self.backlog() > 0
 
     def backlog(self) -> int:
         """How many keyframes wait beyond ``mapping.live_lag``: the ones the map is behind by."""
-        return max(0, len(self.waiting) + len(self.early) - self.lag)
+        return max(0, len(self.waiting) - self.lag)
 
     def settle(self, prepared=None) -> None:
-        """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images);
-        with a cloud part made ahead within the tolerance of it, at that part's pose."""
+        """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images)."""
         first = min(self.waiting)
-        self._put({first: self._ahead_pose(first, self.waiting.pop(first))}, ("cloud", "tsdf"), prepared)
-
-    def can_make_ahead(self) -> bool:
-        """True when ``mapping.live_cloud_ahead`` and a waiting keyframe has no cloud part made
-        within the tolerance of its newest pose."""
-        return bool(self.cfg.live_cloud_ahead and self._stale_ahead())
-
-    def _stale_ahead(self) -> list[int]:
-        return [i for i, p in self.waiting.items() if not self._ahead_near(i, p)]
-
-    def make_ahead(self) -> None:
-        """``mapping.live_cloud_ahead``, while the map has nothing else to do: the oldest waiting
-        keyframe without a cloud part near its newest pose gets one, kept in :attr:`ahead` (the
-        numbers :class:`VoxelCloud` ``.add`` would reduce its points to): it goes into the map at
-        that part's pose with no cloud work while its pose stays within the tolerance of it
-        (:meth:`settle`; the end, :meth:`refresh`)."""
-        index, pose, prepared = self.ahead_work()
-        self.keep_ahead(index, pose, self.cloud_part(pose, prepared))
-
-    def ahead_work(self) -> tuple[int, np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        """The next cloud part to make (:meth:`make_ahead`): the keyframe, its pose, its images."""
-        index = min(self._stale_ahead())
-        return index, np.array(self.waiting[index], dtype=np.float64), self._prepared(index)
-
-    def cloud_part(self, pose: np.ndarray, prepared: tuple[np.ndarray, np.ndarray]):
-        """A keyframe's points reduced to the voxel grid at ``pose`` (``keys, sums, counts``; None
-        without a point). Touches no state: it may run in another thread (:class:`_PartMaker`)."""
-        from rgbdslam.mapping.fusion import VoxelCloud
-
-        part = VoxelCloud(self.cfg.voxel_size)
-        self._integrate(None, part, pose, prepared)
-        if len(part.pending) == 1 and not len(part.keys):
-            return part.pending[0]
-        # none, or a large keyframe (>= 200,000 voxels) that VoxelCloud merged already: len() merges
-        return (part.keys, part.sums, part.counts) if len(part) else None
-
-    def keep_ahead(self, index: int, pose: np.ndarray, part) -> None:
-        """Keep a cloud part made at ``pose`` for a keyframe that still waits."""
-        if index in self.waiting:  # not settled or dropped while its part was made
-            self.ahead[index] = (pose, part)
-            self.stats["ahead_made"] += 1
-
-    def _ahead_near(self, index: int, pose: np.ndarray) -> bool:
-        """True when the keyframe has a cloud part made ahead at a pose within the tolerance of ``pose``."""
-        hit = self.ahead.get(index)
-        return hit is not None and (np.array_equal(hit[0], pose) or shift_m(
-            hit[0], pose, max(self.cfg.depth_max, 1e-3), self.box.get(index)) <= self.tol_m)
-
-    def _ahead_pose(self, index: int, pose: np.ndarray) -> np.ndarray:
-        """The pose a waiting keyframe goes into the map at: that of its cloud part made ahead when
-        ``pose`` is within the tolerance of it (the map keeps a keyframe within the tolerance where
-        it is, :meth:`refresh`), else ``pose``."""
-        return self.ahead[index][0] if self._ahead_near(index, pose) else pose
-
-    def can_speculate(self) -> bool:
-        """True when ``mapping.live_early`` and a keyframe waits within the lag."""
-        return bool(self.cfg.live_early and self.waiting)
-
-    def speculate(self) -> None:
-        """The oldest waiting keyframe into the map early, at its newest pose, while the map has
-        nothing else to do: when its pose moves beyond the tolerance before it leaves the newest
-        ``mapping.live_lag`` keyframes it is taken out again and waits (:meth:`refresh`); else the
-        end has one keyframe less to integrate."""
-        first = min(self.waiting)
-        self._put({first: self._ahead_pose(first, self.waiting.pop(first))}, ("cloud", "tsdf"))
-        self.early.add(first)
-        self.stats["early"] += 1
+        self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"), prepared)
 
     def _put(self, poses: dict[int, np.ndarray], parts: tuple[str, ...], prepared=None) -> None:
         """Integrate the keyframes ``poses`` (not in the map yet) at those poses into the ``parts``
@@ -303,18 +225,7 @@ class MapState:
         if tsdf is None and cloud is None:  # the TSDF part without a mesh: the cloud part did it all
             return
         for i, pose in poses.items():
-            ahead = self.ahead.get(i) if cloud is not None else None
-            if ahead is not None and np.array_equal(ahead[0], pose):  # its cloud part is made: only the TSDF
-                del self.ahead[i]
-                self.stats["ahead_used"] += 1
-                if tsdf is not None:
-                    self._integrate(tsdf, None, pose, prepared if prepared is not None else self._prepared(i))
-                if ahead[1] is not None:
-                    cloud.add_part(ahead[1])
-            else:
-                if cloud is not None:
-                    self.ahead.pop(i, None)  # made at another pose: of no use any more
-                self._integrate(tsdf, cloud, pose, prepared if prepared is not None else self._prepared(i))
+            self._integrate(tsdf, cloud, pose, prepared if prepared is not None else self._prepared(i))
             if "tsdf" not in parts and self.tsdf is not None:
                 continue  # the TSDF part follows (the end: the cloud goes first)
             self.used[i] = pose
@@ -339,27 +250,21 @@ class MapState:
         for i in list(self.waiting):
             if keep is not None and i not in keep:
                 del self.waiting[i]
-                self.ahead.pop(i, None)
                 self.box.pop(i, None)
                 self._uncache(i)
             elif i in poses:
                 self.waiting[i] = poses[i]
-        if flush:  # at the end a waiting keyframe goes in where its cloud part was made, when within the tolerance
-            self.waiting = {i: self._ahead_pose(i, p) for i, p in self.waiting.items()}
-            self.stats["final_ahead"] = sum(i in self.ahead and self.ahead[i][0] is p for i, p in self.waiting.items())
         want = {i: poses.get(i, p) for i, p in self.used.items() if keep is None or i in keep}
         drop = [i for i in self.used if i not in want]
         move = [i for i in want if self._shift(i, want[i]) > self.tol_m]
-        back = {i: want.pop(i) for i in move if i in self.early}  # put in early and moved: taken out, wait again
-        self.stats["early_undone"] += len(back)
-        put = dict(sorted({**self.waiting, **back}.items())) if flush else {}
+        put = dict(sorted(self.waiting.items())) if flush else {}
         n = len(drop) + len(move)
         rebuild = n > REBUILD_FRACTION * len(self.used)
         if n:
             self.stats["refreshes"] += 1
             self.stats["rebuilds"] += rebuild
             self.stats["deintegrated"] += 0 if rebuild else n
-            self.stats["reintegrated"] += len(want) if rebuild else len(move) - len(back)
+            self.stats["reintegrated"] += len(want) if rebuild else len(move)
         for parts in ((("cloud", "tsdf"),) if between is None else (("cloud",), None, ("tsdf",))):
             if parts is None:
                 between(sorted(set(want) | set(put)))
@@ -372,18 +277,10 @@ class MapState:
             del self.used[i]
             self.box.pop(i, None)
             self._uncache(i)
-        for i in back:
-            if i not in put:  # at the end (flush) ``back`` keyframes were just put in again: they stay
-                del self.used[i]
-        self.early -= set(drop) | set(back)
-        # a rebuild put every keyframe at its pose; ``back`` keyframes are out (in ``put`` at the end)
-        self.used.update(want if rebuild else {i: want[i] for i in move if i in want})
+        self.used.update(want if rebuild else {i: want[i] for i in move})  # a rebuild put every keyframe at its pose
         if flush:
             self.stats["final_waiting"] = len(put)
             self.waiting.clear()
-            self.early.clear()
-        elif back:
-            self.waiting = dict(sorted({**self.waiting, **back}.items()))
         return n
 
     def _redo(self, parts: tuple[str, ...], want: dict[int, np.ndarray], redo: list[int], rebuild: bool) -> None:
@@ -519,47 +416,6 @@ def _start(cfg: MappingConfig, camera: Camera, load) -> MapState:
 
 
 BEHIND, CAUGHT_UP = "behind", "caught up"  # what _track returns when its ``stop`` says so
-PART_MADE = ("part made",)  # _PartMaker.job_or_made: the part was made before a job came
-POLL_S = 0.005  # how often the queue is looked at while a cloud part is made in the background
-
-
-class _PartMaker:
-    """``mapping.live_cloud_ahead``'s idle work in a thread of its own (at the niceness of the thread
-    that starts it): the thread that takes the jobs keeps looking at the queue meanwhile, so a job —
-    the finish above all — is taken at once instead of after a part that a niced thread on a busy
-    machine may take seconds to make (10 ms of CPU at niceness 10, at load 20). A part not made
-    when the finish comes is dropped (its keyframe's points go in at the end, as without the key)."""
-
-    def __init__(self, state: MapState):
-        import threading
-
-        self.index, self.pose, prepared = state.ahead_work()
-        self.out: dict = {}
-        self.thread = threading.Thread(target=self._run, args=(state, prepared), name="cloud part", daemon=True)
-        self.thread.start()
-
-    def _run(self, state: MapState, prepared) -> None:
-        try:
-            self.out["part"] = state.cloud_part(self.pose, prepared)
-        except BaseException as e:  # noqa: BLE001 - raised in the thread that keeps it
-            self.out["error"] = e
-
-    def done(self) -> bool:
-        return not self.thread.is_alive()
-
-    def keep(self, state: MapState) -> None:
-        if "error" in self.out:
-            raise self.out["error"]
-        state.keep_ahead(self.index, self.pose, self.out["part"])
-
-    def job_or_made(self, jobs):
-        """The next job as soon as one comes, or :data:`PART_MADE` when the part is made first."""
-        while True:
-            try:
-                return jobs.get(timeout=POLL_S)
-            except queue.Empty:
-                if self.done():
-                    return PART_MADE
 
 
 def _queued(jobs) -> int:
@@ -625,28 +481,15 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
     while True:
         if stop is not None and (why := stop()) is not None:
             return why
-        if state.part_maker is not None and state.part_maker.done():
-            state.part_maker.keep(state)
-            state.part_maker = None
         try:  # a keyframe to integrate: only when no job waits
-            idle = None
-            if not state.unsettled():  # idle work: a waiting keyframe into the map early, or its cloud part made
-                idle = "speculate" if state.can_speculate() else None
-                if idle is None and state.part_maker is None and not taken and state.can_make_ahead():
-                    state.part_maker = _PartMaker(state)
-            if state.part_maker is not None and idle is None and not taken and not state.unsettled():
-                job = state.part_maker.job_or_made(jobs)
-                if job is PART_MADE:
-                    continue
-            else:
-                job = take(block=not state.unsettled() and idle is None)
+            job = take(block=not state.unsettled())
         except queue.Empty:
-            job = ("settle",) if idle is None else (idle,)
+            job = ("settle",)
         if job is None:
             return None
         t0, c0 = time.perf_counter(), time.process_time()
         batch = [job]
-        while job[0] not in ("finish", "settle", "speculate"):  # everything queued: the keyframes, the newest poses
+        while job[0] not in ("finish", "settle"):  # everything queued: the keyframes, the newest poses
             try:
                 job = take(block=False)
             except queue.Empty:
@@ -677,8 +520,6 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
         n_poses = len(poses)
         if why is None and job[0] == "settle":
             state.settle()
-        elif why is None and job[0] == "speculate":
-            state.speculate()
         elif n_poses:
             state.stats["pose_updates_skipped"] += n_poses - (finish is None)
             if finish is None:

@@ -113,14 +113,14 @@ def _shifted_map(synth, cfg, frames, shifted, axis: int, metres: float):
     return live, gt
 
 
-def _idle_jobs(synth, final: dict, done=lambda: True):
+def _idle_jobs(synth, final: dict):
     """A job queue with the keyframes ``final`` added at those poses; the finish comes when the map
-    process waits for a job (has nothing else to do) and ``done()``."""
+    process waits for a job (has nothing else to do)."""
     import queue
 
     class Idle(queue.Queue):
         def get(self, block=True, timeout=None):
-            if block and self.empty() and done():
+            if block and self.empty():
                 self.put(("finish", final, None, "", False))
             return super().get(block, timeout)
 
@@ -492,86 +492,20 @@ def test_a_niced_thread_that_took_many_queued_keyframes_hands_them_back_when_beh
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
 
 
-@pytest.mark.parametrize("tolerance", [0.25, 0.0])
-def test_keyframes_put_in_early_are_taken_out_when_they_move_and_the_end_is_the_final_map(synth, tolerance):
-    """``mapping.live_early``: a keyframe waiting within ``live_lag`` goes into the map while the map
-    is idle (:meth:`MapState.speculate`). One a loop closure then moves beyond the tolerance is
-    taken out again (de-integrated, not re-integrated) and waits at its new pose; one that stays
-    is left for nothing at the end. One that leaves the newest ``live_lag`` keyframes is an
-    ordinary keyframe again (re-integrated when it moves). With ``live_tolerance=0`` the end's
-    map is exactly the fusion of the final poses; with the default it is within the tolerance."""
-    cfg = MappingConfig(live_lag=3, live_tolerance=tolerance, live_early=True)
-    kfs = (0, 3, 6, 9)
-    live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 was placed 4 cm off
-    assert sorted(live.used) == [0] and list(live.waiting) == [3, 6, 9]
-    live.speculate()
-    live.speculate()  # 3 and 6 early: the map idles
-    assert sorted(live.used) == [0, 3, 6] and live.early == {3, 6} and list(live.waiting) == [9]
-    assert live.backlog() == 0 and not live.unsettled()
-    poses = {i: gt.poses[i] for i in kfs}
-    moved = live.refresh(poses)  # a loop closure puts 6 where it belongs: out again, waits
-    assert 6 not in live.used and 6 not in live.early and 6 in live.waiting and 9 in live.waiting
-    # early keyframes that moved are out again, not re-integrated (tolerance 0: rounding moves 3 too)
-    assert live.stats["early_undone"] == len({3, 6} - set(live.used)) and 0 in live.used
-    if tolerance:
-        assert moved == 1 and sorted(live.used) == [0, 3] and live.early == {3} and list(live.waiting) == [6, 9]
-        assert live.stats["deintegrated"] == 1 and live.stats["reintegrated"] == 0
-    _same_map(_fresh(synth, cfg, {i: poses[i] for i in live.used}), live.result()[:2], synth, cfg)
-    f = synth.load(11)
-    live.add(11, f.rgb, f.depth, gt.poses[11])  # 3 leaves the newest three: an ordinary keyframe now
-    assert live.early == set() and 11 in live.waiting and not live.unsettled()
-    final = {**poses, 11: gt.poses[11]}
-    final[3] = final[3].copy()
-    final[3][1, 3] += 0.0004 if tolerance else 0.03  # the final optimisation moves 3 a little / a lot
-    live.refresh(final, flush=True)
-    tsdf, cloud, fused, _ = live.result()
-    assert fused == [0, 3, 6, 9, 11]
-    if tolerance:  # 3 stays where it went in (0.4 mm < a quarter voxel); 6, 9 and 11 go in once
-        assert live.stats["reintegrated"] == 0 and live.stats["final_waiting"] == 3
-        _same_map(_fresh(synth, cfg, {**final, 3: poses[3]}), (tsdf, cloud), synth, cfg)
-    else:  # whatever moved at all is redone: the map is the final poses' exactly
-        _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
-
-
-def test_an_early_keyframe_the_final_poses_move_is_in_the_map_and_its_list(synth):
-    """At the end (flush) a keyframe put in early that the final poses move beyond the tolerance is
-    taken out and put in again at its final pose: it is in the map and in the list of fused
-    keyframes (it used to drop out of the list while its points stayed in the map)."""
-    cfg = MappingConfig(live_lag=3, live_tolerance=0.25, live_early=True)
-    kfs = (0, 3, 6, 9)
-    live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 was placed 4 cm off
-    live.speculate()
-    live.speculate()
-    assert live.early == {3, 6} and list(live.waiting) == [9]
-    final = {i: gt.poses[i] for i in kfs}
-    live.refresh(final, flush=True)
-    tsdf, cloud, fused, _ = live.result()
-    assert fused == [0, 3, 6, 9] and sorted(live.used) == [0, 3, 6, 9] and live.stats["final_waiting"] == 2
-    _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
-
-
-def test_an_idle_map_process_puts_the_waiting_keyframes_in_early(synth):
+def test_an_idle_map_process_leaves_the_waiting_keyframes_for_the_end(synth):
     """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, it
-    puts the waiting keyframes in early, one at a time, before it waits for the next job; with
-    ``live_early=false`` they wait for the end."""
+    waits for the next job; the newest keyframes go in at the end, at their final poses."""
     from rgbdslam.mapping.live import _while_tracking
 
     gt = synth.groundtruth()
     final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
-    for early in (True, False):
-        cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_early=early)
-        state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
-
-        jobs = _idle_jobs(synth, final)
-        assert _while_tracking(state, cfg, jobs)[0] == "finish"
-        if early:
-            assert sorted(state.used) == [0, 3, 6, 9] and state.early == {6, 9} and not state.waiting
-            assert state.stats["early"] == 2
-        else:
-            assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9] and state.stats["early"] == 0
-        state.refresh(final, flush=True)
-        assert state.stats["final_waiting"] == (0 if early else 2)
-        _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
+    cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False)
+    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
+    assert _while_tracking(state, cfg, _idle_jobs(synth, final))[0] == "finish"
+    assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9]
+    state.refresh(final, flush=True)
+    assert state.stats["final_waiting"] == 2
+    _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
 
 
 def test_the_run_writes_cloud_ply_from_the_kept_indices_without_importing_open3d(tmp_path):
@@ -597,169 +531,3 @@ def test_the_run_writes_cloud_ply_from_the_kept_indices_without_importing_open3d
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cloud.ply"]
     write_cloud_ply(tmp_path / "want.ply", points[keep], colors[keep])
     assert (tmp_path / "cloud.ply").read_bytes() == (tmp_path / "want.ply").read_bytes()
-
-
-def test_a_cloud_part_added_reduced_is_the_cloud_adding_its_points_gives(synth):
-    """``VoxelCloud.add_part`` of the part another cloud reduced a frame's points to: the same keys,
-    sums and counts, bit for bit, as adding the points themselves."""
-    cfg = MappingConfig()
-    gt = synth.groundtruth()
-    und = Undistorter(synth.camera, cfg.undistort)
-    direct, via = VoxelCloud(cfg.voxel_size), VoxelCloud(cfg.voxel_size)
-    for i in (0, 4, 8):
-        f = synth.load(i)
-        rgb, depth = prepare_frame(f.rgb, f.depth, und, cfg)
-        integrate_frame(None, direct, rgb, depth, gt.poses[i], synth.camera, cfg)
-        one = VoxelCloud(cfg.voxel_size)
-        integrate_frame(None, one, rgb, depth, gt.poses[i], synth.camera, cfg)
-        via.add_part(one.pending[0])
-    assert len(direct) == len(via) > 1000
-    np.testing.assert_array_equal(direct.keys, via.keys)
-    np.testing.assert_array_equal(direct.sums, via.sums)
-    np.testing.assert_array_equal(direct.counts, via.counts)
-
-
-@pytest.mark.parametrize("tolerance", [0.25, 0.0])
-def test_waiting_keyframes_cloud_parts_made_ahead_go_into_the_map_at_the_end(synth, tolerance):
-    """``mapping.live_cloud_ahead``: while idle the map makes the waiting keyframes' cloud parts
-    (:meth:`MapState.make_ahead`, oldest first); one a pose update moves beyond the tolerance is
-    made again; a keyframe that settles goes in at its part's pose with no cloud work; at the end
-    a waiting keyframe whose final pose is within the tolerance of its part's pose goes into the
-    cloud and the TSDF at that pose, one the final poses move further at its final pose. With
-    ``live_tolerance=0`` the end's map is exactly the fusion of the final poses."""
-    cfg = MappingConfig(live_lag=3, live_tolerance=tolerance, live_cloud_ahead=True)
-    kfs = (0, 3, 6, 9)
-    live, gt = _shifted_map(synth, cfg, kfs, (6,), 0, 0.04)  # 6 came 4 cm off
-    assert sorted(live.used) == [0] and list(live.waiting) == [3, 6, 9] and not live.ahead
-    assert live.can_make_ahead()
-    live.make_ahead()
-    assert sorted(live.ahead) == [3]  # the oldest first
-    live.make_ahead()
-    live.make_ahead()
-    assert sorted(live.ahead) == [3, 6, 9] and not live.can_make_ahead() and live.stats["ahead_made"] == 3
-    poses = {i: gt.poses[i] for i in kfs}
-    poses[9] = poses[9].copy()
-    poses[9][0, 3] += 0.0003  # a loop closure moves 9 by 0.3 mm and puts 6 where it belongs
-    live.refresh(poses)
-    while live.can_make_ahead():
-        live.make_ahead()
-    assert live.stats["ahead_made"] == (4 if tolerance else 5)  # 6 made again (tolerance 0: 9 too)
-    np.testing.assert_array_equal(live.ahead[6][0], poses[6])
-    f = synth.load(11)
-    live.add(11, f.rgb, f.depth, gt.poses[11])  # 3 settles: its part is at its pose
-    assert sorted(live.used) == [0, 3] and live.stats["ahead_used"] == 1 and 3 not in live.ahead
-    final = {**poses, 11: gt.poses[11]}
-    final[6] = final[6].copy()
-    final[6][1, 3] += 0.03  # the final optimisation moves 6 by 3 cm: its points go in at its final pose
-    final[9] = final[9].copy()
-    final[9][1, 3] += 0.0002  # and 9 by 0.2 mm more (11 has no part: made at the end, as without)
-    live.refresh(final, flush=True)
-    tsdf, cloud, fused, _ = live.result()
-    assert fused == [0, 3, 6, 9, 11] and not live.ahead and live.stats["final_waiting"] == 3
-    if tolerance:  # 9 (0.5 mm from its part's pose, made before the 0.3 mm move) goes in where its part was made
-        assert live.stats["ahead_used"] == 2 and live.stats["final_ahead"] == 1
-        np.testing.assert_array_equal(live.used[9], gt.poses[9])
-        _same_map(_fresh(synth, cfg, {**final, 9: gt.poses[9]}), (tsdf, cloud), synth, cfg)
-    else:  # whatever moved at all is made again: the map is the final poses' exactly
-        assert live.stats["ahead_used"] == 1 and live.stats["final_ahead"] == 0
-        np.testing.assert_array_equal(live.used[9], final[9])
-        _same_map(_fresh(synth, cfg, final), (tsdf, cloud), synth, cfg)
-
-
-def test_an_idle_map_process_makes_the_waiting_keyframes_cloud_parts(synth):
-    """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, it
-    makes the waiting keyframes' cloud parts (``mapping.live_cloud_ahead``), one at a time, before
-    it waits for the next job; at the end they go in with no cloud work and the map is the
-    fusion of the final poses."""
-    from rgbdslam.mapping.live import _while_tracking
-
-    gt = synth.groundtruth()
-    final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
-    cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_cloud_ahead=True)
-    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
-
-    jobs = _idle_jobs(synth, final, done=lambda: not state.can_make_ahead())  # no part left to make
-    assert _while_tracking(state, cfg, jobs)[0] == "finish"
-    assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9] and sorted(state.ahead) == [6, 9]
-    assert state.stats["ahead_made"] == 2 and state.stats["ahead_used"] == 0
-    state.refresh(final, flush=True)
-    assert state.stats["final_waiting"] == 2 and state.stats["ahead_used"] == 2 and state.stats["final_ahead"] == 2
-    _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
-
-
-def test_the_finish_is_taken_while_a_cloud_part_is_being_made(synth):
-    """The idle work of ``mapping.live_cloud_ahead`` runs beside the thread that takes the jobs: a
-    finish that comes while a part is being made is taken at once (a niced thread on a busy machine
-    took seconds for one part before the finish was read); the unfinished part is dropped and its
-    keyframe's points go in at the end, the map the fusion of the final poses."""
-    import queue
-    import threading
-
-    from rgbdslam.mapping.live import _while_tracking
-
-    gt = synth.groundtruth()
-    final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
-    cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False, live_cloud_ahead=True)
-    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
-    release, started = threading.Event(), threading.Event()
-    make = state.cloud_part
-
-    def slow_part(pose, prepared):  # a part that is not made until the test says so
-        started.set()
-        release.wait()
-        return make(pose, prepared)
-
-    state.cloud_part = slow_part
-
-    class FinishWhileMaking(queue.Queue):
-        def get(self, block=True, timeout=None):
-            if block and self.empty() and started.is_set():
-                self.put(("finish", final, None, "", False))
-            return super().get(block, timeout)
-
-    jobs = FinishWhileMaking()
-    for i in final:
-        jobs.put(("add", i, synth.load(i).rgb, synth.load(i).depth, final[i]))
-    out: dict = {}
-    runner = threading.Thread(target=lambda: out.update(job=_while_tracking(state, cfg, jobs)), daemon=True)
-    runner.start()
-    runner.join(timeout=120)  # a map process that waited for the part would wait for ever
-    try:
-        assert not runner.is_alive() and out["job"][0] == "finish"  # returned with the part still being made
-        assert not release.is_set() and not state.ahead and state.stats["ahead_made"] == 0
-    finally:
-        release.set()
-    state.refresh(final, flush=True)
-    assert state.stats["final_waiting"] == 2 and state.stats["ahead_used"] == 0 and not state.ahead
-    _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
-
-
-def test_a_cloud_part_made_ahead_keeps_a_keyframe_of_more_than_200k_voxels(tmp_path):
-    """A keyframe that reduces to >= 200,000 voxels is merged inside its own part (VoxelCloud's
-    merge rule): its part made ahead must still hold every voxel, not come back as "no point"."""
-    from rgbdslam.datasets.synthetic import generate_sequence
-    from rgbdslam.mapping.fusion import VoxelCloud
-
-    generate_sequence(tmp_path / "big", frames=2, motion="loop", width=640, height=480, noise=True, seed=1)
-    seq = open_sequence(tmp_path / "big")
-    cfg = MappingConfig(live_lag=3, live_tolerance=0.0, live_cloud_ahead=True, voxel_size=0.001,
-                        cloud_pixel_stride=1, mesh=False, map2d=False)
-    gt = seq.groundtruth()
-    live = MapState(cfg, seq.camera, lambda i: (seq.load(i).rgb, seq.load(i).depth))
-    for i in (0, 1):
-        f = seq.load(i)
-        live.add(i, f.rgb, f.depth, gt.poses[i])
-    live.make_ahead()
-    part = live.ahead[0][1]
-    assert part is not None and len(part[0]) >= 200_000
-    alone = VoxelCloud(cfg.voxel_size)
-    live._integrate(None, alone, np.asarray(gt.poses[0], np.float64), live._prepared(0))
-    alone.merge()
-    np.testing.assert_array_equal(np.sort(part[0]), np.sort(alone.keys))
-    live.refresh({i: gt.poses[i] for i in (0, 1)}, flush=True)
-    _, cloud, fused, _ = live.result()
-    assert fused == [0, 1] and live.stats["final_ahead"] == 1
-    fresh = VoxelCloud(cfg.voxel_size)
-    for i in (0, 1):
-        live._integrate(None, fresh, np.asarray(gt.poses[i], np.float64), live._prepared(i))
-    assert len(cloud) == len(fresh)
