@@ -4,10 +4,12 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import rgbdslam
 from rgbdslam.calibration.depth_to_color import edge_points, score
 from rgbdslam.calibration.rolling_shutter import loop_discrepancies
 from rgbdslam.datasets.camera_file import read_camera_file
@@ -16,7 +18,7 @@ from tests.conftest import DATA, cli, need
 
 SEVEN = DATA / "7scenes" / "frames_0000_0299"
 RPY200 = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
-SHIPPED = "rgbdslam/cameras/7scenes.yaml"
+SHIPPED = str(Path(rgbdslam.__file__).parent / "cameras" / "7scenes.yaml")  # whatever the working folder
 
 
 def test_edge_points_and_score_by_hand():
