@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import os
 import tempfile
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -122,7 +121,7 @@ def measure(path: Path, frames: int) -> dict[str, tuple[float, float, float]]:
         near_pts.append(p)
     near_rule = f"all matches, far-side edge points at the near depth (r = 2·{s}^level)"
     flags[near_rule] = [np.zeros(len(f.uv), bool) for f in feats]
-    feats_near = [replace(f, pts=p, _tree=None, _tree_index=None) for f, p in zip(feats, near_pts)]
+    feats_near = [f.with_points(p) for f, p in zip(feats, near_pts)]
     est = {k: [] for k in flags}
     used = {k: [] for k in flags}
     true = []

@@ -437,7 +437,8 @@ def main() -> None:
     ap.add_argument("--parts", default="depth,kitti,orb,synthetic,speed",
                     help="comma list of the parts to run: depth (accuracy), disparity (per-point sparse disparity "
                          "errors by sub-pixel method, synthetic exact and KITTI consistency), kitti (+ fr1/rpy), "
-                         "synthetic, oracle (synthetic stereo with exact / noisy true depth), speed")
+                         "synthetic, oracle (synthetic stereo with exact / noisy true depth), orb (rgbdslam against "
+                         "ORB-SLAM3 stereo on KITTI 06 0-50 and the highway seeds), speed")
     ap.add_argument("--repeats", type=int, default=3, help="rounds of the speed part")
     ap.add_argument("--orb-rounds", type=int, default=2, help="rounds of the orb part (ORB-SLAM3 varies per run)")
     ap.add_argument("--highway-seeds", default="0,1,2,3,4", help="synthetic highway seeds of the orb part")

@@ -187,57 +187,47 @@ def validate(cfg: Config) -> Config:
     return cfg
 
 
-# keys that earlier versions had: still accepted (run folders keep their config.yaml) and ignored
+# keys that earlier versions had, and why they went: a saved configuration (an earlier run folder's
+# config.yaml, a YAML file) that names one still loads, the key skipped; --set or a sweep's --grid
+# naming one is an error (it would run and change nothing)
+def _no_gain(where: str) -> str:
+    return f"it measured no gain ({where})"
+
+
 RETIRED = {
-    "loop.sigma_floor",  # loop edges carry their registration's information (one noise floor, in the front end)
-    # options that measured no gain, removed with their code (docs/slam.md "Removed options", docs/frontend.md
-    # "Scale bias"); an earlier run folder's config.yaml still names them and must load
-    "landmarks.anchor_age",
-    "landmarks.anchor_edges",
-    "landmarks.anchor_info_scale",
-    "landmarks.anchor_min_landmarks",
-    "landmarks.ba_every",
-    "landmarks.ba_handover",
-    "landmarks.ba_noise_scale",
-    "landmarks.ba_worker",
-    "landmarks.consistency_floor",
-    "landmarks.drift_sigma",
-    "landmarks.global_ba",
-    "landmarks.global_ba_frames",
-    "landmarks.global_ba_iterations",
-    "landmarks.global_ba_odometry",
-    "landmarks.graph_information",
-    "landmarks.loop_correct",
-    "landmarks.match_old_bonus",
-    "landmarks.observe",
-    "landmarks.ransac_confidence",
-    "landmarks.revisit_min_inliers",
-    "landmarks.revisit_radius",
-    "landmarks.sigma_px_scale",
-    "mapping.live_cloud_ahead",  # measured no gain (docs/mapping.md "Removed options")
-    "mapping.live_early",  # measured no gain (docs/mapping.md "Removed options")
-    "matching.depth_edge_use",
-    "registration.far_baselines",  # docs/stereo.md "Near and far points"
-    "registration.depth_weighting",  # docs/frontend.md "Options that measured no gain"
-    "registration.joint_gate",
-    "registration.joint_refit",
-    "registration.pregate",
+    "loop.sigma_floor": "loop edges carry their registration's information (one noise floor, in the front end)",
+    # options that measured no gain, removed with their code
+    **{f"landmarks.{k}": _no_gain('docs/slam.md "Removed options"') for k in (
+        "anchor_age", "anchor_edges", "anchor_info_scale", "anchor_min_landmarks", "ba_every", "ba_handover",
+        "ba_noise_scale", "ba_worker", "consistency_floor", "drift_sigma", "global_ba", "global_ba_frames",
+        "global_ba_iterations", "global_ba_odometry", "graph_information", "loop_correct", "match_old_bonus",
+        "observe", "ransac_confidence", "revisit_min_inliers", "revisit_radius", "sigma_px_scale")},
+    "mapping.live_cloud_ahead": _no_gain('docs/mapping.md "Removed options"'),
+    "mapping.live_early": _no_gain('docs/mapping.md "Removed options"'),
+    "matching.depth_edge_use": _no_gain('docs/frontend.md "Scale bias"'),
+    "registration.far_baselines": _no_gain('docs/stereo.md "Near and far points"'),
+    **{f"registration.{k}": _no_gain('docs/frontend.md "Options that measured no gain"')
+       for k in ("depth_weighting", "joint_gate", "joint_refit", "pregate")},
 }
 
 
-def _apply(section_obj: Any, section: str, values: dict[str, Any], source: str) -> None:
+def _apply(section_obj: Any, section: str, values: dict[str, Any], source: str, saved: bool) -> None:
     hints = get_type_hints(type(section_obj))
     for k, v in values.items():
         if f"{section}.{k}" in RETIRED:
-            continue
+            if saved:
+                continue
+            raise ConfigError(f"config key '{section}.{k}' ({source}) was removed: {RETIRED[f'{section}.{k}']}")
         if k not in hints:
             known = ", ".join(hints)
             raise ConfigError(f"unknown config key '{cut(section)}.{cut(k)}' in {source}; known keys: {known}")
         setattr(section_obj, k, _check_value(f"{section}.{k}", v, hints[k]))
 
 
-def merge(cfg: Config, data: dict[str, Any] | None, source: str = "config") -> Config:
-    """Apply a nested mapping (as read from YAML) onto ``cfg`` in place and return it."""
+def merge(cfg: Config, data: dict[str, Any] | None, source: str = "config", saved: bool = True) -> Config:
+    """Apply a nested mapping (as read from YAML) onto ``cfg`` in place and return it. ``saved``: the
+    mapping is a saved configuration, whose retired keys (:data:`RETIRED`) are skipped; otherwise
+    (a ``--set``) naming one is an error."""
     if not data:
         return cfg
     if not isinstance(data, dict):
@@ -252,7 +242,7 @@ def merge(cfg: Config, data: dict[str, Any] | None, source: str = "config") -> C
             continue
         if not isinstance(values, dict):
             raise ConfigError(f"config section '{section}' in {source} must be a mapping")
-        _apply(getattr(cfg, section), section, values, source)
+        _apply(getattr(cfg, section), section, values, source, saved)
     return cfg
 
 
@@ -287,7 +277,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"--set {shorten(item)}: the value {e.problem}") from None
         except yaml.YAMLError:
             value = raw
-        merge(cfg, {section: {name: value}}, f"--set {cut(item)}")
+        merge(cfg, {section: {name: value}}, f"--set {cut(item)}", saved=False)
     return validate(cfg)
 
 

@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated
 
 import pytest
@@ -429,4 +430,27 @@ def test_an_earlier_runs_config_with_retired_keys_still_loads(tmp_path):
     p.write_text(yaml.safe_dump(sections))
     assert load_config(p) == Config()
     assert {"matching.depth_edge_use", "landmarks.global_ba", "landmarks.ba_worker", "mapping.live_early",
-            "mapping.live_cloud_ahead"} <= RETIRED
+            "mapping.live_cloud_ahead"} <= RETIRED.keys()
+
+
+def test_a_retired_key_given_with_set_is_one_line_naming_it_and_where_it_is_documented():
+    """--set (and a sweep's --grid, which sets its values the same way) naming a removed key would run
+    and change nothing: it is refused, saying why the key went and where that is written down."""
+    from rgbdslam.config import RETIRED, load_config
+    from tests.conftest import cli
+
+    for key, why in RETIRED.items():
+        with pytest.raises(ConfigError) as e:
+            load_config(None, [f"{key}=1"])
+        assert str(e.value) == f"config key '{key}' (--set {key}=1) was removed: {why}"
+    assert RETIRED["registration.pregate"] == 'it measured no gain (docs/frontend.md "Options that measured no gain")'
+    assert RETIRED["registration.far_baselines"] == 'it measured no gain (docs/stereo.md "Near and far points")'
+    assert RETIRED["landmarks.global_ba"] == 'it measured no gain (docs/slam.md "Removed options")'
+    assert RETIRED["mapping.live_early"] == 'it measured no gain (docs/mapping.md "Removed options")'
+    root = Path(__file__).resolve().parent.parent
+    for where in {why.split("(", 1)[1] for why in RETIRED.values() if "docs/" in why}:  # the cited headings exist
+        page, heading = where.split(" ", 1)
+        text = (root / page).read_text(encoding="utf-8")
+        assert heading.strip('")') in text, where
+    res = cli(["config", "--set", "registration.far_baselines=40"])
+    assert res.exit_code == 2 and res.stderr.count("\n") == 1 and "'registration.far_baselines'" in res.stderr

@@ -180,7 +180,8 @@ TESTS = PACKAGE.parent / "tests"
 
 def benchmark_violations(source: str) -> list[str]:
     """What a benchmark module must not do: import a private name (``from rgbdslam.x import _y``,
-    ``import rgbdslam._x``), read one (``module._y``, ``obj._y`` of anything but ``self``/``cls``), or
+    ``import rgbdslam._x``), read one (``module._y``, ``obj._y`` of anything but ``self``/``cls``), write
+    one through a keyword argument (``replace(f, _tree=None)``), or
     patch the library at run time (``setattr``/``delattr``, assigning an attribute of a name imported
     from rgbdslam, or an attribute two levels deep such as ``cfg.section.key = ...``)."""
     tree = ast.parse(source)
@@ -204,6 +205,8 @@ def benchmark_violations(source: str) -> list[str]:
         if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
             if not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
                 out.append(f"line {node.lineno}: reads the private attribute {node.attr}")
+        if isinstance(node, ast.keyword) and node.arg and node.arg.startswith("_"):
+            out.append(f"line {node.lineno}: passes the private field {node.arg} as a keyword argument")
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("setattr", "delattr"):
             out.append(f"line {node.lineno}: {node.func.id}() (patching at run time)")
         targets = list(node.targets) if isinstance(node, ast.Assign) else \
@@ -229,8 +232,9 @@ def test_the_benchmark_check_finds_private_imports_and_patches():
         "import rgbdslam.pipeline as pipeline\nfrom rgbdslam.loop import detector\n"
         "from rgbdslam.posegraph.masat import _edge_variances\nfrom rgbdslam.frontend import features\n"
         "pipeline.track_all = print\nsetattr(detector.LoopCloser, 'detect', print)\ncfg.landmarks.enabled = True\n"
-        "x = features._detect\nself._ok = 1\nrow.tracked = 3\nkeep[features.detect(x)] = True\n")
-    assert sorted(int(f.split(":")[0][5:]) for f in found) == [3, 5, 6, 7, 8]  # not self._ok, not row.tracked
+        "x = features._detect\nself._ok = 1\nrow.tracked = 3\nkeep[features.detect(x)] = True\n"
+        "g = replace(f, pts=p, _tree=None)\nh = replace(f, pts=p, **extra)\n")
+    assert sorted(int(f.split(":")[0][5:]) for f in found) == [3, 5, 6, 7, 8, 12]  # not self._ok, row.tracked, **extra
 
 
 def test_benchmarks_use_public_names_and_patch_nothing():

@@ -109,3 +109,13 @@ def test_sweep_takes_the_recordings_run_takes(tmp_path, desk9):
                "--out", tmp_path / "s", "-q"])
     assert res.exit_code == 0, res.output
     assert "1 cell(s) run, 0 kept" in res.stdout
+
+
+def test_a_grid_over_a_retired_key_is_refused_before_any_cell_is_planned(tmp_path):
+    """A removed key swept would run every cell with the same configuration."""
+    from rgbdslam.sweep import plan_cells
+
+    with pytest.raises(ConfigError, match=r"^config key 'registration.pregate' \(--set registration.pregate=0\) "
+                                          r"was removed: it measured no gain \(docs/frontend.md"):
+        plan_cells([tmp_path / "seq"], parse_grid(["registration.pregate=0,0.1"]), tmp_path / "out")
+    assert not (tmp_path / "out").exists()

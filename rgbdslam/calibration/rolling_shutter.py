@@ -8,8 +8,8 @@ of the chain of frames between them, so the readout that makes the odometry agre
 loop-closure edges is the estimate: for each candidate the whole pipeline runs
 (:func:`rgbdslam.pipeline.run_sequence`, map fusion off), and each loop edge of ``posegraph.g2o``
 is compared with the relative pose of its two keyframes in ``odometry.tum`` (before the pose
-graph). The candidate with the smallest median rotation discrepancy is the estimate; ground truth
-is not used (a run's ATE is reported for information only).
+graph; matched by time stamp, within one tracking segment). The candidate with the smallest median
+rotation discrepancy is the estimate; ground truth is not used (a run's ATE is reported for information only).
 
 The residuals of consecutive frames' registrations are no criterion: neighbouring frames share
 nearly the same distortion, which the registration absorbs.
@@ -40,11 +40,28 @@ from rgbdslam.posegraph.graph_io import read_graph
 KEY = "features.rolling_shutter"
 
 
-def loop_discrepancies(run: Path) -> np.ndarray:
+def loop_discrepancies(run: Path, timestamps: np.ndarray | None = None) -> np.ndarray:
     """(K, 2): per loop edge of ``run``'s pose graph, the translation (m) and rotation (deg) between
-    the edge's measured relative pose and the one of its keyframes in the run's odometry."""
+    the edge's measured relative pose and the one of its keyframes in the run's odometry.
+
+    odometry.tum has a line per tracked frame only (a lost frame has none), so a keyframe's line is
+    found by its frame's time stamp (``timestamps``: the stamps of the run's frames, by default read
+    from its sequence as run.json names it). An edge with an end without an odometry line, or
+    whose ends lie in different tracking segments (run.json ``segments``: after a restart the
+    odometry starts new coordinates), is left out."""
+    from rgbdslam.mapping.fusion import match_frames
+    from rgbdslam.runfolder.read import read_run
+
+    run = Path(run)
+    info, cfg, _ = read_run(run)
+    if timestamps is None:
+        from rgbdslam.datasets import open_sequence
+
+        timestamps = open_sequence(info["sequence"], cfg).timestamps
     g = read_graph(run / "posegraph.g2o")
     odo = read_tum(run / "odometry.tum")
+    row = match_frames(np.asarray(timestamps, dtype=np.float64), odo)
+    starts = np.array(sorted(int(s["first"]) for s in info.get("segments") or []), dtype=np.int64)
     ids = [int(x) for x in g.ids]
     rank = {v: k for k, v in enumerate(sorted(ids))}
     out = []
@@ -52,7 +69,11 @@ def loop_discrepancies(run: Path) -> np.ndarray:
         i, j = ids[g.edges_i[k]], ids[g.edges_j[k]]
         if abs(rank[i] - rank[j]) == 1:
             continue  # an odometry edge
-        E = inv(inv(odo.poses[i]) @ odo.poses[j]) @ g.meas[k]
+        if not (0 <= i < len(row) and 0 <= j < len(row)) or row[i] < 0 or row[j] < 0:
+            continue  # a frame without an odometry line
+        if np.searchsorted(starts, i, side="right") != np.searchsorted(starts, j, side="right"):
+            continue  # two tracking segments: two coordinate frames
+        E = inv(inv(odo.poses[row[i]]) @ odo.poses[row[j]]) @ g.meas[k]
         out.append((np.linalg.norm(E[:3, 3]), np.degrees(rotation_angle(E[:3, :3]))))
     return np.array(out, dtype=np.float64).reshape(-1, 2)
 

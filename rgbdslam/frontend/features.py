@@ -69,6 +69,14 @@ class FrameFeatures:
             self._tree = cKDTree(self.pts[self._tree_index])
         return self._tree
 
+    def with_points(self, pts: np.ndarray) -> FrameFeatures:
+        """A copy with the camera-frame points ``pts`` (N, 3) instead (the other arrays shared); its
+        k-d tree is built anew from them."""
+        pts = np.asarray(pts, dtype=np.float64)
+        if pts.shape != self.pts.shape:
+            raise ValueError(f"with_points needs {self.pts.shape} points, got {pts.shape}")
+        return replace(self, pts=pts, _tree=None, _tree_index=None)
+
     @property
     def tree_index(self) -> np.ndarray:
         """Feature index of each point in :attr:`tree`."""

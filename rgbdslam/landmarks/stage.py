@@ -113,6 +113,8 @@ class LandmarkTracker:
         self.keyframes: list[_KeyframeObs] = []  # the last ones (bounded: what local BA can use)
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
         self.kf_obs: dict[int, np.ndarray] = {}  # every keyframe's observed landmark ids (the covisibility graph)
+        self._seen_by: dict[int, list[int]] = {}  # landmark id -> the keyframes observing it (once per observation)
+        self._newest: int | None = None  # the newest keyframe in kf_obs
         self._local: np.ndarray | None = None  # the local map's landmark mask for the newest keyframe (local_map_shared)
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
@@ -212,22 +214,35 @@ class LandmarkTracker:
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
         return self._accept(index, feats, res)
 
+    def observe(self, index: int, ids: np.ndarray) -> None:
+        """Record the landmark ids keyframe ``index`` observes (the covisibility graph, :meth:`local_map`)."""
+        for i in self.kf_obs.get(index, np.zeros(0, np.int64)).tolist():  # observed again: replaces the old ids
+            self._seen_by[i].remove(index)
+        ids = np.array(ids, dtype=np.int64)
+        self.kf_obs[index] = ids
+        for i in ids.tolist():
+            self._seen_by.setdefault(i, []).append(index)
+        self._newest = index if self._newest is None else max(self._newest, index)
+        self._local = None
+
     def local_map(self) -> np.ndarray | None:
         """The covisibility local map (``local_map_shared`` > 0; else None: every landmark): a mask over
         landmark ids of those observed by the newest keyframe (the frame's reference) and by every keyframe
         sharing at least ``local_map_shared`` landmarks with it — the edge weights of ORB-SLAM's covisibility
-        graph. Computed once per keyframe."""
+        graph. Computed once per keyframe, from the keyframes observing the reference's landmarks only
+        (not every keyframe: a long run has thousands)."""
         c = self.cfg
         if c.local_map_shared <= 0 or not self.kf_obs:
             return None
         if self._local is None or len(self._local) < self.map.n:
-            ref = self.kf_obs[max(self.kf_obs)]
-            in_ref = np.zeros(self.map.n, bool)
-            in_ref[ref] = True
-            local = in_ref.copy()
-            for obs in self.kf_obs.values():
-                if np.count_nonzero(in_ref[obs]) >= c.local_map_shared:
-                    local[obs] = True
+            ref = self.kf_obs[self._newest]
+            local = np.zeros(self.map.n, bool)
+            local[ref] = True
+            # shared landmarks per keyframe: each observation of one of the reference's landmarks counts
+            kfs = [k for i in np.unique(ref).tolist() for k in self._seen_by.get(i, ())]
+            kf, shared = np.unique(np.array(kfs, dtype=np.int64), return_counts=True)
+            for k in kf[shared >= c.local_map_shared].tolist():
+                local[self.kf_obs[k]] = True
             self._local = local
         return self._local
 
@@ -382,8 +397,7 @@ class LandmarkTracker:
             lm_idx = np.concatenate([lm_idx, new])
             lm_ids = np.concatenate([lm_ids, ids])
         self.kf_pose[index] = pose.copy()
-        self.kf_obs[index] = lm_ids.copy()
-        self._local = None
+        self.observe(index, lm_ids)
         self.keyframes.append(_KeyframeObs(index, lm_ids, feats.uv[lm_idx].copy(), feats.pts[lm_idx, 2].copy()))
         keep = max(3 * c.ba_window, 10)
         if len(self.keyframes) > keep:

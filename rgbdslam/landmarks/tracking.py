@@ -79,7 +79,7 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px
     (``first_before``: only landmarks first seen before that frame, ``first_after``: only those first
     seen at or after that frame — together a loop's older end, ``landmarks.loop_refine``;
-    ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map``)."""
+    ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map_shared``)."""
     ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
     if allowed is not None:
         keep = allowed[ids]

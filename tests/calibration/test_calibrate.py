@@ -4,10 +4,12 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import rgbdslam
 from rgbdslam.calibration.depth_to_color import edge_points, score
 from rgbdslam.calibration.rolling_shutter import loop_discrepancies
 from rgbdslam.datasets.camera_file import read_camera_file
@@ -16,7 +18,7 @@ from tests.conftest import DATA, cli, need
 
 SEVEN = DATA / "7scenes" / "frames_0000_0299"
 RPY200 = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
-SHIPPED = "rgbdslam/cameras/7scenes.yaml"
+SHIPPED = str(Path(rgbdslam.__file__).parent / "cameras" / "7scenes.yaml")  # whatever the working folder
 
 
 def test_edge_points_and_score_by_hand():
@@ -97,3 +99,47 @@ def test_a_camera_file_varied_per_value_keeps_its_other_keys(tmp_path):
                                                                          shipped.depth_scale)
     res = cli(["calibrate", "rolling-shutter", tmp_path, "--camera-key", "fx", "--values", "500"])
     assert res.exit_code == 2 and "--camera-key needs --set dataset.camera_file=FILE" in res.stderr
+
+
+@pytest.mark.data
+def test_loop_discrepancies_find_keyframes_by_time_stamp_within_one_tracking_segment(tmp_path):
+    """odometry.tum has no line for a lost frame: a keyframe's odometry pose is found by its time
+    stamp, not by its frame number as a row; an edge to a frame without a line, or across a
+    tracking restart (two coordinate frames), is left out. A real fr1/rpy run, its files edited as
+    a run that lost frames 50 (a plain frame) and 110 (a keyframe with loop edges) would write."""
+    import shutil
+
+    from rgbdslam.posegraph.graph_io import read_graph
+
+    run = tmp_path / "run"
+    res = cli(["run", need(RPY200), "--out", run, "--no-map", "-q", "--set", "output.plots=false"])
+    assert res.exit_code == 0, res.output
+    whole = loop_discrepancies(run)
+    g = read_graph(run / "posegraph.g2o")
+    ids = [int(x) for x in g.ids]
+    edges = [(ids[i], ids[j]) for i, j in zip(g.edges_i, g.edges_j)]
+    loops = [e for e in edges if abs(sorted(ids).index(e[0]) - sorted(ids).index(e[1])) != 1]
+    assert len(loops) == len(whole) >= 10 and 50 not in ids and any(110 in e for e in loops)
+
+    lost = tmp_path / "lost"
+    shutil.copytree(run, lost)
+    lines = (run / "odometry.tum").read_text().splitlines()
+    rows = [ln for ln in lines if ln.strip() and not ln.startswith("#")]
+    assert len(rows) == 200
+    drop = {rows[50], rows[110]}
+    (lost / "odometry.tum").write_text("\n".join(ln for ln in lines if ln not in drop) + "\n")
+    info = json.loads((run / "run.json").read_text())
+    info.update(lost_frames=[50, 110], lost=2, tracked=198)
+    (lost / "run.json").write_text(json.dumps(info))
+    kept = [k for k, e in enumerate(loops) if 110 not in e]
+    assert np.array_equal(loop_discrepancies(lost), whole[kept])  # the same poses compared, bit for bit
+
+    split = tmp_path / "split"  # a restart at frame 100: frames 100-199 are tracked in new coordinates
+    shutil.copytree(run, split)
+    info = json.loads((run / "run.json").read_text())
+    info.update(restarts=[100], segments=[{"first": 0, "last": 99, "frames": 100, "map": True},
+                                          {"first": 100, "last": 199, "frames": 100, "map": False}])
+    (split / "run.json").write_text(json.dumps(info))
+    same = [k for k, (i, j) in enumerate(loops) if (i < 100) == (j < 100)]
+    assert 0 < len(same) < len(loops)
+    assert np.array_equal(loop_discrepancies(split), whole[same])

@@ -139,6 +139,23 @@ def test_lift_and_set_depth(desk):
     assert fe.refs[-1].features.valid.sum() == 0
 
 
+def test_features_with_other_points_search_the_new_points(desk):
+    """with_points: a copy whose k-d tree is built from the new points (the original's cached tree,
+    already built, stays with the original)."""
+    _, frames = desk
+    cfg = Config()
+    f = extract_features(frames[0], cfg.features, cfg.matching)
+    near = f.pts * 0.5
+    f.tree  # noqa: B018 - the original's tree, built and cached
+    g = f.with_points(near)
+    assert g.pts is not f.pts and np.array_equal(g.desc, f.desc) and np.array_equal(g.valid, f.valid)
+    d, k2 = g.tree.query(near[g.valid])
+    assert np.all(d == 0) and np.array_equal(g.pts[g.tree_index[k2]], near[g.valid])  # duplicates: any of them
+    assert np.array_equal(f.tree.data, f.pts[f.valid]) and not np.array_equal(g.tree.data, f.tree.data)
+    with pytest.raises(ValueError, match="with_points needs"):
+        f.with_points(near[:5])
+
+
 def test_hamming_matrix_matches_opencv_norm():
     import cv2
 

@@ -160,10 +160,12 @@ def test_islam_loop_on_real_frames_gives_the_same_bits_as_before(rpy_pairs):
 def test_pairs_within_the_cap_are_the_capped_pair_distances():
     rng = np.random.default_rng(8)
     for n_words in (1, 2, 4):
-        wa = rng.integers(0, 2**63, (300, n_words), dtype=np.uint64)
-        wb = wa[rng.permutation(300)] ^ (rng.integers(0, 2**63, (300, n_words), dtype=np.uint64)
-                                         & rng.integers(0, 2**63, (300, n_words), dtype=np.uint64)
-                                         & rng.integers(0, 2**63, (300, n_words), dtype=np.uint64))
+        def words():  # all 64 bits of each word random (the top bit too)
+            return np.frombuffer(rng.bytes(300 * n_words * 8), np.uint64).reshape(300, n_words)
+
+        wa = words()
+        wb = wa[rng.permutation(300)] ^ (words() & words() & words())
+        assert (wa >> np.uint64(63)).any() and (wa ^ wb).any()
         i, j = rng.integers(0, 300, 20000), rng.integers(0, 300, 20000)
         full = pair_hamming(wa, wb, i, j)
         for cap in (0, 8 * n_words, 16 * n_words, 64 * n_words):

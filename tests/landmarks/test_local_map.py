@@ -16,7 +16,7 @@ def test_local_map_is_the_reference_keyframe_and_its_covisible_keyframes():
     tr = LandmarkTracker(LandmarksConfig(enabled=True, local_map_shared=2), CAM)
     tr.map.add(np.ones((12, 3)), np.tile(np.eye(3), (12, 1, 1)), np.zeros((12, 32), np.uint8), 0, 0)
     for k, ids in ((0, [0, 1, 2, 3]), (5, [2, 3, 4]), (9, [10, 11]), (12, [3, 4, 5, 6])):
-        tr.kf_obs[k] = np.array(ids)
+        tr.observe(k, np.array(ids))
     assert np.flatnonzero(tr.local_map()).tolist() == [2, 3, 4, 5, 6]
     assert LandmarkTracker(LandmarksConfig(enabled=True, local_map_shared=0), CAM).local_map() is None  # every landmark
 
@@ -36,7 +36,8 @@ def test_landmarks_of_keyframes_outside_the_local_map_do_not_pull_the_map_pose()
         old = tr.map.add(X[:h] @ shift[:3, :3].T + shift[:3, 3], cov[:h], desc[:h], 0, 0)
         new = tr.map.add(X[h:], cov[h:], desc[h:], 95, 95)
         tr.map.end_step(95)
-        tr.kf_obs.update({0: old, 95: new, 96: new[::2]})
+        for k, ids in ((0, old), (95, new), (96, new[::2])):
+            tr.observe(k, ids)
         return tr
 
     mixed = tracker(0).track(100, feats, truth)
@@ -45,3 +46,26 @@ def test_landmarks_of_keyframes_outside_the_local_map_do_not_pull_the_map_pose()
     P = tr.track(100, feats, truth)
     assert np.linalg.norm(P[:3, 3] - truth[:3, 3]) < 1e-4
     assert np.all(tr.map.first[tr._last[2]] == 95)
+
+
+def test_local_map_from_the_observers_equals_the_count_over_every_keyframe():
+    """The local map is found from the keyframes that observe the reference's landmarks; it is the
+    definition over every keyframe (shared count with repeats, a keyframe observed again replacing its
+    ids), on 300 random keyframes, after each one."""
+    rng = np.random.default_rng(3)
+    tr = LandmarkTracker(LandmarksConfig(enabled=True, local_map_shared=4), CAM)
+    tr.map.add(np.ones((2000, 3)), np.tile(np.eye(3), (2000, 1, 1)), np.zeros((2000, 32), np.uint8), 0, 0)
+    obs: dict[int, np.ndarray] = {}
+    for step in range(300):
+        k = int(rng.integers(0, step + 1)) if step % 50 == 49 else step  # now and then a keyframe again
+        centre = int(rng.integers(0, 1900))
+        ids = centre + rng.integers(0, 100, int(rng.integers(0, 40)))  # repeats possible
+        obs[k] = ids
+        tr.observe(k, ids)
+        ref = np.zeros(2000, bool)
+        ref[obs[max(obs)]] = True
+        expect = ref.copy()
+        for o in obs.values():
+            if np.count_nonzero(ref[o]) >= 4:
+                expect[o] = True
+        assert np.array_equal(tr.local_map(), expect), step
