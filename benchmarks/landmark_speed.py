@@ -1,4 +1,4 @@
-"""Speed of the landmark map against today's default, interleaved in one run (issue 17's speed target).
+"""Speed of the landmark map against today's default, interleaved in one run.
 
 Usage::
 

@@ -1,4 +1,4 @@
-"""Accuracy suite for map-based tracking (issue 17): every sequence, several configurations, one run.
+"""Accuracy suite for map-based tracking: every sequence, several configurations, one run.
 
 Usage::
 
@@ -146,7 +146,7 @@ def markdown(rows: list[dict], section: str, commands: list[str], machine: str) 
             L.append(f"| {r['sequence']} | {r['variant']} | {r['first_visit']:.4f} | {r['revisit']:.4f} | "
                      f"{_f(r.get('old_share'), '{:.3f}')} |")
     o3d = [q for q in seqs if (q, "Open3D hybrid odometry") in by]
-    if o3d:  # issue 17: at or below Open3D's hybrid RGB-D odometry on each loop-type sequence, same run
+    if o3d:  # at or below Open3D's hybrid RGB-D odometry on each loop-type sequence, same run
         others = [v for v in variants if v != "Open3D hybrid odometry"]
         L += ["", "Against Open3D's hybrid RGB-D odometry (frame to frame, no loop closure) measured in the same run "
                   "on each loop-type sequence: ATE / 1-frame RPE of each variant, `<=` where it is at or below "

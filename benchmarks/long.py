@@ -16,7 +16,7 @@ process's resident memory every ``--window`` frames and at the last frame; the r
 most ``dataset.prefetch`` frames ahead, so the read times follow the tracking. Reported per window
 of frames: frames/s and memory, plus the run's ATE, loops, keyframes and loop-closure cost, the
 peak resident size and the ratio of the memory at the last frame to that at frame ``--window``
-(issue 17's "memory flat within 1.5x from frame 300 to frame 1500").
+(memory flat within 1.5x from frame 300 to frame 1500).
 ``--write-docs`` replaces the "## Long sequences" section of docs/benchmarks.md. ``--json`` keeps
 a run's numbers; ``--report`` joins several runs (one configuration per process, so that each
 process's memory is its own) into one memory table under ``--section``.

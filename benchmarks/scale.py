@@ -1,4 +1,4 @@
-"""Scale and speed (issue 22): the whole command against its tracking, start-up, the map fused
+"""Scale and speed: the whole command against its tracking, start-up, the map fused
 while tracking against fusing the final poses, a sweep on the local pool and on Ray, and the
 memory of a long run. One command gives the whole table.
 

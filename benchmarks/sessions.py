@@ -1,4 +1,4 @@
-"""Saved maps and sessions (issue 19): map a place in session 1, then localise in / extend that
+"""Saved maps and sessions: map a place in session 1, then localise in / extend that
 map with session 2, against one run over both.
 
 For every case:

@@ -27,7 +27,7 @@ disagrees with the ground truth by more than 0.10 m or 5 degrees) as markdown. T
 * the descriptor index: query time against the number of keyframes for the LSH index and
   the exhaustive baseline (real ORB descriptors from fr1/rpy with bit noise).
 
-``--landmark-ablation`` (issue 17) runs ``LANDMARK_ABLATION`` — today's default; landmark tracking
+``--landmark-ablation`` runs ``LANDMARK_ABLATION`` — today's default; landmark tracking
 without BA; with local BA; Kalman off; uniform instead of old-first RANSAC sampling; one k-d tree
 instead of the multi-tree; the map pose alone (seed mode) — on fr1/rpy head200, 7-Scenes redkitchen
 0-299 and the synthetic motions x seeds (``--synthetic-frames``), with benchmarks/landmarks.py's
@@ -282,7 +282,7 @@ def run_ablation(data: Path, out: Path, max_frames: int | None, repeat: int = 1)
     return rows
 
 
-# the landmark map's ablation (issue 17): today's default; landmark tracking without BA; with local BA;
+# the landmark map's ablation: today's default; landmark tracking without BA; with local BA;
 # Kalman on/off; old-first vs uniform RANSAC sampling; multi vs single k-d tree; the map pose alone (seed mode)
 LANDMARK_ABLATION = {
     "default": [],

@@ -1,4 +1,4 @@
-"""Windowed local bundle adjustment over the landmark map (issue 17, beyond the sources).
+"""Windowed local bundle adjustment over the landmark map (beyond the sources).
 
 On each new keyframe: the last ``ba_window`` keyframes and every landmark they observe (seen by
 at least two keyframes in the graph) are optimised; the older keyframes (among those kept) that

@@ -1,4 +1,4 @@
-"""Tracking a frame against the landmark map (spec §6, issue 17).
+"""Tracking a frame against the landmark map (spec §6).
 
 1. Candidates: the landmarks the store returns within ``max_depth / 2`` (+ margin) of the point
    ``max_depth / 2`` ahead of the predicted camera, kept when they project into the image in
