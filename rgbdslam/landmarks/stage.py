@@ -330,9 +330,11 @@ class LandmarkTracker:
         already existed at frame ``older`` (first seen at or before it): the map itself ties the two
         frames together — through landmarks Kalman-averaged over many frames, more precisely than a loop
         edge's one registration — so a loop edge ``older`` -> ``index`` would only add that
-        registration's error (docs/slam.md "Landmark map")."""
+        registration's error (docs/slam.md "Landmark map"). Never when ``older`` is not a keyframe of
+        this map (a saved map's keyframe, docs/slam.md "Saved maps and sessions"): its landmarks are not
+        in this map, and frame numbers of another session say nothing about them."""
         c = self.cfg
-        if c.map_loop_landmarks <= 0 or self._last is None or self._last[0] != index:
+        if c.map_loop_landmarks <= 0 or self._last is None or self._last[0] != index or int(older) not in self.kf_pose:
             return False
         held = int((self.map.first[self._last[2]] <= older).sum()) >= c.map_loop_landmarks
         self.stats.loops_held += int(held)

@@ -78,8 +78,11 @@ def test_stale_landmarks_that_agree_join_the_map_pose():
 
 def test_a_loop_the_map_already_closed_is_held_by_the_map():
     """holds(j, i): frame j's map inliers include >= map_loop_landmarks landmarks first seen at or before
-    frame i (the loop's older end) — counted by hand: 40 landmarks first seen at 0, 40 at 60."""
+    frame i (the loop's older end) — counted by hand: 40 landmarks first seen at 0, 40 at 60. Never
+    when i is no keyframe of this map (a saved map's keyframe: its id, 2^40 + k, is past every frame)."""
     tr = LandmarkTracker(LandmarksConfig(enabled=True, map_loop_landmarks=30), CAM)
+    for k in (0, 10, 60):
+        tr.kf_pose[k] = np.eye(4)
     X = _scene(80, 2)
     cov = np.tile(np.eye(3) * 1e-6, (80, 1, 1))
     desc = np.zeros((80, 32), np.uint8)
@@ -87,6 +90,7 @@ def test_a_loop_the_map_already_closed_is_held_by_the_map():
     tr.map.add(X[40:], cov[40:], desc[40:], 60, 60)
     tr._last = (130, np.arange(80), np.arange(80))
     assert tr.holds(130, 0)  # 40 >= 30 landmarks existed at frame 0
+    assert not tr.holds(130, (1 << 40) + 3)  # a saved map's keyframe: none of these landmarks is its
     tr._last = (130, np.arange(60), np.arange(20, 80))  # 20 of them first seen at 0: fewer than 30
     assert not tr.holds(130, 10)
     assert tr.holds(130, 60)  # all 60 existed at frame 60
