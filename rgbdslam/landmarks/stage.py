@@ -25,7 +25,7 @@ from rgbdslam.landmarks.config import LandmarksConfig
 from rgbdslam.landmarks.kalman import observation_covariance
 from rgbdslam.landmarks.map import LandmarkMap
 from rgbdslam.frontend.features import map_valid
-from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
+from rgbdslam.landmarks.tracking import map_pose, match_to_map
 
 
 @dataclass
@@ -166,9 +166,6 @@ class LandmarkTracker:
         self.finish(optimised)
 
     # ---------------------------------------------------------------- the map step
-    def _sigma(self, z: np.ndarray) -> np.ndarray:
-        return self.cfg.depth_noise_a + self.cfg.depth_noise_b * z * z
-
     def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int) -> None:
         """Kalman update of landmarks ``ids`` from frame features ``idx`` seen from ``pose`` (counted as seen at ``frame``)."""
         P = feats.pts[idx]
@@ -249,11 +246,7 @@ class LandmarkTracker:
     def _estimate(self, feats, m, pose: np.ndarray, seeded: bool = False):
         """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails.
         ``seeded``: no RANSAC, the refine starts from ``pose``'s inliers (``pose`` another estimate)."""
-        c = self.cfg
-        return estimate_pose(self.map, feats, m, pose, self._sigma(feats.pts[m.feat, 2]), c.ransac_threshold,
-                             0 if seeded else c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction, self.rng,
-                             c.refine, self.camera, c.sigma_px, c.chi_gate, c.landmark_cov == "full", c.adaptive_noise,
-                             refine_iterations=c.refine_iterations)
+        return map_pose(self.map, feats, m, pose, self.cfg, self.camera, self.rng, seeded)
 
     def _without_stale(self, index: int, feats, m, pose: np.ndarray):
         """The matches with the *stale* landmarks (not seen for more than ``stale_after`` frames: an

@@ -193,6 +193,18 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
 _UPPER = np.array([0, 1, 2, 4, 5, 8])  # the entries (0,0) (0,1) (0,2) (1,1) (1,2) (2,2) of a flattened 3x3
 
 
+def map_pose(lmap, feats, match: MapMatch, pred: np.ndarray, cfg, camera, rng: np.random.Generator,
+             seeded: bool = False) -> MapPose | None:
+    """:func:`estimate_pose` with the settings of the ``landmarks`` config section ``cfg`` (the landmark
+    stage's map pose, and a localising run's pose against a saved map); ``seeded``: no RANSAC, the refine
+    starts from ``pred``'s inliers."""
+    z = feats.pts[match.feat, 2]
+    return estimate_pose(lmap, feats, match, pred, cfg.depth_noise_a + cfg.depth_noise_b * z * z,
+                         cfg.ransac_threshold, 0 if seeded else cfg.ransac_iterations, cfg.min_inliers, cfg.sampling,
+                         cfg.old_fraction, rng, cfg.refine, camera, cfg.sigma_px, cfg.chi_gate,
+                         cfg.landmark_cov == "full", cfg.adaptive_noise, refine_iterations=cfg.refine_iterations)
+
+
 def _so3_exp(w: np.ndarray) -> np.ndarray:
     """Rodrigues: the rotation matrix of the rotation vector ``w``."""
     th = math.sqrt(float(w.dot(w)))  # np.linalg.norm's own sqrt(w·w), without its dispatch

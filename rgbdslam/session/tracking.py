@@ -102,18 +102,14 @@ class MapTracker:
         """A LoopEdge from map keyframe ``kf`` to the frame from the frame's pose against the saved landmark
         map (matched by projection at the predicted map pose, RANSAC + reprojection refine, as the landmark
         stage's map pose), or None (too few inliers, no information, or too far from the prediction)."""
-        from rgbdslam.landmarks.tracking import estimate_pose, match_to_map
+        from rgbdslam.landmarks.tracking import map_pose, match_to_map
         from rgbdslam.loop.detector import LoopEdge
 
         c, lc = self.lm_cfg, self.cfg
         m = match_to_map(self.landmarks, features, pred, self.camera, c.search_radius, c.max_hamming, c.max_depth)
         if len(m.lm) < c.min_inliers:
             return None
-        z = features.pts[m.feat, 2]
-        res = estimate_pose(self.landmarks, features, m, pred, c.depth_noise_a + c.depth_noise_b * z * z,
-                            c.ransac_threshold, c.ransac_iterations, c.min_inliers, c.sampling, c.old_fraction,
-                            self.rng, "reprojection", self.camera, c.sigma_px, c.chi_gate, c.landmark_cov == "full",
-                            c.adaptive_noise, refine_iterations=c.refine_iterations)
+        res = map_pose(self.landmarks, features, m, pred, c, self.camera, self.rng)
         if res is None or res.information is None:
             return None
         et, er = motion_between(pred, res.pose)
