@@ -200,6 +200,37 @@ def test_points_refine_follows_the_depth_where_the_pixels_disagree():
     assert np.allclose(out["points"].information, point_information(Pc, SIGMA_FLOOR))
 
 
+def test_map_pose_fits_3d_points_when_the_depth_is_not_registered_to_the_colour():
+    """``map_pose`` (the one map-pose call of the landmarks section): a camera whose depth comes from a
+    second camera (``Camera.depth_registered`` false, 7-Scenes) gets the 3-D refit ('points') in place
+    of the configured reprojection refine, so pixels 3 px off their depth (the calibration's error) do
+    not turn the pose; a registered camera keeps the reprojection refine, its pose bit for bit."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from rgbdslam.landmarks.config import LandmarksConfig
+    from rgbdslam.landmarks.tracking import MapMatch, estimate_pose, map_pose
+
+    X = _scene(300, seed=6)
+    m = LandmarkMap("single")
+    ids = m.add(X, np.tile(np.eye(3) * 1e-8, (len(X), 1, 1)), np.zeros((len(X), 32), np.uint8), 0, 0)
+    P = _pose([0.01, -0.02, 0.03], [0.05, 0.02, -0.04])
+    Pc, uv, z = _seen(P, X)
+    feats = SimpleNamespace(uv=uv + [3.0, 0.0], pts=Pc)
+    match = MapMatch(np.arange(len(X)), ids, len(X))
+    cfg = LandmarksConfig(min_inliers=10)
+    assert cfg.refine == "reprojection"
+    unregistered = replace(CAM, depth_registered=False)
+    two = map_pose(m, feats, match, P, cfg, unregistered, np.random.default_rng(0))
+    one = map_pose(m, feats, match, P, cfg, CAM, np.random.default_rng(0))
+    assert _err(two.pose, P) < 1e-6 and _err(one.pose, P) > 4e-3  # the pixels' 3 px shift turns only the latter
+    sig = cfg.depth_noise_a + cfg.depth_noise_b * z * z  # map_pose's depth noise, operation for operation
+    by_hand = estimate_pose(m, feats, match, P, sig, cfg.ransac_threshold, cfg.ransac_iterations, cfg.min_inliers,
+                            cfg.sampling, cfg.old_fraction, np.random.default_rng(0), "reprojection", CAM,
+                            cfg.sigma_px, cfg.chi_gate, True, cfg.adaptive_noise)
+    assert np.array_equal(one.pose, by_hand.pose)
+
+
 def test_residuals_without_jacobians_and_the_rotated_covariance():
     """``jacobian=False`` gives the same residuals bit for bit; the landmark covariance rotated into
     the camera (the (N, 9) @ (9, 6) product) is R Σ Rᵀ: with Σ along the camera's z after the rotation
