@@ -19,7 +19,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from rgbdslam.frontend.features import map_valid
 from rgbdslam.frontend.matching import pair_hamming
@@ -93,6 +92,8 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv, ids)
     if len(ids) == 0 or len(fi) == 0:
         return empty
+    from scipy.spatial import cKDTree  # here: SciPy's import is not on the way to the first frame
+
     kk = min(k, len(ids))
     # a tree built once per frame and queried once: unbalanced (built in half the time, same answers)
     d, nn = cKDTree(uv, balanced_tree=False, compact_nodes=False).query(feats.uv[fi], k=kk,
