@@ -90,8 +90,11 @@ def fuse_poses(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -
 
 
 def map_features(result):
-    """The key points the landmark map works with: every one detected (``landmarks.n_features``) or the frame's."""
-    return result.features if result.map_features is None else result.map_features
+    """The key points the landmark map works with: every one detected (``landmarks.n_features``) or the frame's;
+    a stereo frame's with every stereo depth as a point (:func:`rgbdslam.stereo.landmarks.stereo_map_features`)."""
+    from rgbdslam.stereo.landmarks import stereo_map_features
+
+    return stereo_map_features(result.features if result.map_features is None else result.map_features)
 
 
 class LandmarkTracker:
@@ -102,8 +105,9 @@ class LandmarkTracker:
     name = "landmarks"  # the timing key of its steps (run.json)
 
     def __init__(self, cfg: LandmarksConfig, camera: Camera, observer=None, log_every: int = 1):
-        self.cfg = cfg
+        self.cfg = self.base_cfg = cfg  # cfg: the frame's settings (a stereo frame's: frame_settings)
         self.camera = camera
+        self._frame_feats: tuple | None = None  # (track result, its map features): made once per frame
         self.observer = observer
         self.log_every = max(1, log_every)
         self.map = LandmarkMap(cfg.store, cfg.kalman, cfg.process_noise, cfg.min_seen, cfg.cull_after,
@@ -138,7 +142,7 @@ class LandmarkTracker:
         info = result.information
         if info is not None and result.n_fused > 1:  # the references share this frame's noise:
             info = info / result.n_fused  # their summed information counts it n_fused times
-        mpose = self.track(frame.index, map_features(result), pose, info)
+        mpose = self.track(frame.index, self.frame_features(result), pose, info)
         return {} if mpose is pose else {frame.index: mpose}
 
     def on_loops(self, frame, result, loops: list) -> list:
@@ -146,7 +150,7 @@ class LandmarkTracker:
         restart), less those the map already holds (``map_loop_landmarks``)."""
         c = self.cfg
         if loops and c.loop_refine and not result.reset:
-            loops = [self.refine_loop(frame.index, map_features(result), e) for e in loops]
+            loops = [self.refine_loop(frame.index, self.frame_features(result), e) for e in loops]
         if loops and c.map_loop_landmarks > 0:
             loops = [e for e in loops if not self.holds(frame.index, e.i)]
         return loops
@@ -154,7 +158,7 @@ class LandmarkTracker:
     def on_frame(self, frame, result, pose: np.ndarray, keyframe: bool) -> dict[int, np.ndarray]:
         """The end of the frame's map step at its pose: on a keyframe new landmarks and the local BA,
         whose refined keyframe poses are the corrections returned (this frame's among them); culling; Rerun."""
-        feats = map_features(result)
+        feats = self.frame_features(result)
         refined = self.add_keyframe(frame.index, feats, pose) if keyframe else {}
         self.end_frame(frame.index)
         if self.observer is not None and frame.index % self.log_every == 0:
@@ -164,6 +168,24 @@ class LandmarkTracker:
     def on_finish(self, optimised: dict[int, np.ndarray]) -> None:
         """After the final pose graph: the landmarks move with their anchor keyframes (:meth:`finish`)."""
         self.finish(optimised)
+
+    def frame_features(self, result):
+        """The frame's map features (:func:`map_features`, made once per frame); sets :attr:`cfg` to the frame's
+        settings: ``landmarks`` as configured, for a stereo frame with the pair's depth limit and noise
+        (:mod:`rgbdslam.stereo.landmarks`)."""
+        if self._frame_feats is None or self._frame_feats[0] is not result:
+            from dataclasses import replace
+
+            from rgbdslam.stereo.landmarks import depth_limit, depth_noise_ab
+
+            feats = map_features(result)
+            self.cfg = self.base_cfg
+            if feats.depth_noise is not None:
+                a, b = depth_noise_ab(feats.depth_noise)
+                self.cfg = replace(self.base_cfg, depth_noise_a=a, depth_noise_b=b,
+                                   max_depth=depth_limit(feats, self.base_cfg.max_depth))
+            self._frame_feats = (result, feats)
+        return self._frame_feats[1]
 
     # ---------------------------------------------------------------- the map step
     def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int) -> None:
