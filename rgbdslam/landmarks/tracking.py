@@ -75,11 +75,13 @@ def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin:
 
 def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, max_hamming: int,
                  max_depth: float, k: int = 6, first_before: int | None = None,
-                 first_after: int | None = None, allowed: np.ndarray | None = None) -> MapMatch:
+                 first_after: int | None = None, allowed: np.ndarray | None = None,
+                 use: np.ndarray | None = None) -> MapMatch:
     """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px
     (``first_before``: only landmarks first seen before that frame, ``first_after``: only those first
     seen at or after that frame — together a loop's older end, ``landmarks.loop_refine``;
-    ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map_shared``)."""
+    ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map_shared``;
+    ``use``: a boolean mask over the frame features matched, default :func:`map_valid` — a stereo frame's are all)."""
     ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
     if allowed is not None:
         keep = allowed[ids]
@@ -89,7 +91,7 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
         old = (f < (first_before if first_before is not None else np.inf)) & \
             (f >= (first_after if first_after is not None else -np.inf))
         ids, uv = ids[old], uv[old]
-    fi = np.flatnonzero(map_valid(feats))
+    fi = np.flatnonzero(map_valid(feats) if use is None else use)
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv, ids)
     if len(ids) == 0 or len(fi) == 0:
         return empty
