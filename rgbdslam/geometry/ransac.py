@@ -38,7 +38,7 @@ def ransac_rigid(
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Robust ``T`` with ``D ~ T * S`` and the inlier mask, or None if no consensus.
 
-    S, D: (N, 3) matched points; threshold: inlier distance (m; a scalar, or (N,) one per pair); iterations: samples drawn;
+    S, D: (N, 3) matched points; threshold: inlier distance (m); iterations: samples drawn;
     T0: an optional predicted transform, scored as one more hypothesis;
     subset/keep_best: preemptive scoring (all hypotheses on ``subset`` pairs, the best
     ``keep_best`` on all pairs); sample_from: draw the minimal samples from the first
@@ -70,7 +70,7 @@ def ransac_rigid(
     Ts = fit_rigid_batch(Ss[good], Ds[good])
     if T0 is not None:
         Ts = np.concatenate([np.asarray(T0, dtype=np.float64)[None], Ts])
-    counts_sub = _count_inliers(Ts, S[sub], D[sub], th2 if np.ndim(th2) == 0 else th2[sub])
+    counts_sub = _count_inliers(Ts, S[sub], D[sub], th2)
     top = np.argsort(-counts_sub, kind="stable")[:keep_best]
     Ts = Ts[top]
     err2 = _errors2(Ts, S, D)  # (B, N)

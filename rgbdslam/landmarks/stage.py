@@ -90,11 +90,8 @@ def fuse_poses(P1: np.ndarray, H1: np.ndarray, P2: np.ndarray, H2: np.ndarray) -
 
 
 def map_features(result):
-    """The key points the landmark map works with: every one detected (``landmarks.n_features``) or the frame's;
-    a stereo frame's with every stereo depth as a point (:func:`rgbdslam.stereo.landmarks.stereo_map_features`)."""
-    from rgbdslam.stereo.landmarks import stereo_map_features
-
-    return stereo_map_features(result.features if result.map_features is None else result.map_features)
+    """The key points the landmark map works with: every one detected (``landmarks.n_features``) or the frame's."""
+    return result.features if result.map_features is None else result.map_features
 
 
 class LandmarkTracker:
@@ -105,10 +102,8 @@ class LandmarkTracker:
     name = "landmarks"  # the timing key of its steps (run.json)
 
     def __init__(self, cfg: LandmarksConfig, camera: Camera, observer=None, log_every: int = 1):
-        self.cfg = self.base_cfg = cfg  # cfg: the frame's settings (a stereo frame's: frame_settings)
+        self.cfg = cfg
         self.camera = camera
-        self._frame_feats: tuple | None = None  # (track result, its map features): made once per frame
-        self._stereo = False  # this frame is a stereo frame (frame_features)
         self.observer = observer
         self.log_every = max(1, log_every)
         self.map = LandmarkMap(cfg.store, cfg.kalman, cfg.process_noise, cfg.min_seen, cfg.cull_after,
@@ -143,7 +138,7 @@ class LandmarkTracker:
         info = result.information
         if info is not None and result.n_fused > 1:  # the references share this frame's noise:
             info = info / result.n_fused  # their summed information counts it n_fused times
-        mpose = self.track(frame.index, self.frame_features(result), pose, info)
+        mpose = self.track(frame.index, map_features(result), pose, info)
         return {} if mpose is pose else {frame.index: mpose}
 
     def on_loops(self, frame, result, loops: list) -> list:
@@ -151,7 +146,7 @@ class LandmarkTracker:
         restart), less those the map already holds (``map_loop_landmarks``)."""
         c = self.cfg
         if loops and c.loop_refine and not result.reset:
-            loops = [self.refine_loop(frame.index, self.frame_features(result), e) for e in loops]
+            loops = [self.refine_loop(frame.index, map_features(result), e) for e in loops]
         if loops and c.map_loop_landmarks > 0:
             loops = [e for e in loops if not self.holds(frame.index, e.i)]
         return loops
@@ -159,7 +154,7 @@ class LandmarkTracker:
     def on_frame(self, frame, result, pose: np.ndarray, keyframe: bool) -> dict[int, np.ndarray]:
         """The end of the frame's map step at its pose: on a keyframe new landmarks and the local BA,
         whose refined keyframe poses are the corrections returned (this frame's among them); culling; Rerun."""
-        feats = self.frame_features(result)
+        feats = map_features(result)
         refined = self.add_keyframe(frame.index, feats, pose) if keyframe else {}
         self.end_frame(frame.index)
         if self.observer is not None and frame.index % self.log_every == 0:
@@ -170,33 +165,10 @@ class LandmarkTracker:
         """After the final pose graph: the landmarks move with their anchor keyframes (:meth:`finish`)."""
         self.finish(optimised)
 
-    def frame_features(self, result):
-        """The frame's map features (:func:`map_features`, made once per frame); sets :attr:`cfg` to the frame's
-        settings: ``landmarks`` as configured, for a stereo frame with the pair's depth limit and noise
-        (:mod:`rgbdslam.stereo.landmarks`)."""
-        if self._frame_feats is None or self._frame_feats[0] is not result:
-            from dataclasses import replace
-
-            from rgbdslam.stereo.landmarks import depth_limit, depth_noise_ab
-
-            feats = map_features(result)
-            self.cfg = self.base_cfg
-            self._stereo = feats.depth_noise is not None
-            if self._stereo:
-                a, b = depth_noise_ab(feats.depth_noise)
-                self.cfg = replace(self.base_cfg, depth_noise_a=a, depth_noise_b=b,
-                                   max_depth=depth_limit(feats, self.base_cfg.max_depth))
-            self._frame_feats = (result, feats)
-        return self._frame_feats[1]
-
     # ---------------------------------------------------------------- the map step
     def _observe(self, feats, idx: np.ndarray, ids: np.ndarray, pose: np.ndarray, frame: int) -> None:
         """Kalman update of landmarks ``ids`` from frame features ``idx`` seen from ``pose`` (counted as seen at ``frame``)."""
         P = feats.pts[idx]
-        bearing = ~np.isfinite(P[:, 2])  # a stereo key point without depth (stereo_map_pose): only counted as seen
-        if bearing.any():
-            self.map.observe(ids[bearing], None, None, frame)
-            P, ids = P[~bearing], ids[~bearing]
         zw = P @ pose[:3, :3].T + pose[:3, 3]
         R = observation_covariance(P, pose[:3, :3], self.camera.fx, self.cfg.sigma_px, self.cfg.depth_noise_a,
                                    self.cfg.depth_noise_b)
@@ -211,16 +183,15 @@ class LandmarkTracker:
         self._last_matches = None
         if self.map.size == 0:
             return pose
-        metres, degrees, radius = self._prediction_limits(information)
-        m = match_to_map(self.map, feats, pose, self.camera, radius, c.max_hamming, c.max_depth,
-                         allowed=self.local_map(), use=np.ones(len(feats.uv), bool) if self._stereo else None)
+        m = match_to_map(self.map, feats, pose, self.camera, c.search_radius, c.max_hamming, c.max_depth,
+                         allowed=self.local_map())
         res, tried = None, False
         if c.stale_after > 0:
             m, res, tried = self._without_stale(index, feats, m, pose)
         self._last_matches = m
         if not tried and len(m.lm) >= c.min_inliers:  # not when the stale check's try on these matches failed
             res = self._estimate(feats, m, pose)
-        if res is not None and not _close(pose, res.pose, metres, degrees):
+        if res is not None and not _close(pose, res.pose, c.max_correction, c.max_correction_deg):
             self.stats.rejected += 1  # a map pose far from the registration's is a wrong map match
             res = None
         # the registration's pose as a prediction: its information (mode 'filter': its covariance is
@@ -275,23 +246,7 @@ class LandmarkTracker:
     def _estimate(self, feats, m, pose: np.ndarray, seeded: bool = False):
         """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails.
         ``seeded``: no RANSAC, the refine starts from ``pose``'s inliers (``pose`` another estimate)."""
-        if self._stereo:
-            from rgbdslam.stereo.landmarks import stereo_map_pose
-
-            return stereo_map_pose(self.map, feats, m, pose, self.cfg, self.camera, self.rng, seeded)
         return map_pose(self.map, feats, m, pose, self.cfg, self.camera, self.rng, seeded)
-
-    def _prediction_limits(self, information: np.ndarray | None) -> tuple[float, float, float]:
-        """How far (metres, degrees) a map pose may be from the registration's (``max_correction`` / ``_deg``)
-        and the search radius (px) around the landmarks' projections (``search_radius``); a stereo frame's
-        cover three σ of the registration's own pose (its ``information``;
-        :func:`rgbdslam.stereo.landmarks.prediction_limits`)."""
-        c = self.cfg
-        if not self._stereo or information is None:
-            return c.max_correction, c.max_correction_deg, c.search_radius
-        from rgbdslam.stereo.landmarks import prediction_limits
-
-        return prediction_limits(information, c.max_correction, c.max_correction_deg, c.search_radius, self.camera.fx)
 
     def _without_stale(self, index: int, feats, m, pose: np.ndarray):
         """The matches with the *stale* landmarks (not seen for more than ``stale_after`` frames: an
@@ -438,8 +393,7 @@ class LandmarkTracker:
             lm_ids = np.concatenate([lm_ids, ids])
         self.kf_pose[index] = pose.copy()
         self.observe(index, lm_ids)
-        d = np.isfinite(feats.pts[lm_idx, 2])  # local BA: the observations with a depth
-        self.keyframes.append(_KeyframeObs(index, lm_ids[d], feats.uv[lm_idx[d]].copy(), feats.pts[lm_idx[d], 2].copy()))
+        self.keyframes.append(_KeyframeObs(index, lm_ids, feats.uv[lm_idx].copy(), feats.pts[lm_idx, 2].copy()))
         keep = max(3 * c.ba_window, 10)
         if len(self.keyframes) > keep:
             del self.keyframes[: len(self.keyframes) - keep]

@@ -75,13 +75,11 @@ def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin:
 
 def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, max_hamming: int,
                  max_depth: float, k: int = 6, first_before: int | None = None,
-                 first_after: int | None = None, allowed: np.ndarray | None = None,
-                 use: np.ndarray | None = None) -> MapMatch:
+                 first_after: int | None = None, allowed: np.ndarray | None = None) -> MapMatch:
     """Frame features matched to projected landmarks by descriptor inside ``search_radius`` px
     (``first_before``: only landmarks first seen before that frame, ``first_after``: only those first
     seen at or after that frame — together a loop's older end, ``landmarks.loop_refine``;
-    ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map_shared``;
-    ``use``: a boolean mask over the frame features matched, default :func:`map_valid` — a stereo frame's are all)."""
+    ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map_shared``)."""
     ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
     if allowed is not None:
         keep = allowed[ids]
@@ -91,7 +89,7 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
         old = (f < (first_before if first_before is not None else np.inf)) & \
             (f >= (first_after if first_after is not None else -np.inf))
         ids, uv = ids[old], uv[old]
-    fi = np.flatnonzero(map_valid(feats) if use is None else use)
+    fi = np.flatnonzero(map_valid(feats))
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv, ids)
     if len(ids) == 0 or len(fi) == 0:
         return empty
@@ -121,7 +119,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
                   iterations: int, min_inliers: int, sampling: str, old_fraction: float,
                   rng: np.random.Generator, refine: str = "rigid", camera=None, sigma_px=1.0,
                   chi2_gate: float = 3.0, full_cov: bool = True, adaptive: bool = False,
-                  refine_iterations: int = 5, threshold_sigmas: float = 0.0) -> MapPose | None:
+                  refine_iterations: int = 5) -> MapPose | None:
     """Pose from the matches: RANSAC (old landmarks first) + weighted refit on the inliers.
 
     ``sigma_obs`` (M,) is each frame point's depth noise (m); the landmark's own is sqrt(trace(P)/3)
@@ -131,8 +129,6 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     (1.4826 · median |r|, clipped to [0.25, 4]) of the inliers' whitened residuals and the refine is
     run once more: the frame's own noise level sets the weights and the information.
     ``refine_iterations``: Gauss–Newton iterations of each reprojection refine pass.
-    ``threshold_sigmas`` > 0: each pair's inlier distance is sqrt(threshold² + (k σ)²), σ² = its observation's
-    and landmark's variance (stereo: a far point's depth is metres off, its bearing is not).
     ``iterations`` 0: no RANSAC — the prediction's inliers start the refits
     (:func:`rgbdslam.geometry.ransac.seeded_rigid`; for a prediction that is another estimate of the pose).
     """
@@ -148,9 +144,6 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     else:
         feat, lm, sig = match.feat, match.lm, sigma_obs
         n_sample = m
-    s_lm2 = np.trace(lmap.cov[lm], axis1=1, axis2=2) / 3.0
-    if threshold_sigmas > 0:
-        threshold = np.sqrt(threshold**2 + threshold_sigmas**2 * (sig**2 + s_lm2))
     if iterations > 0:
         out = ransac_rigid(S, D, threshold, iterations, rng, min_inliers, T0=pred, sample_from=n_sample)
     else:
@@ -158,6 +151,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
     if out is None:
         return None
     T, mask = out
+    s_lm2 = np.trace(lmap.cov[lm], axis1=1, axis2=2) / 3.0
     w = 1.0 / (sig**2 + s_lm2)
     for _ in range(2):
         if mask.sum() < max(3, min_inliers):
@@ -208,8 +202,7 @@ def map_pose(lmap, feats, match: MapMatch, pred: np.ndarray, cfg, camera, rng: n
     return estimate_pose(lmap, feats, match, pred, cfg.depth_noise_a + cfg.depth_noise_b * z * z,
                          cfg.ransac_threshold, 0 if seeded else cfg.ransac_iterations, cfg.min_inliers, cfg.sampling,
                          cfg.old_fraction, rng, cfg.refine, camera, cfg.sigma_px, cfg.chi_gate,
-                         cfg.landmark_cov == "full", cfg.adaptive_noise, refine_iterations=cfg.refine_iterations,
-                         threshold_sigmas=0.0 if getattr(feats, "depth_noise", None) is None else cfg.chi_gate)
+                         cfg.landmark_cov == "full", cfg.adaptive_noise, refine_iterations=cfg.refine_iterations)
 
 
 def _so3_exp(w: np.ndarray) -> np.ndarray:
