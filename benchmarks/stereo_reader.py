@@ -113,7 +113,7 @@ def main() -> None:
             out.parent.mkdir(parents=True, exist_ok=True)
             env = dict(os.environ, PYTHONPATH=str(Path(tree).resolve()))
             subprocess.run([sys.executable, str(HERE), "--one", str(out), "--sequence", str(args.sequence),
-                            "--config", args.config], env=env, check=True)
+                            "--config", args.config], env=env, check=True, stdout=subprocess.DEVNULL)
             row[name] = json.loads(out.read_text())
         row["identical"] = Path(row["old"]["trajectory"]).read_bytes() == Path(row["new"]["trajectory"]).read_bytes()
         rounds.append(row)
