@@ -14,28 +14,30 @@ KITTI = DATA / "kitti" / "odometry_06_head51"
 
 
 def reference_match_rows(uv_l, desc_l, uv_r, desc_r, sc):
-    """Row matching as one sort of every candidate pair by (left point, distance)."""
-    dv = np.abs(uv_l[:, None, 1] - uv_r[None, :, 1])
-    d = uv_l[:, None, 0] - uv_r[None, :, 0]
-    i, j = np.nonzero((dv <= sc.row_tolerance) & (d >= sc.min_disparity) & (d <= sc.max_disparity))
-    # pairs of one left point in the order of the right points' rows (stable), as the band search lists them
+    """Row matching one left point at a time, as docs/stereo.md states it: the right points within
+    ``row_tolerance`` rows at a disparity in range, in the stable order of their rows; the best distance
+    (the first listed among equals) must be within ``max_hamming`` and below ``ratio`` x the second best
+    (no second: always); then each right point keeps its best left point (the smaller index among equals)."""
     rank = np.empty(len(uv_r), np.int64)
     rank[np.argsort(uv_r[:, 1], kind="stable")] = np.arange(len(uv_r))
-    o = np.lexsort((rank[j], i))
-    i, j = i[o], j[o]
-    ham = np.unpackbits(desc_l[i] ^ desc_r[j], axis=1).sum(axis=1).astype(np.int64)
-    o = np.argsort(i * 512 + ham, kind="stable")
-    i, j, ham = i[o], j[o], ham[o]
-    first = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
-    has2 = np.r_[first[1:], len(i)] - first > 1
-    second = np.where(has2, ham[np.minimum(first + 1, len(i) - 1)], 1 << 20)
-    bi, bj, bh = i[first], j[first], ham[first]
-    keep = (bh <= sc.max_hamming) & (bh < sc.ratio * second)
-    bi, bj, bh = bi[keep], bj[keep], bh[keep]
-    o = np.lexsort((bh, bj))
-    bi, bj = bi[o], bj[o]
-    u = np.r_[True, bj[1:] != bj[:-1]]
-    return bi[u], bj[u]
+    bits = np.unpackbits(desc_r, axis=1)
+    chosen: dict[int, tuple[int, int]] = {}  # right point -> (left point, distance)
+    for a in range(len(uv_l)):
+        d = uv_l[a, 0] - uv_r[:, 0]
+        js = np.flatnonzero((np.abs(uv_l[a, 1] - uv_r[:, 1]) <= sc.row_tolerance) & (d >= sc.min_disparity)
+                            & (d <= sc.max_disparity))
+        if len(js) == 0:
+            continue
+        js = js[np.argsort(rank[js])]
+        ham = (bits[js] != np.unpackbits(desc_l[a])).sum(axis=1)
+        k = int(np.argmin(ham))
+        second = np.delete(ham, k).min() if len(js) > 1 else 1 << 20
+        if ham[k] <= sc.max_hamming and ham[k] < sc.ratio * second:
+            b = int(js[k])
+            if b not in chosen or ham[k] < chosen[b][1]:
+                chosen[b] = (a, int(ham[k]))
+    right = sorted(chosen)
+    return np.array([chosen[b][0] for b in right], int), np.array(right, int)
 
 
 def reference_sad(left, right, ul, vl, ur0, r, s, subpixel):
