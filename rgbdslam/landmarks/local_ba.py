@@ -22,6 +22,8 @@ import numpy as np
 import gtsam
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.landmarks.config import LandmarksConfig
+from rgbdslam.landmarks.kalman import observation_covariance
+from rgbdslam.landmarks.tracking import match_to_map
 
 X = lambda i: gtsam.symbol("x", int(i))  # noqa: E731
 L = lambda i: gtsam.symbol("l", int(i))  # noqa: E731
@@ -70,6 +72,40 @@ class StereoFactors:
             meas = gtsam.StereoPoint2(uv[j, 0], uv[j, 0] - self.fb / z[j], uv[j, 1])
             graph.add(gtsam.GenericStereoFactor3D(meas, self._model(sd[j]), X(kf), L(lm[j]), self.K, *extra))
         return len(lm)
+
+
+SEARCH_GATE = 14.16  # χ² (3 dof) of a searched observation against its landmark: 99.73 %, a 3σ gate
+
+
+def keyframe_search(cfg: LandmarksConfig, lmap, feats, pose: np.ndarray, camera: Camera,
+                    allowed: np.ndarray | None, have_feat: np.ndarray, have_lm: np.ndarray):
+    """Every landmark of the local map (``allowed``: a mask over landmark ids, None = every one) that the
+    keyframe ``feats`` sees at its ``pose``, beyond the observations it has (features ``have_feat`` of
+    landmarks ``have_lm``): projected, matched by descriptor within ``search_radius`` px under
+    ``max_hamming`` (:func:`~rgbdslam.landmarks.tracking.match_to_map`, as tracking), kept where the
+    feature's world point agrees with the landmark within the χ² gate ``SEARCH_GATE`` of the
+    observation's and the landmark's covariances together. Returns (feature indices, landmark ids)."""
+    none = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if lmap.size == 0:
+        return none
+    m = match_to_map(lmap, feats, pose, camera, cfg.search_radius, cfg.max_hamming, cfg.max_depth, allowed=allowed)
+    if not len(m.lm):
+        return none
+    taken_lm = np.zeros(lmap.n, bool)
+    taken_lm[have_lm] = True
+    taken_f = np.zeros(len(feats.valid), bool)
+    taken_f[have_feat] = True
+    ok = ~taken_lm[m.lm] & ~taken_f[m.feat]
+    f, lm = m.feat[ok].astype(np.int64), m.lm[ok].astype(np.int64)
+    if not len(f):
+        return none
+    P = feats.pts[f]
+    d = P @ pose[:3, :3].T + pose[:3, 3] - lmap.pos[lm]
+    S = observation_covariance(P, pose[:3, :3], camera.fx, cfg.sigma_px, cfg.depth_noise_a, cfg.depth_noise_b) + \
+        lmap.cov[lm]
+    chi2 = np.einsum("ni,ni->n", d, np.linalg.solve(S, d[:, :, None])[..., 0])
+    keep = chi2 <= SEARCH_GATE
+    return f[keep], lm[keep]
 
 
 RELATIVE_ERROR_TOL = 1e-4  # LM stops when an iteration lowers the error by less than this share

@@ -376,6 +376,12 @@ class LandmarkTracker:
         if self._last is not None and self._last[0] == index:
             lm_idx, lm_ids = self._last[1], self._last[2]
             matched_feat[lm_idx] = True
+        if self.ba is not None:  # the keyframe observes every local-map landmark it sees, not only its inliers
+            from rgbdslam.landmarks.local_ba import keyframe_search
+
+            f, lm = keyframe_search(c, self.map, feats, pose, self.camera, self.local_map(), lm_idx, lm_ids)
+            lm_idx, lm_ids = np.concatenate([lm_idx, f]), np.concatenate([lm_ids, lm])
+            matched_feat[f] = True
         m = self._last_matches
         if m is not None and len(m.feat):  # every descriptor match (inlier or not) keeps its feature out
             matched_feat[m.feat] = True
