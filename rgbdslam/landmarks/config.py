@@ -121,6 +121,9 @@ class LandmarksConfig:
     ba_prior_floor: Annotated[float, AtMost(10.0,
         "metres added (in quadrature, every direction) to the prior's Kalman sigma: the filter counts every frame's "
         "observation as independent, but they share the frames' pose errors")] = 0.004
+    ba_adaptive_noise: Annotated[bool, Key(
+        "each keyframe's key point and disparity noise in local BA rescaled by the robust scale of its own whitened "
+        "residuals at the start (as the map pose's adaptive_noise per frame): a blurred keyframe weighs less")] = True
     ba_min_observations: Annotated[int, AtMost(10**6,
         "a keyframe observing fewer of the optimised landmarks is left out")] = 30
     ba_max_move: Annotated[float, Positive(100.0,

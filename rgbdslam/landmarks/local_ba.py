@@ -53,25 +53,52 @@ class StereoFactors:
         c = self.cfg
         return self.fb * (c.depth_noise_a + c.depth_noise_b * z * z) / (z * z)
 
-    def _model(self, sd: float):
+    def _model(self, sd: float, spx: float):
         b = int(np.round(np.log(max(sd, 1e-6)) / np.log(1.01)))
-        m = self._models.get(b)
+        m = self._models.get((b, spx))
         if m is None:
-            s2, sd = self.cfg.sigma_px ** 2, 1.01 ** b
+            s2, sd = spx ** 2, 1.01 ** b
             # u_right = u_left - d: it carries u_left's pixel noise (correlated) plus the disparity's
             C = np.array([[s2, s2, 0.0], [s2, s2 + sd * sd, 0.0], [0.0, 0.0, s2]])
-            m = self._models[b] = gtsam.noiseModel.Robust.Create(self.huber, gtsam.noiseModel.Gaussian.Covariance(C))
+            m = self._models[(b, spx)] = gtsam.noiseModel.Robust.Create(self.huber,
+                                                                        gtsam.noiseModel.Gaussian.Covariance(C))
         return m
 
-    def add(self, graph, kf: int, lm: np.ndarray, uv: np.ndarray, z: np.ndarray, body=None) -> int:
+    def add(self, graph, kf: int, lm: np.ndarray, uv: np.ndarray, z: np.ndarray, body=None,
+            scale: tuple[float, float] = (1.0, 1.0)) -> int:
         """Factors of keyframe ``kf`` seeing landmarks ``lm`` at pixels ``uv`` with depth ``z``;
-        ``body`` (4x4): the observing camera's pose relative to the keyframe (a frame hanging from it)."""
-        sd = self.disparity_sigma(z)
+        ``body`` (4x4): the observing camera's pose relative to the keyframe (a frame hanging from it);
+        ``scale``: the keyframe's (pixel, disparity) noise scale (:func:`noise_scales`)."""
+        sd = self.disparity_sigma(z) * scale[1]
+        spx = float(self.cfg.sigma_px * scale[0])
         extra = (False, False) if body is None else (False, False, gtsam.Pose3(body))
         for j in range(len(lm)):
             meas = gtsam.StereoPoint2(uv[j, 0], uv[j, 0] - self.fb / z[j], uv[j, 1])
-            graph.add(gtsam.GenericStereoFactor3D(meas, self._model(sd[j]), X(kf), L(lm[j]), self.K, *extra))
+            graph.add(gtsam.GenericStereoFactor3D(meas, self._model(sd[j], spx), X(kf), L(lm[j]), self.K, *extra))
         return len(lm)
+
+
+NOISE_SCALE_CLIP = (0.25, 4.0)  # the range of a keyframe's noise scale (as the map pose's adaptive_noise)
+
+
+def noise_scales(cfg: LandmarksConfig, factors: StereoFactors, p) -> dict:
+    """Each keyframe's own noise level in the problem ``p``: {keyframe: (k_px, k_d)}, the robust scale
+    (1.4826 · median |r|, clipped to ``NOISE_SCALE_CLIP``) of its observations' whitened pixel and
+    disparity residuals at the start — what the map pose's ``adaptive_noise`` measures per frame, so the
+    BA weighs a blurred keyframe's key points as the tracking did (``ba_adaptive_noise``; all 1 without)."""
+    if not cfg.ba_adaptive_noise:
+        return {o[0]: (1.0, 1.0) for o in p.obs}
+    cam, lm_of = factors.camera, {int(i): j for j, i in enumerate(p.use)}
+    out = {}
+    for kf, lm, uv, z in p.obs:
+        P = p.poses[kf]
+        Pc = (p.pos[[lm_of[int(i)] for i in lm]] - P[:3, 3]) @ P[:3, :3]
+        zc = np.maximum(Pc[:, 2], 1e-6)
+        e_px = np.concatenate([cam.fx * Pc[:, 0] / zc + cam.cx - uv[:, 0], cam.fy * Pc[:, 1] / zc + cam.cy - uv[:, 1]])
+        e_d = (factors.fb / z - factors.fb / zc) / factors.disparity_sigma(z)
+        k = [1.4826 * np.median(np.abs(e_px)) / cfg.sigma_px, 1.4826 * np.median(np.abs(e_d))]
+        out[kf] = tuple(float(np.clip(v, *NOISE_SCALE_CLIP)) for v in k)
+    return out
 
 
 SEARCH_GATE = 14.16  # χ² (3 dof) of a searched observation against its landmark: 99.73 %, a 3σ gate
@@ -230,8 +257,9 @@ def _solve_gtsam(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem):
     """GTSAM: (refined free poses {kf: 4x4}, refined landmarks (L, 3), (error before, after)) or None."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
+    scales = noise_scales(cfg, factors, p)
     for kf, lm, uv, z in p.obs:
-        factors.add(graph, kf, lm, uv, z)
+        factors.add(graph, kf, lm, uv, z, scale=scales[kf])
     for kf, P in p.poses.items():
         values.insert(X(kf), gtsam.Pose3(P))
         if kf in p.fixed:
@@ -262,12 +290,15 @@ def schur_problem(cfg: LandmarksConfig, factors: StereoFactors, p: BAProblem):
     uv = np.concatenate([o[2] for o in p.obs]).reshape(-1, 2)
     z = np.concatenate([o[3] for o in p.obs])
     meas = np.stack([uv[:, 0], uv[:, 1], z], axis=1).astype(float)
-    sd = factors.binned(factors.disparity_sigma(z))
+    scales = noise_scales(cfg, factors, p)
+    k = np.concatenate([np.tile(scales[o[0]], (len(o[1]), 1)) for o in p.obs]).reshape(-1, 2)
+    sd = factors.binned(factors.disparity_sigma(z) * k[:, 1])
+    spx = cfg.sigma_px * k[:, 0]
     prior = np.linalg.inv(_prior_covariance(cfg, p.cov)) if cfg.ba_landmark_prior else None
     free = np.array([kf not in p.fixed for kf in kfs])
     cam = factors.camera
     ba = SchurBA(np.array([p.poses[kf] for kf in kfs]), free, op, ol, meas, sd, p.pos, prior,
-                 cam.fx, cam.fy, cam.cx, cam.cy, factors.fb, cfg.sigma_px, cfg.ba_huber)
+                 cam.fx, cam.fy, cam.cx, cam.cy, factors.fb, spx, cfg.ba_huber)
     return ba, kfs
 
 

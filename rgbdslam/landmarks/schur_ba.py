@@ -105,7 +105,8 @@ class SchurBA:
         self.L = len(self.X0)
         self.prior = prior_info
         self.fx, self.fy, self.cx, self.cy, self.fb = fx, fy, cx, cy, fb
-        self.s, self.sd, self.k = float(sigma_px), np.asarray(sigma_d, float), float(huber)
+        self.s = sigma_px if np.ndim(sigma_px) == 0 else np.asarray(sigma_px, float)  # scalar or one per observation
+        self.sd, self.k = np.asarray(sigma_d, float), float(huber)
         self.dm = fb / self.zm  # measured disparity
         # the observations of free keyframes, grouped by keyframe (H_pp: one GEMM per keyframe)
         self.of = np.flatnonzero(self.free[self.op])
@@ -143,8 +144,8 @@ class SchurBA:
         r = np.stack([e_u / self.s, e_d / self.sd, e_v / self.s], axis=1)
         if bad.any():  # GTSAM returns (2 fx, 2 fx, 2 fx) unwhitened, no Jacobian
             c = 2.0 * self.fx
-            r[bad] = np.stack([np.full(bad.sum(), c / self.s), np.zeros(bad.sum()), np.full(bad.sum(), c / self.s)],
-                              axis=1)
+            w = np.broadcast_to(c / (self.s if np.ndim(self.s) == 0 else self.s[bad]), bad.sum())
+            r[bad] = np.stack([w, np.zeros(bad.sum()), w], axis=1)
         return r, bad
 
     def error(self, poses: np.ndarray, X: np.ndarray) -> float:
