@@ -10,7 +10,7 @@ takes a frame through them in this order::
           ─▶ map_tracker      (--localize: registration against the nearest keyframes of the fixed map)
           ─▶ stages.on_loops  (the loop edges re-measured or dropped)
           ─▶ keyframes        (motion policy; loops and restarts force a keyframe)
-          ─▶ stages.on_frame  (the end of the frame's step; keyframes: new landmarks, local BA)
+          ─▶ stages.on_frame  (the end of the frame's step; keyframes: new landmarks)
           ─▶ graph            (GTSAM pose graph over keyframes, initial values from MASAT)
 
 A refinement stage implements :class:`Stage`; a stage changes poses only by returning
@@ -156,7 +156,7 @@ class SLAM:
         for s in self.stages:
             loops = self._timed(s.name, s.on_loops, frame, result, loops)
         is_kf, loops = self._keyframe(frame, pose, restart, loops, map_edges)
-        for s in self.stages:  # the frame's last step in each stage (keyframe: new landmarks, local BA)
+        for s in self.stages:  # the frame's last step in each stage (keyframe: new landmarks)
             pose = self._apply(frame, result, pose, self._timed(s.name, s.on_frame, frame, result, pose, is_kf))
         self._record(frame, result, pose, depth, is_kf)  # frame record; a keyframe: graph, loop closer, live map
         self._add_loops(loops)  # into the pose graph (iSAM2 updates); the live map follows

@@ -12,7 +12,7 @@ from rgbdslam.configspec import AtMost, C_INT_MAX, Key, Positive, Range
 class LandmarksConfig:
     """Map-based tracking: a persistent landmark map (spec section 6, docs/slam.md 'Landmark map')."""
 
-    # upper bounds: pixels, metres and counts of one frame's search; BA sizes bound its GTSAM problem
+    # upper bounds: pixels, metres and counts of one frame's search
     enabled: Annotated[bool, Key("track against the persistent landmark map (docs/slam.md, \"Landmark map\")")] = False
     mode: Annotated[Literal["seed", "fuse", "filter"], Key(
         "how the map pose combines with the frame-to-frame registration (registration.method): 'seed' = the "
