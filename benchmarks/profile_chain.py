@@ -51,8 +51,7 @@ from rgbdslam.slam import SLAM
 
 DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parent.parent.parent / "shared" / "data"))
 SEQUENCE = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
-CHAINS = {"default": [], "landmarks": ["landmarks.enabled=true"],
-          "landmarks+BA": ["landmarks.enabled=true", "landmarks.local_ba=true"]}
+CHAINS = {"default": [], "landmarks": ["landmarks.enabled=true"]}
 BASE = ["mapping.enabled=false", "output.plots=false"]
 
 # the stage packages SLAM.track calls into (path inside rgbdslam/ -> label); the first match wins
@@ -71,7 +70,7 @@ INNER = [
     ("landmarks/tracking.py", "match_to_map", "  map: match to the projected landmarks"),
     ("landmarks/tracking.py", "estimate_pose", "  map: pose (RANSAC + refine)"),
     ("landmarks/tracking.py", "refine_reprojection", "  map: reprojection refine (GN)"),
-    ("landmarks/stage.py", "add_keyframe", "landmark map: keyframe (new landmarks, BA)"),
+    ("landmarks/stage.py", "add_keyframe", "landmark map: keyframe (new landmarks)"),
     ("loop/detector.py", "detect", "loop closure: search + verify"),
 ]
 
