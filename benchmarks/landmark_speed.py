@@ -9,7 +9,7 @@ Usage::
 Every run is a fresh ``python`` process running ``rgbdslam.pipeline.run_sequence`` on the sequence
 (default: TUM fr1/rpy head200; map fusion and plots off, as ``bench_landmarks.py``). The variants
 (``default`` = no settings: the landmark map, ``thesis`` = ``landmarks.enabled=false``: the frame-to-frame
-chain, ``landmarks+BA`` = with ``landmarks.local_ba=true``, unless ``--variant`` names others) run **interleaved**: repeat 1 of
+chain, unless ``--variant`` names others) run **interleaved**: repeat 1 of
 every variant, then repeat 2, ..., so a change of the machine's load hits all of them alike.
 ``--code NAME=DIR`` also runs every variant from another checkout's ``rgbdslam`` package (e.g. an
 unpacked ``git archive`` of main: the code before a change), interleaved too. Per variant: the
@@ -18,8 +18,7 @@ to the default's median, the CPU time per frame of the run's process (all its th
 and the end of the run included: less sensitive to the machine's load than frames/s), the same for
 the run without its start-up's imports and its end (``run_sequence``'s CPU time less run.json's
 ``after_tracking_s.cpu``: the tracking loop, which frames/s measures, and the run's small set-up) and that of its
-child processes (the local BA process), the ATE, the per-stage medians (ms) from run.json, the local BA's median
-ms per keyframe; ``uptime``'s load before and after. ``--profile VARIANT`` runs that variant once
+child processes, the ATE, the per-stage medians (ms) from run.json; ``uptime``'s load before and after. ``--profile VARIANT`` runs that variant once
 more under cProfile and prints the 30 most expensive functions (own time); ``--profile-cpu`` times
 that profile in CPU time (``time.process_time``: the waiting of a loaded machine does not count).
 """
@@ -39,8 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import DATA, ROOT, command_line
-DEFAULT_VARIANTS = {"default": [], "thesis": ["landmarks.enabled=false"],
-                    "landmarks+BA": ["landmarks.local_ba=true"]}
+DEFAULT_VARIANTS = {"default": [], "thesis": ["landmarks.enabled=false"]}
 
 _CHILD = r"""
 import json, sys
@@ -62,10 +60,8 @@ if sys.argv[5]:
 import resource
 me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
 ev = s.get("evaluation") or {}
-lm = s.get("landmarks") or {}
 print("RESULT " + json.dumps({"fps": s["fps"], "processing_fps": s["processing_fps"],
       "ate": (ev.get("ate") or {}).get("rmse"), "timings": s.get("timings", {}),
-      "ba_ms": lm.get("local_ba_median_ms"), "ba_runs": lm.get("local_ba_runs"),
       "keyframes": len(s.get("keyframes", [])), "frames": s["frames"],
       "cpu_s": me.ru_utime + me.ru_stime, "loop_cpu_s": loop_cpu, "child_cpu_s": kids.ru_utime + kids.ru_stime}))
 """
@@ -104,7 +100,6 @@ def summarise(runs: dict[str, list[dict]]) -> list[dict]:
         for k in sorted({k for r in rs for k in r["timings"]}):
             v = [r["timings"][k]["median_ms"] for r in rs if k in r["timings"]]
             stages[k] = float(np.median(v))
-        ba = [r["ba_ms"] for r in rs if r.get("ba_ms")]
         cpu = [1e3 * r["cpu_s"] / r["frames"] for r in rs]
         kid = [1e3 * r["child_cpu_s"] / r["frames"] for r in rs]
         loop = [1e3 * r.get("loop_cpu_s", float("nan")) / r["frames"] for r in rs]
@@ -112,7 +107,7 @@ def summarise(runs: dict[str, list[dict]]) -> list[dict]:
                      "loop_cpu_ms": float(np.median(loop)), "loop_cpu_range": [min(loop), max(loop)],
                      "fps": float(np.median(fps)), "fps_min": min(fps), "fps_max": max(fps),
                      "ratio": float(np.median(fps)) / base, "ate": sorted({round(r["ate"], 5) for r in rs if r["ate"]}),
-                     "stages_ms": stages, "ba_ms": float(np.median(ba)) if ba else None,
+                     "stages_ms": stages,
                      "keyframes": rs[0]["keyframes"], "repeats": len(rs)})
     return rows
 
@@ -120,9 +115,9 @@ def summarise(runs: dict[str, list[dict]]) -> list[dict]:
 def markdown(rows: list[dict], command: str, machine: str) -> str:
     stages = sorted({k for r in rows for k in r["stages_ms"]})
     head = ("| variant | frames/s median (range) | × default | CPU ms/frame: run process (× default) | "
-            "CPU ms/frame: tracking loop (× default) | + BA process | ATE (m) | local BA ms/keyframe | "
+            "CPU ms/frame: tracking loop (× default) | + child processes | ATE (m) | "
             + " | ".join(f"{s} ms" for s in stages) + " |")
-    out = [f"Command: `{command}`  ", f"Machine: {machine}", "", head, "|" + "---|" * (8 + len(stages))]
+    out = [f"Command: `{command}`  ", f"Machine: {machine}", "", head, "|" + "---|" * (7 + len(stages))]
     cpu0 = next((r["cpu_ms"] for r in rows if r["variant"] == "default"), float("nan"))
     loop0 = next((r.get("loop_cpu_ms", float("nan")) for r in rows if r["variant"] == "default"), float("nan"))
     for r in rows:
@@ -131,7 +126,6 @@ def markdown(rows: list[dict], command: str, machine: str) -> str:
                    f"{r.get('loop_cpu_ms', float('nan')):.1f} ({r.get('loop_cpu_ms', float('nan')) / loop0:.2f}) | "
                    f"{r['child_cpu_ms']:.1f} | "
                    + ", ".join(f"{a:.4f}" for a in r["ate"]) + " | "
-                   + (f"{r['ba_ms']:.0f}" if r["ba_ms"] else "") + " | "
                    + " | ".join(f"{r['stages_ms'][s]:.1f}" if s in r["stages_ms"] else "" for s in stages) + " |")
     return "\n".join(out)
 

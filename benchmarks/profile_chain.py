@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m benchmarks.profile_chain [--sequence DIR] [--config NAME|FILE] [--chain default|thesis|landmarks+BA ...]
+    python -m benchmarks.profile_chain [--sequence DIR] [--config NAME|FILE] [--chain default|thesis ...]
         [--max-frames N] [--top N] [--json FILE]
 
 ``--config`` as ``rgbdslam run --config`` (a preset name or a YAML file), e.g. ``--config kitti`` for
@@ -51,8 +51,7 @@ from rgbdslam.slam import SLAM
 
 DATA = Path(os.environ.get("RGBDSLAM_DATA", Path(__file__).resolve().parent.parent.parent / "shared" / "data"))
 SEQUENCE = DATA / "tum" / "rgbd_dataset_freiburg1_rpy_head200"
-CHAINS = {"default": [], "thesis": ["landmarks.enabled=false"],  # the landmark map; the frame-to-frame chain
-          "landmarks+BA": ["landmarks.local_ba=true"]}
+CHAINS = {"default": [], "thesis": ["landmarks.enabled=false"]}  # the landmark map; the frame-to-frame chain
 BASE = ["mapping.enabled=false", "output.plots=false"]
 
 # the stage packages SLAM.track calls into (path inside rgbdslam/ -> label); the first match wins
@@ -71,7 +70,7 @@ INNER = [
     ("landmarks/tracking.py", "match_to_map", "  map: match to the projected landmarks"),
     ("landmarks/tracking.py", "estimate_pose", "  map: pose (RANSAC + refine)"),
     ("landmarks/tracking.py", "refine_reprojection", "  map: reprojection refine (GN)"),
-    ("landmarks/stage.py", "add_keyframe", "landmark map: keyframe (new landmarks, BA)"),
+    ("landmarks/stage.py", "add_keyframe", "landmark map: keyframe (new landmarks)"),
     ("loop/detector.py", "detect", "loop closure: search + verify"),
 ]
 

@@ -16,7 +16,7 @@ For each available TUM sequence (``$RGBDSLAM_DATA/tum/*``, default ``../shared/d
 * ``ISLAM``, ``best (ISLAM+LC)``, ``ISLAM+LC+DIF``: this project's default registration
   (ISLAM, MP=4) alone, with loop closure (the best measured), and with DIF too;
 * ``ISLAM+LC+landmarks`` and its ablations: the landmark map (``landmarks.enabled``) fused with
-  ISLAM; the map pose alone (seed mode); + local BA; Kalman off; uniform RANSAC sampling; one
+  ISLAM; the map pose alone (seed mode); Kalman off; uniform RANSAC sampling; one
   k-d tree instead of the multi-tree;
 
 and prints ATE RMSE, frames/s, loops and false loops (a loop edge whose relative pose
@@ -27,8 +27,8 @@ disagrees with the ground truth by more than 0.10 m or 5 degrees) as markdown. T
 * the descriptor index: query time against the number of keyframes for the LSH index and
   the exhaustive baseline (real ORB descriptors from fr1/rpy with bit noise).
 
-``--landmark-ablation`` runs ``LANDMARK_ABLATION`` — today's default (landmark tracking
-without BA); the thesis' frame-to-frame chain (``landmarks.enabled=false``); with local BA; Kalman off; uniform instead of old-first RANSAC sampling; one k-d tree
+``--landmark-ablation`` runs ``LANDMARK_ABLATION`` — today's default (landmark tracking); the thesis'
+frame-to-frame chain (``landmarks.enabled=false``); Kalman off; uniform instead of old-first RANSAC sampling; one k-d tree
 instead of the multi-tree; the map pose alone (seed mode) — on fr1/rpy head200, 7-Scenes redkitchen
 0-299 and the synthetic motions x seeds (``--synthetic-frames``), with benchmarks/landmarks.py's
 tables plus the landmark stage's cost per variant, as its own section (``--landmark-section``).
@@ -75,10 +75,10 @@ def configs() -> dict[str, list[str]]:
                                   ("best (ISLAM+LC)", "islam", True, False), ("ISLAM+LC+DIF", "islam", True, True)]:
         out[name] = [f"registration.method={method}", f"loop.enabled={on[lc]}", f"backend.enabled={on[lc]}",
                      f"depth_filter.enabled={on[dif]}", "landmarks.enabled=false"]  # the thesis' chains
-    # the landmark map on top of the best: fused with ISLAM, alone (seed mode), with local BA,
+    # the landmark map on top of the best: fused with ISLAM, alone (seed mode),
     # and its ablations (Kalman off, uniform RANSAC sampling, single k-d tree); docs/slam.md "Landmark map"
     for name, sets in [("ISLAM+LC+landmarks", []), ("… seed mode", ["landmarks.mode=seed"]),
-                       ("… + local BA", ["landmarks.local_ba=true"]), ("… Kalman off", ["landmarks.kalman=false"]),
+                       ("… Kalman off", ["landmarks.kalman=false"]),
                        ("… uniform sampling", ["landmarks.sampling=uniform"]),
                        ("… single k-d tree", ["landmarks.store=single"])]:
         out[name] = ["landmarks.enabled=true", *sets]
@@ -282,12 +282,10 @@ def run_ablation(data: Path, out: Path, max_frames: int | None, repeat: int = 1)
     return rows
 
 
-# the landmark map's ablation: today's default (landmark tracking without BA); the thesis' frame-to-frame chain;
-# with local BA; Kalman on/off; old-first vs uniform RANSAC sampling; multi vs single k-d tree; the map pose alone
+# the landmark map's ablation: today's default (landmark tracking); the thesis' frame-to-frame chain; Kalman on/off; old-first vs uniform RANSAC sampling; multi vs single k-d tree; the map pose alone (seed mode)
 LANDMARK_ABLATION = {
     "default": [],
     "thesis": ["landmarks.enabled=false"],
-    "landmarks + local BA": ["landmarks.enabled=true", "landmarks.local_ba=true"],
     "landmarks, Kalman off": ["landmarks.enabled=true", "landmarks.kalman=false"],
     "landmarks, uniform sampling": ["landmarks.enabled=true", "landmarks.sampling=uniform"],
     "landmarks, single k-d tree": ["landmarks.enabled=true", "landmarks.store=single"],
@@ -320,7 +318,7 @@ def landmark_sequences(data: Path, out: Path, motions: list[str], seeds: list[in
 def run_landmark_ablation(data: Path, out: Path, motions: list[str], seeds: list[int], frames: int,
                           repeat: int = 1, variants: dict | None = None) -> list[dict]:
     """Every :data:`LANDMARK_ABLATION` variant on every sequence of :func:`landmark_sequences` (map
-    fusion off): ATE, 1-frame RPE, frames/s, the landmark stage's and the local BA's median ms, the
+    fusion off): ATE, 1-frame RPE, frames/s, the landmark stage's median ms, the
     share of old landmarks matched, and first visit / revisit ATE on the loop-type motions."""
     from benchmarks.landmarks import LOOP_TYPE, summary_metrics, revisit_errors, run_dir_name
 
@@ -335,7 +333,6 @@ def run_landmark_ablation(data: Path, out: Path, motions: list[str], seeds: list
             lm = s.get("landmarks") or {}
             row = {"sequence": name, "variant": vname, "dir": str(d), **summary_metrics(s),
                    "landmarks_ms": (s["timings"].get("landmarks") or {}).get("median_ms"),
-                   "local_ba_ms": lm.get("local_ba_median_ms") if lm.get("local_ba_runs") else None,
                    "store_trees": lm.get("store_trees")}
             if " seed " in name and name.split(" ")[0] in LOOP_TYPE:
                 rv = revisit_errors(d, run)
@@ -354,20 +351,18 @@ def landmark_markdown(rows: list[dict], section: str, command: str, machine: str
 
     text = lm_markdown(rows, section, [command], machine)
     variants = list(dict.fromkeys(r["variant"] for r in rows))
-    L = ["", "Cost of the landmark stage per variant (median over the sequences of each run's median; the local BA "
-         "per keyframe; wall time of the stage in the run, on this shared machine):", "",
-         "| variant | landmark stage ms/frame | local BA ms/keyframe | frames/s, median ratio to the default |",
-         "|---|---|---|---|"]
+    L = ["", "Cost of the landmark stage per variant (median over the sequences of each run's median; wall time "
+         "of the stage in the run, on this shared machine):", "",
+         "| variant | landmark stage ms/frame | frames/s, median ratio to the default |",
+         "|---|---|---|"]
     by = {(r["sequence"], r["variant"]): r for r in rows}
     for v in variants:
         if v == "default":
             continue
         rs = [r for r in rows if r["variant"] == v]
         ms = [r["landmarks_ms"] for r in rs if r.get("landmarks_ms") is not None]
-        ba = [r["local_ba_ms"] for r in rs if r.get("local_ba_ms") is not None]
         ratio = [r["fps"] / by[(r["sequence"], "default")]["fps"] for r in rs if (r["sequence"], "default") in by]
-        L.append(f"| {v} | {np.median(ms):.1f} | {f'{np.median(ba):.1f}' if ba else '-'} | "
-                 f"{f'{np.median(ratio):.2f}' if ratio else '-'} |")
+        L.append(f"| {v} | {np.median(ms):.1f} | {f'{np.median(ratio):.2f}' if ratio else '-'} |")
     return text + "\n".join(L) + "\n"
 
 

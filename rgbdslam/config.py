@@ -202,6 +202,11 @@ RETIRED = {
         "ba_noise_scale", "ba_worker", "consistency_floor", "drift_sigma", "global_ba", "global_ba_frames",
         "global_ba_iterations", "global_ba_odometry", "graph_information", "loop_correct", "match_old_bonus",
         "observe", "ransac_confidence", "revisit_min_inliers", "revisit_radius", "sigma_px_scale")},
+    # the windowed local BA at keyframes: worse than none on the fast synthetic motions (docs/slam.md)
+    **{f"landmarks.{k}": _no_gain('docs/slam.md "Local BA, removed"') for k in (
+        "local_ba", "ba_window", "ba_iterations", "ba_solver", "ba_max_landmarks", "ba_baseline", "ba_huber",
+        "ba_landmark_prior", "ba_prior_floor", "ba_min_observations", "ba_max_move",
+        "ba_max_move_deg", "ba_frames")},
     "mapping.live_cloud_ahead": _no_gain('docs/mapping.md "Removed options"'),
     "mapping.live_early": _no_gain('docs/mapping.md "Removed options"'),
     "matching.depth_edge_use": _no_gain('docs/frontend.md "Scale bias"'),

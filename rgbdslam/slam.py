@@ -10,7 +10,7 @@ takes a frame through them in this order::
           ─▶ map_tracker      (--localize: registration against the nearest keyframes of the fixed map)
           ─▶ stages.on_loops  (the loop edges re-measured or dropped)
           ─▶ keyframes        (motion policy; loops and restarts force a keyframe)
-          ─▶ stages.on_frame  (the end of the frame's step; keyframes: new landmarks, local BA)
+          ─▶ stages.on_frame  (the end of the frame's step; keyframes: new landmarks)
           ─▶ graph            (GTSAM pose graph over keyframes, initial values from MASAT)
 
 A refinement stage implements :class:`Stage`; a stage changes poses only by returning
@@ -156,7 +156,7 @@ class SLAM:
         for s in self.stages:
             loops = self._timed(s.name, s.on_loops, frame, result, loops)
         is_kf, loops = self._keyframe(frame, pose, restart, loops, map_edges)
-        for s in self.stages:  # the frame's last step in each stage (keyframe: new landmarks, local BA)
+        for s in self.stages:  # the frame's last step in each stage (keyframe: new landmarks)
             pose = self._apply(frame, result, pose, self._timed(s.name, s.on_frame, frame, result, pose, is_kf))
         self._record(frame, result, pose, depth, is_kf)  # frame record; a keyframe: graph, loop closer, live map
         self._add_loops(loops)  # into the pose graph (iSAM2 updates); the live map follows
@@ -174,15 +174,12 @@ class SLAM:
         if not moved:
             return pose
         moved = dict(moved)
-        current = None
         if frame.index in moved:
-            new = moved.pop(frame.index)
-            current = (frame.index, new @ inv(pose))  # for the frames before it (ba_frames: interpolate)
-            pose = new
+            pose = moved.pop(frame.index)
             result.pose = pose
             self.frontend.correct_last(pose)
         if moved:
-            self._move_keyframes(moved, current)
+            self._move_keyframes(moved)
         return pose
 
     def _timed(self, name: str, step, *args):
@@ -232,18 +229,17 @@ class SLAM:
         if result.matches is not None:
             self.observer.log_inlier_matches(frame.index, result.matches[:, :2], result.matches[:, 2:])
 
-    def _move_keyframes(self, refined: dict[int, np.ndarray], current: tuple[int, np.ndarray] | None = None) -> None:
+    def _move_keyframes(self, refined: dict[int, np.ndarray]) -> None:
         """Write refined keyframe poses back: each keyframe's frames follow it rigidly (their pose
         relative to it kept), so do the front end's reference frames; the pose graph's odometry edges
-        are re-measured between the refined keyframes. ``current``: (this keyframe, its correction),
-        which the frames since the last keyframe approach with ``landmarks.ba_frames: interpolate``."""
+        are re-measured between the refined keyframes."""
         old = {r.index: r.pose for r in self.state.records if r.index in refined and r.keyframe == r.index}
         corr = {k: refined[k] @ inv(P) for k, P in old.items()}
         if not corr:
             return
         moved = {}
-        follow = _interpolated if self.cfg.landmarks.ba_frames == "interpolate" else _rigid
-        for r, C in zip(self.state.records, follow(self.state.records, corr, current)):
+        for r in self.state.records:
+            C = corr.get(r.keyframe)
             if C is not None:
                 r.pose = C @ r.pose
                 moved[r.index] = r.pose
@@ -383,37 +379,3 @@ class SLAM:
             else:
                 poses.append(r.pose)
         return Trajectory(odo.timestamps, np.array(poses).reshape(-1, 4, 4))
-
-
-def _rigid(records: list, corr: dict[int, np.ndarray], current=None) -> list:
-    """Each record's correction: its keyframe's (None: not moved)."""
-    return [corr.get(r.keyframe) for r in records]
-
-
-def _interpolated(records: list, corr: dict[int, np.ndarray], current: tuple[int, np.ndarray] | None = None) -> list:
-    """Each record's correction along the geodesic between its keyframe a's and the next keyframe b's,
-    C = C_a · Exp(s · Log(C_a⁻¹ C_b)) with s = (frame − a) / (b − a); a keyframe without a correction
-    has the identity; ``current`` = (b, C_b): the keyframe being added (not a record yet), the next
-    one of the newest record keyframe; without it, after the newest keyframe its own (rigid). None
-    where neither moved."""
-    import gtsam
-
-    kfs = [r.index for r in records if r.index == r.keyframe]
-    nxt = dict(zip(kfs, kfs[1:]))
-    if current is not None and kfs:
-        nxt[kfs[-1]] = current[0]
-        corr = {**corr, current[0]: current[1]}
-    out = []
-    for r in records:
-        a, b = r.keyframe, nxt.get(r.keyframe)
-        if a not in corr and (b is None or b not in corr):
-            out.append(None)
-            continue
-        Ca = corr.get(a, np.eye(4))
-        if r.index == a or b is None:
-            out.append(Ca)
-            continue
-        Cb = corr.get(b, np.eye(4))
-        s = (r.index - a) / (b - a)
-        out.append(Ca @ gtsam.Pose3.Expmap(s * gtsam.Pose3.Logmap(gtsam.Pose3(inv(Ca) @ Cb))).matrix())
-    return out

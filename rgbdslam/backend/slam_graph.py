@@ -117,7 +117,7 @@ class KeyframeGraph:
         self._add_factor(gtsam.BetweenFactorPose3(key(i), key(j), _pose3(T_ij), self._noise(info, False)))
 
     def refine_poses(self, poses: dict[int, np.ndarray]) -> int:
-        """Keyframe poses refined by the front end (local bundle adjustment): the nodes' guesses move and
+        """Keyframe poses refined by a stage of the chain (``SLAM._move_keyframes``): the nodes' guesses move and
         every odometry edge touching one of them is re-measured from the refined guesses (same
         information); the final batch sees the new measurements. iSAM2's running estimate keeps the
         edges it was given (it only serves ``correction`` during the run). Returns the edges re-measured."""

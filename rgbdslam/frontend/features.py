@@ -200,8 +200,11 @@ def detect(rgb: np.ndarray, fc: FeaturesConfig, count: bool = True) -> Detection
     return Detections(uv_raw, desc, response, count_detections(gray, fc) if count else -1, fc, rgb, octave)
 
 
-def orb_features(gray: np.ndarray, fc: FeaturesConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """ORB key points (N, 2), descriptors (N, 32), responses (N,) and pyramid levels (N,) of a grey image.
+def orb_features(gray: np.ndarray, fc: FeaturesConfig, attributes: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """ORB key points (N, 2), descriptors (N, 32), responses (N,) and pyramid levels (N,) of a grey image
+    (``attributes=False``: responses and levels left empty, for images only matched against: reading them
+    is a Python attribute access per key point, ~0.5 ms per 4000).
 
     With grid bucketing ORB finds twice the budget, the strongest per cell are kept, and only
     those get descriptors (``detect`` then ``compute``: the same descriptors as
@@ -220,6 +223,8 @@ def orb_features(gray: np.ndarray, fc: FeaturesConfig) -> tuple[np.ndarray, np.n
     if desc is None or len(kps) == 0:
         return np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32), np.zeros(0, np.int8)
     uv_raw = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)
+    if not attributes:
+        return uv_raw, np.ascontiguousarray(desc), np.zeros(0, np.float32), np.zeros(0, np.int8)
     response = np.array([k.response for k in kps], dtype=np.float32)
     octave = np.array([k.octave for k in kps], dtype=np.int8)
     return uv_raw, np.ascontiguousarray(desc), response, octave

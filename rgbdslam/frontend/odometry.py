@@ -414,7 +414,7 @@ class Frontend:
             self._velocity = _motion(prev, last)
 
     def move_references(self, poses: dict[int, np.ndarray]) -> None:
-        """New poses ``{frame index: pose}`` for reference frames moved by the back end (local BA)."""
+        """New poses ``{frame index: pose}`` for reference frames moved by a stage (``SLAM._move_keyframes``)."""
         for r in self.refs:
             P = poses.get(r.features.index)
             if P is not None:

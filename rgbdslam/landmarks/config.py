@@ -12,7 +12,7 @@ from rgbdslam.configspec import AtMost, C_INT_MAX, Key, Positive, Range
 class LandmarksConfig:
     """Map-based tracking: a persistent landmark map (spec section 6, docs/slam.md 'Landmark map')."""
 
-    # upper bounds: pixels, metres and counts of one frame's search; BA sizes bound its GTSAM problem
+    # upper bounds: pixels, metres and counts of one frame's search
     enabled: Annotated[bool, Key(
         "track every frame against the persistent landmark map (docs/slam.md, \"Landmark map\"); false = the "
         "frame-to-frame chain alone (the thesis preset)")] = True
@@ -108,31 +108,6 @@ class LandmarksConfig:
         "frames around the loop's older keyframe whose landmarks re-measure the edge")] = 30
     loop_search_radius: Annotated[float, Positive(1000.0,
         "pixels around a landmark's projection with the loop edge's pose")] = 20.0
-    # windowed local bundle adjustment on every new keyframe (GTSAM, stereo-style factors)
-    local_ba: Annotated[bool, Key("windowed local bundle adjustment on every new keyframe")] = False
-    ba_window: Annotated[int, Positive(100,
-        "keyframes optimised; older keyframes seeing their landmarks are held fixed")] = 5
-    ba_iterations: Annotated[int, Positive(1000, "Levenberg-Marquardt iterations of one local BA")] = 5
-    ba_solver: Annotated[Literal["schur", "gtsam"], Key(
-        "the local BA's solver: 'schur' = NumPy Levenberg-Marquardt with the landmarks eliminated in closed form (the "
-        "Schur complement; GTSAM's LM step for step, ~10x faster at this size); 'gtsam' = GTSAM's graph")] = "schur"
-    ba_max_landmarks: Annotated[int, Positive(100_000, "landmarks in one local BA (those seen by most keyframes)")] = 1000
-    ba_baseline: Annotated[float, Positive(10.0, "virtual stereo baseline (m) turning depth into a disparity")] = 0.08
-    ba_huber: Annotated[float, Positive(100.0, "robust kernel width (whitened)")] = 1.345
-    ba_landmark_prior: Annotated[bool, Key("each landmark's Kalman position and covariance as a prior in local BA")] = True
-    ba_prior_floor: Annotated[float, AtMost(10.0,
-        "metres added (in quadrature, every direction) to the prior's Kalman sigma: the filter counts every frame's "
-        "observation as independent, but they share the frames' pose errors")] = 0.004
-    ba_min_observations: Annotated[int, AtMost(10**6,
-        "a keyframe observing fewer of the optimised landmarks is left out")] = 30
-    ba_max_move: Annotated[float, Positive(100.0,
-        "metres: a solution moving a keyframe further is dropped (bad convergence)")] = 0.05
-    ba_max_move_deg: Annotated[float, Positive(360.0, "degrees: see ba_max_move")] = 3.0
-    ba_frames: Annotated[Literal["rigid", "interpolate"], Key(
-        "how the frames between two keyframes follow a local BA's corrections: 'rigid' = with their own (older) "
-        "keyframe's; 'interpolate' = along the geodesic from their keyframe's correction to the next keyframe's, by "
-        "frame index (a keyframe the BA did not move: no correction), so the trajectory does not jump where one "
-        "keyframe's frames end and the next keyframe begins")] = "rigid"
     n_features: Annotated[int, AtMost(10_000,
         "ORB key points per frame for the landmark map (0 = features.n_features): frames are detected with this many; "
         "the registration, loop closure and the rest keep the strongest features.n_features of them (per pyramid "

@@ -5,15 +5,13 @@
 returns the map pose fused with it (nothing when the map cannot place the frame); the matched
 landmarks are then re-observed (static Kalman update). ``on_loops`` re-measures loop edges against
 the map and drops those the map already holds. ``on_frame`` makes new landmarks at a keyframe from
-its depth-valid features that matched no landmark, runs the windowed local bundle adjustment
-(``landmarks.local_ba``; its refined keyframe poses are the corrections returned) and culls.
+its depth-valid features that matched no landmark, and culls.
 ``on_finish`` moves the landmarks with their anchor keyframes after the pose graph; ``summary``
 goes to run.json.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,16 +23,6 @@ from rgbdslam.landmarks.kalman import observation_covariance
 from rgbdslam.landmarks.map import LandmarkMap
 from rgbdslam.frontend.features import map_valid
 from rgbdslam.landmarks.tracking import map_pose, match_to_map
-
-
-@dataclass
-class _KeyframeObs:
-    """A keyframe's observations of landmarks (for local BA): ids, pixels (undistorted), depth."""
-
-    index: int
-    lm: np.ndarray
-    uv: np.ndarray
-    z: np.ndarray
 
 
 @dataclass
@@ -52,8 +40,6 @@ class LandmarkStats:
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
     consistency: list[float] = field(default_factory=list)  # per fused frame: median chi2 / 5.35
-    ba_runs: int = 0
-    ba_ms: list[float] = field(default_factory=list)  # the solves (where they ran)
 
 
 CHI2_MEDIAN_6DOF = 5.348  # median of a chi-square distribution with 6 degrees of freedom
@@ -109,7 +95,6 @@ class LandmarkTracker:
                                cfg.store_n1, cfg.store_q)
         self.rng = np.random.default_rng(cfg.seed)
         self.stats = LandmarkStats()
-        self.keyframes: list[_KeyframeObs] = []  # the last ones (bounded: what local BA can use)
         self.kf_pose: dict[int, np.ndarray] = {}  # keyframe poses as the map saw them (anchors)
         self.kf_obs: dict[int, np.ndarray] = {}  # every keyframe's observed landmark ids (the covisibility graph)
         self._seen_by: dict[int, list[int]] = {}  # landmark id -> the keyframes observing it (once per observation)
@@ -118,14 +103,8 @@ class LandmarkTracker:
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
-        self.last_ba_moved: list[int] = []
         self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
         self._map_scale = 1.0  # the last consistency scale of the map pose's covariance (loop_refine uses it)
-        self.ba = None
-        if cfg.local_ba:
-            from rgbdslam.landmarks.local_ba import LocalBA
-
-            self.ba = LocalBA(cfg, camera)
 
     # ---------------------------------------------------------------- the stage protocol
     def on_tracked(self, frame, result, pose: np.ndarray) -> dict[int, np.ndarray]:
@@ -151,14 +130,15 @@ class LandmarkTracker:
         return loops
 
     def on_frame(self, frame, result, pose: np.ndarray, keyframe: bool) -> dict[int, np.ndarray]:
-        """The end of the frame's map step at its pose: on a keyframe new landmarks and the local BA,
-        whose refined keyframe poses are the corrections returned (this frame's among them); culling; Rerun."""
+        """The end of the frame's map step at its pose: on a keyframe new landmarks; culling; Rerun.
+        No corrections (an empty dict: the map moves no pose here)."""
         feats = map_features(result)
-        refined = self.add_keyframe(frame.index, feats, pose) if keyframe else {}
+        if keyframe:
+            self.add_keyframe(frame.index, feats, pose)
         self.end_frame(frame.index)
         if self.observer is not None and frame.index % self.log_every == 0:
-            self.log(self.observer, frame.index, feats, keyframe)
-        return refined
+            self.log(self.observer, frame.index, feats)
+        return {}
 
     def on_finish(self, optimised: dict[int, np.ndarray]) -> None:
         """After the final pose graph: the landmarks move with their anchor keyframes (:meth:`finish`)."""
@@ -366,15 +346,15 @@ class LandmarkTracker:
         """The end of frame ``index``'s map step: culling."""
         self.map.end_step(index)
 
-    def add_keyframe(self, index: int, feats, pose: np.ndarray) -> dict[int, np.ndarray]:
-        """New landmarks from the keyframe's unmatched depth-valid features; local BA. Returns the
-        window keyframes' refined poses ``{keyframe: pose}`` (empty without local BA or when it did not run)."""
+    def add_keyframe(self, index: int, feats, pose: np.ndarray) -> None:
+        """New landmarks from the keyframe's unmatched depth-valid features; the keyframe observes its
+        tracking inliers and the new landmarks (the covisibility graph, :meth:`observe`)."""
         c = self.cfg
         matched_feat = np.zeros(len(feats.valid), bool)
-        lm_idx, lm_ids = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        lm_ids = np.zeros(0, np.int64)
         if self._last is not None and self._last[0] == index:
-            lm_idx, lm_ids = self._last[1], self._last[2]
-            matched_feat[lm_idx] = True
+            lm_ids = self._last[2]
+            matched_feat[self._last[1]] = True
         m = self._last_matches
         if m is not None and len(m.feat):  # every descriptor match (inlier or not) keeps its feature out
             matched_feat[m.feat] = True
@@ -389,34 +369,16 @@ class LandmarkTracker:
             P = feats.pts[new]
             zw = P @ pose[:3, :3].T + pose[:3, 3]
             R = observation_covariance(P, pose[:3, :3], self.camera.fx, c.sigma_px, c.depth_noise_a, c.depth_noise_b)
-            ids = self.map.add(zw, R, feats.desc[new], index, index)
-            lm_idx = np.concatenate([lm_idx, new])
-            lm_ids = np.concatenate([lm_ids, ids])
+            lm_ids = np.concatenate([lm_ids, self.map.add(zw, R, feats.desc[new], index, index)])
         self.kf_pose[index] = pose.copy()
         self.observe(index, lm_ids)
-        self.keyframes.append(_KeyframeObs(index, lm_ids, feats.uv[lm_idx].copy(), feats.pts[lm_idx, 2].copy()))
-        keep = max(3 * c.ba_window, 10)
-        if len(self.keyframes) > keep:
-            del self.keyframes[: len(self.keyframes) - keep]
         self._last_matches = None
-        if self.ba is None:
-            return {}
-        t0 = time.perf_counter()
-        refined = self.ba.run(self.map, self.keyframes, self.kf_pose)
-        self.stats.ba_ms.append(1e3 * (time.perf_counter() - t0))
-        self.stats.ba_runs += 1
-        self.last_ba_moved = sorted(refined) if refined else []
-        for k, P in refined.items():
-            self.kf_pose[k] = P
-        return refined
 
-    def log(self, observer, index: int, feats, is_kf: bool) -> None:
-        """Send the map to a Rerun observer (landmarks by age, this frame's map matches, BA moves)."""
+    def log(self, observer, index: int, feats) -> None:
+        """Send the map to a Rerun observer (landmarks by age, this frame's map matches)."""
         ids = self.map.live_ids()
         uv = feats.uv_raw[self._last[1]] if self._last is not None and len(feats.uv_raw) else None
-        moved = self.last_ba_moved if is_kf and self.ba is not None else None
-        centres = None if moved is None else np.array([self.kf_pose[k][:3, 3] for k in moved], float).reshape(-1, 3)
-        observer.log_landmarks(index, self.map.pos[ids], index - self.map.first[ids], uv, moved, centres)
+        observer.log_landmarks(index, self.map.pos[ids], index - self.map.first[ids], uv)
 
     def top_view(self, path, title: str = "landmarks (top view)") -> None:
         """The thesis' 2-D map: landmarks seen from above (x-y of the world), coloured by times seen."""
@@ -444,6 +406,4 @@ class LandmarkTracker:
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),
-            "local_ba_runs": s.ba_runs,
-            "local_ba_median_ms": float(np.median(s.ba_ms)) if s.ba_ms else 0.0,
         }

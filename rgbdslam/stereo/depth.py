@@ -73,16 +73,18 @@ def match_rows(uv_l: np.ndarray, desc_l: np.ndarray, uv_r: np.ndarray, desc_r: n
         return i, j
     wl = np.ascontiguousarray(desc_l).view(np.uint64).reshape(-1, 4)
     wr = np.ascontiguousarray(desc_r).view(np.uint64).reshape(-1, 4)
-    x = wl[i] ^ wr[j]
-    ham = np.bitwise_count(x).sum(axis=1).astype(np.int32)
-    order = np.argsort(i.astype(np.int64) * 512 + ham, kind="stable")  # by left point, best first (ham <= 256)
-    i, j, ham = i[order], j[order], ham[order]
-    first = np.r_[True, i[1:] != i[:-1]]
-    idx_first = np.flatnonzero(first)
-    second = np.full(len(idx_first), 1 << 20)
-    has2 = np.r_[idx_first[1:], len(i)] - idx_first > 1
-    second[has2] = ham[idx_first[has2] + 1]
-    bi, bj, bh = i[idx_first], j[idx_first], ham[idx_first]
+    c = np.bitwise_count(wl[i] ^ wr[j])
+    ham = (c[:, 0].astype(np.int64) + c[:, 1]) + (c[:, 2] + c[:, 3])
+    # the band pairs come grouped by ascending left point: one segment each, reduced without sorting. Best =
+    # smallest distance, among equals the pair listed first; second = the smallest distance left once the
+    # best pair is taken out (equal to the best when two candidates tie)
+    n = len(i)
+    start = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    best = np.minimum.reduceat(ham * n + np.arange(n), start) % n
+    rest = ham.copy()
+    rest[best] = 1 << 20
+    second = np.minimum.reduceat(rest, start)
+    bi, bj, bh = i[best], j[best], ham[best]
     keep = (bh <= sc.max_hamming) & (bh < sc.ratio * second)
     bi, bj, bh = bi[keep], bj[keep], bh[keep]
     # one left point per right point: its best one
@@ -93,6 +95,30 @@ def match_rows(uv_l: np.ndarray, desc_l: np.ndarray, uv_r: np.ndarray, desc_r: n
 
 
 SUBPIXEL = ("zsad_v", "centre_parabola")
+
+
+def patch_sum(X: np.ndarray) -> np.ndarray:
+    """``X.sum(axis=0)`` of a float32 stack, in NumPy's own order of additions for a contiguous axis of that
+    length (its pairwise sum: up to 7 terms one after the other; 8-128 terms in eight running sums combined
+    as ((0+1)+(2+3))+((4+5)+(6+7)), the rest added one by one), but as whole-array adds: NumPy reduces a
+    short inner axis one small loop per element, ~3x slower here. Longer stacks are split as NumPy splits
+    them (halves, the first a multiple of 8)."""
+    k = len(X)
+    if k > 128:
+        half = k // 2 - (k // 2) % 8
+        return patch_sum(X[:half]) + patch_sum(X[half:])
+    if k < 8:
+        acc = np.full_like(X[0], -0.0)
+        for x in X:
+            acc += x
+        return acc
+    part = X[:8].copy()
+    for b in range(8, k - k % 8, 8):
+        part += X[b:b + 8]
+    acc = ((part[0] + part[1]) + (part[2] + part[3])) + ((part[4] + part[5]) + (part[6] + part[7]))
+    for x in X[k - k % 8:]:
+        acc += x
+    return acc
 
 
 def refine_disparity(left: np.ndarray, right: np.ndarray, ul: np.ndarray, vl: np.ndarray, ur: np.ndarray,
@@ -127,26 +153,37 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, ul: np.ndarray, vl: np
     if not ok.any():
         return out, ok
     idx = np.flatnonzero(ok)
-    n = 2 * r + 1
+    n, m = 2 * r + 1, len(idx)
     dy = np.arange(-r, r + 1)
-    rows = vl[idx, None, None] + dy[None, :, None]
-    L = left[rows, ul[idx, None, None] + dy[None, None, :]].astype(np.float32)  # (M, n, n)
+    # gathers from the flat images: one offset table per patch, added to each point's base index
+    base = vl[idx] * w
+    L = np.ascontiguousarray(left).ravel()[(base + ul[idx])[:, None, None] + (dy[:, None] * w + dy)[None]]
+    L = L.astype(np.float32)  # (M, n, n)
     # one strip of the right row band per point, the 2s+1 shifted patches are views of it
-    strip = right[rows, ur0[idx, None, None] + np.arange(-r - s, r + s + 1)[None, None, :]].astype(np.float32)
+    cols = np.arange(-r - s, r + s + 1)
+    strip = np.ascontiguousarray(right).ravel()[(base + ur0[idx])[:, None, None] + (dy[:, None] * w + cols)[None]]
+    strip = strip.astype(np.float32)  # (M, n, n + 2s)
     R = np.lib.stride_tricks.sliding_window_view(strip, n, axis=2)  # (M, n, 2s+1, n)
     if subpixel == "zsad_v":
         L -= L.mean(axis=(1, 2), keepdims=True)
-        col = np.cumsum(np.pad(strip.sum(axis=1), ((0, 0), (1, 0))), axis=1)  # running column sums (M, 2r+2s+2)
+        col = np.zeros((m, strip.shape[2] + 1), np.float32)  # running column sums
+        np.cumsum(strip.sum(axis=1), axis=1, out=col[:, 1:])
         mean = (col[:, n:] - col[:, :-n]) / np.float32(n * n)  # (M, 2s+1): each shifted patch's mean
-        R = R - mean[:, None, :, None]
+        ref = mean[None, :, None, :]
     else:
         L -= L[:, r:r + 1, r:r + 1]
-        R = R - strip[:, r:r + 1, r:r + 2 * s + 1, None]  # minus each patch's centre value
-    sad = np.abs(R - L[:, :, None, :]).sum(axis=(1, 3))
+        ref = strip[None, :, r:r + 1, r:r + 2 * s + 1]  # minus each patch's centre value
+    # |patch difference| laid out (patch column, point, patch row, offset): the sum over the patch columns is
+    # then whole-array adds (patch_sum), bit for bit NumPy's own sum over that axis
+    X = np.empty((n, m, n, 2 * s + 1), np.float32)
+    np.subtract(R.transpose(3, 0, 1, 2), ref, out=X)
+    X -= L.transpose(2, 0, 1)[:, :, :, None]
+    np.abs(X, out=X)
+    sad = patch_sum(X).sum(axis=1)  # (M, 2s+1)
     offs = np.arange(-s, s + 1)
     best = sad.argmin(axis=1)
     inner = (best > 0) & (best < 2 * s)
-    k = np.arange(len(idx))
+    k = np.arange(m)
     b = np.clip(best, 1, 2 * s - 1)
     c1, c2, c3 = (sad[k, b - 1].astype(np.float64), sad[k, b].astype(np.float64), sad[k, b + 1].astype(np.float64))
     den = 2.0 * (np.maximum(c1, c3) - c2) if subpixel == "zsad_v" else 2.0 * (c1 + c3 - 2.0 * c2)
@@ -159,16 +196,18 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, ul: np.ndarray, vl: np
     return out, good
 
 
-def _detect_right(right: np.ndarray, fc: FeaturesConfig, factor: int = 2):
-    """ORB on the right image: ``factor`` times the left's budget and no grid, so that a left key point's
-    partner is found whatever the right image's own strongest corners are (measured on KITTI 06
-    frame 5: 367 row matches instead of 268 with the left's settings)."""
+def _detect_right(right: np.ndarray, fc: FeaturesConfig, factor: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """ORB key points (N, 2) and descriptors of the right image: ``factor`` times the left's budget and no
+    grid, so that a left key point's partner is found whatever the right image's own strongest corners are
+    (measured on KITTI 06 frame 5: 367 row matches instead of 268 with the left's settings). No responses,
+    levels or detection count: the right image is only matched against."""
     import dataclasses
 
-    from rgbdslam.frontend.features import detect
+    from rgbdslam.frontend.features import orb_features
 
-    return detect(right, dataclasses.replace(fc, n_features=factor * fc.n_features, grid_rows=1, grid_cols=1),
-                  count=False)
+    uv, desc, _, _ = orb_features(right, dataclasses.replace(fc, n_features=factor * fc.n_features, grid_rows=1,
+                                                               grid_cols=1), attributes=False)
+    return uv, desc
 
 
 ROW_SEARCH_BUDGET = 256 * 2**20  # bytes of one reader thread's coarse cost table (float32 disparities x rows x cols)
@@ -265,9 +304,9 @@ def sparse_matches(left: np.ndarray, right: np.ndarray, rig: StereoRig, uv_l: np
         il, ur_coarse = coarse_row_search(gl, gr, uv_l, sc)
         search = sc.search_radius + (sc.row_scale + 1) // 2  # the coarse column is good to +-row_scale/2
     else:
-        det_r = _detect_right(gr, fc, sc.right_features)
-        il, ir = match_rows(uv_l, desc_l, det_r.uv_raw, det_r.desc, sc)
-        ur_coarse, search = det_r.uv_raw[ir, 0], sc.search_radius
+        uv_r, desc_r = _detect_right(gr, fc, sc.right_features)
+        il, ir = match_rows(uv_l, desc_l, uv_r, desc_r, sc)
+        ur_coarse, search = uv_r[ir, 0], sc.search_radius
     u0 = np.rint(uv_l[il, 0])
     v0 = np.rint(uv_l[il, 1])
     # the right match's column, shifted by the left point's rounding, is the search centre

@@ -32,8 +32,7 @@ class NullObserver:
     def log_trajectory(self, name: str, traj) -> None:
         pass
 
-    def log_landmarks(self, index: int, pos: np.ndarray, age: np.ndarray, uv_matched: np.ndarray | None,
-                      ba_moved: list[int] | None = None, ba_moved_centres: np.ndarray | None = None) -> None:
+    def log_landmarks(self, index: int, pos: np.ndarray, age: np.ndarray, uv_matched: np.ndarray | None) -> None:
         pass
 
     def log_map(self, points: np.ndarray, colors: np.ndarray) -> None:

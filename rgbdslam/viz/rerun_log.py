@@ -14,7 +14,6 @@ Entity layout (time lines ``frame`` = sequence position, ``time`` = the frame's 
 - ``world/map``                     the fused coloured cloud
 - ``world/landmarks``               the landmark map (``landmarks.enabled``), coloured by age
 - ``world/camera/image/map_matches`` this frame's key points matched to the landmark map
-- ``world/local_ba/moved``          camera centres of the keyframes the last local BA moved
 - ``timings/<stage>``               per-stage time in ms (Scalars); ``stats/*`` matches, inliers, lost
 
 The ground truth is drawn in the estimate's world frame: it is moved by the rigid transform that
@@ -253,12 +252,9 @@ class RerunLogger:
         self.rec.set_time("frame", sequence=int(index))
         self.rec.log("world/camera/image/matches", self.rr.LineStrips2D(seg, colors=[(255, 220, 0)], radii=0.5))
 
-    def log_landmarks(self, index: int, pos: np.ndarray, age: np.ndarray, uv_matched: np.ndarray | None,
-                      ba_moved: list[int] | None = None, ba_moved_centres: np.ndarray | None = None) -> None:
-        """The landmark map (coloured by age in frames: young red -> old (>= 300) blue), this frame's
-        pixels matched to the map, and at a keyframe the keyframes the last local BA moved: a text
-        line and ``world/local_ba/moved``, their camera centres labelled with their frame numbers
-        (``ba_moved`` ids, ``ba_moved_centres`` (K, 3); an empty list clears the entity)."""
+    def log_landmarks(self, index: int, pos: np.ndarray, age: np.ndarray, uv_matched: np.ndarray | None) -> None:
+        """The landmark map (coloured by age in frames: young red -> old (>= 300) blue) and this frame's
+        pixels matched to the map."""
         self.rec.set_time("frame", sequence=int(index))
         if len(pos):
             a = np.clip(np.asarray(age, np.float64) / 300.0, 0.0, 1.0)[:, None]
@@ -268,15 +264,6 @@ class RerunLogger:
             self.rec.log("world/camera/image/map_matches",
                          self.rr.Points2D(np.asarray(uv_matched, np.float32) * self.scale, colors=[(40, 90, 230)],
                                           radii=2.0))
-        if ba_moved:
-            self.rec.log("log", self.rr.TextLog(f"local BA moved keyframes {ba_moved}", level="DEBUG"))
-        if ba_moved_centres is not None:
-            if len(ba_moved_centres):
-                self.rec.log("world/local_ba/moved", self.rr.Points3D(
-                    np.asarray(ba_moved_centres, np.float32), colors=[(255, 140, 0)], radii=0.02,
-                    labels=[f"kf {k}" for k in (ba_moved or [])] or None))
-            else:
-                self.rec.log("world/local_ba/moved", self.rr.Clear(recursive=False))
 
     def log_loop(self, i: int, j: int, pose_i: np.ndarray, pose_j: np.ndarray) -> None:
         """A loop edge between frames i and j (drawn between their camera centres; all loops so far)."""

@@ -28,16 +28,15 @@ def test_open3d_comparison_marks_and_counts_each_variant():
 
 
 def test_landmark_ablation_cost_table():
-    rows = [_row("xyz seed 0", "default", 0.005, 0.003, 20.0, landmarks_ms=None, local_ba_ms=None),
-            _row("xyz seed 0", "landmarks", 0.002, 0.002, 15.0, landmarks_ms=8.0, local_ba_ms=None),
-            _row("xyz seed 0", "landmarks + local BA", 0.002, 0.002, 10.0, landmarks_ms=9.0, local_ba_ms=12.0),
-            _row("rpy seed 0", "default", 0.005, 0.003, 40.0, landmarks_ms=None, local_ba_ms=None),
-            _row("rpy seed 0", "landmarks", 0.004, 0.003, 20.0, landmarks_ms=6.0, local_ba_ms=None),
-            _row("rpy seed 0", "landmarks + local BA", 0.004, 0.003, 20.0, landmarks_ms=7.0, local_ba_ms=20.0)]
+    rows = [_row("xyz seed 0", "default", 0.005, 0.003, 20.0, landmarks_ms=None),
+            _row("xyz seed 0", "landmarks", 0.002, 0.002, 15.0, landmarks_ms=8.0),
+            _row("xyz seed 0", "landmarks, Kalman off", 0.002, 0.002, 10.0, landmarks_ms=9.0),
+            _row("rpy seed 0", "default", 0.005, 0.003, 40.0, landmarks_ms=None),
+            _row("rpy seed 0", "landmarks", 0.004, 0.003, 20.0, landmarks_ms=6.0),
+            _row("rpy seed 0", "landmarks, Kalman off", 0.004, 0.003, 20.0, landmarks_ms=7.0)]
     md = slam.landmark_markdown(rows, "## A", "cmd", "machine")
-    assert "| landmarks | 7.0 | - | 0.62 |" in md  # medians of (8, 6) ms and of the ratios (0.75, 0.5)
-    assert "| landmarks + local BA | 8.0 | 16.0 | 0.50 |" in md
+    assert "| landmarks | 7.0 | 0.62 |" in md  # medians of (8, 6) ms and of the ratios (0.75, 0.5)
+    assert "| landmarks, Kalman off | 8.0 | 0.50 |" in md
     assert "| landmarks | 0.0030 | 0.0025 | 0.60 | 0.83 | 2 / 0 |" in md  # synthetic medians and ratios
     assert set(slam.LANDMARK_ABLATION) >= {
-        "default", "thesis", "landmarks + local BA", "landmarks, Kalman off", "landmarks, uniform sampling",
-        "landmarks, single k-d tree"}
+        "default", "thesis", "landmarks, Kalman off", "landmarks, uniform sampling", "landmarks, single k-d tree"}

@@ -93,43 +93,6 @@ def test_landmark_map_gets_every_key_point_the_registration_the_strongest(desk9)
     assert s2["median_inliers"] > 1.5 * s0["median_inliers"]
 
 
-def _records(kf_of: list[int]):
-    from rgbdslam.slam import FrameRecord
-
-    return [FrameRecord(i, float(i), np.eye(4), k) for i, k in enumerate(kf_of)]
-
-
-def _shift(x: float) -> np.ndarray:
-    T = np.eye(4)
-    T[0, 3] = x
-    return T
-
-
-def test_ba_frames_interpolate_between_keyframe_corrections_by_hand():
-    from rgbdslam.slam import _interpolated, _rigid
-
-    # keyframes 0, 4, 6; the BA moved keyframe 0 by 1 m along x and 6 by -2 m, 4 not at all
-    recs = _records([0, 0, 0, 0, 4, 4, 6, 6])
-    corr = {0: _shift(1.0), 6: _shift(-2.0)}
-    got = _interpolated(recs, corr)
-    x = [None if C is None else round(float(C[0, 3]), 12) for C in got]
-    # 0..3 from 1 (at 0) towards 0 (keyframe 4, unmoved); 5 halfway from 0 to -2; 6 and 7 (newest) rigid
-    assert x == [1.0, 0.75, 0.5, 0.25, 0.0, -1.0, -2.0, -2.0]  # (4: the identity)
-    assert all(C is None or np.allclose(C[:3, :3], np.eye(3)) for C in got)
-    assert [None if C is None else C[0, 3] for C in _rigid(recs, corr)] == [1.0] * 4 + [None] * 2 + [-2.0] * 2
-    # the keyframe being added (not a record yet) is the newest record keyframe's next one
-    got = _interpolated(recs, corr, current=(8, _shift(-4.0)))
-    assert [round(float(C[0, 3]), 12) for C in got[6:]] == [-2.0, -3.0]
-    # a rotation: halfway along the geodesic is half the angle
-    from rgbdslam.geometry.se3 import rotation_angle
-
-    Rz = np.eye(4)
-    Rz[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]  # 90 degrees about z
-    got = _interpolated(_records([0, 0, 2]), {2: Rz})
-    assert np.isclose(np.degrees(rotation_angle(got[1][:3, :3])), 45.0) and np.allclose(got[0], np.eye(4))
-
-
-
 @pytest.mark.data
 def test_key_points_a_reader_made_itself_are_kept(desk9):
     """Sparse stereo finds the key points in the reader and has depth at theirs only: a frame that

@@ -4,8 +4,10 @@ fallback, and the synthetic highway (docs/stereo.md, "Near and far points")."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
+from rgbdslam.config import load_config
 from rgbdslam.geometry.mahalanobis import bearing_residuals, refine_pose_near_far
 from rgbdslam.geometry.se3 import make_pose
 
@@ -128,3 +130,20 @@ def test_highway_fallback_keeps_depth_of_points_in_range(tmp_path):
     assert s["lost"] == 0
     assert s["evaluation"]["ate"]["rmse"] <= 0.9  # 0.63 % of the distance driven
     assert summary["distance_m"] > 140.0
+
+
+@pytest.mark.data
+def test_landmark_map_gets_stereo_key_points_on_kitti06():
+    """Sparse stereo depth exists only at the key points, so a depth-edge window around any of them holds
+    pixels without depth: with the edge test on, every key point was flagged and the landmark map had no
+    feature at all on KITTI (``map_valid`` empty: no landmark, no map pose). The ``kitti`` preset turns the
+    test off (``matching.depth_edge_radius: 0``); the registration is unchanged (with every point flagged it
+    fell back to all of them)."""
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.frontend.features import extract_features, map_valid
+    from tests.conftest import DATA, need
+
+    cfg = load_config("kitti")
+    seq = open_sequence(need(DATA / "kitti" / "odometry_06_head51"), cfg)
+    feats = extract_features(seq.load(0), cfg.features, cfg.matching)
+    assert feats.valid.sum() > 200 and map_valid(feats).sum() == feats.valid.sum()
