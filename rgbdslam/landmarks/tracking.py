@@ -83,12 +83,12 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     (``first_before``: only landmarks first seen before that frame, ``first_after``: only those first
     seen at or after that frame — together a loop's older end, ``landmarks.loop_refine``;
     ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map_shared``)."""
-    ids, uv, _ = project_candidates(lmap, pose, camera, max_depth, allowed=allowed)
-    if first_before is not None or first_after is not None:
-        f = lmap.first[ids]
+    if first_before is not None or first_after is not None:  # one mask with the local map's, before projecting
+        f = lmap.first[: lmap.n]
         old = (f < (first_before if first_before is not None else np.inf)) & \
             (f >= (first_after if first_after is not None else -np.inf))
-        ids, uv = ids[old], uv[old]
+        allowed = old if allowed is None else allowed[: lmap.n] & old
+    ids, uv, _ = project_candidates(lmap, pose, camera, max_depth, allowed=allowed)
     fi = np.flatnonzero(map_valid(feats))
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv, ids)
     if len(ids) == 0 or len(fi) == 0:

@@ -3,7 +3,8 @@
 Each kernel is checked against the plain expression it stands for, written out here, on a real
 landmark map: fr1/rpy head200's first frames tracked with the landmark map on, then its later frames'
 matches to that map (the reprojection residuals and Jacobians at the frame's pose and near it, every
-match's and a refine's inlier subset; the candidates of the covisibility local map). The whole chain's
+match's and a refine's inlier subset; the candidates of the covisibility local map and of a loop's
+older end). The whole chain's
 poses are held bit for bit by ``tests/test_chain_poses.py``.
 """
 
@@ -124,6 +125,14 @@ def test_candidates_of_the_local_map_are_the_ones_found_before(rpy_map):
         old = _project_candidates_before(tracker.map, pose, camera, c.max_depth, allowed)
         assert len(new[0]) > 100
         assert all(np.array_equal(x, y) and x.dtype == y.dtype for x, y in zip(new, old))
+        # a loop's older end (landmarks.loop_refine): the first-sighting window, a mask before the projection too
+        m = match_to_map(tracker.map, feats, pose, camera, c.loop_search_radius, c.max_hamming, c.max_depth,
+                         first_before=21, first_after=5)
+        f = tracker.map.first[: tracker.map.n]
+        ids, uv, _ = _project_candidates_before(tracker.map, pose, camera, c.max_depth, (f < 21) & (f >= 5))
+        every = _project_candidates_before(tracker.map, pose, camera, c.max_depth, np.ones(len(f), bool))[0]
+        assert 0 < len(ids) < len(every)  # the window leaves landmarks out
+        assert np.array_equal(m.cand_ids, ids) and np.array_equal(m.cand_uv, uv)
 
 
 @pytest.mark.data
