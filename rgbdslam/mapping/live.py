@@ -51,8 +51,9 @@ REDO_CHUNK = 32  # keyframes taken out and put in again together (their images h
 CLOUD_POINTS, CLOUD_COLORS, CLOUD_KEEP = ".cloud-points.npy", ".cloud-colors.npy", ".cloud-keep.npy"
 SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)
 # a waiting keyframe goes into the map early, while the map process is idle, only when its thread got at
-# least this share of a core during its last integration (a free core; see MapState.ahead)
-AHEAD_SHARE = 0.5
+# least this share of a core during its last integration (see MapState.ahead): a finish that arrives
+# meanwhile then waits at most ~4x a keyframe's CPU (~0.2 s), against ~0.05 s per keyframe left for the end
+AHEAD_SHARE = 0.25
 
 
 def shift_m(a: np.ndarray, b: np.ndarray, depth_max: float, box: np.ndarray | None = None) -> float:
@@ -220,7 +221,7 @@ class MapState:
         """True when a keyframe waits (within ``mapping.live_lag``) and the map's niced thread got at
         least ``ahead_share`` of a core during its last integration: an idle map process on a free
         core then integrates it early (:meth:`settle`), at its newest pose, instead of after the
-        last frame, where it was one of the end's longest steps (12 keyframes: ~0.7 s of CPU on
+        last frame, where it was one of the end's longest steps (12 keyframes: ~0.65 s of CPU on
         fr1/rpy). A loop closure that moves it later makes it be redone, like any keyframe in the
         map. On a busy machine the thread gets little CPU: the keyframes wait for the end, as the
         run would otherwise wait for a niced integration the finish arrived during."""
