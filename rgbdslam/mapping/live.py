@@ -579,6 +579,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
         state.stats["final_shift_max_mm"] = float(shift.max())
     # how far the waiting keyframes' latest poses were from their final ones (what integrating them
     # early, at those poses, would have left off)
+    state.stats["thread_share"] = round(state.share, 3)  # of a core, during the niced thread's last integration
     state.stats["final_waiting_shift_mm"] = {
         int(i): round(1e3 * shift_m(p, poses[i], max(state.cfg.depth_max, 1e-3), state.box.get(i)), 2)
         for i, p in state.waiting.items() if i in poses}
