@@ -14,7 +14,8 @@ one fusing the final poses gives, up to the quarter-voxel tolerance and float ro
 one map, not of one volume per keyframe.
 
 The newest ``mapping.live_lag`` keyframes wait before they go into the map (their poses still move
-with every loop closure; at the end they are integrated once, at their final poses).
+with every loop closure; at the end they are integrated once, at their final poses), unless the map
+process is idle on a free core (:meth:`MapState.ahead`): then they go in early, at their newest poses.
 
 All the work happens in the map process (:class:`LiveMap`); the tracking thread only enqueues.
 While tracking the map process works in a thread niced by ``mapping.live_nice`` — in its main
@@ -577,9 +578,9 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     if len(shift):
         state.stats["final_shift_median_mm"] = float(np.median(shift))
         state.stats["final_shift_max_mm"] = float(shift.max())
+    state.stats["thread_share"] = round(state.share, 3)  # of a core, during the niced thread's last integration
     # how far the waiting keyframes' latest poses were from their final ones (what integrating them
     # early, at those poses, would have left off)
-    state.stats["thread_share"] = round(state.share, 3)  # of a core, during the niced thread's last integration
     state.stats["final_waiting_shift_mm"] = {
         int(i): round(1e3 * shift_m(p, poses[i], max(state.cfg.depth_max, 1e-3), state.box.get(i)), 2)
         for i, p in state.waiting.items() if i in poses}
@@ -631,8 +632,9 @@ def one_blas_thread() -> None:
     times a 3 x 3 rotation): split over OpenBLAS's threads, whose workers spin while they wait, the
     2-D map's (380k x 3) @ (3 x 3) took 145 ms of CPU instead of 5 ms beside a busy core, at the
     end where both cores are busy; and the workers, started by the map process's main thread, ran
-    at the run's priority beside tracking where the map's thread is niced. Called before any of
-    those threads start (the environment is not changed while other threads may read it)."""
+    at the run's priority beside tracking where the map's thread is niced. :class:`LiveMap` calls
+    it in the run's main thread before tracking starts (the environment is not changed while the
+    run's other threads may read it)."""
     import os
 
     os.environ.setdefault(BLAS_THREADS, "1")
