@@ -13,8 +13,7 @@ whole command's wall time, the tracking time (frames / ``fps``), the wall time a
 (``after_tracking_s.total``), the CPU seconds each process spent after the last frame (the run's
 ``after_tracking_s.cpu``, the map process's ``map.timings.final_cpu_s``, the cloud process's outlier
 removal ``cloud_cpu_s`` and 2-D map ``map2d_cpu_s``), the keyframes integrated at the end
-(``final_waiting``) and early (``ahead``), the share of a core the map's niced thread got during its last
-integration (``thread_share``), and the end's timeline (``map.timings.end_timeline``: seconds
+(``final_waiting``), and the end's timeline (``map.timings.end_timeline``: seconds
 after the final poses were sent). CPU seconds depend less on the machine's load than wall seconds.
 
 ``--steps RUN_DIR``: each step of the end alone, in this process, on a finished run's keyframes at
@@ -69,8 +68,7 @@ def one_run(code: Path, seq: Path, out: Path) -> dict:
            "map2d": t.get("map2d_cpu_s", 0.0)}
     return {"load": load, "wall": wall, "tracking": info["frames"] / info["fps"], "after": a["total"],
             "first": info["first_frame_s"], "cpu": cpu, "end_cpu": sum(cpu.values()),
-            "waiting": t.get("final_waiting", 0), "ahead": t.get("ahead", "-"), "share": t.get("thread_share", float("nan")),
-            "timeline": t.get("end_timeline", {})}
+            "waiting": t.get("final_waiting", 0), "timeline": t.get("end_timeline", {})}
 
 
 def timed(f, *args, repeat: int = 3, **kw):
@@ -163,10 +161,9 @@ def main(argv=None) -> None:
             runs[c].append(one_run(codes[c], args.sequence, args.work / f"run-{codes[c].name}-{r}"))
     print(f"{args.sequence.name}, {os.cpu_count()} cores; seconds; CPU after the last frame per process\n")
     print("| code | round | load | whole | tracking | whole / tracking | after the last frame | CPU: run | map process "
-          "| outlier removal | 2-D map | CPU total | keyframes at the end / early | map thread's share | outliers done "
-          "| 2-D map done "
+          "| outlier removal | 2-D map | CPU total | keyframes at the end | outliers done | 2-D map done "
           "| mesh done | first frame |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in range(args.repeat):
         for c in commits:
             x = runs[c][r]
@@ -174,7 +171,7 @@ def main(argv=None) -> None:
             print(f"| {codes[c].name[5:]} | {r + 1} | {x['load']:.1f} | {x['wall']:.1f} | {x['tracking']:.1f} | "
                   f"{x['wall'] / x['tracking']:.2f} | {x['after']:.2f} | {x['cpu']['run']:.2f} | {x['cpu']['map']:.2f} | "
                   f"{x['cpu']['outliers']:.2f} | {x['cpu']['map2d']:.2f} | {x['end_cpu']:.2f} | "
-                  f"{x['waiting']} / {x['ahead']} | {x['share']:.2f} | {tl.get('outliers_done', float('nan')):.2f} | "
+                  f"{x['waiting']} | {tl.get('outliers_done', float('nan')):.2f} | "
                   f"{tl.get('map2d_done', float('nan')):.2f} | {tl.get('mesh_done', float('nan')):.2f} | {x['first']:.2f} |")
     print()
     for c in commits:

@@ -14,8 +14,7 @@ one fusing the final poses gives, up to the quarter-voxel tolerance and float ro
 one map, not of one volume per keyframe.
 
 The newest ``mapping.live_lag`` keyframes wait before they go into the map (their poses still move
-with every loop closure; at the end they are integrated once, at their final poses), unless the map
-process is idle on a free core (:meth:`MapState.ahead`): then they go in early, at their newest poses.
+with every loop closure; at the end they are integrated once, at their final poses).
 
 All the work happens in the map process (:class:`LiveMap`); the tracking thread only enqueues.
 While tracking the map process works in a thread niced by ``mapping.live_nice`` — in its main
@@ -32,7 +31,6 @@ process is raised by :meth:`LiveMap.finish`.
 from __future__ import annotations
 
 import queue
-import threading
 import time
 from typing import Callable
 
@@ -51,10 +49,6 @@ REDO_CHUNK = 32  # keyframes taken out and put in again together (their images h
 # the cloud handed to the cloud process, and the indices of the points its outlier removal keeps
 CLOUD_POINTS, CLOUD_COLORS, CLOUD_KEEP = ".cloud-points.npy", ".cloud-colors.npy", ".cloud-keep.npy"
 SIZE_LOG_EVERY = 100  # keyframes between two entries of the map's size log (run.json map.timings.size_log)
-# a waiting keyframe goes into the map early, while the map process is idle, only when its thread got at
-# least this share of a core during its last integration (see MapState.ahead): a finish that arrives
-# meanwhile then waits at most ~4x a keyframe's CPU (~0.2 s), against ~0.05 s per keyframe left for the end
-AHEAD_SHARE = 0.25
 
 
 def shift_m(a: np.ndarray, b: np.ndarray, depth_max: float, box: np.ndarray | None = None) -> float:
@@ -101,7 +95,7 @@ class MapState:
     and the depth the map uses (the run's filtered keyframe depth)."""
 
     def __init__(self, cfg: MappingConfig, camera: Camera, load: Callable[[int], tuple[np.ndarray, np.ndarray]],
-                 cache_mb: float = CACHE_MB, ahead_share: float = AHEAD_SHARE):
+                 cache_mb: float = CACHE_MB):
         from rgbdslam.mapping.fusion import Undistorter
 
         self.cfg = cfg
@@ -116,8 +110,6 @@ class MapState:
         self.used: dict[int, np.ndarray] = {}  # keyframe -> pose it is in the map at
         self.lag = cfg.live_lag
         self.waiting: dict[int, np.ndarray] = {}  # the newest keyframes, not in the map yet -> their latest pose
-        self.ahead_share = ahead_share
-        self.share = 0.0  # the share of a core the map's niced thread got during its last integration
         # keyframes' prepared images for re-integration, up to cache_mb (then read again with load)
         self.cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.cache_bytes = 0
@@ -127,7 +119,7 @@ class MapState:
         self.stats = {"integrated": 0, "deintegrated": 0, "reintegrated": 0, "rebuilds": 0, "refreshes": 0,
                       "pose_updates_skipped": 0, "reloaded": 0, "final_moved": 0, "final_shift_median_mm": 0.0,
                       "final_shift_max_mm": 0.0, "final_s": 0.0, "busy_s": 0.0,
-                      "busy_cpu_s": 0.0, "catch_ups": 0, "catch_up_s": 0.0, "catch_up_cpu_s": 0.0, "ahead": 0}
+                      "busy_cpu_s": 0.0, "catch_ups": 0, "catch_up_s": 0.0, "catch_up_cpu_s": 0.0}
 
     def sizes(self) -> dict:
         """What the map holds (docs/benchmarks.md "Memory"): TSDF blocks in use and allocated (8^3
@@ -218,20 +210,9 @@ class MapState:
         """How many keyframes wait beyond ``mapping.live_lag``: the ones the map is behind by."""
         return max(0, len(self.waiting) - self.lag)
 
-    def ahead(self) -> bool:
-        """True when a keyframe waits (within ``mapping.live_lag``) and the map's niced thread got at
-        least ``ahead_share`` of a core during its last integration: an idle map process on a free
-        core then integrates it early (:meth:`settle`), at its newest pose, instead of after the
-        last frame, where it was one of the end's longest steps (12 keyframes: ~0.65 s of CPU on
-        fr1/rpy). A loop closure that moves it later makes it be redone, like any keyframe in the
-        map. On a busy machine the thread gets little CPU: the keyframes wait for the end, as the
-        run would otherwise wait for a niced integration the finish arrived during."""
-        return bool(self.waiting) and self.share >= self.ahead_share
-
     def settle(self, prepared=None) -> None:
         """The oldest waiting keyframe into the map, at its newest pose (``prepared``: its images)."""
         first = min(self.waiting)
-        self.stats["ahead"] += not self.unsettled()
         self._put({first: self.waiting.pop(first)}, ("cloud", "tsdf"), prepared)
 
     def _put(self, poses: dict[int, np.ndarray], parts: tuple[str, ...], prepared=None) -> None:
@@ -244,11 +225,7 @@ class MapState:
         if tsdf is None and cloud is None:  # the TSDF part without a mesh: the cloud part did it all
             return
         for i, pose in poses.items():
-            t0, c0 = time.perf_counter(), time.thread_time()
             self._integrate(tsdf, cloud, pose, prepared if prepared is not None else self._prepared(i))
-            wall = time.perf_counter() - t0
-            if wall > 0 and threading.current_thread() is not threading.main_thread():
-                self.share = (time.thread_time() - c0) / wall  # the niced thread's (see ahead)
             if "tsdf" not in parts and self.tsdf is not None:
                 continue  # the TSDF part follows (the end: the cloud goes first)
             self.used[i] = pose
@@ -505,7 +482,7 @@ def _track(state: MapState, jobs, applied=None, taken: list | None = None,
         if stop is not None and (why := stop()) is not None:
             return why
         try:  # a keyframe to integrate: only when no job waits
-            job = take(block=not (state.unsettled() or state.ahead()))
+            job = take(block=not state.unsettled())
         except queue.Empty:
             job = ("settle",)
         if job is None:
@@ -578,9 +555,7 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     if len(shift):
         state.stats["final_shift_median_mm"] = float(np.median(shift))
         state.stats["final_shift_max_mm"] = float(shift.max())
-    state.stats["thread_share"] = round(state.share, 3)  # of a core, during the niced thread's last integration
-    # how far the waiting keyframes' latest poses were from their final ones (what integrating them
-    # early, at those poses, would have left off)
+    # how far the waiting keyframes' newest poses were from their final ones
     state.stats["final_waiting_shift_mm"] = {
         int(i): round(1e3 * shift_m(p, poses[i], max(state.cfg.depth_max, 1e-3), state.box.get(i)), 2)
         for i, p in state.waiting.items() if i in poses}

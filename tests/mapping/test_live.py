@@ -492,59 +492,20 @@ def test_a_niced_thread_that_took_many_queued_keyframes_hands_them_back_when_beh
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
 
 
-def test_an_idle_map_process_without_a_free_core_leaves_the_waiting_keyframes_for_the_end(synth):
-    """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, a map
-    whose thread got less than ``ahead_share`` of a core (here: never enough) waits for the next
-    job; the newest keyframes go in at the end, at their final poses."""
+def test_an_idle_map_process_leaves_the_waiting_keyframes_for_the_end(synth):
+    """The map process's loop: once the queue is empty and nothing waits beyond ``live_lag``, it
+    waits for the next job; the newest keyframes go in at the end, at their final poses."""
     from rgbdslam.mapping.live import _while_tracking
 
     gt = synth.groundtruth()
     final = {i: gt.poses[i] for i in (0, 3, 6, 9)}
     cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False)
-    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth), ahead_share=np.inf)
+    state = MapState(cfg, synth.camera, lambda i: (synth.load(i).rgb, synth.load(i).depth))
     assert _while_tracking(state, cfg, _idle_jobs(synth, final))[0] == "finish"
-    assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9] and state.stats["ahead"] == 0
+    assert sorted(state.used) == [0, 3] and list(state.waiting) == [6, 9]
     state.refresh(final, flush=True)
     assert state.stats["final_waiting"] == 2
     _same_map(_fresh(synth, cfg, final), state.result()[:2], synth, cfg)
-
-
-@pytest.mark.parametrize("data", ["synthetic", pytest.param("fr1/desk", marks=pytest.mark.data)])
-def test_an_idle_map_process_on_a_free_core_integrates_the_waiting_keyframes_early(synth, data, request):
-    """With a free core (``ahead_share`` 0: any share is enough) an idle map process integrates the
-    waiting keyframes at their newest poses before the finish comes: the end integrates none of
-    them, and the map is the fusion of the final poses — also when a final pose moved one of them
-    (it is redone like any keyframe in the map). The share is measured on the real integrations
-    (the loop runs in a thread of its own). On the synthetic sequence and on real Kinect frames
-    (fr1/desk, ground-truth poses)."""
-    from rgbdslam.mapping.live import _while_tracking
-
-    seq = synth if data == "synthetic" else open_sequence(request.getfixturevalue("desk9"))
-    gt = seq.groundtruth()
-    rows = np.arange(len(seq)) if data == "synthetic" else [int(np.argmin(np.abs(gt.timestamps - t)))
-                                                             for t in seq.timestamps]
-    final = {i: gt.poses[rows[i]] for i in (0, 3, 6, 8)}
-    cfg = MappingConfig(live_lag=2, live_nice=0, map2d=False)
-
-    def idle_state():
-        state = MapState(cfg, seq.camera, lambda i: (seq.load(i).rgb, seq.load(i).depth), ahead_share=0.0)
-        assert _while_tracking(state, cfg, _idle_jobs(seq, final))[0] == "finish"
-        return state
-
-    state = idle_state()
-    assert sorted(state.used) == [0, 3, 6, 8] and not state.waiting and state.stats["ahead"] == 2
-    assert 0 < state.share <= 1.05  # thread CPU over wall time of its last integration
-    assert state.refresh(final, flush=True) == 0
-    assert state.stats["final_waiting"] == 0 and state.stats["integrated"] == 4 and state.stats["deintegrated"] == 0
-    _same_map(_fresh(seq, cfg, final), state.result()[:2], seq, cfg)
-
-    state = idle_state()
-    moved = dict(final)
-    moved[8] = moved[8].copy()
-    moved[8][:3, 3] += [0.03, 0.0, 0.0]  # a loop closure after it went in early: 3 cm
-    assert state.refresh(moved, flush=True) == 1
-    assert state.stats["deintegrated"] == 1 and state.stats["reintegrated"] == 1
-    _same_map(_fresh(seq, cfg, moved), state.result()[:2], seq, cfg)
 
 
 def test_the_run_writes_cloud_ply_from_the_kept_indices_without_importing_open3d(tmp_path):
