@@ -69,7 +69,7 @@ INNER = [
     ("landmarks/stage.py", "track", "landmark map: tracking (match + pose)"),
     ("landmarks/tracking.py", "match_to_map", "  map: match to the projected landmarks"),
     ("landmarks/tracking.py", "estimate_pose", "  map: pose (RANSAC + refine)"),
-    ("landmarks/tracking.py", "refine_reprojection", "  map: reprojection refine (GN)"),
+    ("landmarks/tracking.py", "gauss_newton", "  map: reprojection refine (GN)"),
     ("landmarks/stage.py", "add_keyframe", "landmark map: keyframe (new landmarks)"),
     ("loop/detector.py", "detect", "loop closure: search + verify"),
 ]

@@ -367,6 +367,7 @@ def depth_edges(depth: np.ndarray, u: np.ndarray, v: np.ndarray, radius, jump: f
     is not flagged."""
     d = np.asarray(depth)
     h, w = d.shape[:2]
+    flat = d.reshape(-1)
     radius = np.broadcast_to(np.asarray(radius, dtype=np.int64), np.shape(u))
     out = np.zeros(len(u), bool)
     for r in np.unique(radius):  # one window size at a time (a pyramid level each)
@@ -374,14 +375,19 @@ def depth_edges(depth: np.ndarray, u: np.ndarray, v: np.ndarray, radius, jump: f
             continue
         m = radius == r
         uu_, vv_ = u[m], v[m]
-        z = d[vv_, uu_].astype(np.float64)
+        z = flat.take(vv_ * w + uu_).astype(np.float64)
         k = np.arange(-r, r + 1)
-        vv = np.clip(vv_[:, None, None] + k[None, :, None], 0, h - 1)
-        uu = np.clip(uu_[:, None, None] + k[None, None, :], 0, w - 1)
-        nb = d[vv, uu].reshape(len(uu_), -1).astype(np.float64)
+        rows = np.clip(vv_[:, None] + k, 0, h - 1) * w
+        cols = np.clip(uu_[:, None] + k, 0, w - 1)
+        nb = flat.take((rows[:, :, None] + cols[:, None, :]).reshape(len(uu_), -1))  # the windows, row by row
         with np.errstate(invalid="ignore"):
-            bad = ~np.isfinite(nb) | (nb <= 0) | (np.abs(nb - z[:, None]) > jump * z[:, None])
-        out[m] = np.isfinite(z) & (z > 0) & bad.any(axis=1)
+            hole = (~np.isfinite(nb) | (nb <= 0)).any(axis=1)
+            # |nb - z| > jump·z for some pixel ⟺ for the window's largest or smallest depth: the difference
+            # rounds monotonically in nb, so the extremes' differences are the extremes of the differences
+            # (the same float64 numbers the pixel-wise test compares; a NaN is a hole already)
+            jz = jump * z
+            far = (nb.max(axis=1).astype(np.float64) - z > jz) | (z - nb.min(axis=1).astype(np.float64) > jz)
+        out[m] = np.isfinite(z) & (z > 0) & (hole | far)
     return out
 
 

@@ -106,9 +106,12 @@ class LandmarkMap:
             self.n_culled += len(bad)
         self.store.step(self.seen[: self.n] if self.n else None)
 
-    def near(self, center: np.ndarray, radius: float) -> np.ndarray:
-        """Live landmark ids within ``radius`` of ``center`` (from the store)."""
+    def near(self, center: np.ndarray, radius: float, allowed: np.ndarray | None = None) -> np.ndarray:
+        """Live landmark ids within ``radius`` of ``center`` (from the store), ascending; ``allowed``: a
+        boolean mask over landmark ids, only those set (applied before the sort: fewer to sort)."""
         ids = self.store.query_ball(np.asarray(center, dtype=np.float64), radius)
+        if allowed is not None:
+            ids = ids[allowed[ids]]
         if not len(ids):
             return ids
         ids = np.sort(ids)  # ids are in one tree each: sorted is np.unique's answer without its pass

@@ -55,11 +55,14 @@ class MapPose:
     information: np.ndarray | None = None  # 6x6, right perturbation (rotation, translation); reprojection refine
 
 
-def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin: float = 0.2):
-    """(ids, uv (K,2), depth (K,)) of live landmarks in front of the camera and inside the image."""
+def project_candidates(lmap, pose: np.ndarray, camera, max_depth: float, margin: float = 0.2,
+                       allowed: np.ndarray | None = None):
+    """(ids, uv (K,2), depth (K,)) of live landmarks in front of the camera and inside the image
+    (``allowed``: a boolean mask over landmark ids, only those set; applied before the projection,
+    which is the same for each landmark whichever others are projected with it)."""
     c = pose[:3, 3]
     ahead = c + pose[:3, 2] * (0.5 * max_depth)
-    ids = lmap.near(ahead, 0.5 * max_depth + margin)
+    ids = lmap.near(ahead, 0.5 * max_depth + margin, allowed)
     if not len(ids):
         return ids, np.zeros((0, 2)), np.zeros(0)
     Tcw = inv(pose)
@@ -79,15 +82,12 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     (``first_before``: only landmarks first seen before that frame, ``first_after``: only those first
     seen at or after that frame — together a loop's older end, ``landmarks.loop_refine``;
     ``allowed``: a boolean mask over landmark ids, only those set — the local map, ``landmarks.local_map_shared``)."""
-    ids, uv, _ = project_candidates(lmap, pose, camera, max_depth)
-    if allowed is not None:
-        keep = allowed[ids]
-        ids, uv = ids[keep], uv[keep]
-    if first_before is not None or first_after is not None:
-        f = lmap.first[ids]
+    if first_before is not None or first_after is not None:  # one mask with the local map's, before projecting
+        f = lmap.first[: lmap.n]
         old = (f < (first_before if first_before is not None else np.inf)) & \
             (f >= (first_after if first_after is not None else -np.inf))
-        ids, uv = ids[old], uv[old]
+        allowed = old if allowed is None else allowed[: lmap.n] & old
+    ids, uv, _ = project_candidates(lmap, pose, camera, max_depth, allowed=allowed)
     fi = np.flatnonzero(map_valid(feats))
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv, ids)
     if len(ids) == 0 or len(fi) == 0:
@@ -168,12 +168,11 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
         uv, z = feats.uv[feat], S[:, 2]
         cov = lmap.cov[lm] if full_cov else np.sqrt(s_lm2)
         spx = sigma_px if np.ndim(sigma_px) == 0 else np.asarray(sigma_px, float)[feat]  # per frame feature
+        reproj = Reprojection(D, uv, z, camera, spx, sig, cov)  # every match's; the refine takes the inliers'
         for _ in range(2):
-            sel = lambda v: v if np.ndim(v) == 0 else v[mask]  # noqa: E731
-            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask],
-                                             refine_iterations)
+            T, e, info = gauss_newton(T, reproj.subset(mask), refine_iterations)
             Tcw = inv(T)
-            r, _ = reprojection_residuals(Tcw[:3, :3], Tcw[:3, 3], D, uv, z, camera, spx, sig, cov, jacobian=False)
+            r, _ = reproj(Tcw[:3, :3], Tcw[:3, 3], jacobian=False)
             new = row_norms(r) < chi2_gate
             if new.sum() < max(3, min_inliers):
                 break
@@ -182,8 +181,7 @@ def estimate_pose(lmap, feats, match: MapMatch, pred: np.ndarray, sigma_obs: np.
             k_px = 1.4826 * np.median(np.abs(r[mask, :2]))
             k_z = 1.4826 * np.median(np.abs(r[mask, 2]))
             spx, sig = spx * np.clip(k_px, 0.25, 4.0), sig * np.clip(k_z, 0.25, 4.0)
-            T, e, info = refine_reprojection(T, D[mask], uv[mask], z[mask], camera, sel(spx), sig[mask], cov[mask],
-                                             refine_iterations)
+            T, e, info = gauss_newton(T, Reprojection(D, uv, z, camera, spx, sig, cov).subset(mask), refine_iterations)
     r = row_norms(D[mask] - (S[mask] @ T[:3, :3].T + T[:3, 3]))
     rms = float(np.sqrt(np.mean(r**2)))
     if refine == "points":  # the weighted 3-D refit kept, with the registration's information formula
@@ -259,68 +257,104 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
     covariance ``cov_lm`` (N, 3, 3) carried through the projection, J_p Σ_lm J_pᵀ: the part of its
     uncertainty along the viewing ray goes into the inverse depth, not into the pixels. With an
     isotropic sigma ``cov_lm`` (N,) instead (the earlier model): f·σ/z added to each pixel's sigma,
-    nothing to the inverse depth's. Whitening: Lᵀ with S⁻¹ = L Lᵀ (:func:`_whitening`). Every
-    step is written out per entry (the Jacobians are sparse): no per-point small-matrix products.
+    nothing to the inverse depth's. Whitening: Lᵀ with S⁻¹ = L Lᵀ (:func:`_whitening`).
     ``jacobian`` False: the residuals alone (the same numbers), the Jacobians None (the inlier gates).
+    The work is :class:`Reprojection`'s (the measured side prepared once, for a refine's iterations).
     """
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    n = len(X)
-    P = X @ R.T + t
-    x, y = P[:, 0], P[:, 1]
-    a = 1.0 / np.maximum(P[:, 2], 1e-3)  # inverse depth of the prediction
-    xa, ya = x * a, y * a
-    r0, r1, r2 = uv[:, 0] - (fx * xa + cx), uv[:, 1] - (fy * ya + cy), 1.0 / z - a
-    # d(u, v, 1/z)/dP = [[p, 0, q], [0, p2, q2], [0, 0, s]]
-    p, q = fx * a, -fx * xa * a
-    p2, q2 = fy * a, -fy * ya * a
-    s = -a * a
-    cov_lm = np.asarray(cov_lm, float)
-    if cov_lm.ndim == 3:  # S = J_p (R Σ Rᵀ) J_pᵀ
-        # the landmark covariance in the camera frame, R Σ Rᵀ: its six distinct entries at once as one
-        # (N, 9) @ (9, 6) product with the rows of R ⊗ R (3x cheaper than N stacked 3x3 products)
-        C = cov_lm.reshape(-1, 9) @ (R[:, None, :, None] * R[None, :, None, :]).reshape(9, 9)[_UPPER].T
-        c00, c01, c02, c11, c12, c22 = C.T
-        u0, u2 = p * c02 + q * c22, p2 * c12 + q2 * c22
-        S00 = p * (p * c00 + q * c02) + q * u0
-        S01 = p * (p2 * c01 + q2 * c02) + q * u2
-        S02 = s * u0
-        S11 = p2 * (p2 * c11 + q2 * c12) + q2 * u2
-        S12 = s * u2
-        S22 = s * s * c22
-    else:
-        S00 = S11 = (fx * np.broadcast_to(cov_lm, (n,)) * a) ** 2
-        S01 = S02 = S12 = S22 = np.zeros(n)
-    s_px2 = np.asarray(sigma_px, float) ** 2
-    l00, l10, l20, l11, l21, l22 = _whitening(S00 + s_px2, S01, S02, S11 + s_px2, S12,
-                                              S22 + (sigma_z / (z * z)) ** 2)
-    r = np.empty((n, 3))
-    r[:, 0] = l00 * r0 + l10 * r1 + l20 * r2
-    r[:, 1] = l11 * r1 + l21 * r2
-    r[:, 2] = l22 * r2
-    if not jacobian:
-        return r, None
-    # d(u, v, 1/z)/dξ = Jp · [-[P]x | I], rows J0, J1, J2 (J0[4] = J1[3] = J2[2:5] = 0)
-    J0 = (-xa * ya * fx, (1 + xa * xa) * fx, -ya * fx, p, -xa * p)
-    J1 = (-(1 + ya * ya) * fy, xa * ya * fy, xa * fy, p2, -ya * p2)
-    J2 = (-ya * a, xa * a, s)
-    J = np.empty((n, 3, 6))
-    J[:, 0, 0] = l00 * J0[0] + l10 * J1[0] + l20 * J2[0]
-    J[:, 0, 1] = l00 * J0[1] + l10 * J1[1] + l20 * J2[1]
-    J[:, 0, 2] = l00 * J0[2] + l10 * J1[2]
-    J[:, 0, 3] = l00 * J0[3]
-    J[:, 0, 4] = l10 * J1[3]
-    J[:, 0, 5] = l00 * J0[4] + l10 * J1[4] + l20 * J2[2]
-    J[:, 1, 0] = l11 * J1[0] + l21 * J2[0]
-    J[:, 1, 1] = l11 * J1[1] + l21 * J2[1]
-    J[:, 1, 2] = l11 * J1[2]
-    J[:, 1, 3] = 0.0
-    J[:, 1, 4] = l11 * J1[3]
-    J[:, 1, 5] = l11 * J1[4] + l21 * J2[2]
-    J[:, 2, 0] = l22 * J2[0]
-    J[:, 2, 1] = l22 * J2[1]
-    J[:, 2, 2:5] = 0.0
-    J[:, 2, 5] = l22 * J2[2]
-    return r, J
+    return Reprojection(X, uv, z, camera, sigma_px, sigma_z, cov_lm)(R, t, jacobian)
+
+
+class Reprojection:
+    """:func:`reprojection_residuals` of fixed measurements at any pose: what does not depend on the
+    pose — the measured pixels as two contiguous rows, the inverse depths, the frame's noise terms,
+    the landmark covariances as (N, 9) rows — is prepared once (a refine evaluates 5 poses), and
+    the last operation of each residual and Jacobian entry writes into its place (no temporary
+    copied in). Every entry is the same operations in the same order as the plain expression, so
+    the same bits (``tests/landmarks/test_tracking.py`` holds it against that expression on real
+    frames). ``subset(mask)``: the same for the measurements ``mask`` selects (a refine's inliers)."""
+
+    def __init__(self, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera, sigma_px, sigma_z: np.ndarray,
+                 cov_lm: np.ndarray, _parts: tuple | None = None):
+        self.camera = camera
+        if _parts is not None:
+            self.X, self.u, self.v, self.inv_z, self.s_px2, self.s_z2, self.cov = _parts
+            return
+        self.X = X
+        self.u, self.v = np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1])
+        self.inv_z = 1.0 / z
+        self.s_px2 = np.asarray(sigma_px, float) ** 2
+        self.s_z2 = (sigma_z / (z * z)) ** 2
+        cov_lm = np.asarray(cov_lm, float)
+        self.cov = cov_lm.reshape(-1, 9) if cov_lm.ndim == 3 else np.broadcast_to(cov_lm, (len(X),))
+
+    def __len__(self) -> int:
+        return len(self.X)
+
+    def subset(self, mask: np.ndarray) -> "Reprojection":
+        s_px2 = self.s_px2 if self.s_px2.ndim == 0 else self.s_px2[mask]
+        return Reprojection(None, None, None, self.camera, None, None, None,
+                            (self.X[mask], self.u[mask], self.v[mask], self.inv_z[mask], s_px2, self.s_z2[mask],
+                             self.cov[mask]))
+
+    def __call__(self, R: np.ndarray, t: np.ndarray, jacobian: bool = True):
+        cam = self.camera
+        fx, fy, cx, cy = cam.fx, cam.fy, cam.cx, cam.cy
+        n = len(self.X)
+        P = self.X @ R.T + t
+        x, y = P[:, 0], P[:, 1]
+        a = 1.0 / np.maximum(P[:, 2], 1e-3)  # inverse depth of the prediction
+        xa, ya = x * a, y * a
+        r0, r1, r2 = self.u - (fx * xa + cx), self.v - (fy * ya + cy), self.inv_z - a
+        # d(u, v, 1/z)/dP = [[p, 0, q], [0, p2, q2], [0, 0, s]]
+        p, q = fx * a, -fx * xa * a
+        p2, q2 = fy * a, -fy * ya * a
+        s = -a * a
+        if self.cov.ndim == 2:  # S = J_p (R Σ Rᵀ) J_pᵀ
+            # the landmark covariance in the camera frame, R Σ Rᵀ: its six distinct entries at once as one
+            # (N, 9) @ (9, 6) product with the rows of R ⊗ R (3x cheaper than N stacked 3x3 products)
+            C = self.cov @ (R[:, None, :, None] * R[None, :, None, :]).reshape(9, 9)[_UPPER].T
+            c00, c01, c02, c11, c12, c22 = C.T
+            u0, u2 = p * c02 + q * c22, p2 * c12 + q2 * c22
+            S00 = p * (p * c00 + q * c02) + q * u0
+            S01 = p * (p2 * c01 + q2 * c02) + q * u2
+            S02 = s * u0
+            S11 = p2 * (p2 * c11 + q2 * c12) + q2 * u2
+            S12 = s * u2
+            S22 = s * s * c22
+        else:
+            S00 = S11 = (fx * self.cov * a) ** 2
+            S01 = S02 = S12 = S22 = np.zeros(n)
+        s_px2 = self.s_px2
+        l00, l10, l20, l11, l21, l22 = _whitening(S00 + s_px2, S01, S02, S11 + s_px2, S12, S22 + self.s_z2)
+        r = np.empty((n, 3))
+        add, mul = np.add, np.multiply
+        add(l00 * r0 + l10 * r1, l20 * r2, out=r[:, 0])
+        add(l11 * r1, l21 * r2, out=r[:, 1])
+        mul(l22, r2, out=r[:, 2])
+        if not jacobian:
+            return r, None
+        # d(u, v, 1/z)/dξ = Jp · [-[P]x | I], rows J0, J1, J2 (J0[4] = J1[3] = J2[2:5] = 0)
+        J0 = (-xa * ya * fx, (1 + xa * xa) * fx, -ya * fx, p, -xa * p)
+        J1 = (-(1 + ya * ya) * fy, xa * ya * fy, xa * fy, p2, -ya * p2)
+        J2 = (-ya * a, xa * a, s)
+        J = np.empty((n, 3, 6))
+        add(l00 * J0[0] + l10 * J1[0], l20 * J2[0], out=J[:, 0, 0])
+        add(l00 * J0[1] + l10 * J1[1], l20 * J2[1], out=J[:, 0, 1])
+        add(l00 * J0[2], l10 * J1[2], out=J[:, 0, 2])
+        mul(l00, J0[3], out=J[:, 0, 3])
+        mul(l10, J1[3], out=J[:, 0, 4])
+        add(l00 * J0[4] + l10 * J1[4], l20 * J2[2], out=J[:, 0, 5])
+        add(l11 * J1[0], l21 * J2[0], out=J[:, 1, 0])
+        add(l11 * J1[1], l21 * J2[1], out=J[:, 1, 1])
+        mul(l11, J1[2], out=J[:, 1, 2])
+        J[:, 1, 3] = 0.0
+        mul(l11, J1[3], out=J[:, 1, 4])
+        add(l11 * J1[4], l21 * J2[2], out=J[:, 1, 5])
+        mul(l22, J2[0], out=J[:, 2, 0])
+        mul(l22, J2[1], out=J[:, 2, 1])
+        J[:, 2, 2:5] = 0.0
+        mul(l22, J2[2], out=J[:, 2, 5])
+        return r, J
 
 
 def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera, sigma_px,
@@ -337,12 +371,18 @@ def refine_reprojection(pose: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.n
     whitened error norm per point, 6x6 information of the pose: right perturbation pose·Exp(η),
     η = (ω, v), GTSAM's Pose3 order).
     """
+    return gauss_newton(pose, Reprojection(X, uv, z, camera, sigma_px, sigma_z, cov_lm), iterations, huber)
+
+
+def gauss_newton(pose: np.ndarray, reproj: Reprojection, iterations: int = 5,
+                 huber: float = 1.345) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`refine_reprojection` of the measurements ``reproj`` (a :class:`Reprojection`)."""
     Tcw = inv(pose)
     R, t = Tcw[:3, :3].copy(), Tcw[:3, 3].copy()
-    e = np.zeros(len(X))
+    e = np.zeros(len(reproj))
     H = np.zeros((6, 6))
     for _ in range(iterations):
-        r, J = reprojection_residuals(R, t, X, uv, z, camera, sigma_px, sigma_z, cov_lm)
+        r, J = reproj(R, t)
         e = row_norms(r)
         w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
         Jw = (J * w[:, None, None]).reshape(-1, 6)

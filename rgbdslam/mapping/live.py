@@ -555,6 +555,10 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     if len(shift):
         state.stats["final_shift_median_mm"] = float(np.median(shift))
         state.stats["final_shift_max_mm"] = float(shift.max())
+    # how far the waiting keyframes' newest poses were from their final ones
+    state.stats["final_waiting_shift_mm"] = {
+        int(i): round(1e3 * shift_m(p, poses[i], max(state.cfg.depth_max, 1e-3), state.box.get(i)), 2)
+        for i, p in state.waiting.items() if i in poses}
 
     def send_cloud(fused: list[int]) -> None:
         if not fused:
@@ -593,6 +597,24 @@ def _finish(state: MapState, results, poses, keep, stage: str, filtered_depth: b
     return out
 
 
+BLAS_THREADS = "OPENBLAS_NUM_THREADS"  # read by NumPy's OpenBLAS when a process imports NumPy
+
+
+def one_blas_thread() -> None:
+    """The processes this one starts from now on (the map, cloud and plot processes) run NumPy's
+    OpenBLAS on one thread, unless the user set ``OPENBLAS_NUM_THREADS``; this process's NumPy is
+    loaded already and keeps its threads. Their matrix products are tall and thin (N x 3 points
+    times a 3 x 3 rotation): split over OpenBLAS's threads, whose workers spin while they wait, the
+    2-D map's (380k x 3) @ (3 x 3) took 145 ms of CPU instead of 5 ms beside a busy core, at the
+    end where both cores are busy; and the workers, started by the map process's main thread, ran
+    at the run's priority beside tracking where the map's thread is niced. :class:`LiveMap` calls
+    it in the run's main thread before tracking starts (the environment is not changed while the
+    run's other threads may read it)."""
+    import os
+
+    os.environ.setdefault(BLAS_THREADS, "1")
+
+
 class LiveMap:
     """The map process, seen from the run: keyframes and pose updates are sent to it as they are
     made (:meth:`add`, :meth:`update_poses`), :meth:`finish` waits for the written map.
@@ -605,6 +627,7 @@ class LiveMap:
     def __init__(self, cfg: MappingConfig, camera: Camera, root: str, dataset_cfg, depth_dir: str | None):
         from rgbdslam.io.worker import spawn_context, start
 
+        one_blas_thread()
         ctx = spawn_context()
         self.cfg = cfg
         self._jobs = ctx.Queue()

@@ -220,3 +220,49 @@ def test_guided_matching_on_real_frames_gives_the_same_matches_as_before(rpy_pai
                     assert all(np.array_equal(x, y) and x.dtype == y.dtype for x, y in zip(new, old))
                     n_matches.append(len(new[0]))
     assert len(n_matches) >= 60 and min(n_matches) > 20
+
+
+def _depth_edges_before(depth, u, v, radius, jump):
+    """depth_edges as it was written before: every window pixel's difference tested in float64."""
+    d = np.asarray(depth)
+    h, w = d.shape[:2]
+    radius = np.broadcast_to(np.asarray(radius, dtype=np.int64), np.shape(u))
+    out = np.zeros(len(u), bool)
+    for r in np.unique(radius):
+        if r <= 0:
+            continue
+        m = radius == r
+        uu_, vv_ = u[m], v[m]
+        z = d[vv_, uu_].astype(np.float64)
+        k = np.arange(-r, r + 1)
+        vv = np.clip(vv_[:, None, None] + k[None, :, None], 0, h - 1)
+        uu = np.clip(uu_[:, None, None] + k[None, None, :], 0, w - 1)
+        nb = d[vv, uu].reshape(len(uu_), -1).astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(nb) | (nb <= 0) | (np.abs(nb - z[:, None]) > jump * z[:, None])
+        out[m] = np.isfinite(z) & (z > 0) & bad.any(axis=1)
+    return out
+
+
+@pytest.mark.data
+def test_depth_edges_on_real_frames_are_the_pixelwise_test(rpy_pairs):
+    """The window's extremes decide as every pixel did (fr1/rpy key points at every pyramid level's radius,
+    one radius for all and jumps from 2 % to 50 %; holes and NaN depth pixels included)."""
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.frontend.features import depth_edges, edge_radii
+    from tests.conftest import TUM_RPY200
+
+    _, _, feats = rpy_pairs
+    seq = open_sequence(TUM_RPY200)
+    n_flagged = []
+    for f in feats:
+        depth = seq.load(f.index).depth
+        depth = np.where(np.arange(depth.size).reshape(depth.shape) % 997 == 0, np.nan, depth)  # a few NaN pixels
+        u = np.clip(np.round(f.uv_raw[:, 0]).astype(int), 0, depth.shape[1] - 1)
+        v = np.clip(np.round(f.uv_raw[:, 1]).astype(int), 0, depth.shape[0] - 1)
+        for radius in (edge_radii(f, 2), 1, 4):
+            for jump in (0.02, 0.15, 0.5):
+                new = depth_edges(depth, u, v, radius, jump)
+                assert np.array_equal(new, _depth_edges_before(depth, u, v, radius, jump))
+                n_flagged.append(new.mean())
+    assert 0.0 < min(n_flagged) and max(n_flagged) < 1.0  # both answers occur in every case
