@@ -8,8 +8,8 @@ Usage::
 
 Every run is a fresh ``python`` process running ``rgbdslam.pipeline.run_sequence`` on the sequence
 (default: TUM fr1/rpy head200; map fusion and plots off, as ``bench_landmarks.py``). The variants
-(``default`` = no settings, ``landmarks`` = ``landmarks.enabled=true``, unless ``--variant`` names
-others) run **interleaved**: repeat 1 of
+(``default`` = no settings: the landmark map, ``thesis`` = ``landmarks.enabled=false``: the frame-to-frame
+chain, unless ``--variant`` names others) run **interleaved**: repeat 1 of
 every variant, then repeat 2, ..., so a change of the machine's load hits all of them alike.
 ``--code NAME=DIR`` also runs every variant from another checkout's ``rgbdslam`` package (e.g. an
 unpacked ``git archive`` of main: the code before a change), interleaved too. Per variant: the
@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import DATA, ROOT, command_line
-DEFAULT_VARIANTS = {"default": [], "landmarks": ["landmarks.enabled=true"]}
+DEFAULT_VARIANTS = {"default": [], "thesis": ["landmarks.enabled=false"]}
 
 _CHILD = r"""
 import json, sys

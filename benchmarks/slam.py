@@ -27,8 +27,8 @@ disagrees with the ground truth by more than 0.10 m or 5 degrees) as markdown. T
 * the descriptor index: query time against the number of keyframes for the LSH index and
   the exhaustive baseline (real ORB descriptors from fr1/rpy with bit noise).
 
-``--landmark-ablation`` runs ``LANDMARK_ABLATION`` — today's default; landmark tracking;
-Kalman off; uniform instead of old-first RANSAC sampling; one k-d tree
+``--landmark-ablation`` runs ``LANDMARK_ABLATION`` — today's default (landmark tracking); the thesis'
+frame-to-frame chain (``landmarks.enabled=false``); Kalman off; uniform instead of old-first RANSAC sampling; one k-d tree
 instead of the multi-tree; the map pose alone (seed mode) — on fr1/rpy head200, 7-Scenes redkitchen
 0-299 and the synthetic motions x seeds (``--synthetic-frames``), with benchmarks/landmarks.py's
 tables plus the landmark stage's cost per variant, as its own section (``--landmark-section``).
@@ -74,7 +74,7 @@ def configs() -> dict[str, list[str]]:
                                   ("ISVD+LC+DIF", "isvd", True, True), ("ISLAM", "islam", False, False),
                                   ("best (ISLAM+LC)", "islam", True, False), ("ISLAM+LC+DIF", "islam", True, True)]:
         out[name] = [f"registration.method={method}", f"loop.enabled={on[lc]}", f"backend.enabled={on[lc]}",
-                     f"depth_filter.enabled={on[dif]}"]
+                     f"depth_filter.enabled={on[dif]}", "landmarks.enabled=false"]  # the thesis' chains
     # the landmark map on top of the best: fused with ISLAM, alone (seed mode),
     # and its ablations (Kalman off, uniform RANSAC sampling, single k-d tree); docs/slam.md "Landmark map"
     for name, sets in [("ISLAM+LC+landmarks", []), ("… seed mode", ["landmarks.mode=seed"]),
@@ -282,10 +282,10 @@ def run_ablation(data: Path, out: Path, max_frames: int | None, repeat: int = 1)
     return rows
 
 
-# the landmark map's ablation: today's default; landmark tracking; Kalman on/off; old-first vs uniform RANSAC sampling; multi vs single k-d tree; the map pose alone (seed mode)
+# the landmark map's ablation: today's default (landmark tracking); the thesis' frame-to-frame chain; Kalman on/off; old-first vs uniform RANSAC sampling; multi vs single k-d tree; the map pose alone (seed mode)
 LANDMARK_ABLATION = {
     "default": [],
-    "landmarks": ["landmarks.enabled=true"],
+    "thesis": ["landmarks.enabled=false"],
     "landmarks, Kalman off": ["landmarks.enabled=true", "landmarks.kalman=false"],
     "landmarks, uniform sampling": ["landmarks.enabled=true", "landmarks.sampling=uniform"],
     "landmarks, single k-d tree": ["landmarks.enabled=true", "landmarks.store=single"],

@@ -11,8 +11,8 @@ from tests.conftest import DATA, TUM_DESK9, need
 @pytest.mark.data
 def test_profile_splits_the_tracking_time_into_the_stages_it_calls():
     seq = need(TUM_DESK9)
-    plain = run_chain(seq, CHAINS["landmarks"], None, profile=False)
-    prof = run_chain(seq, CHAINS["landmarks"], None, profile=True)
+    plain = run_chain(seq, CHAINS["default"], None, profile=False)
+    prof = run_chain(seq, CHAINS["default"], None, profile=True)
     assert plain["frames"] == prof["frames"] == 9 and plain["tracked"] == 9
     assert plain["orb_ms"] > 0 and plain["detect_ms"] > 0 and plain["track_ms"] > 0
     st = prof["stages_ms"]

@@ -190,11 +190,12 @@ def test_tables_written_into_a_run_folder_stay_listed_when_the_run_moves_to_prev
 
 
 def test_a_full_disk_is_one_line_naming_the_file_and_never_a_finished_run(desk9, tmp_path):
-    """Files may grow to 200 kB only (RLIMIT_FSIZE: a full disk for every file, without root):
-    the map's PLY files cannot be written. One error line naming map/mesh.ply, no library spam, run.json not
-    'finished', the trajectory written before it intact, and no map half made."""
+    """Files may grow to 500 kB only (RLIMIT_FSIZE: a full disk for every file, without root): map.npz
+    (~340 kB with the landmark map) is written, the map's PLY files (~1-2 MB) cannot be. One error line
+    naming map/mesh.ply, no library spam, run.json not 'finished', the trajectory written before it intact,
+    and no map half made (the landmark map's top view, written before the fused map, is all map/ holds)."""
     run = tmp_path / "run"
-    res = subprocess.run([sys.executable, "-c", LIMITED_FSIZE, str(200_000), "run", str(desk9), "--out", str(run),
+    res = subprocess.run([sys.executable, "-c", LIMITED_FSIZE, str(500_000), "run", str(desk9), "--out", str(run),
                           *QUICK], capture_output=True, text=True, timeout=300)
     assert res.returncode == 2, res.stderr
     assert "RPly" not in res.stderr and "Traceback" not in res.stderr
@@ -204,7 +205,7 @@ def test_a_full_disk_is_one_line_naming_the_file_and_never_a_finished_run(desk9,
     s = _status(run)
     assert s["status"] == "failed" and s["stopped_during"] == "map" and ".ply" in s["error"]
     assert len((run / "trajectory.tum").read_text().splitlines()) == 10  # header + 9 poses
-    assert not (run / "map").exists() or not list((run / "map").iterdir())
+    assert not (run / "map").exists() or {p.name for p in (run / "map").iterdir()} <= {"landmarks_topview.png"}
 
 
 # ----------------------------------------------------------------------------- class 9: small ones

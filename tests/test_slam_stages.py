@@ -44,8 +44,10 @@ def _run(desk9, stage=None):
     from rgbdslam.datasets import open_sequence
     from rgbdslam.slam import SLAM
 
-    # frame-to-frame registration (one reference): the next frame's motion is measured from the last pose alone
-    cfg = load_config(None, ["keyframes.max_gap=2", "mapping.enabled=false", "registration.method=ransac"])
+    # frame-to-frame registration (one reference): the next frame's motion is measured from the last pose alone;
+    # the test stage alone (no landmark map, whose map pose would pull the shifted frames back)
+    cfg = load_config(None, ["keyframes.max_gap=2", "mapping.enabled=false", "registration.method=ransac",
+                             "landmarks.enabled=false"])
     seq = open_sequence(desk9, cfg.dataset)
     slam = SLAM(cfg, seq.camera)
     if stage is not None:

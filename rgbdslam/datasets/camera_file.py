@@ -28,7 +28,7 @@ folder name), else the reader's default, flagged as a fallback so the run warns.
 from __future__ import annotations
 
 import importlib.resources
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +55,11 @@ class CameraSetup:
     depth_camera: Camera | None = None  # set when depth is not registered to colour
     depth_to_color: np.ndarray | None = None  # 4x4 pose of the depth camera in the colour frame
     fallback: bool = False  # nothing said which camera: a guess the run warns about
+
+    def __post_init__(self) -> None:  # the colour camera says whether its depth is registered to it
+        registered = self.depth_camera is None and self.depth_to_color is None
+        if self.camera.depth_registered != registered:
+            object.__setattr__(self, "camera", replace(self.camera, depth_registered=registered))
 
     def describe(self) -> str:
         c = self.camera

@@ -21,6 +21,10 @@ class Camera:
     # rolling shutter: seconds from reading the first row to the last (0 = global shutter or unknown);
     # features.rolling_shutter (None) takes it from here (docs/slam.md "Rolling shutter")
     readout: float = 0.0
+    # False: the depth images come from a second camera and were re-projected into this one
+    # (datasets.camera_file.CameraSetup.depth_camera), so a key point's depth and its pixel disagree by
+    # that calibration's error; the landmark map's pose then fits 3-D points (landmarks.tracking.map_pose)
+    depth_registered: bool = True
 
     @property
     def K(self) -> np.ndarray:

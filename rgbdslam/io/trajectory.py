@@ -77,6 +77,9 @@ def format_tum(traj: Trajectory) -> str:
     if len(traj) == 0:
         return "# timestamp tx ty tz qx qy qz qw\n"
     t, q = pose_to_tum(traj.poses)
+    # a value that prints as zero prints as "0.000000000", never "-0.000000000": the sign of a ~1e-17 rounding
+    # residue is not kept by a read-back pose (its quaternion), so a file written again from one would differ
+    t, q = (np.where(np.abs(a) < 5e-10, 0.0, a) for a in (t, q))
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for ts, p, r in zip(traj.timestamps, t, q):
         lines.append(

@@ -13,7 +13,9 @@ class LandmarksConfig:
     """Map-based tracking: a persistent landmark map (spec section 6, docs/slam.md 'Landmark map')."""
 
     # upper bounds: pixels, metres and counts of one frame's search
-    enabled: Annotated[bool, Key("track against the persistent landmark map (docs/slam.md, \"Landmark map\")")] = False
+    enabled: Annotated[bool, Key(
+        "track every frame against the persistent landmark map (docs/slam.md, \"Landmark map\"); false = the "
+        "frame-to-frame chain alone (the thesis preset)")] = True
     mode: Annotated[Literal["seed", "fuse", "filter"], Key(
         "how the map pose combines with the frame-to-frame registration (registration.method): 'seed' = the "
         "registration's pose predicts, the map pose replaces it (kept when the map fails); 'fuse' = the "

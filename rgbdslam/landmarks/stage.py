@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from rgbdslam.geometry.camera import Camera
 from rgbdslam.geometry.se3 import inv, rotation_angle
@@ -362,6 +361,8 @@ class LandmarkTracker:
         new = np.flatnonzero(map_valid(feats) & ~matched_feat & (np.nan_to_num(feats.pts[:, 2]) < c.max_depth))
         if len(new) and m is not None and m.cand_uv is not None and len(m.cand_uv) and c.new_min_distance > 0:
             # where a landmark already projects, no second one is made (it would compete with the old one)
+            from scipy.spatial import cKDTree  # here: SciPy's import is not on the way to the first frame
+
             d, _ = cKDTree(m.cand_uv).query(feats.uv[new], k=1, distance_upper_bound=c.new_min_distance)
             new = new[~np.isfinite(d)]
         if len(new):

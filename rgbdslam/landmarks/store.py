@@ -20,7 +20,6 @@ query radius should carry a small margin for the Kalman updates since.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 class _Tree:
@@ -31,24 +30,34 @@ class _Tree:
     def __init__(self, ids: np.ndarray, pts: np.ndarray):
         self.ids = np.asarray(ids, dtype=np.int64)
         self.pts = np.asarray(pts, dtype=np.float64).reshape(len(self.ids), 3)
-        self.tree = cKDTree(self.pts, balanced_tree=False, compact_nodes=False) if len(self.ids) else None
+        self.tree = None  # SciPy's k-d tree, built at the first query (SciPy's import is not on the way to the first frame)
         self.n_dead = 0
+
+    def built(self):
+        """The k-d tree (None when empty), built on the first call."""
+        if self.tree is None and len(self.ids):
+            from scipy.spatial import cKDTree
+
+            self.tree = cKDTree(self.pts, balanced_tree=False, compact_nodes=False)
+        return self.tree
 
     def __len__(self) -> int:
         return len(self.ids)
 
     def query(self, center: np.ndarray, radius: float) -> np.ndarray:
-        if self.tree is None:
+        tree = self.built()
+        if tree is None:
             return np.zeros(0, np.int64)
-        found = self.tree.query_ball_point(center, radius, return_sorted=False)  # a list, in no order
+        found = tree.query_ball_point(center, radius, return_sorted=False)  # a list, in no order
         # the list read into an index array by np.fromiter: ~40 % faster than indexing with the list itself
         return self.ids[np.fromiter(found, np.intp, len(found))]
 
     def nearest(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(distance, id) of the nearest stored point to each of ``pts`` (inf, -1 when empty)."""
-        if self.tree is None:
+        tree = self.built()
+        if tree is None:
             return np.full(len(pts), np.inf), np.full(len(pts), -1, np.int64)
-        d, i = self.tree.query(pts, k=1)
+        d, i = tree.query(pts, k=1)
         return d, self.ids[i]
 
 

@@ -19,7 +19,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from rgbdslam.frontend.features import map_valid
 from rgbdslam.frontend.matching import pair_hamming
@@ -93,6 +92,8 @@ def match_to_map(lmap, feats, pose: np.ndarray, camera, search_radius: float, ma
     empty = MapMatch(np.zeros(0, np.int64), np.zeros(0, np.int64), len(ids), uv, ids)
     if len(ids) == 0 or len(fi) == 0:
         return empty
+    from scipy.spatial import cKDTree  # here: SciPy's import is not on the way to the first frame
+
     kk = min(k, len(ids))
     # a tree built once per frame and queried once: unbalanced (built in half the time, same answers)
     d, nn = cKDTree(uv, balanced_tree=False, compact_nodes=False).query(feats.uv[fi], k=kk,
@@ -195,11 +196,18 @@ def map_pose(lmap, feats, match: MapMatch, pred: np.ndarray, cfg, camera, rng: n
              seeded: bool = False) -> MapPose | None:
     """:func:`estimate_pose` with the settings of the ``landmarks`` config section ``cfg`` (the landmark
     stage's map pose, and a localising run's pose against a saved map); ``seeded``: no RANSAC, the refine
-    starts from ``pred``'s inliers."""
+    starts from ``pred``'s inliers.
+
+    A camera whose depth is not registered to its colour (``Camera.depth_registered`` false: depth from a
+    second camera, re-projected) gets the 3-D refit (``refine='points'``) instead of the reprojection
+    refine: a key point's pixel and its depth then disagree by the depth-to-colour calibration's error,
+    and the pixel refine would trust the colour bearing at ``sigma_px`` against it (docs/slam.md
+    "Landmark map", 7-Scenes)."""
     z = feats.pts[match.feat, 2]
+    refine = "points" if cfg.refine == "reprojection" and not camera.depth_registered else cfg.refine
     return estimate_pose(lmap, feats, match, pred, cfg.depth_noise_a + cfg.depth_noise_b * z * z,
                          cfg.ransac_threshold, 0 if seeded else cfg.ransac_iterations, cfg.min_inliers, cfg.sampling,
-                         cfg.old_fraction, rng, cfg.refine, camera, cfg.sigma_px, cfg.chi_gate,
+                         cfg.old_fraction, rng, refine, camera, cfg.sigma_px, cfg.chi_gate,
                          cfg.landmark_cov == "full", cfg.adaptive_noise, refine_iterations=cfg.refine_iterations)
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -117,7 +117,7 @@ class MapFileError(InputError):
 
 def camera_dict(cam: Camera) -> dict[str, Any]:
     return {"name": cam.name, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
-            "height": cam.height, "dist": list(cam.dist)}
+            "height": cam.height, "dist": list(cam.dist), "depth_registered": cam.depth_registered}
 
 
 def _camera_text(cam: Camera) -> str:
@@ -272,6 +272,7 @@ def load_map(path: str | Path, camera: Camera | None = None) -> MapData:
         c = header["camera"]
         cam = validate.camera(c["fx"], c["fy"], c["cx"], c["cy"], c["width"], c["height"], c["dist"],
                               str(c.get("name", "")), where=f"{path} (camera)")
+        cam = replace(cam, depth_registered=bool(c.get("depth_registered", True)))  # absent in older maps
     except (KeyError, TypeError, AttributeError) as e:
         raise MapFileError(f"{path} is corrupt: its camera entry is unreadable ({shorten(e)})") from None
     except InputError as e:

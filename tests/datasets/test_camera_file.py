@@ -33,6 +33,12 @@ def test_camera_file_keys(tmp_path):
     assert s.depth_scale == 1000 and s.depth_camera.fx == 580 and s.depth_camera.dist == (0.0,) * 5
     assert s.depth_to_color[:3, 3].tolist() == [0.025, 0, 0] and np.array_equal(s.depth_to_color[:3, :3], np.eye(3))
     assert s.source == str(f) and not s.fallback
+    # depth from a second camera: the colour camera says its depth is not registered (the landmark map's
+    # pose then fits 3-D points, landmarks.tracking.map_pose); a file without depth_camera / depth_to_color does
+    assert not c.depth_registered
+    assert read_camera_file(_write(tmp_path / "one.yaml", {"fx": 600, "fy": 601, "cx": 330, "cy": 250})).camera.depth_registered
+    offset_only = read_camera_file(_write(tmp_path / "off.yaml", {"camera": "fr1", "depth_to_color": [0.02, 0, 0]}))
+    assert offset_only.depth_camera is not None and not offset_only.camera.depth_registered
     for bad, msg in [({"fx": 1, "fy": 1, "cx": 1, "cy": 1, "lens": 3}, "unknown key"),
                      ({"fx": 1, "fy": 1, "cx": 1, "cy": 1, "size": [640]}, "size must be"),
                      ({"fx": 1, "fy": 1, "cx": 1, "cy": 1, "depth_scale": -5}, "depth_scale must be a number of raw units per metre from 0.001 to 1e6"),

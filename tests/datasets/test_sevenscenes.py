@@ -54,6 +54,7 @@ def test_the_shipped_camera_is_the_default_and_a_camera_file_wins(tmp_path):
     setup = seq.camera_setup
     assert (seq.camera.name, seq.camera.fx, seq.camera.fy) == ("7scenes", 530.0, 530.0)
     assert (setup.depth_camera.fx, setup.depth_camera.cx) == (585.0, 320.0) and seq.registration is not None
+    assert not seq.camera.depth_registered  # two Kinect cameras: the landmark map's pose fits 3-D points
     assert setup.source == "the 7-Scenes camera shipped with rgbdslam (rgbdslam/cameras/7scenes.yaml)"
     res = cli(["info", SEVEN])
     assert res.exit_code == 0 and "(from the 7-Scenes camera shipped with rgbdslam" in res.output, res.output

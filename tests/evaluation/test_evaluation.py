@@ -546,3 +546,18 @@ def test_cli_compare_checks_every_estimate_before_writing(tmp_path):
                                     "--json", str(tmp_path / "c.json")])
     assert "only 1 pose pair matched in time" in _assert_one_line_error(res, str(bad))
     assert not (tmp_path / "p").exists() and not (tmp_path / "c.json").exists()
+
+
+def test_a_written_trajectory_read_back_writes_the_same_bytes(tmp_path):
+    """A rounding residue of ~1e-17 (a pose that is the identity up to rounding, as a fused first frame)
+    prints as 0.000000000, not -0.000000000: its sign does not survive a read-back (the quaternion is
+    recomputed from the matrix), so an export of the run's trajectory.tum would differ from the file."""
+    P = np.tile(np.eye(4), (2, 1, 1))
+    P[0, :3, :3] = Rotation.from_rotvec([-3e-17, -1e-17, -2e-17]).as_matrix()
+    P[0, :3, 3] = [-1e-17, 0.0, -4e-12]
+    P[1, :3, 3] = [0.25, -0.5, 1.0]
+    write_tum(Trajectory(np.array([1.0, 2.0]), P), tmp_path / "a.tum")
+    text = (tmp_path / "a.tum").read_text()
+    assert "-0.000000000" not in text and "0.250000000 -0.500000000 1.000000000" in text
+    write_tum(read_tum(tmp_path / "a.tum"), tmp_path / "b.tum")
+    assert (tmp_path / "b.tum").read_bytes() == (tmp_path / "a.tum").read_bytes()

@@ -39,4 +39,4 @@ def test_landmark_ablation_cost_table():
     assert "| landmarks, Kalman off | 8.0 | 0.50 |" in md
     assert "| landmarks | 0.0030 | 0.0025 | 0.60 | 0.83 | 2 / 0 |" in md  # synthetic medians and ratios
     assert set(slam.LANDMARK_ABLATION) >= {
-        "default", "landmarks", "landmarks, Kalman off", "landmarks, uniform sampling", "landmarks, single k-d tree"}
+        "default", "thesis", "landmarks, Kalman off", "landmarks, uniform sampling", "landmarks, single k-d tree"}

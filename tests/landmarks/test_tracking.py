@@ -173,15 +173,12 @@ def test_whitened_residuals_match_the_dense_model_and_their_jacobian_the_finite_
         assert np.allclose(J[:, :, k], -num, rtol=1e-5, atol=1e-6 * np.abs(J).max())
 
 
-def test_points_refine_follows_the_depth_where_the_pixels_disagree():
-    # the colour pixels shifted 3 px against exact 3-D points (a misregistered colour image): the
-    # reprojection refine follows the pixels (the pose turns by ~0.3 deg), refine 'points' keeps the
-    # 3-D fit (exact pose) and carries the registration's information formula (RMS 0 -> the 3 mm floor)
+def _pixels_off_their_depth():
+    """(map, features, matches, true pose): 300 exact landmarks seen with exact 3-D points whose colour
+    pixels are shifted 3 px (a colour image misregistered against its depth)."""
     from types import SimpleNamespace
 
-    from rgbdslam.frontend.registration.base import SIGMA_FLOOR, point_information
-    from rgbdslam.geometry.se3 import rotation_angle
-    from rgbdslam.landmarks.tracking import MapMatch, estimate_pose
+    from rgbdslam.landmarks.tracking import MapMatch
 
     X = _scene(300, seed=6)
     m = LandmarkMap("single")
@@ -190,7 +187,20 @@ def test_points_refine_follows_the_depth_where_the_pixels_disagree():
     Pc, uv, z = _seen(P, X)
     feats = SimpleNamespace(uv=uv + [3.0, 0.0], pts=Pc)
     match = MapMatch(np.arange(len(X)), ids, len(X))
-    sig = np.full(len(X), 0.01)
+    return m, feats, match, P
+
+
+def test_points_refine_follows_the_depth_where_the_pixels_disagree():
+    # the colour pixels shifted 3 px against exact 3-D points (a misregistered colour image): the
+    # reprojection refine follows the pixels (the pose turns by ~0.3 deg), refine 'points' keeps the
+    # 3-D fit (exact pose) and carries the registration's information formula (RMS 0 -> the 3 mm floor)
+    from rgbdslam.frontend.registration.base import SIGMA_FLOOR, point_information
+    from rgbdslam.geometry.se3 import rotation_angle
+    from rgbdslam.landmarks.tracking import estimate_pose
+
+    m, feats, match, P = _pixels_off_their_depth()
+    Pc = feats.pts
+    sig = np.full(len(Pc), 0.01)
     out = {r: estimate_pose(m, feats, match, P, sig, 0.03, 50, 10, "uniform", 1.0, np.random.default_rng(0), r, CAM,
                             1.0, 10.0, True, False) for r in ("reprojection", "points")}
     assert _err(out["points"].pose, P) < 1e-6
@@ -198,6 +208,31 @@ def test_points_refine_follows_the_depth_where_the_pixels_disagree():
     # 3 px at f = 525 is 0.33 deg: taken as a turn (0.1 deg) and a sideways shift (7 mm)
     assert turn > 0.05 and _err(out["reprojection"].pose, P) > 4e-3
     assert np.allclose(out["points"].information, point_information(Pc, SIGMA_FLOOR))
+
+
+def test_map_pose_fits_3d_points_when_the_depth_is_not_registered_to_the_colour():
+    """``map_pose`` (the one map-pose call of the landmarks section): a camera whose depth comes from a
+    second camera (``Camera.depth_registered`` false, 7-Scenes) gets the 3-D refit ('points') in place
+    of the configured reprojection refine, so pixels 3 px off their depth (the calibration's error) do
+    not turn the pose; a registered camera keeps the reprojection refine, its pose bit for bit."""
+    from dataclasses import replace
+
+    from rgbdslam.landmarks.config import LandmarksConfig
+    from rgbdslam.landmarks.tracking import estimate_pose, map_pose
+
+    m, feats, match, P = _pixels_off_their_depth()
+    z = feats.pts[:, 2]
+    cfg = LandmarksConfig(min_inliers=10)
+    assert cfg.refine == "reprojection"
+    unregistered = replace(CAM, depth_registered=False)
+    two = map_pose(m, feats, match, P, cfg, unregistered, np.random.default_rng(0))
+    one = map_pose(m, feats, match, P, cfg, CAM, np.random.default_rng(0))
+    assert _err(two.pose, P) < 1e-6 and _err(one.pose, P) > 4e-3  # the pixels' 3 px shift turns only the latter
+    sig = cfg.depth_noise_a + cfg.depth_noise_b * z * z  # map_pose's depth noise, operation for operation
+    by_hand = estimate_pose(m, feats, match, P, sig, cfg.ransac_threshold, cfg.ransac_iterations, cfg.min_inliers,
+                            cfg.sampling, cfg.old_fraction, np.random.default_rng(0), "reprojection", CAM,
+                            cfg.sigma_px, cfg.chi_gate, True, cfg.adaptive_noise)
+    assert np.array_equal(one.pose, by_hand.pose)
 
 
 def test_residuals_without_jacobians_and_the_rotated_covariance():

@@ -54,7 +54,9 @@ def test_map_file_holds_the_run(session1):
     assert list(m.arrays["kf_frame"]) == info["keyframes"]
     assert m.camera.name == "fr1" and m.camera.fx == 517.3
     assert m.sessions[0]["sequence"] == str(TUM_RPY200.resolve()) and m.sessions[0]["dataset"]["max_frames"] == 50
-    assert m.config["loop"]["relocalize_confirm"] == 2 and m.landmarks is None
+    assert m.config["loop"]["relocalize_confirm"] == 2
+    # the default tracks against the landmark map, and the map file carries it (and that fr1's depth is registered)
+    assert m.landmarks is not None and m.n_landmarks == info["landmarks"]["size"] > 0 and m.camera.depth_registered
     # every tracked frame comes back at its trajectory.tum pose from its keyframe and relative pose
     stamps, poses = m.session_poses(0)
     traj = read_tum(session1 / "trajectory.tum")
@@ -286,6 +288,20 @@ def test_a_bad_landmark_section_is_one_line(landmark_runs, tmp_path, kind, messa
     # the keyframes' own checksum does not cover the section: a reader that ignores it still loads the map
     h0 = read_header(src)
     assert h0["sha256"] == read_header(bad)["sha256"]
+
+
+def test_the_map_file_says_whether_the_cameras_depth_is_registered(session1, tmp_path):
+    """The camera entry's ``depth_registered`` comes back from the file (a localising run poses frames
+    against the saved landmarks with the map's camera: an unregistered one gets the 3-D refit there
+    too); a map written before the key existed reads as registered."""
+    h = read_header(session1 / "map.npz")
+    assert h["camera"]["depth_registered"] is True
+    h["camera"]["depth_registered"] = False
+    _rewrite(session1 / "map.npz", tmp_path / "two.npz", header=h)
+    assert not load_map(tmp_path / "two.npz").camera.depth_registered
+    del h["camera"]["depth_registered"]
+    _rewrite(session1 / "map.npz", tmp_path / "old.npz", header=h)
+    assert load_map(tmp_path / "old.npz").camera.depth_registered
 
 
 def test_map_tracking_off_leaves_loops_only(session1, tmp_path):

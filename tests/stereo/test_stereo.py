@@ -295,12 +295,14 @@ def test_kitti06_end_to_end_accuracy(tmp_path):
 
 
 def test_synthetic_stereo_close_to_rgbd(tmp_path, stereo_kitti_layout):
-    """The same trajectory as RGB-D and as stereo (0.12 m baseline): stereo ATE <= 1.5x RGB-D's."""
+    """The same trajectory as RGB-D and as stereo (0.12 m baseline): stereo ATE <= 1.5x RGB-D's, both
+    through the frame-to-frame chain (the landmark map places no frame on sparse stereo depth, and on
+    this RGB-D sequence it cuts the ATE from 0.0082 to 0.0034 m: the depth is what is compared here)."""
     from rgbdslam.datasets.synthetic import generate_sequence
     from rgbdslam.pipeline import run_sequence
 
     generate_sequence(tmp_path / "rgbd", frames=40, motion="loop", noise=True, seed=3)
-    cfg = load_config(None, ["mapping.enabled=false", "output.plots=false"])
+    cfg = load_config("thesis", ["mapping.enabled=false", "output.plots=false"])
     a = run_sequence(tmp_path / "rgbd", tmp_path / "ra", cfg, progress=False)["evaluation"]["ate"]["rmse"]
     b = run_sequence(stereo_kitti_layout, tmp_path / "rb", cfg, progress=False)["evaluation"]["ate"]["rmse"]
     assert b <= 1.5 * a, (a, b)
