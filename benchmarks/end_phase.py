@@ -1,5 +1,6 @@
 """The end of a run: what ``rgbdslam run`` does after the last frame is tracked, step by step, for
-several versions of the code, interleaved (A B A B ...) so that a changing load hits them alike.
+several versions of the code, interleaved (A B A B ...) so that a changing load hits them alike
+(results: docs/speed.md "The end of a run").
 
 Usage::
 

@@ -1,4 +1,5 @@
-"""Speed of the landmark map against today's default, interleaved in one run.
+"""Speed of chain variants against today's default (the landmark map), interleaved in one run
+(results: docs/speed.md).
 
 Usage::
 

@@ -1,4 +1,5 @@
-"""CPU time per stage of the per-frame chain, for the default (the landmark map) and the thesis chain.
+"""CPU time per stage of the per-frame chain, for the default (the landmark map) and the thesis chain
+(results: docs/speed.md).
 
 Usage::
 

@@ -76,7 +76,7 @@ def configs() -> dict[str, list[str]]:
         out[name] = [f"registration.method={method}", f"loop.enabled={on[lc]}", f"backend.enabled={on[lc]}",
                      f"depth_filter.enabled={on[dif]}", "landmarks.enabled=false"]  # the thesis' chains
     # the landmark map on top of the best: fused with ISLAM, alone (seed mode),
-    # and its ablations (Kalman off, uniform RANSAC sampling, single k-d tree); docs/slam.md "Landmark map"
+    # and its ablations (Kalman off, uniform RANSAC sampling, single k-d tree); docs/landmarks.md "The ablation"
     for name, sets in [("ISLAM+LC+landmarks", []), ("… seed mode", ["landmarks.mode=seed"]),
                        ("… Kalman off", ["landmarks.kalman=false"]),
                        ("… uniform sampling", ["landmarks.sampling=uniform"]),

@@ -197,13 +197,13 @@ def _no_gain(where: str) -> str:
 RETIRED = {
     "loop.sigma_floor": "loop edges carry their registration's information (one noise floor, in the front end)",
     # options that measured no gain, removed with their code
-    **{f"landmarks.{k}": _no_gain('docs/slam.md "Removed options"') for k in (
+    **{f"landmarks.{k}": _no_gain('docs/landmarks.md "Removed options"') for k in (
         "anchor_age", "anchor_edges", "anchor_info_scale", "anchor_min_landmarks", "ba_every", "ba_handover",
         "ba_noise_scale", "ba_worker", "consistency_floor", "drift_sigma", "global_ba", "global_ba_frames",
         "global_ba_iterations", "global_ba_odometry", "graph_information", "loop_correct", "match_old_bonus",
         "observe", "ransac_confidence", "revisit_min_inliers", "revisit_radius", "sigma_px_scale")},
-    # the windowed local BA at keyframes: worse than none on the fast synthetic motions (docs/slam.md)
-    **{f"landmarks.{k}": _no_gain('docs/slam.md "Local BA, removed"') for k in (
+    # the windowed local BA at keyframes: worse than none on the fast synthetic motions (docs/landmarks.md)
+    **{f"landmarks.{k}": _no_gain('docs/landmarks.md "Local BA, removed"') for k in (
         "local_ba", "ba_window", "ba_iterations", "ba_solver", "ba_max_landmarks", "ba_baseline", "ba_huber",
         "ba_landmark_prior", "ba_prior_floor", "ba_min_observations", "ba_max_move",
         "ba_max_move_deg", "ba_frames")},

@@ -445,7 +445,7 @@ def test_a_retired_key_given_with_set_is_one_line_naming_it_and_where_it_is_docu
         assert str(e.value) == f"config key '{key}' (--set {key}=1) was removed: {why}"
     assert RETIRED["registration.pregate"] == 'it measured no gain (docs/frontend.md "Options that measured no gain")'
     assert RETIRED["registration.far_baselines"] == 'it measured no gain (docs/stereo.md "Near and far points")'
-    assert RETIRED["landmarks.global_ba"] == 'it measured no gain (docs/slam.md "Removed options")'
+    assert RETIRED["landmarks.global_ba"] == 'it measured no gain (docs/landmarks.md "Removed options")'
     assert RETIRED["mapping.live_early"] == 'it measured no gain (docs/mapping.md "Removed options")'
     root = Path(__file__).resolve().parent.parent
     for where in {why.split("(", 1)[1] for why in RETIRED.values() if "docs/" in why}:  # the cited headings exist

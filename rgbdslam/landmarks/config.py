@@ -10,11 +10,11 @@ from rgbdslam.configspec import AtMost, C_INT_MAX, Key, Positive, Range
 
 @dataclass
 class LandmarksConfig:
-    """Map-based tracking: a persistent landmark map (spec section 6, docs/slam.md 'Landmark map')."""
+    """Map-based tracking: a persistent landmark map (spec section 6, docs/landmarks.md)."""
 
     # upper bounds: pixels, metres and counts of one frame's search
     enabled: Annotated[bool, Key(
-        "track every frame against the persistent landmark map (docs/slam.md, \"Landmark map\"); false = the "
+        "track every frame against the persistent landmark map (docs/landmarks.md); false = the "
         "frame-to-frame chain alone (the thesis preset)")] = True
     mode: Annotated[Literal["seed", "fuse", "filter"], Key(
         "how the map pose combines with the frame-to-frame registration (registration.method): 'seed' = the "

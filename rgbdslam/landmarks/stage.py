@@ -270,7 +270,7 @@ class LandmarkTracker:
         rolling shutter — do not show in its residuals, the registration's are already calibrated by
         ``fuse_scale``): with r = tr(C⁻¹ H_map⁻¹) / 6, the map's share of the whitened disagreement,
         Σ_reg + s Σ_map is k times C for 1 - r + s r = k, s = 1 + (k - 1) / r (medians of k and r;
-        1 while k ≤ 1 or fewer than 5 frames are in; docs/slam.md "Landmark map")."""
+        1 while k ≤ 1 or fewer than 5 frames are in; docs/landmarks.md "What each step does")."""
         eta, C = _disagreement(P_reg, H_reg, P_map, H_map)
         S_map = np.linalg.inv(H_map)
         share = float(np.trace(np.linalg.solve(C, S_map))) / 6.0  # the map's part of the whitened disagreement
@@ -302,7 +302,7 @@ class LandmarkTracker:
         already existed at frame ``older`` (first seen at or before it): the map itself ties the two
         frames together — through landmarks Kalman-averaged over many frames, more precisely than a loop
         edge's one registration — so a loop edge ``older`` -> ``index`` would only add that
-        registration's error (docs/slam.md "Landmark map"). Never when ``older`` is not a keyframe of
+        registration's error (docs/landmarks.md "What each step does"). Never when ``older`` is not a keyframe of
         this map (a saved map's keyframe, docs/slam.md "Saved maps and sessions"): its landmarks are not
         in this map, and frame numbers of another session say nothing about them."""
         c = self.cfg
@@ -338,7 +338,7 @@ class LandmarkTracker:
         self.stats.loops_refined += 1
         self.stats.loop_refine_moves.append(float(np.linalg.norm((inv(P0) @ res.pose)[:3, 3])))
         # the information as a map pose's: divided by the consistency scale the map poses get now (its
-        # over-confidence on real frames: docs/slam.md "Landmark map"; 1 without it)
+        # over-confidence on real frames: docs/landmarks.md; 1 without it)
         H = res.information / (self._map_scale if c.loop_refine_scaled else 1.0)
         return replace(edge, T_ij=inv(A) @ res.pose, information=H, n_inliers=int(len(res.lm)))
 

@@ -201,8 +201,8 @@ def map_pose(lmap, feats, match: MapMatch, pred: np.ndarray, cfg, camera, rng: n
     A camera whose depth is not registered to its colour (``Camera.depth_registered`` false: depth from a
     second camera, re-projected) gets the 3-D refit (``refine='points'``) instead of the reprojection
     refine: a key point's pixel and its depth then disagree by the depth-to-colour calibration's error,
-    and the pixel refine would trust the colour bearing at ``sigma_px`` against it (docs/slam.md
-    "Landmark map", 7-Scenes)."""
+    and the pixel refine would trust the colour bearing at ``sigma_px`` against it (docs/landmarks.md
+    "Why 7-Scenes is worse")."""
     z = feats.pts[match.feat, 2]
     refine = "points" if cfg.refine == "reprojection" and not camera.depth_registered else cfg.refine
     return estimate_pose(lmap, feats, match, pred, cfg.depth_noise_a + cfg.depth_noise_b * z * z,

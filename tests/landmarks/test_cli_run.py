@@ -1,8 +1,7 @@
-"""Issue 17 end to end from the command line: `rgbdslam run` with the landmark map and local BA on
-fr1/desk (9 frames, a keyframe every 3), and every output the issue names read back — the
-trajectory, the map and its 2-D outputs with the landmarks' top view, run.json's landmark
-summary, and the Rerun recording (read with Rerun's own reader, `rerun.chunk.RrdReader`): the
-landmarks coloured by age, the frame's matches to the map, which keyframes the last local BA moved."""
+"""The landmark map end to end from the command line: `rgbdslam run` on fr1/desk (9 frames, a
+keyframe every 3), and every output it adds read back — the trajectory, the map and its 2-D outputs
+with the landmarks' top view, run.json's landmark summary, and the Rerun recording (read with Rerun's
+own reader, `rerun.chunk.RrdReader`): the landmarks coloured by age, the frame's matches to the map."""
 
 from __future__ import annotations
 

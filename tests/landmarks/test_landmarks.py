@@ -107,7 +107,7 @@ def test_ransac_samples_old_landmarks_first():
     assert out is not None and np.allclose(out[0], T, atol=1e-9) and out[1].sum() == 30
 
 
-# ----------------------------------------------------------------------------- pose refine, fusion, local BA
+# ------------------------------------------------------------- pose refine, fusion, moved keyframe poses
 from rgbdslam.geometry.se3 import inv  # noqa: E402
 from tests.landmarks.scenes import CAM, seen  # noqa: E402
 from tests.landmarks.scenes import pose as _pose  # noqa: E402
@@ -164,8 +164,8 @@ def test_run_with_landmarks_on_real_frames(desk9, tmp_path):
 
 
 def test_graph_refine_poses_remeasures_the_odometry_edges():
-    """Keyframe poses refined by local BA: the edges touching them are re-measured from the refined
-    poses, and without loops the batch returns exactly the refined chain."""
+    """Keyframe poses moved by a stage (SLAM._move_keyframes): the edges touching them are re-measured
+    from the new poses, and without loops the batch returns exactly the moved chain."""
     from rgbdslam.backend.slam_graph import KeyframeGraph
     from rgbdslam.config import BackendConfig
     from rgbdslam.geometry.se3 import inv
