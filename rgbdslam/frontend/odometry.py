@@ -197,6 +197,8 @@ class Frontend:
         kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
         if rc.noise_refit and feats.depth_noise is not None:
             pose = self._noise_refit(pose, kept_pairs, feats)
+        if rc.stereo_reprojection and feats.depth_noise is not None:
+            pose = self._stereo_refine(pose, [r for r, _ in kept_pairs], feats, pred)
         info = sum(res.information for res in kept)
         last = self.refs[-1]
         relative = inv(last.pose) @ pose
@@ -290,6 +292,62 @@ class Frontend:
         refined, _, _ = refine_pose_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
         d = inv(pose) @ refined
         if np.linalg.norm(d[:3, 3]) > rc.reject_translation or rotation_angle(d[:3, :3]) > rc.reject_rotation:
+            return pose
+        return refined
+
+    def _stereo_refine(self, pose: np.ndarray, refs: list, feats: FrameFeatures, pred: np.ndarray) -> np.ndarray:
+        """``registration.stereo_reprojection``: the pose refit on stereo reprojection residuals
+        (:func:`rgbdslam.geometry.stereo_pose.refine_pose_stereo`). Every key point of each reference in
+        ``refs`` that has a stereo depth (any, also beyond ``matching.max_depth``) or none (a direction,
+        :data:`FAR_AWAY`) is matched by descriptor to every key point of this frame; a match enters when its
+        pixel is within :data:`FALLBACK_GATE_PX` of the reference point projected by ``pose`` or by the
+        prediction ``pred``. The measurement is the key point's (u, v) and, when it has a stereo depth, its
+        disparity ``fx B / z``; pixel noise ``sigma_pixel * scale**octave`` (both key points), disparity noise
+        the pair's ``sigma_d``. The refit pose is kept when at least ``min_points`` residuals pass the
+        chi-square gate and it stays within the motion limits (``max_jump_*``) of ``pose``."""
+        from rgbdslam.frontend.matching import match_descriptors
+        from rgbdslam.geometry.stereo_pose import refine_pose_stereo, stereo_projection
+
+        rc, dn = self.rc, feats.depth_noise
+        if len(feats.depth_raw) != len(feats.uv) or len(feats.octave) != len(feats.uv):
+            return pose
+        intr = (dn.fx, dn.fy or dn.fx, dn.cx, dn.cy)
+        W, SW, obs, has_d, s_uv = [], [], [], [], []
+        for r in refs:
+            rf = r.features
+            if rf.depth_noise is None or len(rf.depth_raw) != len(rf.uv) or len(rf.octave) != len(rf.uv):
+                continue
+            ia, ib = match_descriptors(rf.desc, feats.desc, self.mc, rf.words, feats.words)
+            if len(ia) < 3:
+                continue
+            z = rf.depth_raw[ia]
+            has = z > 0
+            P = self.camera.backproject(rf.uv[ia], np.where(has, z, FAR_AWAY))
+            s_ref = rf.depth_noise.sigma_pixel * rf.pyramid_scale ** rf.octave[ia].astype(np.float64)
+            cov = rf.depth_noise.covariance(P, s_ref)
+            cov[~has] = rf.depth_noise.covariance(P[~has], s_ref[~has], 0.0)  # a direction: no depth noise
+            R = r.pose[:3, :3]
+            w = transform_points(r.pose, P)
+            uv = feats.uv[ib]
+            near_any = np.zeros(len(ia), bool)
+            for X in (pose, pred):
+                zp, _, _, ahead = stereo_projection(X, w, intr, dn.baseline)
+                near_any |= ahead & (np.linalg.norm(zp[:, :2] - uv, axis=1) <= FALLBACK_GATE_PX)
+            zc = feats.depth_raw[ib]
+            k = near_any
+            W.append(w[k])
+            SW.append((R @ cov @ R.T)[k])
+            obs.append(np.column_stack([uv, dn.fx * dn.baseline / np.where(zc > 0, zc, 1.0)])[k])
+            has_d.append(((zc > 0) & has)[k])  # a reference direction predicts no disparity: (u, v) only
+            s_uv.append((dn.sigma_pixel * feats.pyramid_scale ** feats.octave[ib].astype(np.float64))[k])
+        need = max(3, rc.min_points)
+        if not W or sum(len(w) for w in W) < need:
+            return pose
+        W, SW, obs, has_d, s_uv = (np.concatenate(x) for x in (W, SW, obs, has_d, s_uv))
+        refined, _, inl = refine_pose_stereo(pose, W, SW, obs, has_d, s_uv, dn.sigma_disparity, intr, dn.baseline)
+        d = inv(pose) @ refined
+        if inl.sum() < need or np.linalg.norm(d[:3, 3]) > rc.max_jump_translation or \
+                np.degrees(rotation_angle(d[:3, :3])) > rc.max_jump_rotation_deg:
             return pose
         return refined
 
