@@ -298,8 +298,9 @@ class Frontend:
     def _stereo_refine(self, pose: np.ndarray, refs: list, feats: FrameFeatures, pred: np.ndarray) -> np.ndarray:
         """``registration.stereo_reprojection``: the pose refit on stereo reprojection residuals
         (:func:`rgbdslam.geometry.stereo_pose.refine_pose_stereo`). Every key point of each reference in
-        ``refs`` that has a stereo depth (any, also beyond ``matching.max_depth``) or none (a direction,
-        :data:`FAR_AWAY`) is matched by descriptor to every key point of this frame; a match enters when its
+        ``refs`` that has a stereo depth (any, also beyond ``matching.max_depth``) or none (then its disparity is
+        somewhere below ``stereo.min_disparity``: its mean and standard deviation, min_disparity / 2 and
+        min_disparity / sqrt(12), so its parallax is uncertain, not nil) is matched by descriptor to every key point of this frame; a match enters when its
         pixel is within :data:`FALLBACK_GATE_PX` of the reference point projected by ``pose`` or by the
         prediction ``pred``. The measurement is the key point's (u, v) and, when it has a stereo depth, its
         disparity ``fx B / z``; pixel noise ``sigma_pixel * scale**octave`` (both key points), disparity noise
@@ -322,10 +323,14 @@ class Frontend:
                 continue
             z = rf.depth_raw[ia]
             has = z > 0
-            P = self.camera.backproject(rf.uv[ia], np.where(has, z, FAR_AWAY))
-            s_ref = rf.depth_noise.sigma_pixel * rf.pyramid_scale ** rf.octave[ia].astype(np.float64)
-            cov = rf.depth_noise.covariance(P, s_ref)
-            cov[~has] = rf.depth_noise.covariance(P[~has], s_ref[~has], 0.0)  # a direction: no depth noise
+            # no disparity: somewhere in [0, min_disparity) px (beyond the pair's range), as its mean and sd
+            rn = rf.depth_noise
+            fb = rn.fx * rn.baseline
+            d_far = max(0.5 * rn.min_disparity, fb / FAR_AWAY)
+            P = self.camera.backproject(rf.uv[ia], np.where(has, z, fb / d_far))
+            s_ref = rn.sigma_pixel * rf.pyramid_scale ** rf.octave[ia].astype(np.float64)
+            cov = rn.covariance(P, s_ref)
+            cov[~has] = rn.covariance(P[~has], s_ref[~has], rn.min_disparity / np.sqrt(12.0))
             R = r.pose[:3, :3]
             w = transform_points(r.pose, P)
             uv = feats.uv[ib]
@@ -358,7 +363,9 @@ class Frontend:
         matches of **every** key point to the newest reference (a rotation needs no depth: far points,
         even those without any disparity, fix it), then, when at least ``min_points`` near pairs agree,
         one refit with near points in 3-D and far points as bearings (:func:`refine_pose_near_far`).
-        Kept only within the motion limits of ``pred``. Its ``information`` is weak on translation
+        With ``registration.stereo_reprojection`` that pose is then refit on every reference's stereo reprojection
+        residuals (:meth:`_stereo_refine`: the far points' disparities fix the translation the constant velocity
+        guessed). Kept only within the motion limits of ``pred``. Its ``information`` is weak on translation
         (σ: a tenth of the step + 0.1 m; rotation σ 0.01 rad). None = not applicable (no velocity
         yet, RGB-D, too few matches)."""
         from rgbdslam.geometry.mahalanobis import refine_pose_near_far
@@ -382,6 +389,8 @@ class Frontend:
                                                  dn.sigma_pixel, huber=rc.noise_refit_huber)
             if inl2.sum() >= need:
                 pose = full
+        if rc.stereo_reprojection:  # the far points' disparities fix the translation the constant velocity guessed
+            pose = self._stereo_refine(pose, list(reversed(self.refs)), feats, pred)
         d = inv(pred) @ pose
         if np.linalg.norm(d[:3, 3]) > rc.max_jump_translation or \
                 np.degrees(rotation_angle(d[:3, :3])) > rc.max_jump_rotation_deg or inl.sum() < need:

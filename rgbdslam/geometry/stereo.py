@@ -32,6 +32,7 @@ class DepthNoise:
     cx: float = 0.0
     cy: float = 0.0
     sigma_pixel: float = 0.5  # key-point position noise along u and v (pixels), for covariance()
+    min_disparity: float = 0.0  # smaller disparities give no depth: a key point without one is at least fx B / this away
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         """Depth standard deviation (metres) of depth(s) ``z`` (metres)."""
@@ -82,9 +83,9 @@ class StereoRig:
             z = np.float32(self.camera.fx * self.baseline) / d
         return np.where(d > 0, z, 0.0).astype(np.float32)
 
-    def noise(self, sigma_disparity: float) -> DepthNoise:
+    def noise(self, sigma_disparity: float, min_disparity: float = 0.0) -> DepthNoise:
         c = self.camera
-        return DepthNoise(c.fx, self.baseline, sigma_disparity, c.fy, c.cx, c.cy)
+        return DepthNoise(c.fx, self.baseline, sigma_disparity, c.fy, c.cx, c.cy, min_disparity=min_disparity)
 
 
 def midpoint_triangulate(rig: StereoRig, uv_left: np.ndarray, uv_right: np.ndarray) -> np.ndarray:

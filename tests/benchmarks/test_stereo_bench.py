@@ -30,7 +30,7 @@ def test_orb_stereo_settings_take_the_folders_calibration_and_size(tmp_path):
 
 def test_stereo_frames_step_errors_by_hand():
     """benchmarks/stereo_frames.py: each frame's own step error in the camera's axes, and the SE(3) ATE."""
-    from benchmarks.stereo_frames import ate_se3, step_errors
+    from benchmarks.stereo_frames import ate_se3, sim3_scale, step_errors
     from rgbdslam.geometry.se3 import make_pose
     from scipy.spatial.transform import Rotation
 
@@ -41,7 +41,7 @@ def test_stereo_frames_step_errors_by_hand():
     err = step_errors(E, G)
     assert np.allclose(err[:2], 0.0)
     assert np.allclose(err[2, :3], [0.0, 0.0, -0.1]) and err[2, 3] == pytest.approx(0.1)  # G_step^-1 E_step
-    assert err[2, 4] == pytest.approx(1.0)
+    assert err[2, 4] == pytest.approx(1.0) and np.allclose(err[2, 5:], [0.0, 1.0, 0.0])  # about y, as turned
     # a rigidly moved copy has no ATE; positions on a unit square's corners scaled by 1.1 (a scale error, which a
     # rigid alignment cannot take out; by symmetry it aligns with the identity) leave 0.1 m at every position
     T = make_pose(turn, [5.0, -2.0, 1.0])
@@ -50,3 +50,4 @@ def test_stereo_frames_step_errors_by_hand():
     S2 = S.copy()
     S2[:, :3, 3] *= 1.1
     assert ate_se3(S2, S) == pytest.approx(0.1)
+    assert sim3_scale(S2, S) == pytest.approx(1.0 / 1.1) and sim3_scale(S, S) == pytest.approx(1.0)  # < 1: too long
