@@ -82,34 +82,42 @@ def refine_pose_stereo(X: np.ndarray, W: np.ndarray, cov_w: np.ndarray, obs: np.
     if n < 3:
         return X, H, np.zeros(n, bool)
 
-    def terms(X):
-        z, J, Jw, ahead = stereo_projection(X, W, intrinsics, baseline)
-        r = z - obs
+    def whitening(X):
+        """(N,3,3) L^T with L L^T = the residual's information (the d row zero without a disparity), chi2 (N,)."""
+        z, _, Jw, ahead = stereo_projection(X, W, intrinsics, baseline)
         S = S_meas + Jw @ cov_w @ Jw.transpose(0, 2, 1)
-        info = np.zeros((n, 3, 3))
-        info[has_d] = np.linalg.inv(S[has_d])
-        info[~has_d, :2, :2] = np.linalg.inv(S[~has_d, :2, :2])
+        S[~has_d, 2, :2] = S[~has_d, :2, 2] = 0.0  # the d row without a disparity: any, it is zeroed below
+        Lt = np.linalg.cholesky(np.linalg.inv(S)).transpose(0, 2, 1)
+        Lt[~has_d, 2] = 0.0
+        Lt[~has_d, :2, 2] = 0.0
+        r = z - obs
         r[~has_d, 2] = 0.0
-        J[~has_d, 2] = 0.0
-        chi2 = np.einsum("ni,nij,nj->n", r, info, r)
-        chi2[~ahead] = np.inf
-        return r, info, J, chi2
+        e = (Lt @ r[:, :, None])[:, :, 0]
+        chi2 = np.where(ahead, np.sum(e * e, axis=1), np.inf)
+        return Lt, chi2
 
     for k in range(rounds):
+        # the weighting (each residual's covariance) is fixed per round, at the round's first pose
+        Lt, chi2 = whitening(X)
         for _ in range(iterations):
-            r, info, J, chi2 = terms(X)
-            use = inl & np.isfinite(chi2)
+            z, J, _, ahead = stereo_projection(X, W, intrinsics, baseline)
+            r = z - obs
+            r[~has_d, 2] = 0.0
+            e = (Lt @ r[:, :, None])[:, :, 0]  # whitened residuals (N,3)
+            A = Lt @ J  # whitened Jacobians (N,3,6)
+            c2 = np.sum(e * e, axis=1)
+            use = inl & ahead
             if use.sum() < 3:
                 return X, H, inl & use
             w = np.ones(n)
             if k < robust_rounds:  # Huber at the gate
-                e = np.sqrt(np.maximum(chi2, 0.0))
+                m = np.sqrt(c2)
                 d = np.sqrt(gate)
-                w = np.where(e <= d, 1.0, d / np.maximum(e, 1e-12))
-            w = np.where(use, w, 0.0)
-            JtI = np.einsum("nki,nkl->nil", J, info) * w[:, None, None]
-            H = np.einsum("nil,nlj->ij", JtI, J)
-            g = np.einsum("nil,nl->i", JtI, r)
+                w = np.where(m <= d, 1.0, d / np.maximum(m, 1e-12))
+            sw = np.sqrt(np.where(use, w, 0.0))[:, None]
+            Af = (A * sw[:, :, None]).reshape(-1, 6)
+            H = Af.T @ Af
+            g = Af.T @ (e * sw).reshape(-1)
             try:
                 xi = -np.linalg.solve(H, g)
             except np.linalg.LinAlgError:
@@ -118,8 +126,8 @@ def refine_pose_stereo(X: np.ndarray, W: np.ndarray, cov_w: np.ndarray, obs: np.
             dX[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
             dX[:3, 3] = xi[3:]
             X = dX @ X
-            if np.linalg.norm(xi) < 1e-9:
+            if np.linalg.norm(xi) < 1e-8:
                 break
-        _, _, _, chi2 = terms(X)
+        _, chi2 = whitening(X)
         inl = chi2 <= gate
     return X, H, inl
