@@ -332,9 +332,7 @@ class Frontend:
             P = self.camera.backproject(rf.uv[ia], np.where(has, z, fb / d_far))
             s_ref = rn.sigma_pixel * rf.pyramid_scale ** rf.octave[ia].astype(np.float64)
             cov = rn.covariance(P, s_ref)
-            # a far reference point (disparity below fx / 40) has the unknown depth of one without a disparity
-            far = ~has | (fb / np.where(has, z, 1.0) < rn.near_disparity())
-            cov[far] = rn.covariance(P[far], s_ref[far], NO_DISPARITY_SIGMA * rn.min_disparity)
+            cov[~has] = rn.covariance(P[~has], s_ref[~has], NO_DISPARITY_SIGMA * rn.min_disparity)
             R = r.pose[:3, :3]
             w = transform_points(r.pose, P)
             uv = feats.uv[ib]
@@ -347,8 +345,7 @@ class Frontend:
             W.append(w[k])
             SW.append((R @ cov @ R.T)[k])
             obs.append(np.column_stack([uv, dn.fx * dn.baseline / np.where(zc > 0, zc, 1.0)])[k])
-            near_c = (zc > 0) & (dn.fx * dn.baseline / np.where(zc > 0, zc, 1.0) >= dn.near_disparity())
-            has_d.append((near_c & has)[k])  # a reference direction or a far current point: (u, v) only
+            has_d.append(((zc > 0) & has)[k])  # a reference direction predicts no disparity: (u, v) only
             s_uv.append((dn.sigma_pixel * feats.pyramid_scale ** feats.octave[ib].astype(np.float64))[k])
         need = max(3, rc.min_points)
         if not W or sum(len(w) for w in W) < need:

@@ -17,9 +17,6 @@ import numpy as np
 from rgbdslam.geometry.camera import Camera
 
 
-NEAR_BASELINES = 40.0  # a stereo point nearer than this many baselines is near (ORB-SLAM's ThDepth)
-
-
 @dataclass(frozen=True)
 class DepthNoise:
     """Depth noise of a stereo depth map: disparity noise ``sigma_disparity`` (pixels) through
@@ -41,11 +38,6 @@ class DepthNoise:
         """Depth standard deviation (metres) of depth(s) ``z`` (metres)."""
         z = np.asarray(z, dtype=np.float64)
         return z * z * self.sigma_disparity / (self.fx * self.baseline)
-
-    def near_disparity(self) -> float:
-        """The smallest disparity (pixels) of a near point, one closer than :data:`NEAR_BASELINES` baselines
-        (ORB-SLAM's ``ThDepth``): ``fx B / (40 B) = fx / 40`` (KITTI 06: 17.97 px, 21.6 m)."""
-        return self.fx / NEAR_BASELINES
 
     def disparity(self, z: np.ndarray) -> np.ndarray:
         """Disparity (pixels) of depth(s) ``z``."""

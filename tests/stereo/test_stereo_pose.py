@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from scipy.spatial.transform import Rotation
 
 from rgbdslam.geometry.se3 import inv, rotation_angle
@@ -132,12 +131,3 @@ def test_points_without_disparity_do_not_bias_the_translation():
         errors.append(np.linalg.norm((inv(truth) @ X)[:3, 3]))
     assert errors[0] < 0.001  # unknown depth: the translation stays (noise-free: 0.02 mm)
     assert errors[1] > 0.01  # a depth guess pulls it (1.8 cm of the 2.8 m step)
-
-
-def test_near_disparity_is_fx_over_40():
-    """ORB-SLAM's ThDepth: near = closer than 40 baselines, i.e. d >= fx B / (40 B) = fx / 40."""
-    from rgbdslam.geometry.stereo import DepthNoise
-
-    dn = DepthNoise(fx=718.856, baseline=0.5372, sigma_disparity=0.105)
-    assert dn.near_disparity() == pytest.approx(17.9714)
-    assert dn.disparity(40 * dn.baseline) == pytest.approx(dn.near_disparity())
