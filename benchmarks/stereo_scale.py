@@ -57,7 +57,8 @@ def disparity_error_fit(pairs: list[tuple], fb: float) -> dict:
     Pb, ...): each frame-i point keeps its bearing, its depth is ``fx B / d_true`` with ``d = fx B / Pa_z``, and
     moved by the ground-truth T it must fall on its match's bearing in the later frame (residual in normalised
     image coordinates, soft-L1 at twice the residuals' robust sd at delta = k = 0). Returns {"n", "offset_scale":
-    (delta px, k, se delta, se k), "offset": (delta, se), "scale": (k, se)}."""
+    (delta px, k, se delta, se k), "offset": (delta, se), "scale": (k, se)} and each fit's robust cost
+    ("offset_scale_cost", ...: lower fits better; the offset and the scale alone have one parameter each)."""
     from scipy.optimize import least_squares
 
     T = np.concatenate([np.repeat(p[0][None], len(p[1]), 0) for p in pairs])
@@ -80,6 +81,7 @@ def disparity_error_fit(pairs: list[tuple], fb: float) -> dict:
         s2 = (1.4826 * np.median(np.abs(sol.fun))) ** 2
         se = np.sqrt(np.diag(np.linalg.pinv(sol.jac.T @ sol.jac)) * s2)
         out[name] = tuple(float(v) for v in sol.x) + tuple(float(v) for v in se)
+        out[name + "_cost"] = float(sol.cost / f_scale ** 2)  # in units of the soft-L1 scale squared
     return out
 
 
@@ -106,7 +108,8 @@ def main() -> None:
         f = disparity_error_fit(pairs, fb)
         (od, ok, sd, sk), (oo, so), (ss, sss) = f["offset_scale"], f["offset"], f["scale"]
         print(f"gap {g}: {f['n']} matches; offset and scale: delta {od:+.3f} +- {sd:.3f} px, k {100 * ok:+.2f} +- "
-              f"{100 * sk:.2f} %; offset only: {oo:+.3f} +- {so:.3f} px; scale only: k {100 * ss:+.2f} +- {100 * sss:.2f} %")
+              f"{100 * sk:.2f} %; offset only: {oo:+.3f} +- {so:.3f} px; scale only: k {100 * ss:+.2f} +- {100 * sss:.2f} %; "
+              f"costs {f['offset_scale_cost']:.1f} / {f['offset_cost']:.1f} / {f['scale_cost']:.1f}")
     s, d, diff, fb = scale_ratios(a.sequence, a.sets)
     c = consistency(diff)
     print(f"fx*B {fb:.2f} px*m, {len(s)} matches")
