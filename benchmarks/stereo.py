@@ -168,12 +168,12 @@ def disparity_errors(motions: list[str], seeds: list[int], frames: int = 150, st
     return out
 
 
-def consecutive_stereo_matches(path, sets: list[str]) -> list[tuple]:
-    """For each consecutive pair (i, i+1) of the stereo sequence at ``path`` (with ground truth; ``kitti``
+def consecutive_stereo_matches(path, sets: list[str], gap: int = 1) -> list[tuple]:
+    """For each pair (i, i+gap) (consecutive: gap 1) of the stereo sequence at ``path`` (with ground truth; ``kitti``
     preset plus ``sets``): the sparse stereo points of the left key points (``detect`` + ``sparse_matches``)
     matched by descriptor (cross-checked) and kept within 3 px of their ground-truth reprojection.
-    Returns (T = ground-truth motion from i to i+1, Pa (K,3) frame i points, Pb (K,3) frame i+1 points,
-    pb (K,) frame i+1 disparities, Q (K,3) = T Pa) per pair, and fx * B as the last element."""
+    Returns (T = ground-truth motion from i to i+gap, Pa (K,3) frame i points, Pb (K,3) frame i+gap points,
+    pb (K,) frame i+gap disparities, Q (K,3) = T Pa) per pair, and fx * B as the last element."""
     import cv2
 
     from rgbdslam.config import load_config
@@ -194,12 +194,12 @@ def consecutive_stereo_matches(path, sets: list[str]) -> list[tuple]:
         per.append((det.uv_raw[m.left_index], det.desc[m.left_index], m.disparity, m.points))
     bf = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
     out = []
-    for i in range(len(per) - 1):
-        (_, da, _, Pa), (ub, db, pb, Pb) = per[i], per[i + 1]
+    for i in range(len(per) - gap):
+        (_, da, _, Pa), (ub, db, pb, Pb) = per[i], per[i + gap]
         ms = bf.match(da, db)
         ia = np.array([x.queryIdx for x in ms], int)
         ib = np.array([x.trainIdx for x in ms], int)
-        T = inv(G[i + 1]) @ G[i]
+        T = inv(G[i + gap]) @ G[i]
         Q = Pa[ia] @ T[:3, :3].T + T[:3, 3]
         proj = np.stack([cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy], axis=1)
         ok = (Q[:, 2] > 0) & np.all(np.abs(proj - ub[ib]) < 3.0, axis=1)

@@ -31,26 +31,40 @@ NEAR_BASELINES = 40.0  # ORB-SLAM's ThDepth, in baselines
 
 
 def step_errors(E: np.ndarray, G: np.ndarray) -> np.ndarray:
-    """(N, 5) per frame: the step's translation error (x, y, z in the camera, m), its norm (m), rotation error (deg);
-    frame 0 zeros."""
-    out = np.zeros((len(E), 5))
+    """(N, 8) per frame: the step's translation error (x, y, z in the camera, m), its norm (m), rotation error (deg),
+    and that rotation error as a rotation vector (x, y, z in the camera, deg); frame 0 zeros."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.zeros((len(E), 8))
     for k in range(1, len(E)):
         e = inv(inv(G[k - 1]) @ G[k]) @ (inv(E[k - 1]) @ E[k])
         out[k, :3] = e[:3, 3]
         out[k, 3] = np.linalg.norm(e[:3, 3])
         out[k, 4] = np.degrees(rotation_angle(e[:3, :3]))
+        out[k, 5:] = np.degrees(Rotation.from_matrix(e[:3, :3]).as_rotvec())
     return out
 
 
 def ate_se3(E: np.ndarray, G: np.ndarray) -> float:
     """ATE RMSE (m) of the positions after the best rigid alignment (Umeyama without scale)."""
+    return _umeyama(E, G)[0]
+
+
+def sim3_scale(E: np.ndarray, G: np.ndarray) -> float:
+    """The scale of the best similarity alignment of the positions (Umeyama): > 1 = the estimate is too short."""
+    return _umeyama(E, G)[1]
+
+
+def _umeyama(E: np.ndarray, G: np.ndarray) -> tuple[float, float]:
     X, Y = E[:, :3, 3], G[:, :3, 3]
     mx, my = X.mean(0), Y.mean(0)
-    U, _, Vt = np.linalg.svd((Y - my).T @ (X - mx))
+    U, S, Vt = np.linalg.svd((Y - my).T @ (X - mx))
     D = np.eye(3)
     D[2, 2] = np.sign(np.linalg.det(U @ Vt))
     R = U @ D @ Vt
-    return float(np.sqrt(np.mean(np.sum(((X - mx) @ R.T + my - Y) ** 2, axis=1))))
+    ate = float(np.sqrt(np.mean(np.sum(((X - mx) @ R.T + my - Y) ** 2, axis=1))))
+    var = float(np.mean(np.sum((X - mx) ** 2, axis=1)))
+    return ate, float(np.trace(np.diag(S) @ D) / len(X) / var) if var > 0 else 1.0
 
 
 def run_frames(path: str, sets: list[str]) -> dict:
@@ -86,9 +100,10 @@ def run_frames(path: str, sets: list[str]) -> dict:
     G = gt.poses[np.array(index)]
     err = step_errors(E, G)
     for r, e in zip(rows, err):
-        r.update(ex=float(e[0]), ey=float(e[1]), ez=float(e[2]), dt=float(e[3]), dr=float(e[4]))
+        r.update(ex=float(e[0]), ey=float(e[1]), ez=float(e[2]), dt=float(e[3]), dr=float(e[4]),
+                 rx=float(e[5]), ry=float(e[6]), rz=float(e[7]))
     fb = np.array([r["fallback"] for r in rows])
-    summary = {"ate": ate_se3(E, G), "lost": len(slam.state.lost), "fallback_frames": int(fb.sum()),
+    summary = {"ate": ate_se3(E, G), "sim3_scale": sim3_scale(E, G), "lost": len(slam.state.lost), "fallback_frames": int(fb.sum()),
                "map_poses": int(sum(r["map_pose"] for r in rows)),
                "step_m_fallback": float(err[fb, 3].sum()), "step_m_registered": float(err[~fb, 3].sum()),
                "step_deg_fallback": float(err[fb, 4].sum()), "step_deg_registered": float(err[~fb, 4].sum())}
@@ -117,11 +132,11 @@ def main() -> None:
         from rgbdslam.datasets import open_sequence
 
         orb = orb_steps(args.orb, open_sequence(args.sequence, load_config("kitti")).groundtruth().poses)
-    print(" frame fb inliers near far beyond map |  dx     dy     dz   step m  deg" + ("  | ORB step m  deg" if orb is not None else ""))
+    print(" frame fb inliers near far beyond map |  dx     dy     dz   step m  deg (rotation error x y z)" + ("  | ORB step m  deg" if orb is not None else ""))
     for r in out["rows"]:
         line = (f"{r['frame']:6d} {'F' if r['fallback'] else '.':>2} {r['inliers']:7d} {r['near']:4d} {r['far']:3d} "
                 f"{r['beyond_range']:6d} {'M' if r['map_pose'] else '.':>3} | {r['ex']:+.3f} {r['ey']:+.3f} {r['ez']:+.3f} "
-                f"{r['dt']:.3f} {r['dr']:.3f}")
+                f"{r['dt']:.3f} {r['dr']:.3f} ({r['rx']:+.3f} {r['ry']:+.3f} {r['rz']:+.3f})")
         if orb is not None and r["frame"] < len(orb):
             line += f"  | {orb[r['frame'], 3]:.3f} {orb[r['frame'], 4]:.3f}"
         print(line)

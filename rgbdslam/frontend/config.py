@@ -98,6 +98,12 @@ class RegistrationConfig:
         "preset turns it on (far points: ATE 0.29 m without it)")] = False
     noise_refit_all: Annotated[bool, Key("refit on every descriptor match (robust kernel), not only the inliers")] = True
     noise_refit_huber: Annotated[float, Positive(100.0, "Huber threshold of the refit (Mahalanobis distance, sigmas)")] = 3.0
+    stereo_reprojection: Annotated[bool, Key(
+        "after the fused pose (and the noise refit) of a stereo frame, and after the stereo fallback's pose: motion-only "
+        "Gauss-Newton on the stereo reprojection residuals (u, v, disparity) of every key point of the kept references "
+        "(the fallback: all references) matched by descriptor, "
+        "key points without a disparity as (u, v) only; sigma per ORB octave and the pair's disparity noise, chi-square "
+        "re-gating in rounds (geometry/stereo_pose.py, docs/stereo.md)")] = False
     stereo_fallback: Annotated[bool, Key(
         "a stereo frame whose registration fails is not lost: constant-velocity pose, its rotation refit on the "
         "bearings of the newest reference's descriptor matches, then a near + far refit if enough pairs agree")] = False

@@ -197,6 +197,8 @@ class Frontend:
         kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
         if rc.noise_refit and feats.depth_noise is not None:
             pose = self._noise_refit(pose, kept_pairs, feats)
+        if rc.stereo_reprojection and feats.depth_noise is not None:
+            pose = self._stereo_refine(pose, [r for r, _ in kept_pairs], feats, pred)
         info = sum(res.information for res in kept)
         last = self.refs[-1]
         relative = inv(last.pose) @ pose
@@ -293,6 +295,69 @@ class Frontend:
             return pose
         return refined
 
+    def _stereo_refine(self, pose: np.ndarray, refs: list, feats: FrameFeatures, pred: np.ndarray) -> np.ndarray:
+        """``registration.stereo_reprojection``: the pose refit on stereo reprojection residuals
+        (:func:`rgbdslam.geometry.stereo_pose.refine_pose_stereo`). Every key point of each reference in
+        ``refs`` that has a stereo depth (any, also beyond ``matching.max_depth``) or none (then its disparity is
+        below ``stereo.min_disparity``, but the scene decides where: min_disparity / 2 with a standard deviation of
+        :data:`NO_DISPARITY_SIGMA` x min_disparity, i.e. its depth unknown, so it weighs only across its epipolar
+        line) is matched by descriptor to every key point of this frame; a match enters when its
+        pixel is within :data:`FALLBACK_GATE_PX` of the reference point projected by ``pose`` or by the
+        prediction ``pred``. The measurement is the key point's (u, v) and, when it has a stereo depth, its
+        disparity ``fx B / z``; pixel noise ``sigma_pixel * scale**octave`` (both key points), disparity noise
+        the pair's ``sigma_d``. The refit pose is kept when at least ``min_points`` residuals pass the
+        chi-square gate and it stays within the motion limits (``max_jump_*``) of ``pose``."""
+        from rgbdslam.frontend.matching import match_descriptors
+        from rgbdslam.geometry.stereo_pose import refine_pose_stereo, stereo_projection
+
+        rc, dn = self.rc, feats.depth_noise
+        if len(feats.depth_raw) != len(feats.uv) or len(feats.octave) != len(feats.uv):
+            return pose
+        intr = (dn.fx, dn.fy or dn.fx, dn.cx, dn.cy)
+        W, SW, obs, has_d, s_uv = [], [], [], [], []
+        for r in refs:
+            rf = r.features
+            if rf.depth_noise is None or len(rf.depth_raw) != len(rf.uv) or len(rf.octave) != len(rf.uv):
+                continue
+            ia, ib = match_descriptors(rf.desc, feats.desc, self.mc, rf.words, feats.words)
+            if len(ia) < 3:
+                continue
+            z = rf.depth_raw[ia]
+            has = z > 0
+            # no disparity: below min_disparity, and where is not known (placed at min_disparity / 2 with an sd
+            # of NO_DISPARITY_SIGMA x min_disparity): no weight along its epipolar line, its bearing across it
+            rn = rf.depth_noise
+            fb = rn.fx * rn.baseline
+            d_far = max(0.5 * rn.min_disparity, fb / FAR_AWAY)
+            P = self.camera.backproject(rf.uv[ia], np.where(has, z, fb / d_far))
+            s_ref = rn.sigma_pixel * rf.pyramid_scale ** rf.octave[ia].astype(np.float64)
+            cov = rn.covariance(P, s_ref)
+            cov[~has] = rn.covariance(P[~has], s_ref[~has], NO_DISPARITY_SIGMA * rn.min_disparity)
+            R = r.pose[:3, :3]
+            w = transform_points(r.pose, P)
+            uv = feats.uv[ib]
+            near_any = np.zeros(len(ia), bool)
+            for X in (pose, pred):
+                zp, _, _, ahead = stereo_projection(X, w, intr, dn.baseline)
+                near_any |= ahead & (np.linalg.norm(zp[:, :2] - uv, axis=1) <= FALLBACK_GATE_PX)
+            zc = feats.depth_raw[ib]
+            k = near_any
+            W.append(w[k])
+            SW.append((R @ cov @ R.T)[k])
+            obs.append(np.column_stack([uv, dn.fx * dn.baseline / np.where(zc > 0, zc, 1.0)])[k])
+            has_d.append(((zc > 0) & has)[k])  # a reference direction predicts no disparity: (u, v) only
+            s_uv.append((dn.sigma_pixel * feats.pyramid_scale ** feats.octave[ib].astype(np.float64))[k])
+        need = max(3, rc.min_points)
+        if not W or sum(len(w) for w in W) < need:
+            return pose
+        W, SW, obs, has_d, s_uv = (np.concatenate(x) for x in (W, SW, obs, has_d, s_uv))
+        refined, _, inl = refine_pose_stereo(pose, W, SW, obs, has_d, s_uv, dn.sigma_disparity, intr, dn.baseline)
+        d = inv(pose) @ refined
+        if inl.sum() < need or np.linalg.norm(d[:3, 3]) > rc.max_jump_translation or \
+                np.degrees(rotation_angle(d[:3, :3])) > rc.max_jump_rotation_deg:
+            return pose
+        return refined
+
     def _fallback(self, frame: Frame, feats: FrameFeatures, timings: dict, pred: np.ndarray, n_matches: int,
                   n_cand: int = 0) -> TrackResult | None:
         """``registration.stereo_fallback``: a stereo frame whose registration failed gets the
@@ -300,7 +365,9 @@ class Frontend:
         matches of **every** key point to the newest reference (a rotation needs no depth: far points,
         even those without any disparity, fix it), then, when at least ``min_points`` near pairs agree,
         one refit with near points in 3-D and far points as bearings (:func:`refine_pose_near_far`).
-        Kept only within the motion limits of ``pred``. Its ``information`` is weak on translation
+        With ``registration.stereo_reprojection`` that pose is then refit on every reference's stereo reprojection
+        residuals (:meth:`_stereo_refine`: the far points' disparities fix the translation the constant velocity
+        guessed). Kept only within the motion limits of ``pred``. Its ``information`` is weak on translation
         (σ: a tenth of the step + 0.1 m; rotation σ 0.01 rad). None = not applicable (no velocity
         yet, RGB-D, too few matches)."""
         from rgbdslam.geometry.mahalanobis import refine_pose_near_far
@@ -324,6 +391,8 @@ class Frontend:
                                                  dn.sigma_pixel, huber=rc.noise_refit_huber)
             if inl2.sum() >= need:
                 pose = full
+        if rc.stereo_reprojection:  # the far points' disparities fix the translation the constant velocity guessed
+            pose = self._stereo_refine(pose, list(reversed(self.refs)), feats, pred)
         d = inv(pred) @ pose
         if np.linalg.norm(d[:3, 3]) > rc.max_jump_translation or \
                 np.degrees(rotation_angle(d[:3, :3])) > rc.max_jump_rotation_deg or inl.sum() < need:
@@ -431,6 +500,9 @@ class Frontend:
 # information of the relative pose across a restart (GTSAM order: rotation, then translation):
 # σ = π rad and 5 m, i.e. "unknown" next to any registration, yet well conditioned
 FALLBACK_GATE_PX = 40.0  # pixels: a match further than this from the constant-velocity prediction is wrong
+# x stereo.min_disparity: the disparity sd of a key point without one in the reprojection refit (its depth unknown;
+# a uniform [0, min_disparity) prior, sd min/sqrt(12), made the translations 2 % too long on the highway's skyline)
+NO_DISPARITY_SIGMA = 10.0
 FAR_AWAY = 1e5  # metres: a key point without disparity, as a direction (2.8 m of motion: 0.02 px at fx 718)
 RESTART_INFORMATION = np.diag([1.0 / np.pi**2] * 3 + [1.0 / 25.0] * 3)
 

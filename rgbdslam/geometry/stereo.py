@@ -32,6 +32,7 @@ class DepthNoise:
     cx: float = 0.0
     cy: float = 0.0
     sigma_pixel: float = 0.5  # key-point position noise along u and v (pixels), for covariance()
+    min_disparity: float = 0.0  # smaller disparities give no depth: a key point without one is at least fx B / this away
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         """Depth standard deviation (metres) of depth(s) ``z`` (metres)."""
@@ -42,10 +43,16 @@ class DepthNoise:
         """Disparity (pixels) of depth(s) ``z``."""
         return self.fx * self.baseline / np.asarray(z, dtype=np.float64)
 
-    def covariance(self, P: np.ndarray) -> np.ndarray:
+    def covariance(self, P: np.ndarray, sigma_pixel: np.ndarray | None = None,
+                   sigma_disparity: float | None = None) -> np.ndarray:
         """Covariances (N, 3, 3) of camera points ``P`` (N, 3) triangulated from the pair:
-        ``J diag(s_u^2, s_v^2, s_d^2) J^T`` with J the Jacobian of (X, Y, Z) w.r.t. (u, v, d)."""
+        ``J diag(s_u^2, s_v^2, s_d^2) J^T`` with J the Jacobian of (X, Y, Z) w.r.t. (u, v, d).
+        ``sigma_pixel`` (scalar or (N,), e.g. per ORB octave) and ``sigma_disparity`` replace the
+        model's own values when given."""
         P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+        s_uv = np.broadcast_to(np.asarray(self.sigma_pixel if sigma_pixel is None else sigma_pixel, np.float64),
+                               (len(P),))
+        s_d = self.sigma_disparity if sigma_disparity is None else sigma_disparity
         fy = self.fy or self.fx
         x, y, z = P[:, 0], P[:, 1], P[:, 2]
         d = self.fx * self.baseline / z
@@ -56,7 +63,9 @@ class DepthNoise:
         J[:, 0, 2] = -x / d
         J[:, 1, 2] = -y / d
         J[:, 2, 2] = -z / d
-        S = np.diag([self.sigma_pixel ** 2, self.sigma_pixel ** 2, self.sigma_disparity ** 2])
+        S = np.zeros((len(P), 3, 3))
+        S[:, 0, 0] = S[:, 1, 1] = s_uv ** 2
+        S[:, 2, 2] = s_d ** 2
         return J @ S @ J.transpose(0, 2, 1)
 
 
@@ -74,9 +83,9 @@ class StereoRig:
             z = np.float32(self.camera.fx * self.baseline) / d
         return np.where(d > 0, z, 0.0).astype(np.float32)
 
-    def noise(self, sigma_disparity: float) -> DepthNoise:
+    def noise(self, sigma_disparity: float, min_disparity: float = 0.0) -> DepthNoise:
         c = self.camera
-        return DepthNoise(c.fx, self.baseline, sigma_disparity, c.fy, c.cx, c.cy)
+        return DepthNoise(c.fx, self.baseline, sigma_disparity, c.fy, c.cx, c.cy, min_disparity=min_disparity)
 
 
 def midpoint_triangulate(rig: StereoRig, uv_left: np.ndarray, uv_right: np.ndarray) -> np.ndarray:

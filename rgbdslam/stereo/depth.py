@@ -374,7 +374,7 @@ def sgbm_depth(left: np.ndarray, right: np.ndarray, rig: StereoRig, sc: StereoCo
 
 def depth_noise(rig: StereoRig, sc: StereoConfig, method: str) -> DepthNoise:
     """The depth noise that ``method``'s disparity noise implies for this rig."""
-    return rig.noise(sc.sigma_disparity_sparse if method == "sparse" else sc.sigma_disparity_sgbm)
+    return rig.noise(sc.sigma_disparity_sparse if method == "sparse" else sc.sigma_disparity_sgbm, sc.min_disparity)
 
 
 # ------------------------------------------------------------------ rectification check
