@@ -407,7 +407,7 @@ def calibrate_depth_to_color(sequence, frames, focal, tx, ty, out_file, check):
 
 @calibrate.command("stereo-offset")
 @click.argument("sequence", type=PATH)
-@click.option("--frames", type=click.IntRange(min=2), default=30, show_default=True,
+@click.option("--frames", type=click.IntRange(min=2), default=50, show_default=True,
               help="The first this many frames give the frame pairs.")
 @click.option("--max-gap", type=click.IntRange(min=1), default=5, show_default=True,
               help="Frame pairs (i, i+g) for g = 1 .. this.")
@@ -416,7 +416,8 @@ def calibrate_depth_to_color(sequence, frames, focal, tx, ty, out_file, check):
 def calibrate_stereo_offset(sequence, frames, max_gap, config_path, overrides):
     """The disparity offset (px) of SEQUENCE's stereo rig, without ground truth: one offset shared by
     all frame pairs, fitted with their motions on stereo reprojection residuals (docs/stereo.md
-    "Disparity offset"). Prints the value to add to a configured stereo.disparity_offset."""
+    "Disparity offset"). Prints the stereo.disparity_offset to run with: the configured one plus the
+    fitted offset when that is more than two standard errors from 0."""
     from rgbdslam.datasets import open_sequence
     from rgbdslam.stereo.offset import estimate_disparity_offset
 
@@ -427,11 +428,13 @@ def calibrate_stereo_offset(sequence, frames, max_gap, config_path, overrides):
     fit = estimate_disparity_offset(seq, cfg, range(min(frames, len(seq))), max_gap)
     if fit is None:
         raise click.ClickException(f"no frame pair of {sequence} has enough matched stereo points to fit an offset")
-    total = cfg.stereo.disparity_offset + fit.delta
     click.echo(f"{fit.pairs} frame pairs, {fit.inliers} of {fit.residuals} residuals inliers")
     click.echo(f"disparity offset {fit.delta:+.3f} +- {fit.se:.3f} px on top of the configured "
                f"{cfg.stereo.disparity_offset:+.3f}")
-    click.echo(f"--set stereo.disparity_offset={total:.3f}")
+    if fit.significant:
+        click.echo(f"--set stereo.disparity_offset={cfg.stereo.disparity_offset + fit.delta:.3f}")
+    else:
+        click.echo(f"within two standard errors of 0: keep stereo.disparity_offset={cfg.stereo.disparity_offset:.3f}")
 
 
 @calibrate.command("rolling-shutter")

@@ -57,6 +57,11 @@ class OffsetFit:
     inliers: int
     residuals: int
 
+    @property
+    def significant(self) -> bool:
+        """Distinguishable from no offset: more than two standard errors from 0."""
+        return abs(self.delta) > 2.0 * self.se
+
 
 def observe(seq, cfg, frames) -> list[StereoObservations]:
     """The sparse stereo key points of ``frames`` of the stereo sequence ``seq`` (config ``cfg``)."""
@@ -234,8 +239,8 @@ def fit_disparity_offset(obs: list[StereoObservations], intrinsics: tuple, basel
 
 def estimate_disparity_offset(seq, cfg, frames=None, max_gap: int = 5) -> OffsetFit | None:
     """The disparity correction (px) of the stereo sequence ``seq`` opened with config ``cfg`` (its
-    ``stereo`` and ``features`` sections), from ``frames`` (default: the first 30), without ground truth."""
-    frames = list(range(min(30, len(seq)))) if frames is None else list(frames)
+    ``stereo`` and ``features`` sections), from ``frames`` (default: the first 50), without ground truth."""
+    frames = list(range(min(50, len(seq)))) if frames is None else list(frames)
     obs = observe(seq, cfg, frames)
     cam = seq.rig.camera
     return fit_disparity_offset(obs, (cam.fx, cam.fy, cam.cx, cam.cy), seq.rig.baseline,
