@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from rgbdslam.geometry.stereo_pose import CHI2_STEREO, stereo_projection
 
-MIN_PAIR_POINTS = 50  # PnP inliers a pair needs to take part
+MIN_PAIR_POINTS = 20  # PnP inliers a pair needs to take part
 MAX_STEP = 0.1  # px: the largest change of delta per Gauss-Newton step
 
 
@@ -174,11 +174,11 @@ def fit_disparity_offset(obs: list[StereoObservations], intrinsics: tuple, basel
         return dX @ Xs
 
     def cost(Lt, Xs, delta, use, huber):
-        """Robust cost of the residuals in ``use`` (Huber at the gate, or squares); a point that went behind
-        a camera costs the gate."""
+        """Robust cost of the residuals in ``use`` (Huber at the gate, or squares); infinite when one of them
+        went behind a camera (a step may not get rid of a residual that way)."""
         z, _, _, _, ahead, _ = model(Xs, delta)
         e = (Lt @ residual(z, delta)[:, :, None])[:, :, 0]
-        c2 = np.where(ahead, np.sum(e * e, axis=1), CHI2_STEREO)[use]
+        c2 = np.where(ahead, np.sum(e * e, axis=1), np.inf)[use]
         if huber:
             k = np.sqrt(CHI2_STEREO)
             m = np.sqrt(c2)
