@@ -1,5 +1,5 @@
-"""Where a stereo run's error is made, frame by frame, against exact ground truth (docs/stereo.md, "Where the
-highway error is made").
+"""Where a stereo run's error is made, frame by frame, against exact ground truth (docs/stereo_measured.md, "Where
+the highway error is made").
 
 The chain runs with the ``kitti`` preset (plus ``--set``) and, per frame, records whether the stereo
 fallback placed it (``registration.stereo_fallback``), the registration's inliers, the key points with

@@ -1,4 +1,4 @@
-"""Is a stereo rig's depth to scale with its ground truth? (docs/stereo.md, "The noise model")
+"""Is a stereo rig's depth to scale with its ground truth? (docs/stereo_measured.md, "The noise model")
 
 For consecutive pairs (i, i+1) of a stereo sequence with ground truth, the sparse stereo points of the
 left key points (the product's own ``detect`` + ``sparse_matches`` with the ``kitti`` preset) are

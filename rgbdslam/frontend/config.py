@@ -103,7 +103,7 @@ class RegistrationConfig:
         "Gauss-Newton on the stereo reprojection residuals (u, v, disparity) of every key point of the kept references "
         "(the fallback: all references) matched by descriptor, "
         "key points without a disparity as (u, v) only; sigma per ORB octave and the pair's disparity noise, chi-square "
-        "re-gating in rounds (geometry/stereo_pose.py, docs/stereo.md)")] = False
+        "re-gating in rounds (geometry/stereo_pose.py, docs/stereo_measured.md)")] = False
     stereo_fallback: Annotated[bool, Key(
         "a stereo frame whose registration fails is not lost: constant-velocity pose, its rotation refit on the "
         "bearings of the newest reference's descriptor matches, then a near + far refit if enough pairs agree")] = False

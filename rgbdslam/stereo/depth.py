@@ -132,7 +132,7 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, ul: np.ndarray, vl: np
     * ``zsad_v`` (default): zero-mean SAD (each patch minus its own mean: a brightness offset
       between the cameras cancels) and the equiangular ("V") fit ``(c1 - c3) / (2 (max(c1, c3) - c2))``,
       the exact minimum of a SAD cost, which is V-shaped near the match. Measured on synthetic pairs
-      with exact disparity (docs/stereo.md): bias +0.005-0.01 px, no pull toward whole pixels, robust
+      with exact disparity (docs/stereo_measured.md): bias +0.005-0.01 px, no pull toward whole pixels, robust
       sigma 0.05-0.06 px.
     * ``centre_parabola`` (the method before, kept for comparison): each patch minus its centre pixel
       and a parabola through the three costs. The centre pixel's own error (noise, sampling) shifts

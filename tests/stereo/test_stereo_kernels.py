@@ -1,6 +1,6 @@
 """The sparse stereo kernels (row matching, sub-pixel refinement) against the plain NumPy expressions they
 replace, on real KITTI 06 pairs: equal bit for bit, so the poses of a stereo run do not move
-(docs/stereo.md "Speed")."""
+(docs/speed.md "The stereo reader")."""
 
 from __future__ import annotations
 
