@@ -405,6 +405,38 @@ def calibrate_depth_to_color(sequence, frames, focal, tx, ty, out_file, check):
         click.echo(f"wrote {out_file}")
 
 
+@calibrate.command("stereo-offset")
+@click.argument("sequence", type=PATH)
+@click.option("--frames", type=click.IntRange(min=2), default=50, show_default=True,
+              help="The first this many frames give the frame pairs.")
+@click.option("--max-gap", type=click.IntRange(min=1), default=5, show_default=True,
+              help="Frame pairs (i, i+g) for g = 1 .. this.")
+@config_option
+@set_option
+def calibrate_stereo_offset(sequence, frames, max_gap, config_path, overrides):
+    """The disparity offset (px) of SEQUENCE's stereo rig, without ground truth: one offset shared by
+    all frame pairs, fitted with their motions on stereo reprojection residuals (docs/stereo.md
+    "Disparity offset"). Prints the stereo.disparity_offset to run with: the configured one plus the
+    fitted offset when that is more than two standard errors from 0."""
+    from rgbdslam.datasets import open_sequence
+    from rgbdslam.stereo.offset import estimate_disparity_offset
+
+    cfg, _ = sequence_config(sequence, config_path, overrides)
+    seq = open_sequence(sequence, cfg)
+    if getattr(seq, "rig", None) is None:
+        raise click.ClickException(f"{sequence} is not a stereo sequence (no right images): no disparity to calibrate")
+    fit = estimate_disparity_offset(seq, cfg, range(min(frames, len(seq))), max_gap)
+    if fit is None:
+        raise click.ClickException(f"no frame pair of {sequence} has enough matched stereo points to fit an offset")
+    click.echo(f"{fit.pairs} frame pairs, {fit.inliers} of {fit.residuals} residuals inliers")
+    click.echo(f"disparity offset {fit.delta:+.3f} +- {fit.se:.3f} px on top of the configured "
+               f"{cfg.stereo.disparity_offset:+.3f}")
+    if fit.significant:
+        click.echo(f"--set stereo.disparity_offset={cfg.stereo.disparity_offset + fit.delta:.3f}")
+    else:
+        click.echo(f"within two standard errors of 0: keep stereo.disparity_offset={cfg.stereo.disparity_offset:.3f}")
+
+
 @calibrate.command("rolling-shutter")
 @click.argument("sequence", type=PATH)
 @click.option("--values", "--readouts", "values", default="0,0.005,0.01,0.015,0.02,0.025,0.03", show_default=True,

@@ -21,6 +21,9 @@ class StereoConfig:
         "measured: zsad_v refinement, synthetic exact depth and KITTI consistency")] = 0.12
     sigma_disparity_sgbm: Annotated[float, Positive(100.0,
         "disparity noise (px) of SGBM depth, for the depth noise model")] = 0.5
+    disparity_offset: Annotated[float, Range(-10.0, 10.0,
+        "sparse: added to every measured disparity (px), a rig's calibration offset; measured without ground truth by "
+        "`rgbdslam calibrate stereo-offset` (docs/stereo.md)")] = 0.0
     max_disparity: Annotated[int, Range(1, 1024, "search range (pixels); SGBM rounds it up to a multiple of 16")] = 128
     min_disparity: Annotated[float, Positive(1000.0, "smaller disparities (farther than fx * B / this) give no depth")] = 0.5
     row_tolerance: Annotated[float, Positive(100.0, "sparse: |v_left - v_right| allowed for a match (pixels)")] = 2.0

@@ -312,6 +312,7 @@ def sparse_matches(left: np.ndarray, right: np.ndarray, rig: StereoRig, uv_l: np
     # the right match's column, shifted by the left point's rounding, is the search centre
     ur_guess = ur_coarse + (u0 - uv_l[il, 0])
     ur, ok = refine_disparity(gl, gr, u0, v0, ur_guess, sc.patch_radius, search, sc.subpixel)
+    ur = ur - sc.disparity_offset  # a rig's disparity offset (calibrate stereo-offset): the right column it implies
     disp = u0 - ur
     ok &= np.isfinite(disp) & (disp >= sc.min_disparity) & (disp <= sc.max_disparity)
     il, u0, v0, ur, disp = il[ok], u0[ok], v0[ok], ur[ok], disp[ok]
