@@ -50,6 +50,10 @@ def test_ctrl_c_at_any_stage_says_interrupted(desk9, tmp_path, monkeypatch, targ
     run = tmp_path / "run"
     assert CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK, *extra]).exit_code == 0
     monkeypatch.setattr(target, _sigint_self)
+    # Python's handler installed again at the C level: a library loaded by an earlier test of the same
+    # process may have replaced it with its own (signal.getsignal still names Python's), and the console
+    # script installs its own first thing anyway (rgbdslam/_entry.py)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), *QUICK, *extra])
     assert res.exit_code == 130, res.output
     assert res.stderr.splitlines()[-1] == "interrupted: finished work was saved" and "Traceback" not in res.output
