@@ -27,6 +27,11 @@ class LoopConfig:
         "also search a frame when none of the last query_gap frames was searched (0 = sharp frames only, the thesis' "
         "gate): where every frame is equally sharp the gate never opens and a revisit goes unnoticed (docs/slam.md, "
         "benchmarks.md \"Synthetic variants\")")] = 5
+    query: Annotated[Literal["sharp", "keyframes"], Key(
+        "which frames are searched for loops: \"sharp\" = sharp frames (the gate) and due ones (query_gap); "
+        "\"keyframes\" = the frames the keyframe policy makes keyframes by their motion (a loop then never forces a "
+        "keyframe of its own; docs/speed.md \"Loop closure\"). A relocalising segment searches every frame either "
+        "way")] = "sharp"
     # candidate search
     index: Annotated[Literal["lsh", "brute"], Key(
         "keyframe descriptor index for the candidate search (lsh or brute force)")] = "lsh"
@@ -42,7 +47,9 @@ class LoopConfig:
     min_inliers: Annotated[int, Range(3, 10**9, "inliers a loop's registration needs")] = 40
     max_residual: Annotated[float, Positive(10.0, "metres: largest mean residual of an accepted loop registration")] = 0.02
     max_loops_per_frame: Annotated[int, Positive(100, "loop edges added per query frame")] = 1
-    stop_at_first: Annotated[bool, Key("verify candidates in vote order and stop at max_loops_per_frame loops")] = False
+    stop_at_first: Annotated[bool, Key(
+        "verify candidates in vote order and stop at max_loops_per_frame loops (false: verify all max_candidates and "
+        "keep the most inliers; the thesis preset)")] = True
     # agreement with the current estimate: |T_loop - T_est| < bound + drift_ratio * travelled
     consistency_translation: Annotated[float, Positive(10000.0,
         "metres: a loop may disagree with the estimate this much (+ drift ratio)")] = 0.3

@@ -292,6 +292,21 @@ def test_query_gap_makes_a_search_due():
     assert not LoopCloser(cfg.loop, register=lambda *a: None).due(1000)
 
 
+def test_query_chooses_the_searched_frames():
+    """loop.query: "sharp" searches sharp and due frames, "keyframes" the keyframes by motion; a
+    relocalising segment searches every frame either way."""
+    cfg = loop_config()
+    cfg.loop.query_gap = 3
+    lc = LoopCloser(cfg.loop, register=lambda *a: None)
+    assert [lc.wants(1, s, k) for s, k in ((True, False), (False, True), (False, False))] == [True, False, False]
+    assert lc.wants(3, False, False)  # due: nothing searched in query_gap frames
+    cfg.loop.query = "keyframes"
+    assert [lc.wants(1, s, k) for s, k in ((True, False), (False, True), (False, False))] == [False, True, False]
+    assert not lc.wants(3, False, False)  # the floor is the sharp frames' only
+    lc.relocalizing = True
+    assert lc.wants(4, False, False) and lc.wants(5, True, False)
+
+
 def test_observe_uses_the_configured_measure():
     from types import SimpleNamespace
 
@@ -354,6 +369,7 @@ def test_stop_at_first_verifies_fewer_candidates_but_not_while_relocalising(mapp
     first sound one (most votes) ends the search, except while relocalising (every match counts)."""
     lc, places, poses, rng = mapped
     lc.lc.skip_recent = 0
+    lc.lc.stop_at_first = False  # the thesis': every candidate verified, the most inliers kept
     world = np.vstack([transform_points(poses[k], places[k][0]) for k in (0, 1)])
     desc = np.vstack([places[0][1], places[1][1]])
     pose = make_pose(np.eye(3), [0.25, 0.0, -1.5])  # backed off so that both places are in view
