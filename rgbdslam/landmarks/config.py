@@ -27,7 +27,9 @@ class LandmarksConfig:
     max_depth: Annotated[float, Positive(1000.0,
         "metres: landmarks further from the camera are not searched, features not mapped")] = 5.0
     ransac_threshold: Annotated[float, Positive(10.0, "metres: inlier distance of the map pose RANSAC")] = 0.03
-    ransac_iterations: Annotated[int, Positive(20_000, "minimal samples drawn by the map pose RANSAC")] = 100
+    ransac_iterations: Annotated[int, Positive(20_000,
+        "minimal samples drawn by the map pose RANSAC (the landmark stage runs it only when the registration's pose has "
+        "fewer than min_inliers inliers within ransac_threshold; --localize's map tracking always)")] = 100
     min_inliers: Annotated[int, Range(3, 10**9, "fewer: the map pose is not used for this frame")] = 30
     max_correction: Annotated[float, Positive(100.0,
         "metres / degrees: a map pose further from the registration's is rejected")] = 0.03

@@ -30,6 +30,7 @@ class LandmarkStats:
     frames: int = 0
     map_poses: int = 0  # frames placed by the map
     rejected: int = 0  # map poses too far from the registration's
+    ransac: int = 0  # map poses (and loop re-measures) that needed RANSAC: too few inliers at the prediction
     stale_left_out: int = 0  # matches to stale landmarks left out of the map pose (stale_after)
     loops_held: int = 0  # loop edges not added: the map pose already rests on the older frame's landmarks
     stale_joined: int = 0  # frames whose stale matches agreed with the current ones and joined (stale_check)
@@ -223,9 +224,16 @@ class LandmarkTracker:
         return self._local
 
     def _estimate(self, feats, m, pose: np.ndarray, seeded: bool = False):
-        """The map pose from the matches ``m`` (RANSAC + refine), predicted by ``pose``; None if it fails.
-        ``seeded``: no RANSAC, the refine starts from ``pose``'s inliers (``pose`` another estimate)."""
-        return map_pose(self.map, feats, m, pose, self.cfg, self.camera, self.rng, seeded)
+        """The map pose from the matches ``m``, predicted by ``pose`` (the registration's, or another
+        estimate of the frame's pose); None if it fails. The refine starts from ``pose``'s inliers; RANSAC
+        runs only when they are too few (and never with ``seeded``): a map pose further than
+        ``max_correction`` from the registration's is rejected anyway, so a hypothesis far from it could
+        not be kept, and near it the prediction's inliers are RANSAC's best hypothesis's."""
+        res = map_pose(self.map, feats, m, pose, self.cfg, self.camera, self.rng, seeded=True)
+        if res is None and not seeded:
+            self.stats.ransac += 1
+            res = map_pose(self.map, feats, m, pose, self.cfg, self.camera, self.rng)
+        return res
 
     def _without_stale(self, index: int, feats, m, pose: np.ndarray):
         """The matches with the *stale* landmarks (not seen for more than ``stale_after`` frames: an
@@ -398,7 +406,7 @@ class LandmarkTracker:
         s = self.stats
         return {
             "size": self.map.size, "made": int(self.map.n), "culled": int(self.map.n_culled),
-            "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected,
+            "frames": s.frames, "map_poses": s.map_poses, "rejected": s.rejected, "ransac": s.ransac,
             "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined, "loops_held": s.loops_held,
             "loops_refined": s.loops_refined, "loops_kept": s.loops_kept,
             "loop_refine_median_m": round(float(np.median(s.loop_refine_moves)), 4) if s.loop_refine_moves else 0.0,

@@ -163,6 +163,21 @@ def test_run_with_landmarks_on_real_frames(desk9, tmp_path):
     assert "/world/landmarks" in paths and "/world/camera/image/map_matches" in paths
 
 
+@pytest.mark.data
+def test_map_pose_starts_from_the_registration_and_rarely_needs_ransac(rpy200, tmp_path):
+    """fr1/rpy head200 (the default chain): the map pose is refitted from the registration's pose's
+    inliers; RANSAC runs only where those are too few. The map still places almost every frame and the
+    loops are closed (33 of them, docs/speed.md "Work that decides nothing")."""
+    from rgbdslam.config import load_config
+    from rgbdslam.pipeline import run_sequence
+
+    s = run_sequence(rpy200, tmp_path / "run", load_config(None, ["mapping.enabled=false", "output.plots=false"]),
+                     progress=False)
+    lm = s["landmarks"]
+    assert lm["map_poses"] >= 185 and lm["ransac"] <= 10  # 6 of the ~220 estimates (map poses, loop re-measures)
+    assert len(s["loops"]) >= 30 and s["evaluation"]["ate"]["rmse"] < 0.017
+
+
 def test_graph_refine_poses_remeasures_the_odometry_edges():
     """Keyframe poses moved by a stage (SLAM._move_keyframes): the edges touching them are re-measured
     from the new poses, and without loops the batch returns exactly the moved chain."""
