@@ -25,7 +25,8 @@ class LandmarksConfig:
     search_radius: Annotated[float, Positive(1000.0, "pixels around a landmark's projection")] = 10.0
     max_hamming: Annotated[int, Range(0, 256, "largest Hamming distance of a landmark-to-feature descriptor match")] = 50
     max_depth: Annotated[float, Positive(1000.0,
-        "metres: landmarks further from the camera are not searched, features not mapped")] = 5.0
+        "metres: landmarks further from the camera are not searched, features not mapped; 10 = matching.max_depth's "
+        "Kinect range (far points pin the rotation: docs/landmarks.md \"Far points\")")] = 10.0
     ransac_threshold: Annotated[float, Positive(10.0, "metres: inlier distance of the map pose RANSAC")] = 0.03
     ransac_iterations: Annotated[int, Positive(20_000, "minimal samples drawn by the map pose RANSAC")] = 100
     min_inliers: Annotated[int, Range(3, 10**9, "fewer: the map pose is not used for this frame")] = 30
