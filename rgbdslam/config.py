@@ -199,9 +199,10 @@ RETIRED = {
     # options that measured no gain, removed with their code
     **{f"landmarks.{k}": _no_gain('docs/landmarks.md "Removed options"') for k in (
         "anchor_age", "anchor_edges", "anchor_info_scale", "anchor_min_landmarks", "ba_every", "ba_handover",
-        "ba_noise_scale", "ba_worker", "consistency_floor", "drift_sigma", "global_ba", "global_ba_frames",
-        "global_ba_iterations", "global_ba_odometry", "graph_information", "loop_correct", "match_old_bonus",
-        "observe", "ransac_confidence", "revisit_min_inliers", "revisit_radius", "sigma_px_scale")},
+        "ba_noise_scale", "ba_worker", "consistency_floor", "consistency_window", "drift_sigma", "global_ba",
+        "global_ba_frames", "global_ba_iterations", "global_ba_odometry", "graph_information", "loop_correct",
+        "loop_refine_scaled", "match_old_bonus", "observe", "ransac_confidence", "revisit_min_inliers",
+        "revisit_radius", "sigma_px_scale")},
     # the windowed local BA at keyframes: worse than none on the fast synthetic motions (docs/landmarks.md)
     **{f"landmarks.{k}": _no_gain('docs/landmarks.md "Local BA, removed"') for k in (
         "local_ba", "ba_window", "ba_iterations", "ba_solver", "ba_max_landmarks", "ba_baseline", "ba_huber",

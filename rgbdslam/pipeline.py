@@ -19,7 +19,7 @@ from rgbdslam.datasets import Sequence, open_sequence
 from rgbdslam.errors import InputError, RgbdslamError, TrackingLost, was_interrupted
 from rgbdslam.io.atomic import atomic_write_text, make_dirs
 from rgbdslam.stereo.depth import frame_warning
-from rgbdslam.io.trajectory import Trajectory
+from rgbdslam.io.trajectory import Trajectory, as_written
 from rgbdslam.runfolder.folder import (RunRecord, folder_lock, make_way_for_run, print_summary, run_summary,
                                       write_outputs, write_trajectories)
 from rgbdslam.slam import SLAM
@@ -133,7 +133,7 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     record.stage = "pose graph"
     t_end = time.perf_counter()  # the last frame is tracked: what follows is what the user waits for on top
     c_end = time.process_time()
-    final = slam.finish()
+    final = as_written(slam.finish())  # the poses trajectory.tum holds: the map, map file and evaluation use them
     after = {"pose_graph": time.perf_counter() - t_end}
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
     summary["first_frame_s"] = run.first_frame_s

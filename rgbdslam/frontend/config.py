@@ -49,7 +49,9 @@ class MatchingConfig:
     prefilter_iterations: Annotated[int, Positive(20_000, "RANSAC iterations of the pre-filter")] = 200
     min_depth: Annotated[float, AtMost(1000.0,
         "metres: key points with depth outside [min_depth, max_depth] are not used")] = 0.1
-    max_depth: Annotated[float, Positive(1000.0, "metres: see min_depth")] = 6.0
+    max_depth: Annotated[float, Positive(1000.0,
+        "metres: see min_depth; 10 = a Kinect's range (its depth images end there): the room's far points, 6-10 m "
+        "on TUM fr3/teddy, are the ones that separate rotation from sideways translation (docs/landmarks.md)")] = 10.0
     depth_edge_radius: Annotated[int, AtMost(32,
         "key points at depth discontinuities: a key point whose (2r+1)^2 depth neighbourhood has a missing pixel or "
         "one differing from its own depth by more than depth_edge_jump * z is flagged (FrameFeatures.edge); r is "

@@ -88,6 +88,16 @@ def format_tum(traj: Trajectory) -> str:
     return "\n".join(lines) + "\n"
 
 
+def as_written(traj: Trajectory) -> Trajectory:
+    """The trajectory as :func:`write_tum` writes it and :func:`read_tum` reads it back (9 decimals, unit
+    quaternions): what a run writes, its map, its map file and its evaluation all use these poses, so a
+    later ``fuse`` or ``evaluate`` of the written files gives the same bytes."""
+    if len(traj) == 0:
+        return traj
+    rows = np.array([[float(x) for x in line.split()] for line in format_tum(traj).splitlines()[1:]])
+    return Trajectory(rows[:, 0].copy(), pose_from_tum(rows[:, 1:4], unit_quaternions(rows[:, 4:8], "", [])))
+
+
 def write_tum(traj: Trajectory, path: str | Path) -> None:
     """Write atomically: the file is either the old one or the complete new one."""
     atomic_write_text(path, format_tum(traj))

@@ -25,7 +25,8 @@ class LandmarksConfig:
     search_radius: Annotated[float, Positive(1000.0, "pixels around a landmark's projection")] = 10.0
     max_hamming: Annotated[int, Range(0, 256, "largest Hamming distance of a landmark-to-feature descriptor match")] = 50
     max_depth: Annotated[float, Positive(1000.0,
-        "metres: landmarks further from the camera are not searched, features not mapped")] = 5.0
+        "metres: landmarks further from the camera are not searched, features not mapped; 10 = matching.max_depth's "
+        "Kinect range (far points pin the rotation: docs/landmarks.md \"Far points\")")] = 10.0
     ransac_threshold: Annotated[float, Positive(10.0, "metres: inlier distance of the map pose RANSAC")] = 0.03
     ransac_iterations: Annotated[int, Positive(20_000,
         "minimal samples drawn by the map pose RANSAC (the landmark stage runs it only when the registration's pose has "
@@ -53,10 +54,6 @@ class LandmarksConfig:
         "the map pose's key point and depth noise rescaled per frame by the robust scale of its residuals")] = True
     fuse_scale: Annotated[float, Positive(1e6,
         "fuse/filter modes: the registration's information is multiplied by this (calibrated)")] = 0.4
-    consistency_window: Annotated[int, AtMost(10**6,
-        "fuse/filter: when the two poses' disagreement (its Mahalanobis² median over the last this many frames, / "
-        "5.35) is k > 1 times what their informations say, the map pose's covariance grows until it explains the "
-        "excess (0 = off): the map pose only gets the weight its agreement with the registration supports")] = 30
     old_fraction: Annotated[float, Range(0.0, 1.0,
         "old_first: minimal samples drawn from this oldest share of the matches")] = 0.5
     # static Kalman filter of the positions; observation noise along the ray a + b z^2 (m), across it
@@ -101,8 +98,6 @@ class LandmarksConfig:
         "against them (RANSAC + reprojection refine) gives T_ij = kf_pose[i]^-1 P_j and its information (pixels, not "
         "the registration's 3-D points: far sharper at Kinect depth noise); kept as it was when fewer than "
         "loop_min_inliers agree or the pose is further than revisit_max_correction from the edge's")] = True
-    loop_refine_scaled: Annotated[bool, Key(
-        "the re-measured edge's information divided by the map pose's consistency scale")] = True
     loop_min_inliers: Annotated[int, AtMost(10**6,
         "fewer inliers: the edge stays the registration's (the older end's landmarks only at the image border: "
         "measured 11-48 mm off the truth with 46-126 inliers, 1-3 mm with 140-840)")] = 100

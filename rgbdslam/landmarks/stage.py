@@ -40,10 +40,6 @@ class LandmarkStats:
     inliers: list[int] = field(default_factory=list)
     matched: int = 0
     matched_old: int = 0  # inliers first seen >= old_age frames earlier
-    consistency: list[float] = field(default_factory=list)  # per fused frame: median chi2 / 5.35
-
-
-CHI2_MEDIAN_6DOF = 5.348  # median of a chi-square distribution with 6 degrees of freedom
 
 
 def _close(A: np.ndarray, B: np.ndarray, metres: float, degrees: float) -> bool:
@@ -104,8 +100,6 @@ class LandmarkTracker:
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (frame, inlier feats, inlier ids)
         self._last_matches = None  # this frame's descriptor matches to the map (MapMatch)
         self._cov: np.ndarray | None = None  # mode 'filter': 6x6 covariance of the last output pose
-        self._chi2: list[float] = []  # the last frames' registration-vs-map Mahalanobis² (consistency_window)
-        self._map_scale = 1.0  # the last consistency scale of the map pose's covariance (loop_refine uses it)
 
     # ---------------------------------------------------------------- the stage protocol
     def on_tracked(self, frame, result, pose: np.ndarray) -> dict[int, np.ndarray]:
@@ -184,9 +178,6 @@ class LandmarkTracker:
             self._cov = np.linalg.inv(H_pred) if filt and res is None and H_pred is not None else None
             return pose if res is None else self._accept(index, feats, res)
         if c.mode in ("fuse", "filter"):
-            if c.consistency_window > 0:
-                self._map_scale = self._consistency(pose, H_pred, res.pose, res.information)
-                res.information = res.information / self._map_scale
             res.pose = fuse_poses(pose, H_pred, res.pose, res.information)
             self._cov = np.linalg.inv(H_pred + res.information) if filt else None
         return self._accept(index, feats, res)
@@ -269,31 +260,6 @@ class LandmarkTracker:
         self.stats.stale_left_out += int(stale.sum())
         return cur, res_cur, len(cur.lm) >= c.min_inliers
 
-    def _consistency(self, P_reg: np.ndarray, H_reg: np.ndarray, P_map: np.ndarray, H_map: np.ndarray) -> float:
-        """The factor the map pose's information is divided by (≥ 1). The two poses' disagreement
-        η = Log(P_reg⁻¹ P_map) has the covariance C = H_reg⁻¹ + H_map⁻¹ when both informations are
-        right, so its Mahalanobis² has the median 5.35 (χ², 6 dof). k = the median over the last
-        ``consistency_window`` frames / 5.35 says the disagreement is k times the assumed one; the
-        excess is put on the map pose (its errors on real frames — landmarks made from drifting poses,
-        rolling shutter — do not show in its residuals, the registration's are already calibrated by
-        ``fuse_scale``): with r = tr(C⁻¹ H_map⁻¹) / 6, the map's share of the whitened disagreement,
-        Σ_reg + s Σ_map is k times C for 1 - r + s r = k, s = 1 + (k - 1) / r (medians of k and r;
-        1 while k ≤ 1 or fewer than 5 frames are in; docs/landmarks.md "What each step does")."""
-        eta, C = _disagreement(P_reg, H_reg, P_map, H_map)
-        S_map = np.linalg.inv(H_map)
-        share = float(np.trace(np.linalg.solve(C, S_map))) / 6.0  # the map's part of the whitened disagreement
-        self._chi2.append((float(eta @ np.linalg.solve(C, eta)), share))
-        del self._chi2[: max(0, len(self._chi2) - self.cfg.consistency_window)]
-        if len(self._chi2) < 5:
-            return 1.0
-        k = float(np.median([m for m, _ in self._chi2])) / CHI2_MEDIAN_6DOF
-        self.stats.consistency.append(k)
-        if k <= 1.0:
-            return 1.0
-        # Σ_reg + s Σ_map must be k times the assumed sum: 1 - r + s r = k (r = the map's share)
-        r = max(float(np.median([x for _, x in self._chi2])), 1e-3)
-        return max(1.0 + (k - 1.0) / r, 1.0)
-
     def _accept(self, index: int, feats, res) -> np.ndarray:
         """The frame is placed by the map: statistics, and its matches re-observe their landmarks."""
         c = self.cfg
@@ -327,8 +293,7 @@ class LandmarkTracker:
         matched within ``loop_search_radius`` px, and the frame's pose against them (RANSAC + reprojection
         refine, as a map pose) gives T_ij = kf_pose[i]⁻¹ · P and the refine's information. The edge as it
         was when i is not a keyframe of the map, fewer than ``loop_min_inliers`` agree, or the pose is further
-        than ``revisit_max_correction`` / ``_deg`` from the edge's. ``loop_refine_scaled``: the information
-        divided by the consistency scale of the map poses at this frame."""
+        than ``revisit_max_correction`` / ``_deg`` from the edge's."""
         from dataclasses import replace
 
         c = self.cfg
@@ -345,10 +310,7 @@ class LandmarkTracker:
             return edge
         self.stats.loops_refined += 1
         self.stats.loop_refine_moves.append(float(np.linalg.norm((inv(P0) @ res.pose)[:3, 3])))
-        # the information as a map pose's: divided by the consistency scale the map poses get now (its
-        # over-confidence on real frames: docs/landmarks.md; 1 without it)
-        H = res.information / (self._map_scale if c.loop_refine_scaled else 1.0)
-        return replace(edge, T_ij=inv(A) @ res.pose, information=H, n_inliers=int(len(res.lm)))
+        return replace(edge, T_ij=inv(A) @ res.pose, information=res.information, n_inliers=int(len(res.lm)))
 
     def end_frame(self, index: int) -> None:
         """The end of frame ``index``'s map step: culling."""
@@ -410,7 +372,6 @@ class LandmarkTracker:
             "stale_left_out": s.stale_left_out, "stale_joined": s.stale_joined, "loops_held": s.loops_held,
             "loops_refined": s.loops_refined, "loops_kept": s.loops_kept,
             "loop_refine_median_m": round(float(np.median(s.loop_refine_moves)), 4) if s.loop_refine_moves else 0.0,
-            "consistency_median": round(float(np.median(s.consistency)), 3) if s.consistency else None,
             "median_inliers": float(np.median(s.inliers)) if s.inliers else 0.0,
             "old_share": round(s.matched_old / s.matched, 4) if s.matched else 0.0,
             "old_age": self.cfg.old_age, "store": self.cfg.store, "store_trees": self.map.store.trees(),

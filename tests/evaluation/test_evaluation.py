@@ -561,3 +561,26 @@ def test_a_written_trajectory_read_back_writes_the_same_bytes(tmp_path):
     assert "-0.000000000" not in text and "0.250000000 -0.500000000 1.000000000" in text
     write_tum(read_tum(tmp_path / "a.tum"), tmp_path / "b.tum")
     assert (tmp_path / "b.tum").read_bytes() == (tmp_path / "a.tum").read_bytes()
+
+
+def test_as_written_is_exactly_what_read_tum_reads_back(tmp_path):
+    """``as_written`` gives the poses of the written file bit for bit (the ones `fuse` and `evaluate` read),
+    also for a pose that is the identity up to 1e-30 and for rounding residues of both signs."""
+    from rgbdslam.io.trajectory import Trajectory, as_written, format_tum, read_tum, write_tum
+
+    rng = np.random.default_rng(3)
+    poses = np.tile(np.eye(4), (6, 1, 1))
+    poses[0, :3, :3] += rng.normal(0, 1e-30, (3, 3))
+    poses[1, :3, 3] = [-1e-17, 2e-10, -6e-10]
+    for k in range(2, 6):
+        poses[k, :3, :3] = Rotation.from_rotvec(rng.normal(0, 1, 3)).as_matrix()
+        poses[k, :3, 3] = rng.normal(0, 3, 3)
+    traj = Trajectory(1600000000.0 + 0.033 * np.arange(6), poses)
+    write_tum(traj, tmp_path / "t.tum")
+    back = read_tum(tmp_path / "t.tum")
+    mine = as_written(traj)
+    assert np.array_equal(mine.timestamps, back.timestamps)
+    assert np.array_equal(mine.poses, back.poses)
+    assert not np.array_equal(mine.poses, traj.poses)  # it is the file's rounding, not the input
+    assert format_tum(mine) == format_tum(traj)
+    assert np.array_equal(mine.poses[0], np.eye(4))

@@ -169,30 +169,3 @@ def test_a_failed_pose_from_the_current_matches_is_not_tried_again():
     assert len(calls) == 1 and calls[0][0] >= 150 and not calls[0][1]  # the current matches: tried, failed
     s = tr.summary()
     assert s["map_poses"] == 0 and s["stale_joined"] == 0 and s["stale_left_out"] >= 150
-
-
-def test_consistency_scale_is_the_median_disagreement_over_its_chi2_median():
-    """H_reg = H_map = 2 I: the disagreement's covariance is I, so its Mahalanobis² is |η|², and the
-    map's share of it is r = tr(C⁻¹ Σ_map) / 6 = 1/2. With |η|² = 4 · 5.348 (k = 4) the map's
-    covariance must grow by s with 1 - r + s r = k: s = 1 + 3 / 0.5 = 7 (then Σ_reg + 7 Σ_map = 4 I,
-    four times the assumed sum), once 5 frames are in (1 before); a disagreement within the
-    informations (|η|² = 1) never raises the map's weight (factor 1)."""
-    import gtsam
-
-    from rgbdslam.landmarks.stage import CHI2_MEDIAN_6DOF
-
-    eta = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 0.0])
-    eta *= np.sqrt(4 * CHI2_MEDIAN_6DOF / (eta @ eta))
-    A = _pose([0.1, 0, 0], [1.0, 2.0, 0.5])
-    B = A @ gtsam.Pose3.Expmap(eta).matrix()
-    tr = LandmarkTracker(LandmarksConfig(enabled=True, consistency_window=7), CAM)
-    ks = [tr._consistency(A, 2 * np.eye(6), B, 2 * np.eye(6)) for _ in range(6)]
-    assert ks[:4] == [1.0] * 4 and np.allclose(ks[4:], 7.0)
-    assert np.allclose(tr.stats.consistency, 4.0)
-    small = A @ gtsam.Pose3.Expmap(np.array([0, 0, 0, 1.0, 0, 0])).matrix()
-    tr2 = LandmarkTracker(LandmarksConfig(enabled=True, consistency_window=7), CAM)
-    assert [tr2._consistency(A, 2 * np.eye(6), small, 2 * np.eye(6)) for _ in range(6)] == [1.0] * 6
-    assert np.isclose(tr2.stats.consistency[-1], 1.0 / CHI2_MEDIAN_6DOF)
-    for _ in range(6):  # the window keeps the last 7: after 7 large ones the median is the large one
-        tr2._consistency(A, 2 * np.eye(6), B, 2 * np.eye(6))
-    assert len(tr2._chi2) == 7 and np.isclose(tr2.stats.consistency[-1], 4.0)

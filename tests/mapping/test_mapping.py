@@ -516,19 +516,16 @@ def test_canonical_order_equals_a_full_lexsort_on_vertices_that_share_steps():
 
 @pytest.mark.data
 def test_two_fusions_of_one_run_are_byte_identical(desk9, tmp_path):
-    """A real run's map fused again (twice): cloud, mesh and 2-D map are the same bytes. The run is the
-    frame-to-frame chain (`thesis`): with the landmark map (the default) the live map's cloud.ply and a
-    re-fusion differ by one float32 step on ~2 % of the points (fr1/desk 9 frames; the same with
-    --set landmarks.enabled=true before the landmark map was the default), an open difference between
-    the live map's in-memory final poses and the ones `fuse` reads back (frame 0's final pose there
-    is the identity +- 1e-30, exactly the identity in the thesis chain)."""
+    """A real run's map (the default chain, the live map) fused again (twice): cloud, mesh and 2-D map
+    are the same bytes. The run hands its map the poses trajectory.tum holds (``as_written``), the ones
+    `fuse` reads back; with the in-memory poses the cloud differed by one float32 step on ~2 % of the
+    points (frame 0's final pose the identity +- 1e-30)."""
     from click.testing import CliRunner
 
     from rgbdslam.cli import main
 
     run = tmp_path / "run"
-    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), "-q", "--set", "output.plots=false",
-                                    "-c", "thesis"])
+    res = CliRunner().invoke(main, ["run", str(desk9), "--out", str(run), "-q", "--set", "output.plots=false"])
     assert res.exit_code == 0, res.output
     first = {p.name: p.read_bytes() for p in (run / "map").iterdir()}
     assert {"cloud.ply", "mesh.ply", "map2d.png"} <= set(first)
