@@ -74,8 +74,7 @@ def configs() -> dict[str, list[str]]:
                                   ("ISVD+LC+DIF", "isvd", True, True), ("ISLAM", "islam", False, False),
                                   ("best (ISLAM+LC)", "islam", True, False), ("ISLAM+LC+DIF", "islam", True, True)]:
         out[name] = [f"registration.method={method}", f"loop.enabled={on[lc]}", f"backend.enabled={on[lc]}",
-                     f"depth_filter.enabled={on[dif]}", "landmarks.enabled=false",  # the thesis' chains
-                     "loop.stop_at_first=false"]
+                     f"depth_filter.enabled={on[dif]}", "landmarks.enabled=false"]  # the thesis' chains
     # the landmark map on top of the best: fused with ISLAM, alone (seed mode),
     # and its ablations (Kalman off, uniform RANSAC sampling, single k-d tree); docs/landmarks.md "The ablation"
     for name, sets in [("ISLAM+LC+landmarks", []), ("… seed mode", ["landmarks.mode=seed"]),

@@ -47,9 +47,7 @@ class LoopConfig:
     min_inliers: Annotated[int, Range(3, 10**9, "inliers a loop's registration needs")] = 40
     max_residual: Annotated[float, Positive(10.0, "metres: largest mean residual of an accepted loop registration")] = 0.02
     max_loops_per_frame: Annotated[int, Positive(100, "loop edges added per query frame")] = 1
-    stop_at_first: Annotated[bool, Key(
-        "verify candidates in vote order and stop at max_loops_per_frame loops (false: verify all max_candidates and "
-        "keep the most inliers; the thesis preset)")] = True
+    stop_at_first: Annotated[bool, Key("verify candidates in vote order and stop at max_loops_per_frame loops")] = False
     # agreement with the current estimate: |T_loop - T_est| < bound + drift_ratio * travelled
     consistency_translation: Annotated[float, Positive(10000.0,
         "metres: a loop may disagree with the estimate this much (+ drift ratio)")] = 0.3

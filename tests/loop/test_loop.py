@@ -369,7 +369,6 @@ def test_stop_at_first_verifies_fewer_candidates_but_not_while_relocalising(mapp
     first sound one (most votes) ends the search, except while relocalising (every match counts)."""
     lc, places, poses, rng = mapped
     lc.lc.skip_recent = 0
-    lc.lc.stop_at_first = False  # the thesis': every candidate verified, the most inliers kept
     world = np.vstack([transform_points(poses[k], places[k][0]) for k in (0, 1)])
     desc = np.vstack([places[0][1], places[1][1]])
     pose = make_pose(np.eye(3), [0.25, 0.0, -1.5])  # backed off so that both places are in view
