@@ -152,11 +152,10 @@ class SLAM:
         depth = self._filter_depth(frame, pose, restart)  # DIF: filtered depth for the map and the references
         if restart:  # a new segment, to be relocalised
             self._restart(frame)
-        moved = self.keyframe_policy.is_keyframe(frame.index, pose)  # a keyframe by motion
-        loops, map_edges = self._detect_loops(frame, result, pose, moved)
+        loops, map_edges = self._detect_loops(frame, result, pose)
         for s in self.stages:
             loops = self._timed(s.name, s.on_loops, frame, result, loops)
-        is_kf, loops = self._keyframe(frame, pose, moved, restart, loops, map_edges)
+        is_kf, loops = self._keyframe(frame, pose, restart, loops, map_edges)
         for s in self.stages:  # the frame's last step in each stage (keyframe: new landmarks)
             pose = self._apply(frame, result, pose, self._timed(s.name, s.on_frame, frame, result, pose, is_kf))
         self._record(frame, result, pose, depth, is_kf)  # frame record; a keyframe: graph, loop closer, live map
@@ -199,11 +198,11 @@ class SLAM:
         if self.loop is not None:
             self.loop.new_segment()
 
-    def _keyframe(self, frame: Frame, pose: np.ndarray, is_kf: bool, restart: bool, loops: list,
-                  map_edges: list) -> tuple[bool, list]:
+    def _keyframe(self, frame: Frame, pose: np.ndarray, restart: bool, loops: list, map_edges: list) -> tuple[bool, list]:
         """Whether the frame is a keyframe — by motion, or forced (a loop edge or a segment's first pose
         needs a graph node; map-tracking edges force one only every ``loop.map_track_keyframe_every``-th
         anchored frame, else they are re-expressed to the last keyframe) — and the edges to add."""
+        is_kf = self.keyframe_policy.is_keyframe(frame.index, pose)
         to_last = False
         if map_edges and not (is_kf or loops or restart or self._last_kf is None):
             every = self.cfg.loop.map_track_keyframe_every
@@ -260,7 +259,7 @@ class SLAM:
         self.observer.log_filtered_depth(frame.index, frame.timestamp, depth)
         return depth
 
-    def _detect_loops(self, frame: Frame, result: TrackResult, pose: np.ndarray, moved: bool) -> tuple[list, list]:
+    def _detect_loops(self, frame: Frame, result: TrackResult, pose: np.ndarray) -> tuple[list, list]:
         """The loop closer's edges, and (localising) the map tracker's."""
         if self.loop is None:
             return [], []
@@ -270,7 +269,7 @@ class SLAM:
         self.observer.log_gate(frame.index, frame.timestamp, *self.loop.gate.last, sharp)
         loops = []
         # relocalising: every frame searches the older segments; due: none searched for query_gap frames
-        if self.loop.wants(frame.index, sharp, moved):
+        if sharp or self.loop.relocalizing or self.loop.due(frame.index):
             loops = self.loop.detect(result.features, pose)
         self.state.add_time("loop_closure", time.perf_counter() - t0)
         map_edges = []

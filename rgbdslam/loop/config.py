@@ -27,11 +27,6 @@ class LoopConfig:
         "also search a frame when none of the last query_gap frames was searched (0 = sharp frames only, the thesis' "
         "gate): where every frame is equally sharp the gate never opens and a revisit goes unnoticed (docs/slam.md, "
         "benchmarks.md \"Synthetic variants\")")] = 5
-    query: Annotated[Literal["sharp", "keyframes"], Key(
-        "which frames are searched for loops: \"sharp\" = sharp frames (the gate) and due ones (query_gap); "
-        "\"keyframes\" = the frames the keyframe policy makes keyframes by their motion (a loop then never forces a "
-        "keyframe of its own; docs/speed.md \"Loop closure\"). A relocalising segment searches every frame either "
-        "way")] = "sharp"
     # candidate search
     index: Annotated[Literal["lsh", "brute"], Key(
         "keyframe descriptor index for the candidate search (lsh or brute force)")] = "lsh"

@@ -110,13 +110,6 @@ class LoopCloser:
         gap = self.lc.query_gap
         return gap > 0 and index - self._last_query >= gap
 
-    def wants(self, index: int, sharp: bool, keyframe: bool) -> bool:
-        """Whether frame ``index`` is searched: every frame while relocalising; else by ``loop.query``
-        ("sharp": a sharp or due frame; "keyframes": a keyframe by motion)."""
-        if self.relocalizing:
-            return True
-        return keyframe if self.lc.query == "keyframes" else sharp or self.due(index)
-
     def observe(self, features) -> bool:
         """Update the sharpness gate with the frame's measure (``features.n_detected`` or the
         sum of its ORB responses, see ``loop.sharpness_measure``); True when the frame is sharp."""

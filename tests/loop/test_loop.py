@@ -292,21 +292,6 @@ def test_query_gap_makes_a_search_due():
     assert not LoopCloser(cfg.loop, register=lambda *a: None).due(1000)
 
 
-def test_query_chooses_the_searched_frames():
-    """loop.query: "sharp" searches sharp and due frames, "keyframes" the keyframes by motion; a
-    relocalising segment searches every frame either way."""
-    cfg = loop_config()
-    cfg.loop.query_gap = 3
-    lc = LoopCloser(cfg.loop, register=lambda *a: None)
-    assert [lc.wants(1, s, k) for s, k in ((True, False), (False, True), (False, False))] == [True, False, False]
-    assert lc.wants(3, False, False)  # due: nothing searched in query_gap frames
-    cfg.loop.query = "keyframes"
-    assert [lc.wants(1, s, k) for s, k in ((True, False), (False, True), (False, False))] == [False, True, False]
-    assert not lc.wants(3, False, False)  # the floor is the sharp frames' only
-    lc.relocalizing = True
-    assert lc.wants(4, False, False) and lc.wants(5, True, False)
-
-
 def test_observe_uses_the_configured_measure():
     from types import SimpleNamespace
 
