@@ -394,8 +394,8 @@ def make_trajectory(motion: str, frames: int, phase: float = 0.0) -> np.ndarray:
     orbit: a slow hand-held orbit around the textured figure of the orbit scene
     (:func:`scene_surfaces`), as TUM fr3/teddy: the camera swings ±50° about the figure at
     :data:`ORBIT_RADIUS` (period 10 s; 0.3 m/s mean, ~12 mm per frame), bobbing up and down and
-    in and out a little, always looking at the figure; its key points lie 0.6-1.1 m away, the
-    room behind is bare;
+    in and out a little, always looking at the figure; most key points lie 0.6-1.1 m away, the
+    rest on the hall's door and window frames 6-10 m away (the orbit's depth reaches 10 m);
     static: no motion.
     """
     return trajectory_at(motion, np.arange(frames, dtype=np.float64), frames, phase)
@@ -778,7 +778,7 @@ def generate_sequence(
 
     ``noise``: Kinect-like axial depth noise and colour noise (sigma 2 grey levels);
     ``dropout``: fraction of depth pixels lost in blob-shaped holes; with either, depth
-    beyond 4.5 m is invalid. ``drift``: systematic relative depth error, written depth =
+    beyond 4.5 m (the orbit: 10 m) is invalid. ``drift``: systematic relative depth error, written depth =
     true depth * (1 + drift) (undo it with ``dataset.depth_correction = 1 / (1 + drift)``).
     All randomness is seeded by ``seed`` (the scene's textures too: one seed, one scene).
     ``phase`` starts the motion further along its path and ``time_offset`` (s) shifts the time

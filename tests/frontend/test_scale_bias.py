@@ -3,7 +3,7 @@ points on the figure's outline shorten every frame-to-frame translation (docs/fr
 when every key point used lies on the figure. The orbit's hall has textured door and window frames
 6-10 m away; with ``matching.max_depth`` 6 m they are dropped, and with the depth-edge flags (radius per
 pyramid level) left out of each registration's pose fit the Sim(3) scale of the odometry is 1.026 at the
-default (radius 2, 15 % jump) and 1.012 at radius 3 with a 5 % jump (1.17 without). With the far frames
+default (radius 2, 15 % jump; 1.051 with the former radius 1 and 5 % jump) and 1.012 at radius 3 with a 5 % jump (1.17 without). With the far frames
 in (the default 10 m) the scale is 1.002 even without the flags: far points pin the rotation, so the
 outline points can no longer trade translation for it."""
 
