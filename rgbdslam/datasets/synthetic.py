@@ -95,14 +95,26 @@ def _box(name, cx, cy, sx, sy, sz, z0=0.0) -> list[Surface]:
 # the orbit motion's object: a textured figure on a pedestal in the middle of the room (x, y centre)
 ORBIT_CENTRE = np.array([0.0, 0.0, 0.95])  # the point the camera looks at
 ORBIT_RADIUS = 0.9  # metres from the camera to the figure's axis (the figure's front 0.6-0.8 m away)
+# the orbit's room is a hall (TUM fr3/teddy's): the walls the camera faces lie 6-10 m away
+ORBIT_ROOM = (np.array([-3.0, -6.5, 0.0]), np.array([7.5, 6.5, 3.0]))
+ORBIT_RANGE = 10.0  # the orbit's sensor gives depth to 10 m (a Kinect's range, as in fr3/teddy)
+FRAME_WIDTH = 0.2  # metres: the width of a door or window frame's textured strips
+FRAME_TEXEL = 0.015  # their texture is coarser, legible from 6-10 m (~15 mm per pixel at 8 m)
+# door (True) and window (False) frames of the orbit's hall: the wall (x or y, at the room's high or low
+# end), the position of the opening's left edge along the wall, its bottom, width and height (metres)
+ORBIT_OPENINGS = (
+    ("x", 1, -4.2, 0.0, 1.0, 2.1), ("x", 1, -1.2, 0.9, 1.6, 1.2), ("x", 1, 2.6, 0.0, 1.0, 2.1),
+    ("y", 1, 3.0, 0.9, 1.4, 1.2), ("y", 0, 2.0, 0.0, 1.0, 2.1), ("y", 0, 5.0, 0.9, 1.4, 1.2),
+)
 
 
 def scene_surfaces(motion: str | None = None) -> list[Surface]:
     """The fixed room layout (textures depend on the seed, geometry does not). ``orbit``: the
     same room with bare walls, floor and ceiling, no boxes, and a textured figure (a pedestal,
     a body and a head, turned 30° about the vertical) in its middle, as TUM fr3/teddy: a near,
-    textured object in front of a far, bare room."""
-    (x0, y0, z0), (x1, y1, z1) = ROOM
+    textured object in front of a far, bare room: its room is a hall (:data:`ORBIT_ROOM`), bare but
+    for a few textured door and window frames (:data:`ORBIT_OPENINGS`) 6-10 m from the camera."""
+    (x0, y0, z0), (x1, y1, z1) = ORBIT_ROOM if motion == "orbit" else ROOM
     room = [
         _rect("floor", (x0, y0, z0), (x1, y0, z0), (x0, y1, z0)),
         _rect("ceiling", (x0, y0, z1), (x1, y0, z1), (x0, y1, z1)),
@@ -120,7 +132,7 @@ def scene_surfaces(motion: str | None = None) -> list[Surface]:
         turn = _rot(2, np.radians(30.0))
         for f in figure:
             f.origin, f.u, f.v = turn @ f.origin, turn @ f.u, turn @ f.v
-        return room + figure + [panel_a]
+        return room + figure + [panel_a] + _orbit_openings()
     s = room + [panel_a, _rect("panel_b", (-3.0, 1.6, 0.5), (-2.1, 2.5, 0.5), (-3.0, 1.6, 2.4))]
     s += _box("box1", 2.2, 1.2, 0.8, 1.0, 0.9)
     s += _box("box2", 2.3, -1.3, 0.6, 0.6, 1.4)
@@ -129,6 +141,28 @@ def scene_surfaces(motion: str | None = None) -> list[Surface]:
     s += _box("box5", 0.5, 2.0, 1.2, 0.5, 0.8)
     s += _box("box6", 0.2, -2.1, 0.6, 0.4, 1.6)
     return s
+
+
+def _orbit_openings() -> list[Surface]:
+    """The textured frames of :data:`ORBIT_OPENINGS`: strips of :data:`FRAME_WIDTH` standing 3 cm
+    in front of their (bare) wall: two jambs and a lintel for a door, a sill as well for a window."""
+    lo, hi = ORBIT_ROOM
+    out = []
+    for k, (axis, end, a0, b0, w, h) in enumerate(ORBIT_OPENINGS):
+        inward = 0.03 if end == 0 else -0.03
+        if axis == "x":  # along y on the wall x = const
+            at = lambda a, b, c=(hi if end else lo)[0] + inward: np.array([c, a, b])  # noqa: E731
+        else:  # along x on the wall y = const
+            at = lambda a, b, c=(hi if end else lo)[1] + inward: np.array([a, c, b])  # noqa: E731
+        f = FRAME_WIDTH
+        strips = [(a0 - f, b0, f, h + f), (a0 + w, b0, f, h + f), (a0, b0 + h, w, f)]
+        if b0 > 0:  # a window: its sill
+            strips.append((a0, b0 - f, w, f))
+        for j, (sa, sb, sw, sh) in enumerate(strips):
+            r = _rect(f"opening{k}_{j}", at(sa, sb), at(sa + sw, sb), at(sa, sb + sh))
+            r.texel = FRAME_TEXEL
+            out.append(r)
+    return out
 
 
 def bare_texture(h: int, w: int, rng: np.random.Generator) -> np.ndarray:
@@ -360,8 +394,8 @@ def make_trajectory(motion: str, frames: int, phase: float = 0.0) -> np.ndarray:
     orbit: a slow hand-held orbit around the textured figure of the orbit scene
     (:func:`scene_surfaces`), as TUM fr3/teddy: the camera swings ±50° about the figure at
     :data:`ORBIT_RADIUS` (period 10 s; 0.3 m/s mean, ~12 mm per frame), bobbing up and down and
-    in and out a little, always looking at the figure; its key points lie 0.6-1.1 m away, the
-    room behind is bare;
+    in and out a little, always looking at the figure; most key points lie 0.6-1.1 m away, the
+    rest on the hall's door and window frames 6-10 m away (the orbit's depth reaches 10 m);
     static: no motion.
     """
     return trajectory_at(motion, np.arange(frames, dtype=np.float64), frames, phase)
@@ -707,15 +741,17 @@ def _replace_folder(new: Path, out: Path, generated: tuple[str, ...] = GENERATED
             Manifest(out).record(generated, SEQUENCE)
 
 
-def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, drift: float, rng) -> None:
-    """Apply the sensor effects to one rendered frame and write its two PNGs."""
+def _write_frame(out: Path, name: str, rendered, noise: bool, dropout: float, drift: float, rng,
+                 max_range: float = MAX_RANGE) -> None:
+    """Apply the sensor effects to one rendered frame and write its two PNGs (with noise or dropout,
+    no depth beyond ``max_range``)."""
     rgb, depth, _ = rendered
     if noise:
         rgb = np.clip(rgb + rng.normal(0.0, 2.0, rgb.shape), 0, 255).astype(np.uint8)
         depth = kinect_noise(depth, rng)
     depth = depth * (1.0 + drift)
     if noise or dropout > 0:
-        depth[(depth > MAX_RANGE) | dropout_mask(depth.shape, dropout, rng)] = 0.0
+        depth[(depth > max_range) | dropout_mask(depth.shape, dropout, rng)] = 0.0
     raw = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
     write_png(out / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), compression=1)
     write_png(out / "depth" / name, raw, compression=1)
@@ -742,7 +778,7 @@ def generate_sequence(
 
     ``noise``: Kinect-like axial depth noise and colour noise (sigma 2 grey levels);
     ``dropout``: fraction of depth pixels lost in blob-shaped holes; with either, depth
-    beyond 4.5 m is invalid. ``drift``: systematic relative depth error, written depth =
+    beyond 4.5 m (the orbit: 10 m) is invalid. ``drift``: systematic relative depth error, written depth =
     true depth * (1 + drift) (undo it with ``dataset.depth_correction = 1 / (1 + drift)``).
     All randomness is seeded by ``seed`` (the scene's textures too: one seed, one scene).
     ``phase`` starts the motion further along its path and ``time_offset`` (s) shifts the time
@@ -808,6 +844,7 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
     exposure = exposure_frames(params.get("motion_blur", {}).get("exposure_ms", 0.0))
     delay = params.get("depth_delay", 0.0)
     pose_at = lambda u: trajectory_at(params["motion"], u, frames, params.get("phase", 0.0))  # noqa: E731
+    max_range = ORBIT_RANGE if params["motion"] == "orbit" else MAX_RANGE
     streaks = []
     with frame_progress(frames, f"rendering {frames} frames", enabled=progress) as advance:
         for k in range(frames):
@@ -815,7 +852,7 @@ def _render_into(out: Path, cam: Camera, poses: np.ndarray, params: dict, progre
             if delay:  # the depth image of the pose ``delay`` later
                 rendered[1] = scene.render(rays, pose_at(np.array([k + delay * FPS]))[0])[1]
             streaks.append(streak)
-            _write_frame(out, names[k], rendered, noise, dropout, drift, rng)
+            _write_frame(out, names[k], rendered, noise, dropout, drift, rng, max_range)
             advance()
     record_streaks(params, streaks)
     atomic_write_text(out / "synthetic.yaml", yaml.safe_dump({"generator": "rgbdslam synthetic v1", **params}, sort_keys=False))

@@ -23,6 +23,7 @@ from rgbdslam.datasets.synthetic import (
     render_exposure,
     revisit_ranges,
     scaled_camera,
+    scene_surfaces,
     trajectory_at,
 )
 from rgbdslam.datasets.synthetic_stereo import generate_stereo_sequence
@@ -226,3 +227,24 @@ def test_bench_landmarks_takes_the_visits_from_synthetic_yaml(tmp_path):
     assert mod.visit_ranges(tmp_path, 140) == (range(0, 21), range(119, 140))  # not this sequence's: fallback
     assert mod.visit_ranges(tmp_path / "none", 100) == (range(0, 15), range(85, 100))
     assert "revisit" in mod.LOOP_TYPE and "figure8" in mod.LOOP_TYPE
+
+
+def test_orbit_hall_is_far_and_bare_but_for_a_few_frames(tmp_path):
+    """The orbit's room is fr3/teddy's: beyond the near figure a quarter of the image is room 6-10 m
+    away, bare but for door and window frames (a tenth of those pixels, all 6-10 m away); the written
+    depth keeps them (the orbit's sensor reaches 10 m), while the other motions' stops at 4.5 m."""
+    surfaces = scene_surfaces("orbit")
+    bare = np.array([s.bare for s in surfaces])
+    scene, rays = Scene(0, surfaces), Rays(scaled_camera("ros_default", 640, 480))
+    for pose in make_trajectory("orbit", 60)[::30]:
+        _, depth, ids = scene.render(rays, pose)
+        far = depth > 6.0
+        textured = far & ~bare[ids]
+        assert 0.15 < far.mean() < 0.5
+        assert 0.03 < textured.sum() / far.sum() < 0.2  # sparse: most far pixels are bare wall and floor
+        assert 6.0 < depth[textured].min() and depth[textured].max() < 10.0
+    generate_sequence(tmp_path / "orbit", frames=2, motion="orbit", noise=True, seed=0)
+    generate_sequence(tmp_path / "loop", frames=2, motion="loop", noise=True, seed=0)
+    depth = lambda name: cv2.imread(str(next((tmp_path / name / "depth").iterdir())), cv2.IMREAD_UNCHANGED) / 5000.0  # noqa: E731
+    assert (depth("orbit") > 6.0).mean() > 0.1 and depth("orbit").max() <= 10.0
+    assert depth("loop").max() <= 4.5
