@@ -199,10 +199,15 @@ RETIRED = {
     # options that measured no gain, removed with their code
     **{f"landmarks.{k}": _no_gain('docs/landmarks.md "Removed options"') for k in (
         "anchor_age", "anchor_edges", "anchor_info_scale", "anchor_min_landmarks", "ba_every", "ba_handover",
-        "ba_noise_scale", "ba_worker", "consistency_floor", "consistency_window", "drift_sigma", "global_ba",
+        "ba_noise_scale", "ba_worker", "consistency_floor", "drift_sigma", "global_ba",
         "global_ba_frames", "global_ba_iterations", "global_ba_odometry", "graph_information", "loop_correct",
-        "loop_refine_scaled", "match_old_bonus", "observe", "ransac_confidence", "revisit_min_inliers",
+        "match_old_bonus", "observe", "ransac_confidence", "revisit_min_inliers",
         "revisit_radius", "sigma_px_scale")},
+    # the fusion's consistency scale: without it the fused pose is better where the registration is the one off
+    **{f"landmarks.{k}": ('the fusion takes both estimates\' information as it is; the consistency scale that blamed '
+                          'the map pose for every disagreement was removed (docs/landmarks.md "Far points")')
+       for k in ("consistency_window", "loop_refine_scaled")},
+    "loop.query": _no_gain('docs/speed.md "Work that decides nothing"'),
     # the windowed local BA at keyframes: worse than none on the fast synthetic motions (docs/landmarks.md)
     **{f"landmarks.{k}": _no_gain('docs/landmarks.md "Local BA, removed"') for k in (
         "local_ba", "ba_window", "ba_iterations", "ba_solver", "ba_max_landmarks", "ba_baseline", "ba_huber",

@@ -133,7 +133,7 @@ def _finish_run(seq: Sequence, out_dir: Path, cfg: Config, progress: bool, recor
     record.stage = "pose graph"
     t_end = time.perf_counter()  # the last frame is tracked: what follows is what the user waits for on top
     c_end = time.process_time()
-    final = as_written(slam.finish())  # the poses trajectory.tum holds: the map, map file and evaluation use them
+    final = as_written(slam.finish())  # the poses trajectory.tum holds: the outputs, live map and evaluation use them
     after = {"pose_graph": time.perf_counter() - t_end}
     summary = run_summary(seq, slam, run.frames, run.wall, run.load_time, run.interrupted)
     summary["first_frame_s"] = run.first_frame_s

@@ -109,11 +109,11 @@ ORBIT_OPENINGS = (
 
 
 def scene_surfaces(motion: str | None = None) -> list[Surface]:
-    """The fixed room layout (textures depend on the seed, geometry does not). ``orbit``: the
-    same room with bare walls, floor and ceiling, no boxes, and a textured figure (a pedestal,
-    a body and a head, turned 30° about the vertical) in its middle, as TUM fr3/teddy: a near,
-    textured object in front of a far, bare room: its room is a hall (:data:`ORBIT_ROOM`), bare but
-    for a few textured door and window frames (:data:`ORBIT_OPENINGS`) 6-10 m from the camera."""
+    """The fixed room layout (textures depend on the seed, geometry does not). ``orbit``: a
+    hall (:data:`ORBIT_ROOM`) with bare walls, floor and ceiling, no boxes, a few textured door and window
+    frames (:data:`ORBIT_OPENINGS`) 6-10 m from the camera, and a textured figure (a pedestal, a body and
+    a head, turned 30° about the vertical) in its middle, as TUM fr3/teddy: a near, textured object in
+    front of a far, mostly bare room."""
     (x0, y0, z0), (x1, y1, z1) = ORBIT_ROOM if motion == "orbit" else ROOM
     room = [
         _rect("floor", (x0, y0, z0), (x1, y0, z0), (x0, y1, z0)),

@@ -90,8 +90,9 @@ def format_tum(traj: Trajectory) -> str:
 
 def as_written(traj: Trajectory) -> Trajectory:
     """The trajectory as :func:`write_tum` writes it and :func:`read_tum` reads it back (9 decimals, unit
-    quaternions): what a run writes, its map, its map file and its evaluation all use these poses, so a
-    later ``fuse`` or ``evaluate`` of the written files gives the same bytes."""
+    quaternions): a run's trajectory files, its live map and its evaluation use these poses, so a later
+    ``fuse`` or ``evaluate`` of the written files gives the same bytes (the map file keeps the pose graph's
+    keyframe poses as optimised)."""
     if len(traj) == 0:
         return traj
     rows = np.array([[float(x) for x in line.split()] for line in format_tum(traj).splitlines()[1:]])

@@ -219,7 +219,9 @@ class LandmarkTracker:
         estimate of the frame's pose); None if it fails. The refine starts from ``pose``'s inliers; RANSAC
         runs only when they are too few (and never with ``seeded``): a map pose further than
         ``max_correction`` from the registration's is rejected anyway, so a hypothesis far from it could
-        not be kept, and near it the prediction's inliers are RANSAC's best hypothesis's."""
+        not be kept, and near it the prediction's inliers are RANSAC's best hypothesis's. A loop re-measure
+        (:meth:`refine_loop`, gate ``revisit_max_correction``) takes the same path: a seeded fit with at least
+        ``min_inliers`` but fewer than ``loop_min_inliers`` inliers keeps the edge as it was."""
         res = map_pose(self.map, feats, m, pose, self.cfg, self.camera, self.rng, seeded=True)
         if res is None and not seeded:
             self.stats.ransac += 1
@@ -290,8 +292,8 @@ class LandmarkTracker:
         """Loop edge ``edge`` (keyframe i -> this frame ``index``) re-measured against the map
         (``loop_refine``): the landmarks first seen within ``loop_window`` frames of i — made and averaged
         from poses next to i, so in i's coordinates — are projected with the edge's pose kf_pose[i] · T_ij,
-        matched within ``loop_search_radius`` px, and the frame's pose against them (RANSAC + reprojection
-        refine, as a map pose) gives T_ij = kf_pose[i]⁻¹ · P and the refine's information. The edge as it
+        matched within ``loop_search_radius`` px, and the frame's pose against them (a map pose: refitted
+        from the edge's inliers, RANSAC only when fewer than ``min_inliers`` agree; reprojection refine) gives T_ij = kf_pose[i]⁻¹ · P and the refine's information. The edge as it
         was when i is not a keyframe of the map, fewer than ``loop_min_inliers`` agree, or the pose is further
         than ``revisit_max_correction`` / ``_deg`` from the edge's."""
         from dataclasses import replace

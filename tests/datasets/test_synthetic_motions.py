@@ -246,5 +246,4 @@ def test_orbit_hall_is_far_and_bare_but_for_a_few_frames(tmp_path):
     generate_sequence(tmp_path / "orbit", frames=2, motion="orbit", noise=True, seed=0)
     generate_sequence(tmp_path / "loop", frames=2, motion="loop", noise=True, seed=0)
     depth = lambda name: cv2.imread(str(next((tmp_path / name / "depth").iterdir())), cv2.IMREAD_UNCHANGED) / 5000.0  # noqa: E731
-    assert (depth("orbit") > 6.0).mean() > 0.1 and depth("orbit").max() <= 10.0
-    assert depth("loop").max() <= 4.5
+    assert (depth("orbit") > 6.0).mean() > 0.1  # written, not clipped at the other motions' 4.5 m
