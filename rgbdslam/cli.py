@@ -551,7 +551,8 @@ def _icl_groundtruth_file(path: Path, tmp: Path) -> Path:
               default="xyz", show_default=True,
               help="Camera motion; 'loop' returns to and revisits the start view; 'figure8' a fast figure eight "
                    "(~1 m/s, ~75 deg/s) with motion blur; 'revisit' maps a place, leaves, comes back to the same view; "
-                   "'orbit' a slow orbit around a near, textured figure in a bare hall whose few textured door and window frames lie 6-10 m away, depth to 10 m (as TUM fr3/teddy); "
+                   "'orbit' a slow orbit around a near, textured figure in a bare hall whose few textured door and window "
+                   "frames lie 6-10 m away, depth to 10 m (as TUM fr3/teddy); "
                    "'highway' (--stereo only) a car at 25-30 m/s, 10 Hz, on a road with far structure.")
 @click.option("--noise", is_flag=True, help="Kinect-like depth noise (sigma 1.2 mm + 1.9 mm (z-0.4)^2) and colour noise.")
 @click.option("--dropout", type=float, default=0.0, show_default=True, help="Fraction of depth pixels lost in holes.")

@@ -92,7 +92,8 @@ def as_written(traj: Trajectory) -> Trajectory:
     """The trajectory as :func:`write_tum` writes it and :func:`read_tum` reads it back (9 decimals, unit
     quaternions): a run's trajectory files, its live map and its evaluation use these poses, so a later
     ``fuse`` or ``evaluate`` of the written files gives the same bytes (the map file keeps the pose graph's
-    keyframe poses as optimised)."""
+    keyframe poses as optimised). Unlike :func:`read_tum` it neither checks nor sorts: the poses stay in the
+    run's frame order, which the run's records index."""
     if len(traj) == 0:
         return traj
     rows = np.array([[float(x) for x in line.split()] for line in format_tum(traj).splitlines()[1:]])

@@ -95,7 +95,8 @@ class LandmarksConfig:
     loop_refine: Annotated[bool, Key(
         "a loop edge i -> j re-measured against the landmarks first seen within loop_window frames of keyframe i: "
         "projected with the edge's pose (kf_pose[i] T_ij) and matched within loop_search_radius px, the pose of j "
-        "against them (a map pose: refitted from the edge's inliers, RANSAC when too few; reprojection refine) gives T_ij = kf_pose[i]^-1 P_j and its information (pixels, not "
+        "against them (a map pose: refitted from the edge's inliers, RANSAC when too few; reprojection refine) gives "
+        "T_ij = kf_pose[i]^-1 P_j and its information (pixels, not "
         "the registration's 3-D points: far sharper at Kinect depth noise); kept as it was when fewer than "
         "loop_min_inliers agree or the pose is further than revisit_max_correction from the edge's")] = True
     loop_min_inliers: Annotated[int, AtMost(10**6,

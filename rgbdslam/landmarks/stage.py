@@ -293,7 +293,8 @@ class LandmarkTracker:
         (``loop_refine``): the landmarks first seen within ``loop_window`` frames of i — made and averaged
         from poses next to i, so in i's coordinates — are projected with the edge's pose kf_pose[i] · T_ij,
         matched within ``loop_search_radius`` px, and the frame's pose against them (a map pose: refitted
-        from the edge's inliers, RANSAC only when fewer than ``min_inliers`` agree; reprojection refine) gives T_ij = kf_pose[i]⁻¹ · P and the refine's information. The edge as it
+        from the edge's inliers, RANSAC only when fewer than ``min_inliers`` agree; reprojection refine)
+        gives T_ij = kf_pose[i]⁻¹ · P and the refine's information. The edge as it
         was when i is not a keyframe of the map, fewer than ``loop_min_inliers`` agree, or the pose is further
         than ``revisit_max_correction`` / ``_deg`` from the edge's."""
         from dataclasses import replace
