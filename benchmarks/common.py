@@ -92,7 +92,8 @@ def run_rgbdslam(path: Path, sets: list[str] | tuple[str, ...] = (), preset: str
     """Every frame of the sequence at ``path`` through :class:`rgbdslam.slam.SLAM`, then its final
     pose graph; returns ``(Metrics, trajectory)``. ``ms`` is the median time of one frame's
     ``SLAM.track`` (its key points found inside it, as ORB-SLAM3's ``track_rgbd`` does; for a
-    stereo reader, which finds its key points while reading the pair, reading counts too)."""
+    stereo reader, which finds its key points while reading the pair, the pair's preparation counts
+    too: from the decoded images, as ORB-SLAM3's runners decode before their timer starts)."""
     from rgbdslam.datasets import open_sequence
     from rgbdslam.slam import SLAM
 
@@ -102,9 +103,12 @@ def run_rgbdslam(path: Path, sets: list[str] | tuple[str, ...] = (), preset: str
     with_reading = seq.own_key_points
     times = []
     for i in range(len(seq)):
-        t0 = time.perf_counter()
-        frame = seq.load(i)
-        if not with_reading:
+        if with_reading:  # a stereo reader: the decoded pair, then its key points and depth inside the timer
+            pair = seq.read_pair(i)
+            t0 = time.perf_counter()
+            frame = seq.frame_from_pair(i, *pair)
+        else:
+            frame = seq.load(i)
             t0 = time.perf_counter()
         slam.track(frame)
         times.append(time.perf_counter() - t0)

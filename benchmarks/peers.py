@@ -230,8 +230,9 @@ def from_json(data: list[dict]) -> list[Row]:
 NOTES = """ATE RMSE with SE(3) alignment and the Sim(3) scale correction (evo's `-as`), 1-frame RPE
 (translation RMSE), all through `rgbdslam.evaluation` (TUM association, 0.02 s). rgbdslam: every
 frame through `rgbdslam.slam.SLAM` and its final pose graph, as `rgbdslam run` (no map); its ms are
-the median `SLAM.track` per frame with its key points found inside it (on KITTI the reading of the
-pair, where the stereo reader finds them, counts too). ORB-SLAM3: `../shared/peers/orbslam3/run_orb.py`
+the median `SLAM.track` per frame with its key points found inside it (on KITTI the preparation of the
+decoded pair too, where the stereo reader finds both images' key points, at once in two threads as
+ORB-SLAM3 does; both runners decode the images before their timer starts). ORB-SLAM3: `../shared/peers/orbslam3/run_orb.py`
 (paced at the recording's rate) / `run_orb_stereo.py`, a vocabulary built from fr1/rpy, its median
 `track_rgbd` / `track_stereo`; one value per run where its runs differ. Open3D: hybrid RGB-D odometry
 frame to frame on rgbdslam's frames (undistorted, registered), no loop closure. Ratios: ATE ÷

@@ -157,7 +157,10 @@ class StereoSequence(Sequence):
         return left, right
 
     def rectified_pair(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        left, right = self.read_pair(i)
+        return self.rectify(*self.read_pair(i))
+
+    def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A raw pair (:meth:`read_pair`) rectified (as it is when the source is rectified)."""
         if self._maps is not None:
             (l1, l2), (r1, r2) = self._maps
             left = cv2.remap(left, l1, l2, cv2.INTER_LINEAR)
@@ -165,15 +168,19 @@ class StereoSequence(Sequence):
         return left, right
 
     def load(self, i: int) -> Frame:
-        from rgbdslam.frontend.features import detect
-        from rgbdslam.stereo.depth import sgbm_depth, sparse_depth
+        return self.frame_from_pair(i, *self.read_pair(i))
 
-        left, right = self.rectified_pair(i)
+    def frame_from_pair(self, i: int, left: np.ndarray, right: np.ndarray) -> Frame:
+        """Frame ``i`` from its decoded raw pair (:meth:`read_pair`): rectified, key points of both images
+        (sparse depth) and depth. :meth:`load` is this after the decoding."""
+        from rgbdslam.stereo.depth import detect_pair, sgbm_depth, sparse_depth
+
+        left, right = self.rectify(left, right)
         detections = None
         if self.method == "sparse":
-            detections = detect(left, self.features_cfg)
+            detections, right_kp = detect_pair(left, right, self.features_cfg, self.stereo_cfg)
             depth = sparse_depth(left, right, self.rig, detections.uv_raw, detections.desc, self.stereo_cfg,
-                                 self.features_cfg)
+                                 self.features_cfg, right_kp)
         else:
             depth = sgbm_depth(left, right, self.rig, self.stereo_cfg)
         try:

@@ -196,18 +196,44 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, ul: np.ndarray, vl: np
     return out, good
 
 
-def _detect_right(right: np.ndarray, fc: FeaturesConfig, factor: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """ORB key points (N, 2) and descriptors of the right image: ``factor`` times the left's budget and no
-    grid, so that a left key point's partner is found whatever the right image's own strongest corners are
+def right_key_points(right: np.ndarray, fc: FeaturesConfig, sc: StereoConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """ORB key points (N, 2) and descriptors of the right image for ``stereo.sparse_search = orb`` (None for
+    ``row``, which finds no right key points): ``stereo.right_features`` times the left's budget and no grid,
+    so that a left key point's partner is found whatever the right image's own strongest corners are
     (measured on KITTI 06 frame 5: 367 row matches instead of 268 with the left's settings). No responses,
     levels or detection count: the right image is only matched against."""
+    if sc.sparse_search != "orb":
+        return None
     import dataclasses
 
     from rgbdslam.frontend.features import orb_features
 
-    uv, desc, _, _ = orb_features(right, dataclasses.replace(fc, n_features=factor * fc.n_features, grid_rows=1,
-                                                               grid_cols=1), attributes=False)
+    uv, desc, _, _ = orb_features(to_gray(right), dataclasses.replace(
+        fc, n_features=sc.right_features * fc.n_features, grid_rows=1, grid_cols=1), attributes=False)
     return uv, desc
+
+
+_RIGHT_POOL: list = []
+_RIGHT_POOL_LOCK = threading.Lock()
+
+
+def detect_pair(left: np.ndarray, right: np.ndarray, fc: FeaturesConfig, sc: StereoConfig):
+    """The left image's detections (:func:`rgbdslam.frontend.features.detect`) and the right image's key
+    points (:func:`right_key_points`) of one pair, found at once in two threads as ORB-SLAM extracts a
+    pair's two images (OpenCV's ORB releases the GIL; each thread has its own ORB object). The same
+    values as one after the other."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from rgbdslam.frontend.features import detect
+
+    if sc.sparse_search != "orb":
+        return detect(left, fc), None
+    with _RIGHT_POOL_LOCK:
+        if not _RIGHT_POOL:  # shared by a sequence's reader threads; its threads end with the process
+            _RIGHT_POOL.append(ThreadPoolExecutor(max_workers=2, thread_name_prefix="right-orb"))
+        pool = _RIGHT_POOL[0]
+    job = pool.submit(right_key_points, right, fc, sc)
+    return detect(left, fc), job.result()
 
 
 ROW_SEARCH_BUDGET = 256 * 2**20  # bytes of one reader thread's coarse cost table (float32 disparities x rows x cols)
@@ -297,14 +323,15 @@ def coarse_row_search(left: np.ndarray, right: np.ndarray, uv_l: np.ndarray, sc:
 
 
 def sparse_matches(left: np.ndarray, right: np.ndarray, rig: StereoRig, uv_l: np.ndarray, desc_l: np.ndarray,
-                   sc: StereoConfig, fc: FeaturesConfig) -> StereoMatches:
-    """Row-matched, sub-pixel refined and triangulated left key points (see the module doc)."""
+                   sc: StereoConfig, fc: FeaturesConfig, right_kp: tuple | None = None) -> StereoMatches:
+    """Row-matched, sub-pixel refined and triangulated left key points (see the module doc); ``right_kp``:
+    the right image's :func:`right_key_points` when already found (:func:`detect_pair`)."""
     gl, gr = to_gray(left), to_gray(right)
     if sc.sparse_search == "row":
         il, ur_coarse = coarse_row_search(gl, gr, uv_l, sc)
         search = sc.search_radius + (sc.row_scale + 1) // 2  # the coarse column is good to +-row_scale/2
     else:
-        uv_r, desc_r = _detect_right(gr, fc, sc.right_features)
+        uv_r, desc_r = right_kp if right_kp is not None else right_key_points(gr, fc, sc)
         il, ir = match_rows(uv_l, desc_l, uv_r, desc_r, sc)
         ur_coarse, search = uv_r[ir, 0], sc.search_radius
     u0 = np.rint(uv_l[il, 0])
@@ -322,10 +349,10 @@ def sparse_matches(left: np.ndarray, right: np.ndarray, rig: StereoRig, uv_l: np
 
 
 def sparse_depth(left: np.ndarray, right: np.ndarray, rig: StereoRig, uv_l: np.ndarray, desc_l: np.ndarray,
-                 sc: StereoConfig, fc: FeaturesConfig) -> np.ndarray:
+                 sc: StereoConfig, fc: FeaturesConfig, right_kp: tuple | None = None) -> np.ndarray:
     """Depth image (float32 metres) that holds the triangulated depth at the matched left key
     points' rounded pixels and 0 elsewhere."""
-    m = sparse_matches(left, right, rig, uv_l, desc_l, sc, fc)
+    m = sparse_matches(left, right, rig, uv_l, desc_l, sc, fc, right_kp)
     depth = np.zeros(left.shape[:2], np.float32)
     u, v = m.uv[:, 0].astype(int), m.uv[:, 1].astype(int)
     depth[v, u] = m.points[:, 2]

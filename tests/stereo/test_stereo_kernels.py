@@ -144,3 +144,34 @@ def test_patch_sum_is_numpys_sum_bit_for_bit():
     for x in X[1:]:
         running += x
     assert not np.array_equal(running, patch_sum(X))
+
+
+@pytest.mark.data
+def test_both_images_key_points_at_once_equal_one_after_the_other_on_kitti(kitti_pairs):
+    """``detect_pair`` finds the left image's detections and the right image's key points in two threads
+    (as ORB-SLAM extracts a pair): the same values as the sequential calls, and a frame read through it
+    holds the same depth and key points as the pair prepared step by step."""
+    from rgbdslam.frontend.features import detect
+    from rgbdslam.stereo.depth import detect_pair, right_key_points, sparse_depth
+
+    sc, pairs = kitti_pairs
+    fc = load_kitti().features
+    for left, right, uv_l, desc_l, uv_r, desc_r in pairs:
+        det, (uv_r2, desc_r2) = detect_pair(left, right, fc, sc)
+        ref = detect(left, fc)
+        assert np.array_equal(det.uv_raw, ref.uv_raw) and np.array_equal(det.desc, ref.desc)
+        assert np.array_equal(det.octave, ref.octave) and det.n_detected == ref.n_detected
+        assert np.array_equal(uv_r2, uv_r) and np.array_equal(desc_r2, desc_r)
+        r = right_key_points(right, fc, sc)
+        assert np.array_equal(r[0], uv_r) and np.array_equal(r[1], desc_r)
+    from rgbdslam.datasets import open_sequence
+
+    cfg = load_kitti()
+    seq = open_sequence(need(KITTI), cfg)
+    seq.configure(cfg)
+    frame = seq.load(25)
+    left, right = seq.rectified_pair(25)
+    ref = detect(left, cfg.features)
+    depth = sparse_depth(left, right, seq.rig, ref.uv_raw, ref.desc, cfg.stereo, cfg.features)
+    assert np.array_equal(frame.depth, depth) and np.count_nonzero(depth) > 300
+    assert np.array_equal(frame.detections.desc, ref.desc)
