@@ -26,7 +26,7 @@ Usage::
      ground-truth poses (no true disparity there).
    * ``oracle``: the synthetic stereo runs again with the depth at the stereo key points replaced by
      the exact depth, the exact depth + Kinect noise, or the exact disparity + Gaussian noise, with
-     and without ``registration.noise_refit``: what the depth errors cost, and what the rest does.
+     and without ``registration.stereo_reprojection``: what the depth errors cost, and what the rest does.
 4. ``orb``: ORB-SLAM3 stereo (../shared/peers/orbslam3/run_orb_stereo.py, its own venv) and rgbdslam's
    ``kitti`` preset on the same pairs in the same run, interleaved for ``--orb-rounds`` rounds: KITTI 06 0-50
    and the synthetic highway (``rgbdslam synth --stereo 0.54 --motion highway --size 1241 376 -n 51 --noise``,
@@ -451,8 +451,8 @@ def main() -> None:
     ap.add_argument("--oracle-modes", default="exact,kinect,disp0.12,stereo",
                     help="oracle part (needs the synthetic part's RGB-D runs in --work): depth at the stereo key "
                          "points replaced by exact / kinect / dispS (exact disparity + S px noise) / stereo "
-                         "(unchanged), each run with and without registration.noise_refit")
-    ap.add_argument("--oracle-refit", default="true,false", help="oracle part: registration.noise_refit values to run")
+                         "(unchanged), each run with and without registration.stereo_reprojection")
+    ap.add_argument("--oracle-refit", default="true,false", help="oracle part: registration.stereo_reprojection values to run")
     ap.add_argument("--tag", default="", help="suffix of the synthetic part's stereo run folders (to keep variants)")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_stereo_"))
@@ -521,7 +521,7 @@ def main() -> None:
                 rgbd = json.loads((work / f"run_{motion}_{seed}_rgbd" / "evaluation.json").read_text())["ate"]["rmse"]
                 for mode in args.oracle_modes.split(","):
                     for refit in args.oracle_refit.split(","):
-                        sets = [*args.sets, f"registration.noise_refit={refit}"]
+                        sets = [*args.sets, f"registration.stereo_reprojection={refit}"]
                         seq = with_oracle_depth(open_sequence(st, load_config(None, sets)), motion, seed, mode)
                         b = run(seq, None, sets, work / f"oracle_{motion}_{seed}_{mode}_{refit}{args.tag}")
                         row = {"motion": motion, "seed": seed, "mode": mode, "refit": refit == "true",

@@ -208,6 +208,11 @@ RETIRED = {
                           'the map pose for every disagreement was removed (docs/landmarks.md "Far points")')
        for k in ("consistency_window", "loop_refine_scaled")},
     "loop.query": _no_gain('docs/speed.md "Work that decides nothing"'),
+    # the 3-D stereo refit of the whole pose: its translations ~1-2 % short on exact depth (wrong matches at the
+    # kitti preset's disparity noise); the rotation comes from the reprojection refit, the translation from inliers
+    **{f"registration.{k}": ('stereo poses are refit by registration.stereo_reprojection (rotation from the far '
+                             'points, translation from the near inliers); docs/stereo.md "Far and near points"')
+       for k in ("noise_refit", "noise_refit_all")},
     # the windowed local BA at keyframes: worse than none on the fast synthetic motions (docs/landmarks.md)
     **{f"landmarks.{k}": _no_gain('docs/landmarks.md "Local BA, removed"') for k in (
         "local_ba", "ba_window", "ba_iterations", "ba_solver", "ba_max_landmarks", "ba_baseline", "ba_huber",

@@ -93,19 +93,14 @@ class RegistrationConfig:
         "force; docs/frontend.md)")] = 0.05
     predicted_min_inliers: Annotated[int, Range(3, 10**9,
         "inliers the guided match needs before falling back to brute force")] = 60
-    noise_refit: Annotated[bool, Key(
-        "after fusion (frames with a depth noise model, i.e. stereo): Gauss-Newton refit on the kept inlier pairs "
-        "weighted by their covariances (geometry.mahalanobis; docs/stereo.md). Off by default: on a short indoor "
-        "baseline (synthetic 0.12 m) it costs accuracy (circle 1.5-2.0x RGB-D with it, 0.4-1.1x without); the kitti "
-        "preset turns it on (far points: ATE 0.29 m without it)")] = False
-    noise_refit_all: Annotated[bool, Key("refit on every descriptor match (robust kernel), not only the inliers")] = True
-    noise_refit_huber: Annotated[float, Positive(100.0, "Huber threshold of the refit (Mahalanobis distance, sigmas)")] = 3.0
+    noise_refit_huber: Annotated[float, Positive(100.0,
+        "Huber threshold of the stereo fits on 3-D pairs weighted by their covariances (Mahalanobis distance, sigmas)")] = 3.0
     stereo_reprojection: Annotated[bool, Key(
-        "after the fused pose (and the noise refit) of a stereo frame, and after the stereo fallback's pose: motion-only "
-        "Gauss-Newton on the stereo reprojection residuals (u, v, disparity) of every key point of the kept references "
-        "(the fallback: all references) matched by descriptor, "
-        "key points without a disparity as (u, v) only; sigma per ORB octave and the pair's disparity noise, chi-square "
-        "re-gating in rounds (geometry/stereo_pose.py, docs/stereo_measured.md)")] = False
+        "stereo frames: far points fix the rotation, near points the translation. The fused pose is refit on the stereo "
+        "reprojection residuals (u, v, disparity; key points without a disparity as (u, v)) of every key point of the "
+        "newest kept reference matched by descriptor (the fallback: of all references), its rotation kept and its "
+        "translation re-solved from the registration's inlier pairs in 3-D weighted by their stereo covariances "
+        "(geometry/stereo_pose.py, geometry/mahalanobis.py; docs/stereo.md)")] = False
     stereo_fallback: Annotated[bool, Key(
         "a stereo frame whose registration fails is not lost: constant-velocity pose, its rotation refit on the "
         "bearings of the newest reference's descriptor matches, then a near + far refit if enough pairs agree")] = False

@@ -195,10 +195,8 @@ class Frontend:
                 or self._lost(frame, feats, timings, n_matches, len(ok))
         kept = [res for (_, res), k in zip(ok, keep) if k]
         kept_pairs = [(r, res) for (r, res), k in zip(ok, keep) if k]
-        if rc.noise_refit and feats.depth_noise is not None:
-            pose = self._noise_refit(pose, kept_pairs, feats)
         if rc.stereo_reprojection and feats.depth_noise is not None:
-            pose = self._stereo_refine(pose, [r for r, _ in kept_pairs], feats, pred)
+            pose = self._stereo_pose(pose, kept_pairs, feats, pred)
         info = sum(res.information for res in kept)
         last = self.refs[-1]
         relative = inv(last.pose) @ pose
@@ -267,18 +265,30 @@ class Frontend:
         self.n_newest_guided += 1
         return res
 
-    def _noise_refit(self, pose: np.ndarray, pairs: list, feats: FrameFeatures) -> np.ndarray:
-        """Gauss-Newton refit of the current pose on the descriptor matches (``noise_refit_all``)
-        or inlier pairs of all kept references, each pair weighted by the inverse of its two
-        points' covariances from the depth noise model (stereo: long along the viewing ray,
-        ``DepthNoise.covariance``), robust (Huber). The fused pose is kept when the refit moves
-        it further than the candidate gates (docs/stereo.md)."""
-        from rgbdslam.geometry.mahalanobis import refine_pose_mahalanobis
+    def _stereo_pose(self, pose: np.ndarray, kept_pairs: list, feats: FrameFeatures, pred: np.ndarray) -> np.ndarray:
+        """``registration.stereo_reprojection`` on a registered stereo frame: far points fix the rotation, near
+        points the translation. The rotation is the refit on stereo reprojection residuals against the newest
+        kept reference (:meth:`_stereo_refine`: bearings of every matched key point, with or without a
+        disparity); the translation is then re-solved with that rotation held, from the kept references'
+        registration inlier pairs in 3-D weighted by their stereo covariances (:meth:`_stereo_translation`),
+        where a far point's long depth error weighs little and a near point's depth decides."""
+        refit = self._stereo_refine(pose, [r for r, _ in kept_pairs[:1]], feats, pred)
+        if refit is pose:
+            return pose
+        return self._stereo_translation(refit, kept_pairs, feats)
+
+    def _stereo_translation(self, pose: np.ndarray, kept_pairs: list, feats: FrameFeatures) -> np.ndarray:
+        """The translation of ``pose`` re-solved with its rotation held (:func:`solve_translation_mahalanobis`,
+        Huber at ``noise_refit_huber``) from the inlier pairs of the kept references: current points ``C`` and
+        their world partners ``W`` with their covariances from the depth noise model (``DepthNoise.covariance``:
+        long along the viewing ray). Kept within ``max_jump_translation`` of ``pose`` and with at least
+        ``min_points`` pairs agreeing; else ``pose``."""
+        from rgbdslam.geometry.mahalanobis import solve_translation_mahalanobis
 
         rc = self.rc
         W, C, SW, SC = [], [], [], []
-        for r, res in pairs:
-            m = res.matches if rc.noise_refit_all and res.matches is not None else res.pairs
+        for r, res in kept_pairs:
+            m = res.pairs
             P = r.features.pts[m[:, 0]]
             R = r.pose[:3, :3]
             W.append(transform_points(r.pose, P))
@@ -286,14 +296,14 @@ class Frontend:
             c = feats.pts[m[:, 1]]
             C.append(c)
             SC.append(feats.depth_noise.covariance(c))
-        W, C, SW, SC = (np.concatenate(x) for x in (W, C, SW, SC))
-        if len(W) < max(3, rc.min_points):
+        C, SC, W, SW = (np.concatenate(x) for x in (C, SC, W, SW))
+        need = max(3, rc.min_points)
+        if len(C) < need:
             return pose
-        refined, _, _ = refine_pose_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
-        d = inv(pose) @ refined
-        if np.linalg.norm(d[:3, 3]) > rc.reject_translation or rotation_angle(d[:3, :3]) > rc.reject_rotation:
+        out, inl = solve_translation_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
+        if inl.sum() < need or np.linalg.norm(out[:3, 3] - pose[:3, 3]) > rc.max_jump_translation:
             return pose
-        return refined
+        return out
 
     def _stereo_refine(self, pose: np.ndarray, refs: list, feats: FrameFeatures, pred: np.ndarray) -> np.ndarray:
         """``registration.stereo_reprojection``: the pose refit on stereo reprojection residuals

@@ -62,6 +62,42 @@ def refine_pose_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarray, W: 
     return X, H, m <= 2.0 * huber
 
 
+def solve_translation_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarray, W: np.ndarray,
+                                  cov_w: np.ndarray, iterations: int = 8, huber: float = 3.0
+                                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The translation of the pose ``X`` (4x4 camera-to-world) re-solved from the pairs (C (N,3) camera,
+    W (N,3) world; covariances cov_c camera frame, cov_w world frame) with its rotation ``R`` held: the
+    minimiser of ``sum_i rho(r_i^T I_i r_i)``, ``r_i = R c_i + t - w_i``, ``I_i = (R S_c,i R^T + S_w,i)^-1``,
+    is the weighted mean ``t = (sum w_i I_i)^-1 sum w_i I_i (w_i - R c_i)`` (exact for fixed weights), iterated
+    with Huber weights ``w_i`` on the Mahalanobis distance at the current ``t``.
+
+    Returns (X with the new translation, inlier mask: Mahalanobis distance within 2 * ``huber``); ``X``
+    unchanged when there are fewer than 3 pairs."""
+    X = np.array(X, dtype=np.float64)
+    n = len(C)
+    if n < 3:
+        return X, np.zeros(n, bool)
+    R = X[:3, :3]
+    info = np.linalg.inv(R @ cov_c @ R.T + cov_w)  # fixed: depends on R only
+    a = W - C @ R.T  # w_i - R c_i: each pair's own translation
+    t = X[:3, 3]
+    for _ in range(iterations):
+        r = t - a
+        m = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, info, r), 0.0))
+        wI = info * np.where(m <= huber, 1.0, huber / np.maximum(m, 1e-12))[:, None, None]
+        try:
+            t_new = np.linalg.solve(wI.sum(axis=0), np.einsum("nij,nj->i", wI, a))
+        except np.linalg.LinAlgError:
+            break
+        done = np.linalg.norm(t_new - t) < 1e-7
+        t = t_new
+        if done:
+            break
+    X[:3, 3] = t
+    r = t - a
+    return X, np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, info, r), 0.0)) <= 2.0 * huber
+
+
 def project_jacobian(q: np.ndarray, fx: float, fy: float) -> np.ndarray:
     """(N, 2, 3) Jacobians of the pinhole projection ``(fx x/z + cx, fy y/z + cy)`` at camera points ``q``."""
     x, y, z = q[:, 0], q[:, 1], q[:, 2]
