@@ -210,8 +210,9 @@ RETIRED = {
     "loop.query": _no_gain('docs/speed.md "Work that decides nothing"'),
     # the 3-D stereo refit of the whole pose: its translations ~1-2 % short on exact depth (wrong matches at the
     # kitti preset's disparity noise); the rotation comes from the reprojection refit, the translation from inliers
-    **{f"registration.{k}": ('stereo poses are refit by registration.stereo_reprojection (rotation from the far '
-                             'points, translation from the near inliers); docs/stereo.md "Far and near points"')
+    **{f"registration.{k}": ('stereo poses are refit by registration.stereo_reprojection: rotation from the far '
+                             'points, translation from the near inliers (docs/stereo.md "Far points turn, near '
+                             'points move")')
        for k in ("noise_refit", "noise_refit_all")},
     # the windowed local BA at keyframes: worse than none on the fast synthetic motions (docs/landmarks.md)
     **{f"landmarks.{k}": _no_gain('docs/landmarks.md "Local BA, removed"') for k in (
