@@ -555,7 +555,7 @@ def print_markdown(r: dict) -> None:
     if r["synthetic"]:
         print_synthetic(r["synthetic"])
     if r.get("oracle"):
-        print("\n| sequence | depth at the stereo key points | noise refit | ATE (m) | RGB-D ATE (m) | ratio | lost |")
+        print("\n| sequence | depth at the stereo key points | stereo refit | ATE (m) | RGB-D ATE (m) | ratio | lost |")
         print("|---|---|---|---|---|---|---|")
         for o in r["oracle"]:
             print(f"| {o['motion']} seed {o['seed']} | {o['mode']} | {'on' if o['refit'] else 'off'} | {o['ate']:.4f} | "

@@ -157,6 +157,8 @@ class StereoSequence(Sequence):
         return left, right
 
     def rectified_pair(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``i``'s pair decoded and rectified (:meth:`load` takes the same way, through
+        :meth:`frame_from_pair`, not through this method)."""
         return self.rectify(*self.read_pair(i))
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

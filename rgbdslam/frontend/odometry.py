@@ -271,23 +271,34 @@ class Frontend:
         kept reference (:meth:`_stereo_refine`: bearings of every matched key point, with or without a
         disparity); the translation is then re-solved with that rotation held, from the kept references'
         registration inlier pairs in 3-D weighted by their stereo covariances (:meth:`_stereo_translation`),
-        where a far point's long depth error weighs little and a near point's depth decides."""
+        where a far point's long depth error weighs little and a near point's depth decides. The translation
+        step runs only on an accepted rotation refit; the result is dropped (``pose`` kept) when it moves further
+        from ``pose`` than the motion limits (``max_jump_*``), as the rotation refit is. Not the tighter candidate
+        gates (``reject_*``): where the registration is off (the highway's few near points) the refit has to move
+        further (highway seeds 0-4 0.04-0.26 m, with those gates 0.21-0.72 m; docs/stereo_measured.md)."""
+        rc = self.rc
         refit = self._stereo_refine(pose, [r for r, _ in kept_pairs[:1]], feats, pred)
         if refit is pose:
             return pose
-        return self._stereo_translation(refit, kept_pairs, feats)
+        out = self._stereo_translation(refit, kept_pairs, feats)
+        d = inv(pose) @ out
+        if np.linalg.norm(d[:3, 3]) > rc.max_jump_translation or \
+                np.degrees(rotation_angle(d[:3, :3])) > rc.max_jump_rotation_deg:
+            return pose
+        return out
 
     def _stereo_translation(self, pose: np.ndarray, kept_pairs: list, feats: FrameFeatures) -> np.ndarray:
         """The translation of ``pose`` re-solved with its rotation held (:func:`solve_translation_mahalanobis`,
         Huber at ``noise_refit_huber``) from the inlier pairs of the kept references: current points ``C`` and
         their world partners ``W`` with their covariances from the depth noise model (``DepthNoise.covariance``:
-        long along the viewing ray). Kept within ``max_jump_translation`` of ``pose`` and with at least
-        ``min_points`` pairs agreeing; else ``pose``."""
+        long along the viewing ray). Kept with at least ``min_points`` pairs agreeing; else ``pose``."""
         from rgbdslam.geometry.mahalanobis import solve_translation_mahalanobis
 
         rc = self.rc
         W, C, SW, SC = [], [], [], []
         for r, res in kept_pairs:
+            if r.features.depth_noise is None:
+                continue
             m = res.pairs
             P = r.features.pts[m[:, 0]]
             R = r.pose[:3, :3]
@@ -296,14 +307,12 @@ class Frontend:
             c = feats.pts[m[:, 1]]
             C.append(c)
             SC.append(feats.depth_noise.covariance(c))
-        C, SC, W, SW = (np.concatenate(x) for x in (C, SC, W, SW))
         need = max(3, rc.min_points)
-        if len(C) < need:
+        if sum(len(c) for c in C) < need:
             return pose
+        C, SC, W, SW = (np.concatenate(x) for x in (C, SC, W, SW))
         out, inl = solve_translation_mahalanobis(pose, C, SC, W, SW, huber=rc.noise_refit_huber)
-        if inl.sum() < need or np.linalg.norm(out[:3, 3] - pose[:3, 3]) > rc.max_jump_translation:
-            return pose
-        return out
+        return out if inl.sum() >= need else pose
 
     def _stereo_refine(self, pose: np.ndarray, refs: list, feats: FrameFeatures, pred: np.ndarray) -> np.ndarray:
         """``registration.stereo_reprojection``: the pose refit on stereo reprojection residuals
@@ -348,7 +357,7 @@ class Frontend:
             uv = feats.uv[ib]
             near_any = np.zeros(len(ia), bool)
             for X in (pose, pred):
-                zp, _, _, ahead = stereo_projection(X, w, intr, dn.baseline)
+                zp, _, _, ahead = stereo_projection(X, w, intr, dn.baseline, jacobians=False)
                 near_any |= ahead & (np.linalg.norm(zp[:, :2] - uv, axis=1) <= FALLBACK_GATE_PX)
             zc = feats.depth_raw[ib]
             k = near_any

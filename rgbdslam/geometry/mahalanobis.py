@@ -78,7 +78,10 @@ def solve_translation_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarra
     if n < 3:
         return X, np.zeros(n, bool)
     R = X[:3, :3]
-    info = np.linalg.inv(R @ cov_c @ R.T + cov_w)  # fixed: depends on R only
+    try:
+        info = np.linalg.inv(R @ cov_c @ R.T + cov_w)  # fixed: depends on R only
+    except np.linalg.LinAlgError:  # a degenerate covariance: no translation from these pairs
+        return X, np.zeros(n, bool)
     a = W - C @ R.T  # w_i - R c_i: each pair's own translation
     t = X[:3, 3]
     for _ in range(iterations):

@@ -17,8 +17,10 @@ later stage (registration, loop closure, pose graph, maps, evaluation) runs unch
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -27,6 +29,9 @@ from rgbdslam.frontend.config import FeaturesConfig
 from rgbdslam.errors import ConfigError
 from rgbdslam.geometry.stereo import DepthNoise, StereoRig, midpoint_triangulate
 from rgbdslam.stereo.config import StereoConfig
+
+if TYPE_CHECKING:
+    from rgbdslam.frontend.features import Detections
 
 
 def to_gray(img: np.ndarray) -> np.ndarray:
@@ -215,9 +220,11 @@ def right_key_points(right: np.ndarray, fc: FeaturesConfig, sc: StereoConfig) ->
 
 _RIGHT_POOL: list = []
 _RIGHT_POOL_LOCK = threading.Lock()
+os.register_at_fork(after_in_child=_RIGHT_POOL.clear)  # a forked child has none of the pool's threads
 
 
-def detect_pair(left: np.ndarray, right: np.ndarray, fc: FeaturesConfig, sc: StereoConfig):
+def detect_pair(left: np.ndarray, right: np.ndarray, fc: FeaturesConfig, sc: StereoConfig
+                ) -> tuple[Detections, tuple[np.ndarray, np.ndarray] | None]:
     """The left image's detections (:func:`rgbdslam.frontend.features.detect`) and the right image's key
     points (:func:`right_key_points`) of one pair, found at once in two threads as ORB-SLAM extracts a
     pair's two images (OpenCV's ORB releases the GIL; each thread has its own ORB object). The same
