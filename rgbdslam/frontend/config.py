@@ -98,8 +98,9 @@ class RegistrationConfig:
     stereo_reprojection: Annotated[bool, Key(
         "stereo frames: far points fix the rotation, near points the translation. The fused pose is refit on the stereo "
         "reprojection residuals (u, v, disparity; key points without a disparity as (u, v)) of every key point of the "
-        "newest kept reference matched by descriptor (the fallback: of all references), its rotation kept and its "
-        "translation re-solved from the registration's inlier pairs in 3-D weighted by their stereo covariances "
+        "newest kept reference matched by descriptor, its rotation kept and its translation re-solved from the "
+        "registration's inlier pairs in 3-D weighted by their stereo covariances (the fallback's pose: the refit "
+        "alone, on all references) "
         "(geometry/stereo_pose.py, geometry/mahalanobis.py; docs/stereo.md)")] = False
     stereo_fallback: Annotated[bool, Key(
         "a stereo frame whose registration fails is not lost: constant-velocity pose, its rotation refit on the "
