@@ -6,6 +6,8 @@ a trajectory before its first frame, and ``scipy.spatial`` costs 0.3-0.7 s to im
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -17,6 +19,15 @@ def skew_batch(p: np.ndarray) -> np.ndarray:
     S[:, 1, 0], S[:, 1, 2] = p[:, 2], -p[:, 0]
     S[:, 2, 0], S[:, 2, 1] = -p[:, 1], p[:, 0]
     return S
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: the rotation matrix of the rotation vector ``w``."""
+    th = math.sqrt(float(w.dot(w)))  # np.linalg.norm's own sqrt(w·w), without its dispatch
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
 
 
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -23,9 +23,9 @@ rounds, plain least squares after.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from rgbdslam.geometry.se3 import skew_batch
+from rgbdslam.geometry.se3 import skew_batch, so3_exp
+from rgbdslam.geometry.whitening import whitening as whitening_of
 
 CHI2_STEREO = 7.815  # chi-square 95 %, 3 dof: (u, v, d)
 CHI2_MONO = 5.991  # chi-square 95 %, 2 dof: (u, v)
@@ -92,7 +92,7 @@ def refine_pose_stereo(X: np.ndarray, W: np.ndarray, cov_w: np.ndarray, obs: np.
         z, _, Jw, ahead = stereo_projection(X, W, intrinsics, baseline)
         S = S_meas + Jw @ cov_w @ Jw.transpose(0, 2, 1)
         S[~has_d, 2, :2] = S[~has_d, :2, 2] = 0.0  # the d row without a disparity: any, it is zeroed below
-        Lt = np.linalg.cholesky(np.linalg.inv(S)).transpose(0, 2, 1)
+        Lt = whitening_of(S)  # cholesky(inv(S))ᵀ to rounding, in closed form
         Lt[~has_d, 2] = 0.0
         Lt[~has_d, :2, 2] = 0.0
         r = z - obs
@@ -128,7 +128,7 @@ def refine_pose_stereo(X: np.ndarray, W: np.ndarray, cov_w: np.ndarray, obs: np.
             except np.linalg.LinAlgError:
                 return X, H, inl
             dX = np.eye(4)
-            dX[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+            dX[:3, :3] = so3_exp(xi[:3])
             dX[:3, 3] = xi[3:]
             X = dX @ X
             if np.linalg.norm(xi) < STEP_TOL:

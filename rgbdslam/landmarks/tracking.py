@@ -25,7 +25,8 @@ from rgbdslam.frontend.matching import pair_hamming
 from rgbdslam.frontend.registration.base import fit_information
 from rgbdslam.geometry.ransac import ransac_rigid, seeded_rigid
 from rgbdslam.geometry.rigid import fit_rigid, row_norms
-from rgbdslam.geometry.se3 import inv
+from rgbdslam.geometry.se3 import inv, so3_exp
+from rgbdslam.geometry.whitening import whitening_rows
 
 
 @dataclass
@@ -211,41 +212,6 @@ def map_pose(lmap, feats, match: MapMatch, pred: np.ndarray, cfg, camera, rng: n
                          cfg.landmark_cov == "full", cfg.adaptive_noise, refine_iterations=cfg.refine_iterations)
 
 
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: the rotation matrix of the rotation vector ``w``."""
-    th = math.sqrt(float(w.dot(w)))  # np.linalg.norm's own sqrt(w·w), without its dispatch
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
-
-
-def _whitening(a, b, c, d, e, f):
-    """The rows of Lᵀ, L the Cholesky factor of S⁻¹ (S⁻¹ = L Lᵀ), for symmetric positive definite
-    3x3 matrices S = [[a, b, c], [b, d, e], [c, e, f]] given as arrays of their entries: the
-    adjugate inverse, then the 3x3 Cholesky recurrences (``cholesky(inv(S))`` to rounding, without
-    LAPACK's per-matrix calls). Returns (l00, l10, l20, l11, l21, l22): Lᵀ = [[l00, l10, l20],
-    [0, l11, l21], [0, 0, l22]]."""
-    A00, A01, A02 = d * f - e * e, c * e - b * f, b * e - c * d
-    A11, A12, A22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A00 + b * A01 + c * A02
-    l00 = np.sqrt(A00 / det)
-    l10, l20 = A01 / det / l00, A02 / det / l00
-    l11 = np.sqrt(A11 / det - l10 * l10)
-    l21 = (A12 / det - l20 * l10) / l11
-    l22 = np.sqrt(A22 / det - l20 * l20 - l21 * l21)
-    return l00, l10, l20, l11, l21, l22
-
-
-def whitening(S: np.ndarray) -> np.ndarray:
-    """Lᵀ (N, 3, 3) with S⁻¹ = L Lᵀ (L lower triangular) for symmetric positive definite ``S`` (N, 3, 3)."""
-    l00, l10, l20, l11, l21, l22 = _whitening(S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2])
-    Lt = np.zeros_like(S)
-    Lt[:, 0, 0], Lt[:, 0, 1], Lt[:, 0, 2] = l00, l10, l20
-    Lt[:, 1, 1], Lt[:, 1, 2], Lt[:, 2, 2] = l11, l21, l22
-    return Lt
-
-
 def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray, z: np.ndarray, camera,
                            sigma_px, sigma_z: np.ndarray, cov_lm: np.ndarray, jacobian: bool = True):
     """Whitened residuals (N, 3) of the measured (u, v, 1/z) against landmarks X (N, 3) seen by the
@@ -257,7 +223,7 @@ def reprojection_residuals(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.n
     covariance ``cov_lm`` (N, 3, 3) carried through the projection, J_p Σ_lm J_pᵀ: the part of its
     uncertainty along the viewing ray goes into the inverse depth, not into the pixels. With an
     isotropic sigma ``cov_lm`` (N,) instead (the earlier model): f·σ/z added to each pixel's sigma,
-    nothing to the inverse depth's. Whitening: Lᵀ with S⁻¹ = L Lᵀ (:func:`_whitening`).
+    nothing to the inverse depth's. Whitening: Lᵀ with S⁻¹ = L Lᵀ (:func:`rgbdslam.geometry.whitening.whitening_rows`).
     ``jacobian`` False: the residuals alone (the same numbers), the Jacobians None (the inlier gates).
     The work is :class:`Reprojection`'s (the measured side prepared once, for a refine's iterations).
     """
@@ -325,7 +291,7 @@ class Reprojection:
             S00 = S11 = (fx * self.cov * a) ** 2
             S01 = S02 = S12 = S22 = np.zeros(n)
         s_px2 = self.s_px2
-        l00, l10, l20, l11, l21, l22 = _whitening(S00 + s_px2, S01, S02, S11 + s_px2, S12, S22 + self.s_z2)
+        l00, l10, l20, l11, l21, l22 = whitening_rows(S00 + s_px2, S01, S02, S11 + s_px2, S12, S22 + self.s_z2)
         r = np.empty((n, 3))
         add, mul = np.add, np.multiply
         add(l00 * r0 + l10 * r1, l20 * r2, out=r[:, 0])
@@ -392,7 +358,7 @@ def gauss_newton(pose: np.ndarray, reproj: Reprojection, iterations: int = 5,
             xi = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             break
-        dR = _so3_exp(xi[:3])
+        dR = so3_exp(xi[:3])
         R, t = dR @ R, dR @ t + xi[3:]
         if math.sqrt(float(xi.dot(xi))) < 1e-8:
             break

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from rgbdslam.geometry.se3 import inv
-from rgbdslam.landmarks.tracking import _UPPER, Reprojection, _whitening, match_to_map, project_candidates
+from rgbdslam.geometry.whitening import whitening_rows
+from rgbdslam.landmarks.tracking import _UPPER, Reprojection, match_to_map, project_candidates
 from tests.landmarks.scenes import pose as near
 
 
@@ -45,7 +46,7 @@ def _reprojection_residuals_before(R, t, X, uv, z, camera, sigma_px, sigma_z, co
         S00 = S11 = (fx * np.broadcast_to(cov_lm, (n,)) * a) ** 2
         S01 = S02 = S12 = S22 = np.zeros(n)
     s_px2 = np.asarray(sigma_px, float) ** 2
-    l00, l10, l20, l11, l21, l22 = _whitening(S00 + s_px2, S01, S02, S11 + s_px2, S12,
+    l00, l10, l20, l11, l21, l22 = whitening_rows(S00 + s_px2, S01, S02, S11 + s_px2, S12,
                                               S22 + (sigma_z / (z * z)) ** 2)
     r = np.empty((n, 3))
     r[:, 0] = l00 * r0 + l10 * r1 + l20 * r2

@@ -132,7 +132,7 @@ def test_whitened_residuals_match_the_dense_model_and_their_jacobian_the_finite_
     (the whitening held at the linearisation point, as Gauss–Newton uses it)."""
     from scipy.spatial.transform import Rotation
 
-    from rgbdslam.landmarks.tracking import whitening
+    from rgbdslam.geometry.whitening import whitening
 
     rng = np.random.default_rng(5)
     n = 40
