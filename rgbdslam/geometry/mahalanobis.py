@@ -68,8 +68,8 @@ def solve_translation_mahalanobis(X: np.ndarray, C: np.ndarray, cov_c: np.ndarra
     """The translation of the pose ``X`` (4x4 camera-to-world) re-solved from the pairs (C (N,3) camera,
     W (N,3) world; covariances cov_c camera frame, cov_w world frame) with its rotation ``R`` held: the
     minimiser of ``sum_i rho(r_i^T I_i r_i)``, ``r_i = R c_i + t - w_i``, ``I_i = (R S_c,i R^T + S_w,i)^-1``,
-    is the weighted mean ``t = (sum w_i I_i)^-1 sum w_i I_i (w_i - R c_i)`` (exact for fixed weights), iterated
-    with Huber weights ``w_i`` on the Mahalanobis distance at the current ``t``.
+    is the weighted mean ``t = (sum h_i I_i)^-1 sum h_i I_i (w_i - R c_i)`` (exact for fixed weights), iterated
+    with Huber weights ``h_i`` on the Mahalanobis distance at the current ``t``.
 
     Returns (X with the new translation, inlier mask: Mahalanobis distance within 2 * ``huber``); ``X``
     unchanged when there are fewer than 3 pairs."""
