@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from rgbdslam.geometry.se3 import skew_batch, so3_exp
-from rgbdslam.geometry.whitening import whitening as whitening_of
+from rgbdslam.geometry.whitening import whitening
 
 CHI2_STEREO = 7.815  # chi-square 95 %, 3 dof: (u, v, d)
 CHI2_MONO = 5.991  # chi-square 95 %, 2 dof: (u, v)
@@ -87,12 +87,12 @@ def refine_pose_stereo(X: np.ndarray, W: np.ndarray, cov_w: np.ndarray, obs: np.
     if n < 3:
         return X, H, np.zeros(n, bool)
 
-    def whitening(X):
+    def weighting(X):
         """(N,3,3) L^T with L L^T = the residual's information (the d row zero without a disparity), chi2 (N,)."""
         z, _, Jw, ahead = stereo_projection(X, W, intrinsics, baseline)
         S = S_meas + Jw @ cov_w @ Jw.transpose(0, 2, 1)
         S[~has_d, 2, :2] = S[~has_d, :2, 2] = 0.0  # the d row without a disparity: any, it is zeroed below
-        Lt = whitening_of(S)  # cholesky(inv(S))ᵀ to rounding, in closed form
+        Lt = whitening(S)  # cholesky(inv(S))ᵀ to rounding, in closed form
         Lt[~has_d, 2] = 0.0
         Lt[~has_d, :2, 2] = 0.0
         r = z - obs
@@ -103,7 +103,7 @@ def refine_pose_stereo(X: np.ndarray, W: np.ndarray, cov_w: np.ndarray, obs: np.
 
     for k in range(rounds):
         # the weighting (each residual's covariance) is fixed per round, at the round's first pose
-        Lt, chi2 = whitening(X)
+        Lt, chi2 = weighting(X)
         for _ in range(iterations):
             z, J, _, ahead = stereo_projection(X, W, intrinsics, baseline)
             r = z - obs
@@ -133,6 +133,6 @@ def refine_pose_stereo(X: np.ndarray, W: np.ndarray, cov_w: np.ndarray, obs: np.
             X = dX @ X
             if np.linalg.norm(xi) < STEP_TOL:
                 break
-        _, chi2 = whitening(X)
+        _, chi2 = weighting(X)
         inl = chi2 <= gate
     return X, H, inl

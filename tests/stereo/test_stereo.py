@@ -66,7 +66,7 @@ def test_midpoint_triangulation_exact():
 def test_mahalanobis_refit_recovers_pose_and_beats_least_squares():
     from scipy.spatial.transform import Rotation
 
-    from rgbdslam.geometry.mahalanobis import refine_pose_mahalanobis
+    from rgbdslam.geometry.mahalanobis import refine_pose_near_far
     from rgbdslam.geometry.rigid import fit_rigid
     from rgbdslam.geometry.se3 import make_pose
 
@@ -78,14 +78,19 @@ def test_mahalanobis_refit_recovers_pose_and_beats_least_squares():
     cov = noise.covariance(C)
     tiny = np.broadcast_to(np.eye(3) * 1e-8, cov.shape)
     start = make_pose(np.eye(3), np.array([0.0, 0.0, 1.0]))
-    refined, H, inl = refine_pose_mahalanobis(start, C, cov, W, tiny)
+    near = np.zeros(len(C), bool), np.zeros((len(C), 2)), (700.0, 700.0, 600.0, 180.0), 1.0  # every pair near (3-D)
+
+    def fit_3d(X0, C, cov, W, cov_w):
+        return refine_pose_near_far(X0, C, cov, W, cov_w, *near)
+
+    refined, H, inl = fit_3d(start, C, cov, W, tiny)
     assert np.allclose(refined, X, atol=1e-6)  # noise-free: exact
     assert inl.all() and np.linalg.matrix_rank(H) == 6
     # stereo noise on the current points (long along the rays): the covariance-weighted fit is
     # closer to the truth than the plain least-squares fit
     Cn = C + np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.standard_normal(C.shape))
     plain = fit_rigid(Cn, W)
-    weighted, _, _ = refine_pose_mahalanobis(start, Cn, cov, W, tiny)
+    weighted, _, _ = fit_3d(start, Cn, cov, W, tiny)
     err = lambda T: np.linalg.norm(T[:3, 3] - X[:3, 3])  # noqa: E731
     assert err(weighted) < 0.5 * err(plain), (err(weighted), err(plain))
 
